@@ -1,0 +1,128 @@
+//! Plain particle data shared by the renderer, the CPU reference, the path tracer and scene files.
+//!
+//! Nothing here depends on the engine: the same types feed the GPU buffers (they are `Pod`) and
+//! the f64 reference implementations. Units and meaning follow `PHYSICS.md`.
+
+use bevy::math::Vec3;
+use serde::{Deserialize, Serialize};
+
+/// One particle of a participating medium.
+///
+/// Its density field is `density * k(|x - position| / radius)` with the kernel
+/// `k(u) = (1 - u²)²` for `u < 1` and `0` beyond (PHYSICS.md).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Particle {
+    /// Centre in cloud-local space, metres.
+    pub position: Vec3,
+    /// Radius of the kernel's support, metres; must be finite and `> 0`.
+    pub radius: f32,
+    /// Dimensionless density `eta >= 0` (extinction per metre at the centre is `extinction * density`).
+    pub density: f32,
+}
+
+/// The optical properties of a cloud's medium (PHYSICS.md, "Medium").
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Medium {
+    /// Extinction per world metre at density 1 (`K`, 1/m); finite and `>= 0`.
+    pub extinction: f32,
+    /// Single-scattering albedo `omega` in `[0, 1]`: the fraction of extinction that scatters.
+    pub albedo: f32,
+}
+
+impl Default for Medium {
+    /// A bright cumulus-like medium: 10 /m at density 1, albedo 0.99.
+    fn default() -> Self {
+        Self { extinction: 10.0, albedo: 0.99 }
+    }
+}
+
+/// Why a particle or a medium is unusable. Every variant names the field, its value and what is allowed.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum InvalidMedium {
+    #[error("particle {index}: `position` is {value:?}; every coordinate must be finite")]
+    Position { index: usize, value: Vec3 },
+    #[error("particle {index}: `radius` is {value}; it must be finite and > 0")]
+    Radius { index: usize, value: f32 },
+    #[error("particle {index}: `density` is {value}; it must be finite and >= 0")]
+    Density { index: usize, value: f32 },
+    #[error("`extinction` is {0}; it must be finite and >= 0")]
+    Extinction(f32),
+    #[error("`albedo` is {0}; it must lie in [0, 1]")]
+    Albedo(f32),
+}
+
+impl Particle {
+    /// Checks the particle against PHYSICS.md; `index` is only used in the error message.
+    pub fn validate(&self, index: usize) -> Result<(), InvalidMedium> {
+        if !self.position.is_finite() {
+            return Err(InvalidMedium::Position { index, value: self.position });
+        }
+        if !(self.radius.is_finite() && self.radius > 0.0) {
+            return Err(InvalidMedium::Radius { index, value: self.radius });
+        }
+        if !(self.density.is_finite() && self.density >= 0.0) {
+            return Err(InvalidMedium::Density { index, value: self.density });
+        }
+        Ok(())
+    }
+
+    /// Mass of the particle: the integral of its density over space, `eta * r³ * 32π/105` (m³).
+    pub fn mass(&self) -> f64 {
+        KERNEL_VOLUME * self.density as f64 * (self.radius as f64).powi(3)
+    }
+}
+
+/// Integral of the kernel `k(|x|)` over the unit ball: `4π ∫ (1-u²)² u² du = 32π/105`.
+pub const KERNEL_VOLUME: f64 = 32.0 * std::f64::consts::PI / 105.0;
+
+/// The density kernel `k(u) = (1 - u²)²` for `u < 1`, `0` otherwise, of the squared argument `u²`.
+#[inline]
+pub fn kernel_u2(u2: f64) -> f64 {
+    if u2 < 1.0 {
+        let a = 1.0 - u2;
+        a * a
+    } else {
+        0.0
+    }
+}
+
+/// Optical depth of one particle along a line passing at distance `b` from its centre
+/// (PHYSICS.md): `K * eta * r * 16/15 * (1 - b²/r²)^(5/2)` for `b < r`.
+#[inline]
+pub fn particle_optical_depth(extinction: f64, density: f64, radius: f64, b: f64) -> f64 {
+    let q = 1.0 - (b * b) / (radius * radius);
+    if q <= 0.0 {
+        return 0.0;
+    }
+    extinction * density * radius * (16.0 / 15.0) * q * q * q.sqrt()
+}
+
+impl Medium {
+    /// Checks the medium against PHYSICS.md.
+    pub fn validate(&self) -> Result<(), InvalidMedium> {
+        if !(self.extinction.is_finite() && self.extinction >= 0.0) {
+            return Err(InvalidMedium::Extinction(self.extinction));
+        }
+        if !(0.0..=1.0).contains(&self.albedo) {
+            return Err(InvalidMedium::Albedo(self.albedo));
+        }
+        Ok(())
+    }
+}
+
+/// Validates a whole cloud: the medium first, then every particle.
+pub fn validate_cloud(medium: &Medium, particles: &[Particle]) -> Result<(), InvalidMedium> {
+    medium.validate()?;
+    particles.iter().enumerate().try_for_each(|(i, p)| p.validate(i))
+}
+
+/// A directional light as the physics sees it (PHYSICS.md, "Lights").
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LightSample {
+    /// Direction in which the light travels, world space; need not be unit length, must not be zero.
+    pub direction: Vec3,
+    /// Linear RGB irradiance `E` perpendicular to the direction.
+    pub irradiance: Vec3,
+}
