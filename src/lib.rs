@@ -1,1 +1,86 @@
-pub fn placeholder() {}
+//! # bevy_particle_clouds
+//!
+//! Participating media — clouds, smoke, fog, snow — made of particles, rendered by Bevy on the GPU:
+//! lit by any number of directional lights, self-shadowed, with isotropic multiple scattering.
+//! It follows Remes, Umenhoffer and Szécsi, *GPU based particle rendering system for isotropic
+//! participating media*: per cloud the particles' density is voxelized, each light shades a
+//! light-aligned volume slice by slice, the lights are gathered into one illumination volume,
+//! multiple scattering iterates a 26-neighbour stencil, and the particles are drawn as sorted,
+//! camera-facing billboards in the `Transparent3d` phase.
+//!
+//! ```no_run
+//! use bevy::prelude::*;
+//! use bevy_particle_clouds::prelude::*;
+//!
+//! fn setup(mut commands: Commands, mut particles: ResMut<Assets<Particles>>) {
+//!     let cumulus = particles.add(generators::cumulus(1.5, 400, 7));
+//!     commands.spawn((ParticleCloud::new(cumulus), Transform::from_xyz(0.0, 2.0, 0.0)));
+//!     commands.spawn((
+//!         DirectionalLight { illuminance: 10_000.0, ..default() },
+//!         Transform::from_xyz(1.0, 1.0, 0.5).looking_at(Vec3::ZERO, Vec3::Y),
+//!     ));
+//!     commands.spawn((Camera3d::default(), Transform::from_xyz(0.0, 2.0, 8.0)));
+//! }
+//!
+//! App::new()
+//!     .add_plugins((DefaultPlugins, ParticleCloudsPlugin))
+//!     .add_systems(Startup, setup)
+//!     .run();
+//! ```
+//!
+//! Units and the physical model: `PHYSICS.md`; the discretization: `docs/illumination.md`.
+
+pub mod cloud;
+pub mod generators;
+pub mod image_io;
+pub mod loader;
+pub mod particle;
+pub mod particle_files;
+pub mod reference;
+pub mod render;
+pub mod scene;
+pub mod settings;
+pub mod stats;
+
+use bevy::prelude::*;
+
+pub use cloud::{NotCloudLight, ParticleCloud, Particles};
+pub use particle::{LightSample, Medium, Particle};
+pub use settings::{CloudQualitySettings, DefaultCloudQuality, ScatterStencil};
+pub use stats::{CloudPass, CloudPassCounters};
+
+/// Everything a Bevy user needs.
+pub mod prelude {
+    pub use crate::{
+        generators, CloudQualitySettings, DefaultCloudQuality, Medium, NotCloudLight, Particle,
+        ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil,
+    };
+}
+
+/// Renders every [`ParticleCloud`]. Add it after `DefaultPlugins`.
+///
+/// Without clouds it adds no GPU work: every pass is skipped while no cloud exists.
+#[derive(Default)]
+pub struct ParticleCloudsPlugin;
+
+impl Plugin for ParticleCloudsPlugin {
+    fn build(&self, app: &mut App) {
+        app.init_asset::<Particles>()
+            .init_asset_loader::<loader::ParticlesLoader>()
+            .register_type::<ParticleCloud>()
+            .register_type::<NotCloudLight>()
+            .register_type::<CloudQualitySettings>()
+            .register_type::<DefaultCloudQuality>()
+            .init_resource::<DefaultCloudQuality>()
+            .init_resource::<CloudPassCounters>()
+            .add_systems(
+                PostUpdate,
+                cloud::update_cloud_aabbs.before(bevy::camera::visibility::VisibilitySystems::CheckVisibility),
+            );
+        render::build(app);
+    }
+
+    fn finish(&self, app: &mut App) {
+        render::finish(app);
+    }
+}

@@ -1,0 +1,118 @@
+//! The user-facing components and the [`Particles`] asset.
+
+use bevy::{
+    asset::Asset,
+    camera::{primitives::Aabb, visibility::{add_visibility_class, VisibilityClass}},
+    prelude::*,
+};
+
+use crate::particle::{InvalidMedium, Medium, Particle};
+
+/// A set of particles: the shape and density of a cloud, in cloud-local metres.
+///
+/// Shared between clouds through its handle; uploaded to the GPU once per change.
+#[derive(Asset, TypePath, Clone, Debug, Default, PartialEq)]
+pub struct Particles {
+    pub particles: Vec<Particle>,
+}
+
+impl Particles {
+    pub fn new(particles: Vec<Particle>) -> Self {
+        Self { particles }
+    }
+
+    /// Local bounds `(min, max)` of the particles' supports (centre ± radius) that carry density,
+    /// or `None` when no particle does.
+    pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
+        self.particles
+            .iter()
+            .filter(|p| p.density > 0.0)
+            .map(|p| (p.position - p.radius, p.position + p.radius))
+            .reduce(|(lo, hi), (a, b)| (lo.min(a), hi.max(b)))
+    }
+
+    /// Checks every particle (PHYSICS.md ranges).
+    pub fn validate(&self) -> Result<(), InvalidMedium> {
+        self.particles.iter().enumerate().try_for_each(|(i, p)| p.validate(i))
+    }
+}
+
+/// A participating medium made of particles: a cloud, smoke, fog, snow.
+///
+/// Lit by every [`DirectionalLight`] (without [`NotCloudLight`]), self-shadowed, with isotropic
+/// multiple scattering. Quality knobs: [`CloudQualitySettings`](crate::CloudQualitySettings) on the
+/// same entity, else the [`DefaultCloudQuality`](crate::DefaultCloudQuality) resource.
+///
+/// The [`Transform`] may rotate, translate and scale uniformly (a non-uniform scale uses its
+/// largest factor).
+#[derive(Component, Clone, Debug, Reflect)]
+#[reflect(Component, Default, Debug)]
+#[require(Transform, Visibility, VisibilityClass)]
+#[component(on_add = add_visibility_class::<ParticleCloud>)]
+pub struct ParticleCloud {
+    /// The particles, in cloud-local metres.
+    pub particles: Handle<Particles>,
+    /// Extinction per world metre at density 1 (`K`, 1/m), finite and `>= 0`. Default 10.
+    pub extinction: f32,
+    /// Single-scattering albedo in `[0, 1]`. Default 0.99.
+    pub albedo: f32,
+}
+
+impl Default for ParticleCloud {
+    fn default() -> Self {
+        Self::new(Handle::default())
+    }
+}
+
+impl ParticleCloud {
+    /// A cloud of the given particles with the default medium (extinction 10 /m, albedo 0.99).
+    pub fn new(particles: Handle<Particles>) -> Self {
+        let medium = Medium::default();
+        Self { particles, extinction: medium.extinction, albedo: medium.albedo }
+    }
+
+    /// Sets the medium.
+    pub fn with_medium(mut self, medium: Medium) -> Self {
+        self.extinction = medium.extinction;
+        self.albedo = medium.albedo;
+        self
+    }
+
+    /// The medium of this cloud.
+    pub fn medium(&self) -> Medium {
+        Medium { extinction: self.extinction, albedo: self.albedo }
+    }
+}
+
+/// Put on a [`DirectionalLight`] to keep it from lighting particle clouds.
+#[derive(Component, Clone, Copy, Debug, Default, Reflect)]
+#[reflect(Component, Default, Debug)]
+pub struct NotCloudLight;
+
+/// Keeps each cloud's [`Aabb`] equal to its particles' bounds, so clouds are frustum-culled like
+/// meshes. Runs when the cloud or its asset changes.
+pub(crate) fn update_cloud_aabbs(
+    mut commands: Commands,
+    mut events: MessageReader<AssetEvent<Particles>>,
+    clouds: Query<(Entity, Ref<ParticleCloud>)>,
+    assets: Res<Assets<Particles>>,
+) {
+    let changed: Vec<AssetId<Particles>> = events
+        .read()
+        .filter_map(|e| match e {
+            AssetEvent::Added { id } | AssetEvent::Modified { id } | AssetEvent::LoadedWithDependencies { id } => {
+                Some(*id)
+            }
+            _ => None,
+        })
+        .collect();
+    for (entity, cloud) in &clouds {
+        if !cloud.is_changed() && !changed.contains(&cloud.particles.id()) {
+            continue;
+        }
+        let Some(bounds) = assets.get(&cloud.particles).and_then(Particles::bounds) else {
+            continue;
+        };
+        commands.entity(entity).try_insert(Aabb::from_min_max(bounds.0, bounds.1));
+    }
+}

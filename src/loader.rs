@@ -1,0 +1,61 @@
+//! Loads [`Particles`] from `.ply` and `.csv` files through Bevy's `AssetServer`:
+//! `asset_server.load::<Particles>("clouds/cumulus.ply")`. Failures arrive as
+//! `AssetLoadFailedEvent<Particles>` with a message naming the file, the line and the problem.
+
+use bevy::{
+    asset::{io::Reader, AssetLoader, LoadContext},
+    prelude::*,
+};
+
+use crate::{
+    cloud::Particles,
+    particle_files::{parse_csv, parse_ply, ParticleFileError},
+};
+
+/// The asset loader of particle files (PLY with vertex properties `x y z radius density`,
+/// ascii or binary; CSV with header `x,y,z,radius,density`). Every particle is validated.
+#[derive(Default, TypePath)]
+pub struct ParticlesLoader;
+
+/// Why a particle file could not be loaded.
+#[derive(Debug, thiserror::Error)]
+pub enum ParticlesLoadError {
+    #[error("cannot read particle file: {0}")]
+    Io(#[from] std::io::Error),
+    #[error(transparent)]
+    Format(#[from] ParticleFileError),
+    #[error("particle file '{path}': {error}")]
+    Invalid { path: String, error: crate::particle::InvalidMedium },
+}
+
+impl AssetLoader for ParticlesLoader {
+    type Asset = Particles;
+    type Settings = ();
+    type Error = ParticlesLoadError;
+
+    async fn load(
+        &self,
+        reader: &mut dyn Reader,
+        _settings: &(),
+        load_context: &mut LoadContext<'_>,
+    ) -> Result<Particles, ParticlesLoadError> {
+        let mut bytes = Vec::new();
+        reader.read_to_end(&mut bytes).await?;
+        let path = load_context.path().path().to_path_buf();
+        let is_csv = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("csv"));
+        let particles = if is_csv {
+            parse_csv(&path, &String::from_utf8_lossy(&bytes))?
+        } else {
+            parse_ply(&path, &bytes)?
+        };
+        let particles = Particles::new(particles);
+        particles
+            .validate()
+            .map_err(|error| ParticlesLoadError::Invalid { path: path.display().to_string(), error })?;
+        Ok(particles)
+    }
+
+    fn extensions(&self) -> &[&str] {
+        &["ply", "csv"]
+    }
+}

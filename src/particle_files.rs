@@ -1,0 +1,1074 @@
+//! Particle files referenced by scene files (`SCENE_FORMAT.md`): PLY and CSV.
+//!
+//! * **PLY** — `format ascii 1.0`, `format binary_little_endian 1.0` (and, as a courtesy,
+//!   `binary_big_endian`). The `vertex` element must have the scalar properties `x y z radius
+//!   density` in any order, of any PLY numeric type; every other property (scalar or list) and
+//!   every other element, before or after `vertex`, is skipped.
+//! * **CSV** — a header naming exactly the columns `x,y,z,radius,density` (any order, whitespace
+//!   around names ignored), then one particle per line; blank lines are ignored.
+//!
+//! Readers do not validate values (a negative radius is read as written); [`crate::scene`]
+//! validates every particle and names it in its error. Errors here name the file and, for text,
+//! the 1-based line number (for binary PLY, the vertex index and byte offset).
+
+use std::fmt::Write as _;
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+
+use bevy::math::Vec3;
+
+use crate::particle::Particle;
+
+/// Why a particle file could not be read or written.
+#[derive(Debug, thiserror::Error)]
+pub enum ParticleFileError {
+    /// The file could not be opened, read or written.
+    #[error("cannot access '{}': {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The file's contents do not follow the format. `location` is e.g. `line 12` or
+    /// `vertex 3 (byte 245)`.
+    #[error("{}: {location}: {message}", path.display())]
+    Format {
+        path: PathBuf,
+        location: String,
+        message: String,
+    },
+}
+
+impl ParticleFileError {
+    /// The error without the file's path (for messages that name the file already).
+    pub fn detail(&self) -> String {
+        match self {
+            ParticleFileError::Io { source, .. } => source.to_string(),
+            ParticleFileError::Format {
+                location, message, ..
+            } => format!("{location}: {message}"),
+        }
+    }
+
+    fn format(path: &Path, location: impl Into<String>, message: impl Into<String>) -> Self {
+        ParticleFileError::Format {
+            path: path.to_path_buf(),
+            location: location.into(),
+            message: message.into(),
+        }
+    }
+
+    fn io(path: &Path, source: std::io::Error) -> Self {
+        ParticleFileError::Io {
+            path: path.to_path_buf(),
+            source,
+        }
+    }
+}
+
+/// The five values of a particle, in file order `x y z radius density`.
+const COLUMNS: [&str; 5] = ["x", "y", "z", "radius", "density"];
+
+fn particle_from(v: [f64; 5]) -> Particle {
+    Particle {
+        position: Vec3::new(v[0] as f32, v[1] as f32, v[2] as f32),
+        radius: v[3] as f32,
+        density: v[4] as f32,
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// PLY
+// ---------------------------------------------------------------------------------------------
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum PlyFormat {
+    Ascii,
+    BinaryLittleEndian,
+    BinaryBigEndian,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum ScalarType {
+    I8,
+    U8,
+    I16,
+    U16,
+    I32,
+    U32,
+    F32,
+    F64,
+}
+
+impl ScalarType {
+    fn parse(name: &str) -> Option<Self> {
+        Some(match name {
+            "char" | "int8" => ScalarType::I8,
+            "uchar" | "uint8" => ScalarType::U8,
+            "short" | "int16" => ScalarType::I16,
+            "ushort" | "uint16" => ScalarType::U16,
+            "int" | "int32" => ScalarType::I32,
+            "uint" | "uint32" => ScalarType::U32,
+            "float" | "float32" => ScalarType::F32,
+            "double" | "float64" => ScalarType::F64,
+            _ => return None,
+        })
+    }
+
+    fn size(self) -> usize {
+        match self {
+            ScalarType::I8 | ScalarType::U8 => 1,
+            ScalarType::I16 | ScalarType::U16 => 2,
+            ScalarType::I32 | ScalarType::U32 | ScalarType::F32 => 4,
+            ScalarType::F64 => 8,
+        }
+    }
+
+    fn is_integer(self) -> bool {
+        !matches!(self, ScalarType::F32 | ScalarType::F64)
+    }
+
+    /// Decodes one value from exactly `self.size()` bytes.
+    fn decode(self, b: &[u8], little: bool) -> f64 {
+        macro_rules! get {
+            ($t:ty, $n:expr) => {{
+                let a: [u8; $n] = b[..$n].try_into().unwrap();
+                if little {
+                    <$t>::from_le_bytes(a)
+                } else {
+                    <$t>::from_be_bytes(a)
+                }
+            }};
+        }
+        match self {
+            ScalarType::I8 => b[0] as i8 as f64,
+            ScalarType::U8 => b[0] as f64,
+            ScalarType::I16 => get!(i16, 2) as f64,
+            ScalarType::U16 => get!(u16, 2) as f64,
+            ScalarType::I32 => get!(i32, 4) as f64,
+            ScalarType::U32 => get!(u32, 4) as f64,
+            ScalarType::F32 => get!(f32, 4) as f64,
+            ScalarType::F64 => get!(f64, 8),
+        }
+    }
+}
+
+#[derive(Clone, Debug)]
+enum PropertyKind {
+    Scalar(ScalarType),
+    List { count: ScalarType, item: ScalarType },
+}
+
+#[derive(Clone, Debug)]
+struct PlyProperty {
+    name: String,
+    kind: PropertyKind,
+}
+
+#[derive(Clone, Debug)]
+struct PlyElement {
+    name: String,
+    count: usize,
+    properties: Vec<PlyProperty>,
+}
+
+struct PlyHeader {
+    format: PlyFormat,
+    elements: Vec<PlyElement>,
+    /// Byte offset of the first byte after the `end_header` line.
+    body_start: usize,
+    /// Number of lines in the header (the body's first line is `header_lines + 1`).
+    header_lines: usize,
+}
+
+fn parse_ply_header(path: &Path, bytes: &[u8]) -> Result<PlyHeader, ParticleFileError> {
+    let mut pos = 0usize;
+    let mut line_no = 0usize;
+    let mut format = None;
+    let mut elements: Vec<PlyElement> = Vec::new();
+    loop {
+        if pos >= bytes.len() {
+            return Err(ParticleFileError::format(
+                path,
+                format!("line {}", line_no + 1),
+                "the header ends without an `end_header` line",
+            ));
+        }
+        let end = bytes[pos..]
+            .iter()
+            .position(|&b| b == b'\n')
+            .map_or(bytes.len(), |i| pos + i);
+        let raw = &bytes[pos..end];
+        pos = (end + 1).min(bytes.len().max(end + 1));
+        line_no += 1;
+        let at = format!("line {line_no}");
+        let line = std::str::from_utf8(raw)
+            .map_err(|_| ParticleFileError::format(path, &at, "the header is not valid text"))?;
+        let line = line.trim_end_matches('\r');
+        let mut words = line.split_whitespace();
+        let keyword = words.next().unwrap_or("");
+        if line_no == 1 {
+            if line.trim() != "ply" {
+                return Err(ParticleFileError::format(
+                    path,
+                    &at,
+                    format!(
+                        "the file must start with the line `ply`, found `{}`",
+                        short(line)
+                    ),
+                ));
+            }
+            continue;
+        }
+        let rest: Vec<&str> = words.collect();
+        match keyword {
+            "" | "comment" | "obj_info" => {}
+            "format" => {
+                let f = match rest.first().copied() {
+                    Some("ascii") => PlyFormat::Ascii,
+                    Some("binary_little_endian") => PlyFormat::BinaryLittleEndian,
+                    Some("binary_big_endian") => PlyFormat::BinaryBigEndian,
+                    other => {
+                        return Err(ParticleFileError::format(
+                            path,
+                            &at,
+                            format!(
+                                "unknown format `{}`; allowed are `ascii` and `binary_little_endian`",
+                                other.unwrap_or("")
+                            ),
+                        ));
+                    }
+                };
+                if rest.get(1).copied() != Some("1.0") || rest.len() != 2 {
+                    return Err(ParticleFileError::format(
+                        path,
+                        &at,
+                        format!("expected `format {} 1.0`, found `{}`", rest[0], short(line)),
+                    ));
+                }
+                format = Some(f);
+            }
+            "element" => {
+                if rest.len() != 2 {
+                    return Err(ParticleFileError::format(
+                        path,
+                        &at,
+                        format!("expected `element <name> <count>`, found `{}`", short(line)),
+                    ));
+                }
+                let count = rest[1].parse::<usize>().map_err(|_| {
+                    ParticleFileError::format(
+                        path,
+                        &at,
+                        format!(
+                            "element `{}` has count `{}`; it must be an integer >= 0",
+                            rest[0], rest[1]
+                        ),
+                    )
+                })?;
+                elements.push(PlyElement {
+                    name: rest[0].to_string(),
+                    count,
+                    properties: Vec::new(),
+                });
+            }
+            "property" => {
+                let Some(element) = elements.last_mut() else {
+                    return Err(ParticleFileError::format(
+                        path,
+                        &at,
+                        "`property` before any `element`",
+                    ));
+                };
+                let bad_type = |t: &str| {
+                    ParticleFileError::format(
+                        path,
+                        &at,
+                        format!(
+                            "unknown property type `{t}`; allowed are char uchar short ushort int uint float double \
+                             (or int8 uint8 int16 uint16 int32 uint32 float32 float64)"
+                        ),
+                    )
+                };
+                let property = match rest.as_slice() {
+                    ["list", count, item, name] => {
+                        let count = ScalarType::parse(count).ok_or_else(|| bad_type(count))?;
+                        let item = ScalarType::parse(item).ok_or_else(|| bad_type(item))?;
+                        if !count.is_integer() {
+                            return Err(ParticleFileError::format(
+                                path,
+                                &at,
+                                format!("list property `{name}` has a non-integer count type"),
+                            ));
+                        }
+                        PlyProperty {
+                            name: name.to_string(),
+                            kind: PropertyKind::List { count, item },
+                        }
+                    }
+                    [ty, name] => {
+                        let ty = ScalarType::parse(ty).ok_or_else(|| bad_type(ty))?;
+                        PlyProperty {
+                            name: name.to_string(),
+                            kind: PropertyKind::Scalar(ty),
+                        }
+                    }
+                    _ => {
+                        return Err(ParticleFileError::format(
+                            path,
+                            &at,
+                            format!(
+                                "expected `property <type> <name>` or `property list <type> <type> <name>`, found `{}`",
+                                short(line)
+                            ),
+                        ));
+                    }
+                };
+                element.properties.push(property);
+            }
+            "end_header" => {
+                let format = format.ok_or_else(|| {
+                    ParticleFileError::format(path, &at, "the header has no `format` line")
+                })?;
+                return Ok(PlyHeader {
+                    format,
+                    elements,
+                    body_start: pos.min(bytes.len()),
+                    header_lines: line_no,
+                });
+            }
+            other => {
+                return Err(ParticleFileError::format(
+                    path,
+                    &at,
+                    format!("unknown header keyword `{}`", short(other)),
+                ));
+            }
+        }
+    }
+}
+
+/// Shortens a line for an error message.
+fn short(s: &str) -> String {
+    const MAX: usize = 60;
+    if s.chars().count() <= MAX {
+        s.to_string()
+    } else {
+        let mut out: String = s.chars().take(MAX).collect();
+        out.push('…');
+        out
+    }
+}
+
+/// For the vertex element: which property holds each of `x y z radius density`.
+fn vertex_columns(path: &Path, vertex: &PlyElement) -> Result<[usize; 5], ParticleFileError> {
+    let at = "header";
+    let mut columns = [usize::MAX; 5];
+    for (i, p) in vertex.properties.iter().enumerate() {
+        if let Some(c) = COLUMNS.iter().position(|&n| n == p.name) {
+            if columns[c] != usize::MAX {
+                return Err(ParticleFileError::format(
+                    path,
+                    at,
+                    format!("element `vertex` has property `{}` twice", p.name),
+                ));
+            }
+            if matches!(p.kind, PropertyKind::List { .. }) {
+                return Err(ParticleFileError::format(
+                    path,
+                    at,
+                    format!(
+                        "vertex property `{}` is a list; it must be a number",
+                        p.name
+                    ),
+                ));
+            }
+            columns[c] = i;
+        }
+    }
+    let missing: Vec<&str> = COLUMNS
+        .iter()
+        .zip(columns)
+        .filter(|(_, c)| *c == usize::MAX)
+        .map(|(n, _)| *n)
+        .collect();
+    if !missing.is_empty() {
+        return Err(ParticleFileError::format(
+            path,
+            at,
+            format!(
+                "element `vertex` lacks the propert{} `{}`; it needs `x y z radius density`",
+                if missing.len() == 1 { "y" } else { "ies" },
+                missing.join("`, `")
+            ),
+        ));
+    }
+    Ok(columns)
+}
+
+/// Reads the particles of a PLY file (see the module documentation).
+pub fn read_ply(path: &Path) -> Result<Vec<Particle>, ParticleFileError> {
+    let bytes = std::fs::read(path).map_err(|e| ParticleFileError::io(path, e))?;
+    parse_ply(path, &bytes)
+}
+
+/// Parses PLY bytes; `path` is only used in error messages.
+pub fn parse_ply(path: &Path, bytes: &[u8]) -> Result<Vec<Particle>, ParticleFileError> {
+    let header = parse_ply_header(path, bytes)?;
+    let Some(vertex_index) = header.elements.iter().position(|e| e.name == "vertex") else {
+        return Err(ParticleFileError::format(
+            path,
+            "header",
+            "the file has no `element vertex`",
+        ));
+    };
+    let vertex = &header.elements[vertex_index];
+    let columns = vertex_columns(path, vertex)?;
+    let body = &bytes[header.body_start..];
+    match header.format {
+        PlyFormat::Ascii => read_ply_ascii_body(path, &header, vertex_index, columns, body),
+        PlyFormat::BinaryLittleEndian => {
+            read_ply_binary_body(path, &header, vertex_index, columns, body, true)
+        }
+        PlyFormat::BinaryBigEndian => {
+            read_ply_binary_body(path, &header, vertex_index, columns, body, false)
+        }
+    }
+}
+
+fn read_ply_ascii_body(
+    path: &Path,
+    header: &PlyHeader,
+    vertex_index: usize,
+    columns: [usize; 5],
+    body: &[u8],
+) -> Result<Vec<Particle>, ParticleFileError> {
+    let text = std::str::from_utf8(body).map_err(|e| {
+        ParticleFileError::format(path, "body", format!("an ascii PLY body must be text: {e}"))
+    })?;
+    // Each element instance is one non-blank line.
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| (i + header.header_lines + 1, l))
+        .filter(|(_, l)| !l.trim().is_empty());
+    // Skip the instances of elements before `vertex`.
+    for element in &header.elements[..vertex_index] {
+        for k in 0..element.count {
+            if lines.next().is_none() {
+                return Err(ParticleFileError::format(
+                    path,
+                    "end of file",
+                    format!(
+                        "element `{}` declares {} items but the file ends after {k}",
+                        element.name, element.count
+                    ),
+                ));
+            }
+        }
+    }
+    let vertex = &header.elements[vertex_index];
+    let mut particles = Vec::with_capacity(vertex.count.min(1 << 24));
+    for k in 0..vertex.count {
+        let Some((line_no, line)) = lines.next() else {
+            return Err(ParticleFileError::format(
+                path,
+                "end of file",
+                format!(
+                    "element `vertex` declares {} vertices but the file ends after {k}",
+                    vertex.count
+                ),
+            ));
+        };
+        let at = format!("line {line_no}");
+        let mut tokens = line.split_whitespace();
+        let mut values = [0.0f64; 5];
+        for (pi, property) in vertex.properties.iter().enumerate() {
+            let mut next = |what: &str| -> Result<f64, ParticleFileError> {
+                let token = tokens.next().ok_or_else(|| {
+                    ParticleFileError::format(
+                        path,
+                        &at,
+                        format!("vertex {k}: the line ends before property `{what}`"),
+                    )
+                })?;
+                token.parse::<f64>().map_err(|_| {
+                    ParticleFileError::format(
+                        path,
+                        &at,
+                        format!(
+                            "vertex {k}: property `{what}` is `{}`, which is not a number",
+                            short(token)
+                        ),
+                    )
+                })
+            };
+            match property.kind {
+                PropertyKind::Scalar(_) => {
+                    let v = next(&property.name)?;
+                    if let Some(c) = columns.iter().position(|&c| c == pi) {
+                        values[c] = v;
+                    }
+                }
+                PropertyKind::List { .. } => {
+                    let n = next(&property.name)?;
+                    if !(n >= 0.0 && n.fract() == 0.0) {
+                        return Err(ParticleFileError::format(
+                            path,
+                            &at,
+                            format!("vertex {k}: list `{}` has count {n}", property.name),
+                        ));
+                    }
+                    for _ in 0..n as usize {
+                        next(&property.name)?;
+                    }
+                }
+            }
+        }
+        if let Some(extra) = tokens.next() {
+            return Err(ParticleFileError::format(
+                path,
+                &at,
+                format!(
+                    "vertex {k}: unexpected value `{}` after the {} declared properties",
+                    short(extra),
+                    vertex.properties.len()
+                ),
+            ));
+        }
+        particles.push(particle_from(values));
+    }
+    Ok(particles)
+}
+
+fn read_ply_binary_body(
+    path: &Path,
+    header: &PlyHeader,
+    vertex_index: usize,
+    columns: [usize; 5],
+    body: &[u8],
+    little: bool,
+) -> Result<Vec<Particle>, ParticleFileError> {
+    let body_offset = header.body_start;
+    let mut pos = 0usize;
+    // Reads one scalar at `pos`, or explains where the file ended.
+    let read = |pos: &mut usize,
+                ty: ScalarType,
+                what: &dyn Fn() -> String|
+     -> Result<f64, ParticleFileError> {
+        let n = ty.size();
+        if *pos + n > body.len() {
+            return Err(ParticleFileError::format(
+                path,
+                format!("{} (byte {})", what(), body_offset + *pos),
+                "the file ends early",
+            ));
+        }
+        let v = ty.decode(&body[*pos..*pos + n], little);
+        *pos += n;
+        Ok(v)
+    };
+    for element in &header.elements[..vertex_index] {
+        let fixed: Option<usize> = element
+            .properties
+            .iter()
+            .map(|p| match p.kind {
+                PropertyKind::Scalar(t) => Some(t.size()),
+                PropertyKind::List { .. } => None,
+            })
+            .sum();
+        match fixed {
+            Some(size) => {
+                let total = size.saturating_mul(element.count);
+                if pos.saturating_add(total) > body.len() {
+                    return Err(ParticleFileError::format(
+                        path,
+                        format!("element `{}` (byte {})", element.name, body_offset + pos),
+                        format!("the file ends before the element's {} items", element.count),
+                    ));
+                }
+                pos += total;
+            }
+            None => {
+                for k in 0..element.count {
+                    for p in &element.properties {
+                        let what = || format!("element `{}` item {k}", element.name);
+                        match p.kind {
+                            PropertyKind::Scalar(t) => {
+                                read(&mut pos, t, &what)?;
+                            }
+                            PropertyKind::List { count, item } => {
+                                let n = read(&mut pos, count, &what)?;
+                                if n < 0.0 {
+                                    return Err(ParticleFileError::format(
+                                        path,
+                                        format!("{} (byte {})", what(), body_offset + pos),
+                                        format!("list `{}` has negative count {n}", p.name),
+                                    ));
+                                }
+                                let skip = (n as usize).saturating_mul(item.size());
+                                if pos.saturating_add(skip) > body.len() {
+                                    return Err(ParticleFileError::format(
+                                        path,
+                                        format!("{} (byte {})", what(), body_offset + pos),
+                                        "the file ends early",
+                                    ));
+                                }
+                                pos += skip;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+    let vertex = &header.elements[vertex_index];
+    let mut particles = Vec::with_capacity(vertex.count.min(body.len() / 5 + 1));
+    for k in 0..vertex.count {
+        let what = || format!("vertex {k}");
+        let mut values = [0.0f64; 5];
+        for (pi, property) in vertex.properties.iter().enumerate() {
+            match property.kind {
+                PropertyKind::Scalar(t) => {
+                    let v = read(&mut pos, t, &what)?;
+                    if let Some(c) = columns.iter().position(|&c| c == pi) {
+                        values[c] = v;
+                    }
+                }
+                PropertyKind::List { count, item } => {
+                    let n = read(&mut pos, count, &what)?;
+                    let skip = (n.max(0.0) as usize).saturating_mul(item.size());
+                    if n < 0.0 || pos.saturating_add(skip) > body.len() {
+                        return Err(ParticleFileError::format(
+                            path,
+                            format!("vertex {k} (byte {})", body_offset + pos),
+                            format!(
+                                "list `{}` with count {n} does not fit in the file",
+                                property.name
+                            ),
+                        ));
+                    }
+                    pos += skip;
+                }
+            }
+        }
+        particles.push(particle_from(values));
+    }
+    // Elements after the vertices are ignored.
+    Ok(particles)
+}
+
+/// Writes particles as a binary little-endian PLY with float properties `x y z radius density`.
+pub fn write_ply_binary(path: &Path, particles: &[Particle]) -> Result<(), ParticleFileError> {
+    let mut out = Vec::with_capacity(200 + particles.len() * 20);
+    write!(
+        out,
+        "ply\nformat binary_little_endian 1.0\ncomment bevy_particle_clouds particles\nelement vertex {}\n\
+         property float x\nproperty float y\nproperty float z\nproperty float radius\nproperty float density\n\
+         end_header\n",
+        particles.len()
+    )
+    .unwrap();
+    for p in particles {
+        for v in [
+            p.position.x,
+            p.position.y,
+            p.position.z,
+            p.radius,
+            p.density,
+        ] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    std::fs::write(path, out).map_err(|e| ParticleFileError::io(path, e))
+}
+
+/// Writes particles as an ascii PLY with float properties `x y z radius density`
+/// (values round-trip exactly: Rust prints the shortest decimal that parses back to the same f32).
+pub fn write_ply_ascii(path: &Path, particles: &[Particle]) -> Result<(), ParticleFileError> {
+    let mut out = String::with_capacity(200 + particles.len() * 40);
+    write!(
+        out,
+        "ply\nformat ascii 1.0\ncomment bevy_particle_clouds particles\nelement vertex {}\n\
+         property float x\nproperty float y\nproperty float z\nproperty float radius\nproperty float density\n\
+         end_header\n",
+        particles.len()
+    )
+    .unwrap();
+    for p in particles {
+        writeln!(
+            out,
+            "{} {} {} {} {}",
+            p.position.x, p.position.y, p.position.z, p.radius, p.density
+        )
+        .unwrap();
+    }
+    std::fs::write(path, out).map_err(|e| ParticleFileError::io(path, e))
+}
+
+// ---------------------------------------------------------------------------------------------
+// CSV
+// ---------------------------------------------------------------------------------------------
+
+/// Reads the particles of a CSV file (see the module documentation).
+pub fn read_csv(path: &Path) -> Result<Vec<Particle>, ParticleFileError> {
+    let bytes = std::fs::read(path).map_err(|e| ParticleFileError::io(path, e))?;
+    let text = std::str::from_utf8(&bytes).map_err(|e| {
+        ParticleFileError::format(path, "file", format!("not valid UTF-8 text: {e}"))
+    })?;
+    parse_csv(path, text)
+}
+
+/// Parses CSV text; `path` is only used in error messages.
+pub fn parse_csv(path: &Path, text: &str) -> Result<Vec<Particle>, ParticleFileError> {
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| (i + 1, l))
+        .filter(|(_, l)| !l.trim().is_empty());
+    let Some((header_line, header)) = lines.next() else {
+        return Err(ParticleFileError::format(
+            path,
+            "line 1",
+            "the file is empty; it needs the header `x,y,z,radius,density`",
+        ));
+    };
+    let at = format!("line {header_line}");
+    let names: Vec<&str> = header.split(',').map(str::trim).collect();
+    // columns[c] = index in the row of COLUMNS[c]
+    let mut columns = [usize::MAX; 5];
+    for (i, name) in names.iter().enumerate() {
+        match COLUMNS.iter().position(|n| n == name) {
+            Some(c) if columns[c] == usize::MAX => columns[c] = i,
+            Some(_) => {
+                return Err(ParticleFileError::format(
+                    path,
+                    &at,
+                    format!("header: column `{name}` appears twice"),
+                ));
+            }
+            None => {
+                return Err(ParticleFileError::format(
+                    path,
+                    &at,
+                    format!(
+                        "header: unknown column `{}`; the header must name exactly the columns x,y,z,radius,density",
+                        short(name)
+                    ),
+                ));
+            }
+        }
+    }
+    let missing: Vec<&str> = COLUMNS
+        .iter()
+        .zip(columns)
+        .filter(|(_, c)| *c == usize::MAX)
+        .map(|(n, _)| *n)
+        .collect();
+    if !missing.is_empty() {
+        return Err(ParticleFileError::format(
+            path,
+            &at,
+            format!(
+                "header: missing column{} `{}`; the header must name exactly the columns x,y,z,radius,density",
+                if missing.len() == 1 { "" } else { "s" },
+                missing.join("`, `")
+            ),
+        ));
+    }
+    let mut particles = Vec::new();
+    for (line_no, line) in lines {
+        let at = format!("line {line_no}");
+        let fields: Vec<&str> = line.split(',').map(str::trim).collect();
+        if fields.len() != 5 {
+            return Err(ParticleFileError::format(
+                path,
+                &at,
+                format!("expected 5 comma-separated values, found {}", fields.len()),
+            ));
+        }
+        let mut values = [0.0f64; 5];
+        for (c, &i) in columns.iter().enumerate() {
+            let field = fields[i];
+            values[c] = field.parse::<f64>().map_err(|_| {
+                ParticleFileError::format(
+                    path,
+                    &at,
+                    format!(
+                        "column `{}` is `{}`, which is not a number",
+                        COLUMNS[c],
+                        short(field)
+                    ),
+                )
+            })?;
+        }
+        particles.push(particle_from(values));
+    }
+    Ok(particles)
+}
+
+/// Writes particles as CSV with the header `x,y,z,radius,density` (values round-trip exactly).
+pub fn write_csv(path: &Path, particles: &[Particle]) -> Result<(), ParticleFileError> {
+    let mut out = String::with_capacity(24 + particles.len() * 40);
+    out.push_str("x,y,z,radius,density\n");
+    for p in particles {
+        writeln!(
+            out,
+            "{},{},{},{},{}",
+            p.position.x, p.position.y, p.position.z, p.radius, p.density
+        )
+        .unwrap();
+    }
+    std::fs::write(path, out).map_err(|e| ParticleFileError::io(path, e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tmp_dir(name: &str) -> PathBuf {
+        let dir =
+            std::env::temp_dir().join(format!("bpc_particle_files_{}_{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    fn sample() -> Vec<Particle> {
+        vec![
+            Particle {
+                position: Vec3::new(0.1, 0.2, 0.3),
+                radius: 0.2,
+                density: 0.8,
+            },
+            Particle {
+                position: Vec3::new(-0.3, 0.0, 0.1),
+                radius: 0.25,
+                density: 1.0,
+            },
+            Particle {
+                position: Vec3::new(1e-7, -123.456, 3.0e5),
+                radius: 1.0 / 3.0,
+                density: 0.0,
+            },
+        ]
+    }
+
+    #[test]
+    fn ply_binary_round_trip() {
+        let dir = tmp_dir("ply_bin");
+        let path = dir.join("p.ply");
+        write_ply_binary(&path, &sample()).unwrap();
+        assert_eq!(read_ply(&path).unwrap(), sample());
+        write_ply_binary(&path, &[]).unwrap();
+        assert_eq!(read_ply(&path).unwrap(), vec![]);
+    }
+
+    #[test]
+    fn ply_ascii_round_trip() {
+        let dir = tmp_dir("ply_ascii");
+        let path = dir.join("p.ply");
+        write_ply_ascii(&path, &sample()).unwrap();
+        assert_eq!(read_ply(&path).unwrap(), sample());
+    }
+
+    #[test]
+    fn csv_round_trip() {
+        let dir = tmp_dir("csv");
+        let path = dir.join("p.csv");
+        write_csv(&path, &sample()).unwrap();
+        assert_eq!(read_csv(&path).unwrap(), sample());
+    }
+
+    #[test]
+    fn ply_ascii_any_order_types_extra_properties_and_elements() {
+        let text = "ply\r\nformat ascii 1.0\r\ncomment hi\r\nelement camera 1\r\nproperty float fov\r\n\
+                    element vertex 2\r\nproperty double density\r\nproperty uchar red\r\nproperty int x\r\n\
+                    property list uchar int idx\r\nproperty float y\r\nproperty float z\r\nproperty float radius\r\n\
+                    element face 1\r\nproperty list uchar int vertex_indices\r\nend_header\r\n\
+                    45\r\n0.5 255 1 3 7 8 9 2 3 0.25\r\n\r\n1 0 -2 0 0.5 0.5 1\r\n3 0 1 1\r\n";
+        let p = parse_ply(Path::new("t.ply"), text.as_bytes()).unwrap();
+        assert_eq!(
+            p,
+            vec![
+                Particle {
+                    position: Vec3::new(1.0, 2.0, 3.0),
+                    radius: 0.25,
+                    density: 0.5
+                },
+                Particle {
+                    position: Vec3::new(-2.0, 0.5, 0.5),
+                    radius: 1.0,
+                    density: 1.0
+                },
+            ]
+        );
+    }
+
+    #[test]
+    fn ply_binary_mixed_types_and_preceding_elements() {
+        let mut b = Vec::new();
+        b.extend_from_slice(
+            b"ply\nformat binary_little_endian 1.0\nelement meta 2\nproperty list uchar ushort ids\nproperty short s\n\
+              element vertex 2\nproperty uchar r\nproperty double x\nproperty float y\nproperty int z\n\
+              property list uint uchar tags\nproperty float radius\nproperty ushort density\n\
+              element face 1\nproperty list uchar int vertex_indices\nend_header\n",
+        );
+        // meta: [count 1: 7] s=-1 ; [count 0] s=2
+        b.extend_from_slice(&[1, 7, 0]);
+        b.extend_from_slice(&(-1i16).to_le_bytes());
+        b.push(0);
+        b.extend_from_slice(&2i16.to_le_bytes());
+        for (i, (x, y, z, r, d)) in [
+            (0.5f64, -1.5f32, 4i32, 0.125f32, 3u16),
+            (2.0, 0.0, -7, 2.0, 0),
+        ]
+        .iter()
+        .enumerate()
+        {
+            b.push(200);
+            b.extend_from_slice(&x.to_le_bytes());
+            b.extend_from_slice(&y.to_le_bytes());
+            b.extend_from_slice(&z.to_le_bytes());
+            b.extend_from_slice(&(i as u32).to_le_bytes());
+            b.extend(std::iter::repeat_n(9u8, i));
+            b.extend_from_slice(&r.to_le_bytes());
+            b.extend_from_slice(&d.to_le_bytes());
+        }
+        b.extend_from_slice(&[3, 0, 0, 0, 0]); // truncated face: ignored
+        let p = parse_ply(Path::new("t.ply"), &b).unwrap();
+        assert_eq!(
+            p,
+            vec![
+                Particle {
+                    position: Vec3::new(0.5, -1.5, 4.0),
+                    radius: 0.125,
+                    density: 3.0
+                },
+                Particle {
+                    position: Vec3::new(2.0, 0.0, -7.0),
+                    radius: 2.0,
+                    density: 0.0
+                },
+            ]
+        );
+    }
+
+    fn err(text: &str) -> String {
+        parse_ply(Path::new("c.ply"), text.as_bytes())
+            .unwrap_err()
+            .to_string()
+    }
+
+    #[test]
+    fn ply_errors_name_file_and_line() {
+        let head = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n\
+                    property float radius\nproperty float density\nend_header\n";
+        let e = err(&format!("{head}0 0 0 1 1\n0 0 zz 1 1\n"));
+        assert!(
+            e.contains("c.ply: line 11") && e.contains("`z`") && e.contains("zz"),
+            "{e}"
+        );
+        let e = err(&format!("{head}0 0 0 1 1\n0 0 1\n"));
+        assert!(e.contains("line 11") && e.contains("`radius`"), "{e}");
+        let e = err(&format!("{head}0 0 0 1 1 5\n"));
+        assert!(
+            e.contains("line 10") && e.contains("unexpected value `5`"),
+            "{e}"
+        );
+        let e = err(&format!("{head}0 0 0 1 1\n"));
+        assert!(
+            e.contains("declares 2 vertices") && e.contains("after 1"),
+            "{e}"
+        );
+        let e = err(
+            "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n",
+        );
+        assert!(e.contains("`z`, `radius`, `density`"), "{e}");
+        let e = err("ply\nformat ascii 2.0\n");
+        assert!(
+            e.contains("line 2") && e.contains("format ascii 1.0"),
+            "{e}"
+        );
+        let e = err("ply\nformat ascii 1.0\nelement vertex 1\nproperty float128 x\n");
+        assert!(e.contains("line 4") && e.contains("float128"), "{e}");
+        let e = err("plyx\n");
+        assert!(e.contains("line 1") && e.contains("`ply`"), "{e}");
+        let e = err("ply\nformat ascii 1.0\nelement vertex 1\n");
+        assert!(e.contains("end_header"), "{e}");
+        let e =
+            err("ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int v\nend_header\n");
+        assert!(e.contains("no `element vertex`"), "{e}");
+        let e = err(
+            "ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\nproperty float y\n\
+                     property float z\nproperty float radius\nproperty float density\nend_header\n\0\0\0\0",
+        );
+        assert!(e.contains("vertex 0") && e.contains("ends early"), "{e}");
+    }
+
+    #[test]
+    fn csv_any_column_order_whitespace_blank_lines() {
+        let text = "\n density , radius,x,y , z\n\n1, 0.5, 1, 2, 3\n  \n0,2,-1,-2,-3\n";
+        let p = parse_csv(Path::new("t.csv"), text).unwrap();
+        assert_eq!(
+            p,
+            vec![
+                Particle {
+                    position: Vec3::new(1.0, 2.0, 3.0),
+                    radius: 0.5,
+                    density: 1.0
+                },
+                Particle {
+                    position: Vec3::new(-1.0, -2.0, -3.0),
+                    radius: 2.0,
+                    density: 0.0
+                },
+            ]
+        );
+        assert_eq!(
+            parse_csv(Path::new("t.csv"), "x,y,z,radius,density\n").unwrap(),
+            vec![]
+        );
+    }
+
+    #[test]
+    fn csv_errors_name_file_line_and_column() {
+        let e = |t: &str| parse_csv(Path::new("c.csv"), t).unwrap_err().to_string();
+        let m = e("x,y,z,radius,density\n1,2,3,4,5\n\n1,2,3,abc,5\n");
+        assert!(
+            m.contains("c.csv: line 4") && m.contains("column `radius`") && m.contains("abc"),
+            "{m}"
+        );
+        let m = e("x,y,z,radius,density\n1,2,3,4\n");
+        assert!(
+            m.contains("line 2") && m.contains("expected 5") && m.contains("found 4"),
+            "{m}"
+        );
+        let m = e("x,y,z,radius,dens\n");
+        assert!(
+            m.contains("line 1") && m.contains("unknown column `dens`"),
+            "{m}"
+        );
+        let m = e("x,y,z,radius\n");
+        assert!(
+            m.contains("line 1") && m.contains("missing column `density`"),
+            "{m}"
+        );
+        let m = e("x,y,z,radius,density,x\n");
+        assert!(m.contains("`x` appears twice"), "{m}");
+        let m = e("");
+        assert!(m.contains("empty"), "{m}");
+    }
+
+    #[test]
+    fn missing_file_names_the_path() {
+        let path = tmp_dir("missing").join("nope.ply");
+        let e = read_ply(&path).unwrap_err().to_string();
+        assert!(e.contains(&path.display().to_string()), "{e}");
+        let e = read_csv(&path.with_extension("csv"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("nope.csv"), "{e}");
+    }
+}

@@ -1,0 +1,498 @@
+//! CPU reference of the final billboard render (`docs/illumination.md`, "Draw"; PHYSICS.md, "The
+//! particle approximation").
+//!
+//! Every particle is a camera-facing disc whose opacity along a pixel ray is `1 - exp(-tau)`, `tau`
+//! the optical depth of the ray's chord through the particle's sphere. Particles of a cloud are
+//! composited back to front over the opaque scene; clouds are composited in the order given (the
+//! caller orders them back to front, as Bevy's transparent phase does per entity).
+
+use bevy::math::{DQuat, DVec3};
+use rayon::prelude::*;
+
+use crate::particle::{Medium, Particle};
+use crate::reference::camera::PinholeCamera;
+use crate::reference::geometry::nearest_object;
+use crate::scene::SceneObject;
+
+/// A cloud's `Transform`: world point = `translation + rotation * (scale * local)`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CloudPlacement {
+    /// World translation of the local origin, metres.
+    pub translation: DVec3,
+    /// Unit rotation `R`.
+    pub rotation: DQuat,
+    /// Uniform scale `s > 0`.
+    pub scale: f64,
+}
+
+impl CloudPlacement {
+    /// No rotation, unit scale, at `translation`.
+    pub fn at(translation: DVec3) -> Self {
+        Self {
+            translation,
+            rotation: DQuat::IDENTITY,
+            scale: 1.0,
+        }
+    }
+
+    /// World position of a local point.
+    pub fn world_point(&self, local: DVec3) -> DVec3 {
+        self.translation + self.rotation * (local * self.scale)
+    }
+}
+
+/// One cloud as the compositor draws it.
+#[derive(Clone, Copy, Debug)]
+pub struct BillboardCloud<'a> {
+    /// Particles in cloud-local space.
+    pub particles: &'a [Particle],
+    /// The cloud's transform.
+    pub world_from_local: CloudPlacement,
+    /// The medium; only `extinction` (world, 1/m) is used here, the albedo is already in `colours`.
+    pub medium: Medium,
+    /// Colour of each particle (`albedo * A(c_i)`, radiance in units of `E`), same order as `particles`.
+    pub colours: &'a [DVec3],
+}
+
+/// A particle prepared for one camera: world centre, world radius `R = s r`, view depth `z_c`.
+#[derive(Clone, Copy, Debug)]
+struct Billboard {
+    centre: DVec3,
+    radius: f64,
+    density: f64,
+    depth: f64,
+    colour: DVec3,
+}
+
+/// One cloud's billboards sorted back to front (descending `z_c`) with the cloud's world extinction.
+struct SortedCloud {
+    extinction: f64,
+    billboards: Vec<Billboard>,
+}
+
+fn sort_cloud(camera: &PinholeCamera, cloud: &BillboardCloud) -> SortedCloud {
+    assert_eq!(
+        cloud.particles.len(),
+        cloud.colours.len(),
+        "one colour per particle"
+    );
+    let placement = &cloud.world_from_local;
+    let mut billboards: Vec<Billboard> = cloud
+        .particles
+        .iter()
+        .zip(cloud.colours)
+        .filter(|(p, _)| p.density > 0.0)
+        .map(|(p, &colour)| {
+            let centre = placement.world_point(p.position.as_dvec3());
+            Billboard {
+                centre,
+                radius: placement.scale * p.radius as f64,
+                density: p.density as f64,
+                depth: camera.view_depth(centre),
+                colour,
+            }
+        })
+        .collect();
+    // Stable, so particles at equal depth keep their input order.
+    billboards.sort_by(|a, b| b.depth.total_cmp(&a.depth));
+    SortedCloud {
+        extinction: cloud.medium.extinction as f64,
+        billboards,
+    }
+}
+
+/// `F(s) = q² s - 2 q s³ / (3 R²) + s⁵ / (5 R⁴)`, the antiderivative of `(q - s²/R²)²`.
+fn chord_antiderivative(q: f64, r: f64, s: f64) -> f64 {
+    let (r2, s2) = (r * r, s * s);
+    s * (q * q - 2.0 * q * s2 / (3.0 * r2) + s2 * s2 / (5.0 * r2 * r2))
+}
+
+/// Where a billboard sits along pixel ray `w` and its optical depth there: `(depth, tau)`, or `None`
+/// when the ray misses the particle (`q <= 0`) or the visible chord is empty.
+fn coverage(
+    camera: &PinholeCamera,
+    w: DVec3,
+    bb: &Billboard,
+    extinction: f64,
+) -> Option<(f64, f64)> {
+    let oc = bb.centre - camera.position;
+    let t_c = oc.dot(w);
+    let r = bb.radius;
+    let q = 1.0 - (oc - w * t_c).length_squared() / (r * r);
+    if q <= 0.0 {
+        return None;
+    }
+    if bb.depth - r >= camera.near {
+        // Wholly beyond the near plane: the full chord, billboard at the particle's depth.
+        let tau = extinction * bb.density * r * (16.0 / 15.0) * q * q * q.sqrt();
+        return Some((bb.depth, tau));
+    }
+    // The sphere reaches the near plane: only the chord beyond it counts, billboard on the plane.
+    let s1 = r * q.sqrt();
+    let s0 = (-s1).max(camera.near / w.dot(camera.forward) - t_c);
+    if s0 >= s1 {
+        return None;
+    }
+    let integral = chord_antiderivative(q, r, s1) - chord_antiderivative(q, r, s0);
+    Some((camera.near, (extinction * bb.density * integral).max(0.0)))
+}
+
+/// Radiance of one pixel ray `w`; `clouds` holds only the billboards that may touch its row.
+fn shade_ray(
+    camera: &PinholeCamera,
+    w: DVec3,
+    background: DVec3,
+    objects: &[SceneObject],
+    clouds: &[(f64, Vec<&Billboard>)],
+    exposure: f64,
+) -> DVec3 {
+    let (mut colour, opaque_depth) = match nearest_object(objects, camera.position, w) {
+        Some((t, i)) => (objects[i].color.as_dvec3(), t * w.dot(camera.forward)),
+        None => (background, f64::INFINITY),
+    };
+    for (extinction, billboards) in clouds {
+        for bb in billboards {
+            let Some((depth, tau)) = coverage(camera, w, bb, *extinction) else {
+                continue;
+            };
+            if opaque_depth < depth {
+                continue; // behind the opaque surface: depth test fails
+            }
+            let alpha = -(-tau).exp_m1();
+            colour = bb.colour * exposure * alpha + colour * (1.0 - alpha);
+        }
+    }
+    colour
+}
+
+/// Keeps the billboards whose sphere can meet some ray of row `py`: all of that row's rays lie in
+/// one plane through the eye, so a sphere farther than `R` from the plane is missed by all of them.
+fn row_candidates<'c>(
+    camera: &PinholeCamera,
+    py: u32,
+    clouds: &'c [SortedCloud],
+) -> Vec<(f64, Vec<&'c Billboard>)> {
+    let ndc_y = 1.0 - 2.0 * (py as f64 + 0.5) / camera.height as f64;
+    let in_plane = camera.forward + camera.up * (ndc_y * camera.tan_half_fov);
+    let normal = camera.right.cross(in_plane).normalize();
+    clouds
+        .iter()
+        .map(|cloud| {
+            let near_row = cloud
+                .billboards
+                .iter()
+                .filter(|bb| (bb.centre - camera.position).dot(normal).abs() < bb.radius)
+                .collect();
+            (cloud.extinction, near_row)
+        })
+        .collect()
+}
+
+/// Renders the billboard image (contract "Draw"): `width * height` linear RGBA pixels, row-major, row 0
+/// at the top, alpha 1. Each pixel starts from the nearest opaque object's radiance (or
+/// `background`); each cloud in the given order then composites its particles back to front
+/// (descending view depth), each colour multiplied by `exposure`. A particle's billboard is hidden
+/// where the opaque view depth is smaller than the billboard's depth.
+pub fn composite(
+    camera: &PinholeCamera,
+    background: DVec3,
+    objects: &[SceneObject],
+    clouds: &[BillboardCloud],
+    exposure: f64,
+) -> Vec<[f32; 4]> {
+    let sorted: Vec<SortedCloud> = clouds.iter().map(|c| sort_cloud(camera, c)).collect();
+    let width = camera.width as usize;
+    let mut image = vec![[0.0f32; 4]; width * camera.height as usize];
+    image
+        .par_chunks_mut(width)
+        .enumerate()
+        .for_each(|(py, row)| {
+            let candidates = row_candidates(camera, py as u32, &sorted);
+            for (px, pixel) in row.iter_mut().enumerate() {
+                let w = camera.pixel_ray(px as u32, py as u32);
+                let c = shade_ray(camera, w, background, objects, &candidates, exposure);
+                *pixel = [c.x as f32, c.y as f32, c.z as f32, 1.0];
+            }
+        });
+    image
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::particle::particle_optical_depth;
+    use crate::scene::ObjectShape;
+    use bevy::math::Vec3;
+
+    const W: u32 = 21;
+    const H: u32 = 15;
+
+    /// Camera at the origin looking down -Z, odd size so that the centre pixel looks exactly along -Z.
+    fn camera() -> PinholeCamera {
+        PinholeCamera::looking_at(DVec3::ZERO, DVec3::NEG_Z, DVec3::Y, 40.0, W, H)
+    }
+
+    fn particle(p: DVec3, radius: f32, density: f32) -> Particle {
+        Particle {
+            position: p.as_vec3(),
+            radius,
+            density,
+        }
+    }
+
+    fn pixel(image: &[[f32; 4]], px: u32, py: u32) -> DVec3 {
+        let p = image[(py * W + px) as usize];
+        assert_eq!(p[3], 1.0);
+        DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64)
+    }
+
+    fn close(a: DVec3, b: DVec3) -> bool {
+        (a - b).abs().max_element() < 2e-6 * (1.0 + b.abs().max_element())
+    }
+
+    fn cloud<'a>(
+        particles: &'a [Particle],
+        colours: &'a [DVec3],
+        extinction: f32,
+    ) -> BillboardCloud<'a> {
+        BillboardCloud {
+            particles,
+            world_from_local: CloudPlacement::at(DVec3::ZERO),
+            medium: Medium {
+                extinction,
+                albedo: 1.0,
+            },
+            colours,
+        }
+    }
+
+    #[test]
+    fn single_particle_face_on_has_beer_lambert_alpha() {
+        let cam = camera();
+        // Local particle r = 0.5 scaled by 2 into the world: R = 1.
+        let particles = [particle(DVec3::new(0.0, 0.0, -1.5), 0.5, 1.5)];
+        let colours = [DVec3::new(0.5, 1.0, 2.0)];
+        let mut c = cloud(&particles, &colours, 0.8);
+        c.world_from_local = CloudPlacement {
+            translation: DVec3::new(0.0, 0.0, -2.0),
+            rotation: DQuat::IDENTITY,
+            scale: 2.0,
+        };
+        let background = DVec3::new(0.1, 0.2, 0.3);
+        let exposure = 0.5;
+        let image = composite(&cam, background, &[], &[c], exposure);
+        // Centre pixel: b = 0, tau = K eta R 16/15.
+        let tau0 = 0.8 * 1.5 * 16.0 / 15.0;
+        let alpha0 = 1.0 - f64::exp(-tau0);
+        let expected = colours[0] * exposure * alpha0 + background * (1.0 - alpha0);
+        assert!(close(pixel(&image, W / 2, H / 2), expected));
+        // A pixel off to the side: b = |c| sin(angle between the ray and the centre direction).
+        let (px, py) = (W / 2 + 2, H / 2 - 1);
+        let w = cam.pixel_ray(px, py);
+        let b = 5.0 * w.angle_between(DVec3::NEG_Z).sin();
+        assert!(b > 0.2 && b < 1.0);
+        let alpha = 1.0 - f64::exp(-particle_optical_depth(0.8, 1.5, 1.0, b));
+        assert!(alpha < alpha0 && alpha > 0.0);
+        let expected = colours[0] * exposure * alpha + background * (1.0 - alpha);
+        assert!(close(pixel(&image, px, py), expected));
+        // A corner pixel misses the particle and shows the background.
+        assert!(close(pixel(&image, 0, 0), background));
+    }
+
+    #[test]
+    fn opaque_object_in_front_hides_the_particle_and_behind_shows_through() {
+        let cam = camera();
+        let particles = [particle(DVec3::new(0.0, 0.0, -5.0), 1.0, 2.0)];
+        let colours = [DVec3::ONE];
+        let c = cloud(&particles, &colours, 1.0);
+        let object = |z: f32, color: Vec3| SceneObject {
+            shape: ObjectShape::Sphere(0.3),
+            translation: Vec3::new(0.0, 0.0, z),
+            color,
+        };
+        // In front (depth 2.7 < 5): exactly the object's radiance.
+        let red = Vec3::new(0.9, 0.1, 0.0);
+        let image = composite(&cam, DVec3::ZERO, &[object(-3.0, red)], &[c], 1.0);
+        assert_eq!(pixel(&image, W / 2, H / 2), red.as_dvec3());
+        // Behind (depth 7.7 > 5): the particle over the object.
+        let image = composite(&cam, DVec3::ZERO, &[object(-8.0, red)], &[c], 1.0);
+        let alpha = 1.0 - f64::exp(-2.0 * 16.0 / 15.0);
+        assert!(close(
+            pixel(&image, W / 2, H / 2),
+            DVec3::ONE * alpha + red.as_dvec3() * (1.0 - alpha)
+        ));
+        // An object inside the sphere but nearer than its centre still hides the whole billboard.
+        let image = composite(&cam, DVec3::ZERO, &[object(-4.2, red)], &[c], 1.0);
+        assert_eq!(pixel(&image, W / 2, H / 2), red.as_dvec3());
+    }
+
+    #[test]
+    fn overlapping_particles_composite_back_to_front_in_any_input_order() {
+        let cam = camera();
+        let near = particle(DVec3::new(0.1, 0.0, -4.0), 1.0, 0.7);
+        let far = particle(DVec3::new(-0.1, 0.05, -5.0), 1.5, 1.2);
+        let (near_colour, far_colour) = (DVec3::new(1.0, 0.0, 0.0), DVec3::new(0.0, 0.0, 1.0));
+        let background = DVec3::new(0.0, 0.3, 0.0);
+        let a = composite(
+            &cam,
+            background,
+            &[],
+            &[cloud(&[near, far], &[near_colour, far_colour], 1.3)],
+            1.0,
+        );
+        let b = composite(
+            &cam,
+            background,
+            &[],
+            &[cloud(&[far, near], &[far_colour, near_colour], 1.3)],
+            1.0,
+        );
+        assert_eq!(a, b);
+        let w = cam.pixel_ray(W / 2, H / 2);
+        let alpha = |p: &Particle| {
+            let c = p.position.as_dvec3();
+            let bb = (c - w * c.dot(w)).length();
+            1.0 - (-particle_optical_depth(1.3, p.density as f64, p.radius as f64, bb)).exp()
+        };
+        let mut expected = background;
+        expected = far_colour * alpha(&far) + expected * (1.0 - alpha(&far));
+        expected = near_colour * alpha(&near) + expected * (1.0 - alpha(&near));
+        assert!(close(pixel(&a, W / 2, H / 2), expected));
+        // The other order would give a visibly different colour.
+        let mut wrong = background;
+        wrong = near_colour * alpha(&near) + wrong * (1.0 - alpha(&near));
+        wrong = far_colour * alpha(&far) + wrong * (1.0 - alpha(&far));
+        assert!((wrong - expected).length() > 0.05);
+    }
+
+    #[test]
+    fn camera_inside_a_particle_sees_the_partial_chord() {
+        // Camera 0.5 m from the centre of a particle of radius 2, looking away from it... and through it.
+        let cam = PinholeCamera::looking_at(
+            DVec3::new(0.0, 0.0, 0.5),
+            DVec3::new(0.0, 0.0, -1.0),
+            DVec3::Y,
+            40.0,
+            W,
+            H,
+        );
+        let (k, eta, r) = (1.5, 0.8, 2.0);
+        let particles = [particle(DVec3::ZERO, r as f32, eta as f32)];
+        let colours = [DVec3::ONE];
+        let image = composite(
+            &cam,
+            DVec3::ZERO,
+            &[],
+            &[cloud(&particles, &colours, k as f32)],
+            1.0,
+        );
+        assert!(image.iter().flatten().all(|v| v.is_finite()));
+        // Centre ray: b = 0, the chord runs from the near plane (s = 0.1 - 0.5 = -0.4) to s = 2.
+        // Integrate the density along it numerically (midpoint rule).
+        let steps = 200_000;
+        let (s0, s1) = (cam.near - 0.5, r);
+        let ds = (s1 - s0) / steps as f64;
+        let tau: f64 = (0..steps)
+            .map(|i| {
+                let s = s0 + (i as f64 + 0.5) * ds;
+                let u2 = s * s / (r * r);
+                k * eta * (1.0 - u2) * (1.0 - u2) * ds
+            })
+            .sum();
+        let full = particle_optical_depth(k, eta, r, 0.0);
+        assert!(tau < full && tau > 0.5 * full);
+        let got = pixel(&image, W / 2, H / 2).x;
+        assert!(
+            (got - (1.0 - (-tau).exp())).abs() < 1e-6,
+            "{got} vs {}",
+            1.0 - (-tau).exp()
+        );
+        // An opaque object between the near plane and the particle centre does not hide it: the
+        // billboard sits on the near plane, so the whole partial chord composites over the object.
+        let obj = SceneObject {
+            shape: ObjectShape::Sphere(0.01),
+            translation: Vec3::ZERO,
+            color: Vec3::X,
+        };
+        let clouds = [cloud(&particles, &colours, k as f32)];
+        let image = composite(&cam, DVec3::ZERO, &[obj], &clouds, 1.0);
+        let alpha = 1.0 - (-tau).exp();
+        let expected = DVec3::ONE * alpha + DVec3::X * (1.0 - alpha);
+        assert!(close(pixel(&image, W / 2, H / 2), expected));
+    }
+
+    #[test]
+    fn near_plane_rule_is_continuous_and_ignores_particles_behind_the_camera() {
+        let cam = camera();
+        let draw = |z: f64| {
+            let particles = [particle(DVec3::new(0.0, 0.0, z), 1.0, 1.0)];
+            composite(
+                &cam,
+                DVec3::ZERO,
+                &[],
+                &[cloud(&particles, &[DVec3::ONE], 2.0)],
+                1.0,
+            )
+        };
+        // Just beyond and just within the switch (z_c - R = near): the same image to f32 precision.
+        let eps = 1e-9;
+        let (a, b) = (draw(-(1.1 + eps)), draw(-(1.1 - eps)));
+        for (p, q) in a.iter().zip(&b) {
+            assert!((p[0] - q[0]).abs() < 1e-6);
+        }
+        // Wholly behind the camera: nothing.
+        assert!(draw(2.0).iter().all(|p| p[0] == 0.0));
+    }
+
+    #[test]
+    fn rotated_and_scaled_cloud_and_row_culling_match_brute_force() {
+        // Many particles; every pixel compared with a direct evaluation without row culling.
+        let cam =
+            PinholeCamera::looking_at(DVec3::new(1.0, 2.0, 6.0), DVec3::ZERO, DVec3::Y, 50.0, W, H);
+        let mut seed = 12345u64;
+        let mut rnd = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let particles: Vec<Particle> = (0..60)
+            .map(|_| {
+                particle(
+                    DVec3::new(rnd(), rnd(), rnd()) * 2.0 - 1.0,
+                    0.1 + 0.3 * rnd() as f32,
+                    rnd() as f32,
+                )
+            })
+            .collect();
+        let colours: Vec<DVec3> = (0..60).map(|_| DVec3::new(rnd(), rnd(), rnd())).collect();
+        let mut c = cloud(&particles, &colours, 3.0);
+        c.world_from_local = CloudPlacement {
+            translation: DVec3::new(0.2, 0.0, -0.5),
+            rotation: DQuat::from_rotation_y(0.7),
+            scale: 1.3,
+        };
+        let image = composite(&cam, DVec3::splat(0.05), &[], &[c], 2.0);
+        let sorted = [sort_cloud(&cam, &c)];
+        let all: Vec<(f64, Vec<&Billboard>)> = sorted
+            .iter()
+            .map(|s| (s.extinction, s.billboards.iter().collect()))
+            .collect();
+        let mut covered = 0;
+        for py in 0..H {
+            for px in 0..W {
+                let direct = shade_ray(
+                    &cam,
+                    cam.pixel_ray(px, py),
+                    DVec3::splat(0.05),
+                    &[],
+                    &all,
+                    2.0,
+                );
+                assert!(close(pixel(&image, px, py), direct));
+                covered += (direct.x != 0.05) as usize;
+            }
+        }
+        assert!(covered > 20);
+    }
+}

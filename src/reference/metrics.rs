@@ -1,0 +1,92 @@
+//! Image error metrics of PHYSICS.md ("Error metrics").
+//!
+//! Images are linear RGB radiance, RGBA `f32` per pixel, row-major; the alpha channel is ignored.
+//! All sums are taken in `f64` so large images do not lose precision.
+
+/// Relative RMSE of `x` against the reference `r`: `sqrt( Σ (x - r)² / Σ r² )` over all pixels and
+/// the three colour channels (PHYSICS.md's headline figure). Dimensionless.
+///
+/// Returns `0` when both images are identical (even all black) and `inf` when the reference is
+/// black but `x` is not.
+///
+/// # Panics
+/// If the images differ in size.
+pub fn relative_rmse(x: &[[f32; 4]], r: &[[f32; 4]]) -> f64 {
+    assert_eq!(x.len(), r.len(), "images differ in size");
+    let (mut num, mut den) = (0.0f64, 0.0f64);
+    for (a, b) in x.iter().zip(r) {
+        for c in 0..3 {
+            let (a, b) = (a[c] as f64, b[c] as f64);
+            num += (a - b) * (a - b);
+            den += b * b;
+        }
+    }
+    if num == 0.0 { 0.0 } else { (num / den).sqrt() }
+}
+
+/// relMSE: `mean( (x - r)² / (r² + 0.01) )` over all pixels and the three colour channels.
+/// The `0.01` keeps dark reference pixels from dominating. Dimensionless.
+///
+/// # Panics
+/// If the images differ in size.
+pub fn rel_mse(x: &[[f32; 4]], r: &[[f32; 4]]) -> f64 {
+    assert_eq!(x.len(), r.len(), "images differ in size");
+    if x.is_empty() {
+        return 0.0;
+    }
+    let mut sum = 0.0f64;
+    for (a, b) in x.iter().zip(r) {
+        for c in 0..3 {
+            let (a, b) = (a[c] as f64, b[c] as f64);
+            sum += (a - b) * (a - b) / (b * b + 0.01);
+        }
+    }
+    sum / (3 * x.len()) as f64
+}
+
+/// Mean absolute error `mean |x - r|` over all pixels and the three colour channels, in the
+/// images' radiance units.
+///
+/// # Panics
+/// If the images differ in size.
+pub fn mean_absolute_error(x: &[[f32; 4]], r: &[[f32; 4]]) -> f64 {
+    assert_eq!(x.len(), r.len(), "images differ in size");
+    if x.is_empty() {
+        return 0.0;
+    }
+    let mut sum = 0.0f64;
+    for (a, b) in x.iter().zip(r) {
+        for c in 0..3 {
+            sum += (a[c] as f64 - b[c] as f64).abs();
+        }
+    }
+    sum / (3 * x.len()) as f64
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn identical_images_have_zero_error() {
+        let a = vec![[0.5, 0.25, 1.0, 1.0]; 6];
+        assert_eq!(relative_rmse(&a, &a), 0.0);
+        assert_eq!(rel_mse(&a, &a), 0.0);
+        assert_eq!(mean_absolute_error(&a, &a), 0.0);
+        let black = vec![[0.0; 4]; 6];
+        assert_eq!(relative_rmse(&black, &black), 0.0);
+    }
+
+    #[test]
+    fn known_values() {
+        // Reference all 1, image all 1.1: every channel is off by 0.1.
+        let r = vec![[1.0, 1.0, 1.0, 1.0]; 4];
+        let x = vec![[1.1, 1.1, 1.1, 1.0]; 4];
+        assert!((relative_rmse(&x, &r) - 0.1).abs() < 1e-6);
+        assert!((rel_mse(&x, &r) - 0.01 / 1.01).abs() < 1e-6);
+        assert!((mean_absolute_error(&x, &r) - 0.1).abs() < 1e-6);
+        // Alpha is ignored.
+        let y = vec![[1.0, 1.0, 1.0, 0.0]; 4];
+        assert_eq!(relative_rmse(&y, &r), 0.0);
+    }
+}

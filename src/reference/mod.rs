@@ -1,0 +1,15 @@
+//! CPU references, for validation (like `bevy_solari`'s reference path tracer beside its
+//! real-time path):
+//!
+//! - [`illumination`] and [`composite`]: the real-time renderer's exact discretization in f64
+//!   (`docs/illumination.md`); the GPU passes are tested voxel by voxel against it.
+//! - [`path_tracer`]: ground truth of the physical model itself (PHYSICS.md), with no voxels and
+//!   no billboards; the time–error benchmark measures the real-time renderer against it.
+//! - [`metrics`]: the error metrics of PHYSICS.md.
+
+pub mod camera;
+pub mod composite;
+pub mod geometry;
+pub mod illumination;
+pub mod metrics;
+pub mod path_tracer;

@@ -1,0 +1,147 @@
+//! Main world → render world: clouds (with their validity) and the lights that illuminate them.
+
+use bevy::{
+    camera::visibility::{InheritedVisibility, ViewVisibility},
+    light::DirectionalLight,
+    math::Affine3A,
+    platform::collections::HashMap,
+    prelude::*,
+    render::{sync_world::RenderEntity, Extract},
+};
+
+use crate::{
+    cloud::{NotCloudLight, ParticleCloud, Particles},
+    settings::{CloudQualitySettings, DefaultCloudQuality},
+};
+
+/// A cloud as the render world sees it; only valid clouds are extracted.
+#[derive(Component, Clone, Debug)]
+pub struct ExtractedCloud {
+    pub particles: AssetId<Particles>,
+    /// Extinction per world metre at density 1.
+    pub extinction: f32,
+    pub albedo: f32,
+    /// World from cloud-local; the scale used for optical lengths is its largest factor.
+    pub world_from_local: Affine3A,
+    pub settings: CloudQualitySettings,
+    /// Visible in at least one view: only such clouds do illumination work.
+    pub visible: bool,
+}
+
+impl ExtractedCloud {
+    /// Uniform scale of the cloud (the largest axis factor for a non-uniform transform).
+    pub fn scale(&self) -> f32 {
+        let m = self.world_from_local.matrix3;
+        m.x_axis.length().max(m.y_axis.length()).max(m.z_axis.length())
+    }
+
+    /// Rotation part, world from local.
+    pub fn rotation(&self) -> Quat {
+        let (_, rotation, _) = self.world_from_local.to_scale_rotation_translation();
+        rotation
+    }
+}
+
+/// A directional light that illuminates clouds: `E = color (linear) × illuminance`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CloudLight {
+    pub entity: Entity,
+    /// World direction the light travels (unit).
+    pub direction: Vec3,
+    /// Linear RGB irradiance.
+    pub irradiance: Vec3,
+}
+
+/// Every directional light that lights clouds this frame (non-zero irradiance, not opted out).
+#[derive(Resource, Clone, Debug, Default)]
+pub struct ExtractedCloudLights(pub Vec<CloudLight>);
+
+/// Remembers which clouds were refused and why, so each problem is reported once.
+#[derive(Default)]
+pub(crate) struct RefusedClouds(HashMap<Entity, String>);
+
+pub(crate) fn extract_clouds(
+    mut commands: Commands,
+    clouds: Extract<
+        Query<(
+            Entity,
+            RenderEntity,
+            &ParticleCloud,
+            &GlobalTransform,
+            &ViewVisibility,
+            Option<&CloudQualitySettings>,
+            Option<&Name>,
+        )>,
+    >,
+    assets: Extract<Res<Assets<Particles>>>,
+    default_quality: Extract<Res<DefaultCloudQuality>>,
+    mut refused: Local<RefusedClouds>,
+) {
+    for (entity, render_entity, cloud, transform, visibility, settings, name) in &clouds {
+        let settings = settings.copied().unwrap_or(default_quality.0);
+        let problem = validate(cloud, transform, &settings, assets.get(&cloud.particles));
+        let mut target = commands.entity(render_entity);
+        match problem {
+            Some(problem) => {
+                if refused.0.get(&entity) != Some(&problem) {
+                    let label = name.map_or_else(|| format!("{entity}"), |n| format!("{entity} ({n})"));
+                    warn!("particle cloud {label} is not drawn: {problem}");
+                    refused.0.insert(entity, problem);
+                }
+                target.remove::<ExtractedCloud>();
+            }
+            None => {
+                refused.0.remove(&entity);
+                target.insert(ExtractedCloud {
+                    particles: cloud.particles.id(),
+                    extinction: cloud.extinction,
+                    albedo: cloud.albedo,
+                    world_from_local: transform.affine(),
+                    settings,
+                    visible: visibility.get(),
+                });
+            }
+        }
+    }
+}
+
+/// Why a cloud cannot be rendered, naming the field and its value; `None` when it can.
+fn validate(
+    cloud: &ParticleCloud,
+    transform: &GlobalTransform,
+    settings: &CloudQualitySettings,
+    particles: Option<&Particles>,
+) -> Option<String> {
+    if let Err(e) = cloud.medium().validate() {
+        return Some(e.to_string());
+    }
+    if let Err(e) = settings.validate() {
+        return Some(format!("CloudQualitySettings: {e}"));
+    }
+    let affine = transform.affine();
+    if !affine.is_finite() || affine.matrix3.determinant() == 0.0 {
+        return Some(format!("`GlobalTransform` is {affine:?}; it must be finite and invertible"));
+    }
+    if let Some(particles) = particles
+        && let Err(e) = particles.validate()
+    {
+        return Some(e.to_string());
+    }
+    None
+}
+
+pub(crate) fn extract_cloud_lights(
+    mut lights: ResMut<ExtractedCloudLights>,
+    query: Extract<Query<(Entity, &DirectionalLight, &GlobalTransform, &InheritedVisibility), Without<NotCloudLight>>>,
+) {
+    lights.0.clear();
+    for (entity, light, transform, visibility) in &query {
+        let irradiance = light.color.to_linear().to_vec3() * light.illuminance;
+        let direction = transform.forward().as_vec3();
+        // Hidden, dark or broken lights cost nothing.
+        if !visibility.get() || !irradiance.is_finite() || irradiance.max_element() <= 0.0 || !direction.is_finite() {
+            continue;
+        }
+        lights.0.push(CloudLight { entity, direction, irradiance });
+    }
+}

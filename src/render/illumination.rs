@@ -1,0 +1,216 @@
+//! The illumination passes (the paper's Algorithm 1, lines 2–6), recorded once per frame in the
+//! `RenderGraph` schedule before any camera: voxelize, shade per light, gather, multiple
+//! scattering and the per-particle colour. Only the stages planned by `prepare_cloud_volumes` run.
+
+use bevy::{
+    prelude::*,
+    render::{
+        diagnostic::{DiagnosticsRecorder, RecordDiagnostics},
+        render_asset::RenderAssets,
+        render_resource::{BindGroup, BindGroupEntries, BindGroupEntry, ComputePass, ComputePassDescriptor, PipelineCache},
+        renderer::RenderContext,
+    },
+};
+
+use super::{
+    extract::ExtractedCloud,
+    particles::GpuParticles,
+    pipelines::{ComputeStage, IlluminationPipelines},
+    volumes::CloudVolumes,
+};
+use crate::stats::{CloudPass, CloudPassCounters};
+
+/// Workgroups for `count` invocations of a 64-wide 1D kernel, spread over x and y so that no
+/// dimension exceeds the 65535 limit (the shaders use `flat_invocation`).
+pub fn dispatch_1d(pass: &mut ComputePass, count: u32) {
+    let groups = count.div_ceil(64).max(1);
+    let x = groups.min(65535);
+    pass.dispatch_workgroups(x, groups.div_ceil(x), 1);
+}
+
+/// Workgroups for an `n³` volume with 4×4×4 workgroups.
+fn dispatch_volume(pass: &mut ComputePass, n: u32) {
+    let g = n.div_ceil(4);
+    pass.dispatch_workgroups(g, g, g);
+}
+
+/// Records one stage: a GPU time span around one compute pass, and the pass counter.
+fn record_stage(
+    ctx: &mut RenderContext,
+    recorder: Option<&DiagnosticsRecorder>,
+    counters: &CloudPassCounters,
+    stage: CloudPass,
+    body: impl FnOnce(&mut ComputePass) -> u32,
+) {
+    let span = recorder.time_span(ctx.command_encoder(), stage.span_name());
+    let mut pass = ctx
+        .command_encoder()
+        .begin_compute_pass(&ComputePassDescriptor { label: Some(stage.span_name()), ..default() });
+    let runs = body(&mut pass);
+    drop(pass);
+    span.end(ctx.command_encoder());
+    counters.add(stage, runs);
+}
+
+/// Records every planned illumination stage of every cloud.
+pub(crate) fn illuminate_clouds(
+    mut ctx: RenderContext,
+    mut clouds: Query<(&ExtractedCloud, &mut CloudVolumes)>,
+    particles: Res<RenderAssets<GpuParticles>>,
+    pipelines: Option<Res<IlluminationPipelines>>,
+    pipeline_cache: Res<PipelineCache>,
+    counters: Res<CloudPassCounters>,
+) {
+    let Some(pipelines) = pipelines else { return };
+    if clouds.iter().all(|(_, v)| v.plan.is_empty()) {
+        return;
+    }
+    let Some([voxelize, shade, gather, scatter, colour]) = pipelines.ready(&pipeline_cache) else {
+        // Not compiled yet: forget the plan so that the next frame does all of it.
+        clouds.iter_mut().for_each(|(_, mut v)| v.invalidate());
+        return;
+    };
+    let device = ctx.render_device().clone();
+    let recorder = ctx.diagnostic_recorder();
+    let bind = |stage: &ComputeStage, entries: &[BindGroupEntry]| -> BindGroup {
+        device.create_bind_group(None, &pipeline_cache.get_bind_group_layout(&stage.layout), entries)
+    };
+    let clouds: Vec<_> = clouds
+        .iter_mut()
+        .filter(|(_, v)| !v.plan.is_empty())
+        .filter_map(|(cloud, v)| Some((particles.get(cloud.particles)?, v)))
+        .collect();
+
+    // Voxelize (docs/illumination.md §1): clear, then every particle deposits its mass.
+    let voxelizing: Vec<_> = clouds.iter().filter(|(_, v)| v.plan.voxelize).collect();
+    if !voxelizing.is_empty() {
+        for (_, v) in &voxelizing {
+            ctx.command_encoder().clear_buffer(&v.density, 0, None);
+        }
+        record_stage(&mut ctx, recorder.as_deref(), &counters, CloudPass::Voxelize, |pass| {
+            pass.set_pipeline(voxelize);
+            for (gpu, v) in &voxelizing {
+                let group = bind(
+                    &pipelines.voxelize,
+                    &BindGroupEntries::sequential((
+                        v.params_buffer.as_entire_binding(),
+                        gpu.buffer.as_entire_binding(),
+                        v.density.as_entire_binding(),
+                    )),
+                );
+                pass.set_bind_group(0, &group, &[]);
+                dispatch_1d(pass, gpu.count);
+            }
+            voxelizing.len() as u32
+        });
+    }
+
+    // Shade (§2): one column per invocation, marching slice by slice away from the light.
+    if clouds.iter().any(|(_, v)| !v.plan.shade.is_empty()) {
+        record_stage(&mut ctx, recorder.as_deref(), &counters, CloudPass::Shade, |pass| {
+            pass.set_pipeline(shade);
+            let mut runs = 0;
+            for (_, v) in &clouds {
+                for &i in &v.plan.shade {
+                    let light = &v.lights[i];
+                    let group = bind(
+                        &pipelines.shade,
+                        &BindGroupEntries::sequential((
+                            v.params_buffer.as_entire_binding(),
+                            light.params.as_entire_binding(),
+                            v.density.as_entire_binding(),
+                            light.transmittance.as_entire_binding(),
+                        )),
+                    );
+                    pass.set_bind_group(0, &group, &[]);
+                    let g = v.params.n.div_ceil(8);
+                    pass.dispatch_workgroups(g, g, 1);
+                    runs += 1;
+                }
+            }
+            runs
+        });
+    }
+
+    // Gather (§3): the first light writes S_0, the others add to it.
+    if clouds.iter().any(|(_, v)| v.plan.gather) {
+        record_stage(&mut ctx, recorder.as_deref(), &counters, CloudPass::Gather, |pass| {
+            pass.set_pipeline(gather);
+            let mut runs = 0;
+            for (_, v) in clouds.iter().filter(|(_, v)| v.plan.gather) {
+                for light in &v.lights {
+                    let group = bind(
+                        &pipelines.gather,
+                        &BindGroupEntries::sequential((
+                            v.params_buffer.as_entire_binding(),
+                            light.params.as_entire_binding(),
+                            light.transmittance.as_entire_binding(),
+                            v.source.as_entire_binding(),
+                        )),
+                    );
+                    pass.set_bind_group(0, &group, &[]);
+                    dispatch_volume(pass, v.params.n);
+                }
+                runs += 1;
+            }
+            runs
+        });
+    }
+
+    // Multiple scattering (§4) and the particles' colours (§5).
+    let scattering: Vec<_> = clouds.iter().filter(|(_, v)| v.plan.scatter.is_some()).collect();
+    if !scattering.is_empty() {
+        for (_, v) in &scattering {
+            ctx.command_encoder().copy_buffer_to_buffer(&v.source, 0, &v.accumulated, 0, None);
+        }
+        record_stage(&mut ctx, recorder.as_deref(), &counters, CloudPass::Scatter, |pass| {
+            let mut runs = 0;
+            pass.set_pipeline(scatter);
+            for (_, v) in &scattering {
+                let iterations = v.plan.scatter.unwrap_or(0);
+                for k in 0..iterations {
+                    // S_0 is the source; then the two order volumes alternate.
+                    let input = if k == 0 { &v.source } else { &v.orders[(k as usize - 1) % 2] };
+                    let output = &v.orders[k as usize % 2];
+                    let group = bind(
+                        &pipelines.scatter,
+                        &BindGroupEntries::sequential((
+                            v.params_buffer.as_entire_binding(),
+                            v.density.as_entire_binding(),
+                            input.as_entire_binding(),
+                            output.as_entire_binding(),
+                            v.accumulated.as_entire_binding(),
+                        )),
+                    );
+                    pass.set_bind_group(0, &group, &[]);
+                    dispatch_volume(pass, v.params.n);
+                }
+                runs += iterations;
+            }
+            pass.set_pipeline(colour);
+            for (gpu, v) in &scattering {
+                let group = bind(
+                    &pipelines.colour,
+                    &BindGroupEntries::sequential((
+                        v.params_buffer.as_entire_binding(),
+                        gpu.buffer.as_entire_binding(),
+                        v.accumulated.as_entire_binding(),
+                        v.colours.as_entire_binding(),
+                    )),
+                );
+                pass.set_bind_group(0, &group, &[]);
+                dispatch_1d(pass, gpu.count);
+            }
+            runs
+        });
+    }
+    drop(scattering);
+
+    for (_, mut v) in clouds {
+        if v.plan.unlit {
+            ctx.command_encoder().clear_buffer(&v.colours, 0, None);
+        }
+        v.ready |= v.plan.scatter.is_some() || v.plan.unlit;
+        v.plan = default();
+    }
+}

@@ -1,0 +1,91 @@
+//! The render-world side of the plugin, one file per stage:
+//!
+//! | file | stage |
+//! |---|---|
+//! | `extract.rs` | clouds and lights into the render world |
+//! | `particles.rs` | the `Particles` asset on the GPU |
+//! | `volumes.rs` | per-cloud volumes and the per-frame work plan (what changed) |
+//! | `pipelines.rs` | compute pipelines of the illumination passes |
+//! | `illumination.rs` | voxelize, shade, gather, scatter, colour (the `RenderGraph` schedule) |
+//! | `sort.rs` | per-view GPU radix sort of the particles |
+//! | `draw.rs` | the billboard draw in `Transparent3d` |
+
+pub mod draw;
+pub mod extract;
+pub mod illumination;
+pub mod particles;
+pub mod pipelines;
+pub mod shaders;
+pub mod sort;
+pub mod volumes;
+
+use bevy::{
+    core_pipeline::{core_3d::Transparent3d, schedule::camera_driver},
+    prelude::*,
+    render::{
+        extract_resource::ExtractResourcePlugin,
+        render_asset::RenderAssetPlugin,
+        render_phase::AddRenderCommand,
+        render_resource::SpecializedRenderPipelines,
+        renderer::{RenderGraph, RenderGraphSystems},
+        sync_component::{SyncComponent, SyncComponentPlugin},
+        ExtractSchedule, Render, RenderApp, RenderStartup, RenderSystems,
+    },
+};
+
+use crate::{cloud::ParticleCloud, stats::CloudPassCounters};
+use self::{extract::ExtractedCloud, shaders::CloudShaders};
+
+impl SyncComponent for ParticleCloud {
+    type Target = (ExtractedCloud, volumes::CloudVolumes, sort::CloudSorts, draw::CloudDrawBindGroups);
+}
+
+impl bevy::render::extract_resource::ExtractResource for CloudPassCounters {
+    type Source = CloudPassCounters;
+    fn extract_resource(source: &Self::Source) -> Self {
+        source.clone()
+    }
+}
+
+/// A cache key of a stage's inputs: a stage reruns only when its key changes.
+pub(crate) fn key_of(value: impl std::hash::Hash) -> u64 {
+    use std::hash::{BuildHasher, BuildHasherDefault, DefaultHasher};
+    BuildHasherDefault::<DefaultHasher>::default().hash_one(value)
+}
+
+pub(crate) fn build(app: &mut App) {
+    let shaders = CloudShaders::load(&mut app.world_mut().resource_mut::<Assets<Shader>>());
+    app.insert_resource(shaders.clone()).add_plugins((
+        SyncComponentPlugin::<ParticleCloud>::default(),
+        RenderAssetPlugin::<particles::GpuParticles>::default(),
+        ExtractResourcePlugin::<CloudPassCounters>::default(),
+    ));
+    let Some(render_app) = app.get_sub_app_mut(RenderApp) else { return };
+    render_app
+        .insert_resource(shaders)
+        .init_resource::<extract::ExtractedCloudLights>()
+        .init_resource::<SpecializedRenderPipelines<draw::BillboardPipeline>>()
+        .add_render_command::<Transparent3d, draw::DrawCloudBillboards>()
+        .add_systems(
+            RenderStartup,
+            (pipelines::init_illumination_pipelines, sort::init_sort_pipelines, draw::init_billboard_pipeline),
+        )
+        .add_systems(ExtractSchedule, (extract::extract_clouds, extract::extract_cloud_lights))
+        .add_systems(
+            Render,
+            (
+                (volumes::prepare_cloud_volumes, sort::prepare_cloud_sorts).in_set(RenderSystems::PrepareResources),
+                draw::prepare_billboard_bind_groups.in_set(RenderSystems::PrepareBindGroups),
+                draw::queue_cloud_billboards.in_set(RenderSystems::Queue),
+            ),
+        )
+        .add_systems(
+            RenderGraph,
+            (illumination::illuminate_clouds, sort::sort_cloud_particles)
+                .chain()
+                .in_set(RenderGraphSystems::Render)
+                .before(camera_driver),
+        );
+}
+
+pub(crate) fn finish(_app: &mut App) {}

@@ -1,0 +1,41 @@
+//! The crate's WGSL, compiled into the binary from `shaders/` and registered as shader assets.
+
+use bevy::{prelude::*, shader::Shader};
+
+/// Handles of every shader of the crate (strong: they keep the shaders loaded).
+#[derive(Resource, Clone)]
+pub struct CloudShaders {
+    /// `bevy_particle_clouds::types`, imported by the others.
+    pub types: Handle<Shader>,
+    pub voxelize: Handle<Shader>,
+    pub shade: Handle<Shader>,
+    pub gather: Handle<Shader>,
+    pub scatter: Handle<Shader>,
+    pub particle_colour: Handle<Shader>,
+    pub sort: Handle<Shader>,
+    pub billboard: Handle<Shader>,
+}
+
+macro_rules! shader {
+    ($shaders:expr, $file:literal) => {
+        $shaders.add(Shader::from_wgsl(
+            include_str!(concat!("../../shaders/", $file)),
+            concat!("bevy_particle_clouds/shaders/", $file),
+        ))
+    };
+}
+
+impl CloudShaders {
+    pub(crate) fn load(shaders: &mut Assets<Shader>) -> Self {
+        Self {
+            types: shader!(shaders, "types.wgsl"),
+            voxelize: shader!(shaders, "voxelize.wgsl"),
+            shade: shader!(shaders, "shade.wgsl"),
+            gather: shader!(shaders, "gather.wgsl"),
+            scatter: shader!(shaders, "scatter.wgsl"),
+            particle_colour: shader!(shaders, "particle_colour.wgsl"),
+            sort: shader!(shaders, "sort.wgsl"),
+            billboard: shader!(shaders, "billboard.wgsl"),
+        }
+    }
+}

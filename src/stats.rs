@@ -1,0 +1,81 @@
+//! How often each pass ran: the proof that work a scene does not need is skipped.
+//!
+//! The render world counts every dispatch of each pass into [`CloudPassCounters`], a resource
+//! shared (behind an `Arc`) by the main and render worlds. Readers take the counts with
+//! [`CloudPassCounters::take`]. GPU times come from Bevy's render diagnostics
+//! (`RenderDiagnosticsPlugin`), under the paths [`CloudPass::diagnostic_path`].
+
+use std::sync::{
+    atomic::{AtomicU32, Ordering},
+    Arc,
+};
+
+use bevy::{diagnostic::DiagnosticPath, prelude::*};
+
+/// The stages of the renderer, in the order they run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Reflect)]
+pub enum CloudPass {
+    /// Particles → density volume, per cloud.
+    Voxelize,
+    /// Light-aligned transmittance volume, per cloud and light.
+    Shade,
+    /// All lights into one single-scattering volume, per cloud.
+    Gather,
+    /// Multiple-scattering iterations, per cloud (one count per iteration).
+    Scatter,
+    /// Back-to-front particle sort, per cloud and view.
+    Sort,
+    /// Billboard draw, per cloud and view.
+    Draw,
+}
+
+impl CloudPass {
+    pub const ALL: [CloudPass; 6] =
+        [Self::Voxelize, Self::Shade, Self::Gather, Self::Scatter, Self::Sort, Self::Draw];
+
+    /// The lower-case name used in statistics files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Voxelize => "voxelize",
+            Self::Shade => "shade",
+            Self::Gather => "gather",
+            Self::Scatter => "scatter",
+            Self::Sort => "sort",
+            Self::Draw => "draw",
+        }
+    }
+
+    /// The name of this pass's GPU time span.
+    pub fn span_name(self) -> &'static str {
+        match self {
+            Self::Voxelize => "particle_clouds_voxelize",
+            Self::Shade => "particle_clouds_shade",
+            Self::Gather => "particle_clouds_gather",
+            Self::Scatter => "particle_clouds_scatter",
+            Self::Sort => "particle_clouds_sort",
+            Self::Draw => "particle_clouds_draw",
+        }
+    }
+
+    /// The diagnostic holding this pass's GPU time in milliseconds (needs `RenderDiagnosticsPlugin`
+    /// and an adapter with timestamp queries).
+    pub fn diagnostic_path(self) -> DiagnosticPath {
+        DiagnosticPath::from_components(["render", self.span_name(), "elapsed_gpu"])
+    }
+}
+
+/// Dispatch counters per pass, shared by the main and the render world.
+#[derive(Resource, Clone, Default, Debug)]
+pub struct CloudPassCounters(Arc<[AtomicU32; 6]>);
+
+impl CloudPassCounters {
+    /// Adds `n` runs of `pass`.
+    pub fn add(&self, pass: CloudPass, n: u32) {
+        self.0[pass as usize].fetch_add(n, Ordering::Relaxed);
+    }
+
+    /// The counts since the last `take`, resetting them to zero.
+    pub fn take(&self) -> [(CloudPass, u32); 6] {
+        CloudPass::ALL.map(|p| (p, self.0[p as usize].swap(0, Ordering::Relaxed)))
+    }
+}

@@ -1,0 +1,114 @@
+//! The plugin end to end on the GPU (lavapipe on CI): plain scenes, opaque objects, a cloud's
+//! life cycle, invalid clouds.
+
+mod common;
+
+use bevy::prelude::*;
+use bevy_particle_clouds::{scene::ObjectShape, CloudPass, Medium, Particle, ParticleCloud, Particles};
+use common::headless::{self, FrameRecorder, SceneTarget};
+
+const W: u32 = 64;
+const H: u32 = 48;
+
+fn setup(background: Vec3, camera: Transform) -> (App, SceneTarget) {
+    let mut app = headless::headless_app();
+    let image = headless::float_target(&mut app, W, H);
+    let camera = headless::spawn_linear_camera(&mut app, image.clone(), camera, 40.0, background);
+    (app, SceneTarget { image, width: W, height: H, camera, drawable_clouds: 0 })
+}
+
+fn pixel(image: &bevy_particle_clouds::image_io::LinearImage, x: u32, y: u32) -> [f32; 4] {
+    image.pixels[(y * image.width + x) as usize]
+}
+
+fn close(a: [f32; 4], b: Vec3, tolerance: f32) -> bool {
+    (a[0] - b.x).abs() <= tolerance && (a[1] - b.y).abs() <= tolerance && (a[2] - b.z).abs() <= tolerance
+}
+
+fn small_cloud(app: &mut App, albedo: f32, translation: Vec3) -> Entity {
+    let particles: Vec<Particle> = (0..20)
+        .map(|i| {
+            let a = i as f32 * 0.7;
+            Particle { position: Vec3::new(a.cos() * 0.4, (i as f32 * 0.05) - 0.5, a.sin() * 0.4), radius: 0.35, density: 1.0 }
+        })
+        .collect();
+    let handle = app.world_mut().resource_mut::<Assets<Particles>>().add(Particles::new(particles));
+    app.world_mut()
+        .spawn((
+            ParticleCloud::new(handle).with_medium(Medium { extinction: 4.0, albedo }),
+            headless::quality(16, 4),
+            Transform::from_translation(translation),
+        ))
+        .id()
+}
+
+#[test]
+fn without_clouds_the_plain_scene_renders_and_no_pass_runs() {
+    let background = Vec3::new(0.25, 0.5, 1.0);
+    let (mut app, target) = setup(background, Transform::from_xyz(0.0, 0.0, 5.0).looking_at(Vec3::ZERO, Vec3::Y));
+    headless::spawn_light(&mut app, Vec3::new(0.0, -1.0, -0.3), Vec3::splat(2.0));
+    let mut recorder = FrameRecorder::default();
+    for _ in 0..4 {
+        recorder.frame(&mut app);
+    }
+    let image = headless::capture(&mut app, &mut recorder, &target);
+    for frame in &recorder.frames {
+        assert!(frame.passes.iter().all(|(_, runs)| *runs == 0), "a pass ran without clouds: {frame:?}");
+    }
+    for &p in &image.pixels {
+        assert!(close(p, background, 1e-3), "pixel {p:?} differs from the background {background}");
+    }
+}
+
+#[test]
+fn an_opaque_object_renders_exactly_its_color() {
+    let background = Vec3::new(0.1, 0.1, 0.1);
+    let color = Vec3::new(0.8, 0.2, 0.05);
+    let (mut app, target) = setup(background, Transform::from_xyz(0.0, 0.0, 5.0).looking_at(Vec3::ZERO, Vec3::Y));
+    headless::spawn_object(&mut app, ObjectShape::Cuboid(Vec3::new(1.0, 1.0, 0.2)), Vec3::ZERO, color);
+    let mut recorder = FrameRecorder::default();
+    for _ in 0..3 {
+        recorder.frame(&mut app);
+    }
+    let image = headless::capture(&mut app, &mut recorder, &target);
+    // f16 storage: 11 significant bits.
+    assert!(close(pixel(&image, W / 2, H / 2), color, color.max_element() / 1024.0), "{:?}", pixel(&image, W / 2, H / 2));
+    assert!(close(pixel(&image, 1, 1), background, 1e-3));
+}
+
+#[test]
+fn a_static_cloud_is_illuminated_once_then_only_drawn() {
+    let background = Vec3::new(0.0, 0.0, 0.0);
+    let (mut app, mut target) = setup(background, Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y));
+    headless::spawn_light(&mut app, Vec3::new(-1.0, -1.0, -0.5), Vec3::new(2.0, 1.8, 1.6));
+    small_cloud(&mut app, 0.9, Vec3::ZERO);
+    target.drawable_clouds = 1;
+    let mut recorder = FrameRecorder::default();
+    let frames = headless::render_until_steady(&mut app, &mut recorder, &target, 20);
+    let first_work: u32 = recorder.frames.iter().map(|f| f.work()).sum();
+    assert_eq!(recorder.frames.iter().map(|f| f.runs(CloudPass::Voxelize)).sum::<u32>(), 1, "voxelized once");
+    assert_eq!(recorder.frames.iter().map(|f| f.runs(CloudPass::Shade)).sum::<u32>(), 1, "one light shaded once");
+    assert_eq!(recorder.frames.iter().map(|f| f.runs(CloudPass::Gather)).sum::<u32>(), 1);
+    assert_eq!(recorder.frames.iter().map(|f| f.runs(CloudPass::Scatter)).sum::<u32>(), 4, "4 iterations");
+    assert_eq!(recorder.frames.iter().map(|f| f.runs(CloudPass::Sort)).sum::<u32>(), 1, "one view sorted once");
+    assert!(first_work > 0 && frames <= 3, "illumination took {frames} frames");
+    for _ in 0..3 {
+        let frame = recorder.frame(&mut app);
+        assert_eq!(frame.work(), 0, "a static scene repeats no work: {frame:?}");
+        assert_eq!(frame.runs(CloudPass::Draw), 1);
+    }
+    let image = headless::capture(&mut app, &mut recorder, &target);
+    assert!(image.pixels.iter().flatten().all(|v| v.is_finite() && *v >= 0.0));
+    let centre = pixel(&image, W / 2, H / 2);
+    assert!(centre[3] > 0.0 && centre[0] > 1e-3, "the cloud is visible and lit: {centre:?}");
+    assert!(close(pixel(&image, 0, 0), background, 1e-4), "outside the cloud the background shows");
+
+    // Moving the light re-shades, gathers and scatters, but never re-voxelizes or re-sorts.
+    let light = app.world_mut().query_filtered::<Entity, With<DirectionalLight>>().single(app.world()).unwrap();
+    app.world_mut().entity_mut(light).insert(Transform::default().looking_to(Vec3::new(1.0, -1.0, 0.0), Vec3::Y));
+    let frame = recorder.frame(&mut app).clone();
+    assert_eq!(frame.runs(CloudPass::Voxelize), 0);
+    assert_eq!(frame.runs(CloudPass::Shade), 1);
+    assert_eq!(frame.runs(CloudPass::Gather), 1);
+    assert_eq!(frame.runs(CloudPass::Sort), 0);
+}
