@@ -170,9 +170,11 @@ fn assert_images_match(gpu: &LinearImage, cpu: &[[f32; 4]], what: &str) {
     let error = relative_rmse(&rgb(&gpu.pixels), &rgb(cpu));
     let max = cpu.iter().flat_map(|c| &c[..3]).fold(0.0f32, |m, v| m.max(*v));
     let worst = gpu.pixels.iter().zip(cpu).flat_map(|(g, c)| (0..3).map(move |i| (g[i] - c[i]).abs())).fold(0.0, f32::max);
-    // f16 output (2^-11 relative) and f32 illumination; rasterisation samples pixel centres as the CPU does.
-    assert!(error < 5e-3, "{what}: relative RMSE {error} against the CPU billboards");
-    assert!(worst < 0.01 * max, "{what}: worst pixel differs by {worst} (max radiance {max})");
+    // f16 output (2^-11 relative: measured RMSE 4e-4 to 2e-3) and f32 illumination; rasterisation
+    // samples pixel centres as the CPU does.
+    eprintln!("{what}: relative RMSE {error:e}, worst {worst:e} of max {max}");
+    assert!(error < 3e-3, "{what}: relative RMSE {error} against the CPU billboards");
+    assert!(worst < 4e-3 * max, "{what}: worst pixel differs by {worst} (max radiance {max})");
 }
 
 #[test]
