@@ -97,7 +97,7 @@ fn default_scene() -> Scene {
             height: 320,
         },
         background: Vec3::new(0.18, 0.3, 0.55),
-        lights: vec![LightSample { direction: Vec3::new(-0.9, -0.3, -0.4), irradiance: Vec3::new(3.0, 2.7, 2.3) }],
+        lights: vec![LightSample { direction: Vec3::new(-0.8, -0.35, -0.6), irradiance: Vec3::new(9.0, 8.2, 7.0) }],
         clouds: vec![ResolvedCloud {
             translation: Vec3::ZERO,
             medium: Medium { extinction: 8.0, albedo: 0.99 },
