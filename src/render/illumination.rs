@@ -18,7 +18,10 @@ use super::{
     pipelines::{ComputeStage, IlluminationPipelines},
     volumes::CloudVolumes,
 };
-use crate::stats::{CloudPass, CloudPassCounters};
+use crate::{
+    settings::ShadingMethod,
+    stats::{CloudPass, CloudPassCounters},
+};
 
 /// Workgroups for `count` invocations of a 64-wide 1D kernel, spread over x and y so that no
 /// dimension exceeds the 65535 limit (the shaders use `flat_invocation`).
@@ -35,7 +38,7 @@ fn dispatch_volume(pass: &mut ComputePass, n: u32) {
 }
 
 /// Records one stage: a GPU time span around one compute pass, and the pass counter.
-fn record_stage(
+pub(crate) fn record_stage(
     ctx: &mut RenderContext,
     recorder: Option<&DiagnosticsRecorder>,
     counters: &CloudPassCounters,
@@ -60,12 +63,17 @@ pub(crate) fn illuminate_clouds(
     pipelines: Option<Res<IlluminationPipelines>>,
     pipeline_cache: Res<PipelineCache>,
     counters: Res<CloudPassCounters>,
+    shading: Option<Res<ShadingMethod>>,
 ) {
     let Some(pipelines) = pipelines else { return };
     if clouds.iter().all(|(_, v)| v.plan.is_empty()) {
         return;
     }
-    let Some([voxelize, shade, gather, scatter, colour]) = pipelines.ready(&pipeline_cache) else {
+    let brute_force = shading.is_some_and(|s| *s == ShadingMethod::BruteForce);
+    let shade_stage = if brute_force { &pipelines.shade_brute_force } else { &pipelines.shade };
+    let (Some([voxelize, _, gather, scatter, colour]), Some(shade)) =
+        (pipelines.ready(&pipeline_cache), shade_stage.get(&pipeline_cache))
+    else {
         // Not compiled yet: forget the plan so that the next frame does all of it.
         clouds.iter_mut().for_each(|(_, mut v)| v.invalidate());
         return;
@@ -105,7 +113,8 @@ pub(crate) fn illuminate_clouds(
         });
     }
 
-    // Shade (§2): one column per invocation, marching slice by slice away from the light.
+    // Shade (§2): one column per invocation, marching slice by slice away from the light (or, with
+    // `ShadingMethod::BruteForce`, one voxel per invocation marching all the way to the light).
     if clouds.iter().any(|(_, v)| !v.plan.shade.is_empty()) {
         record_stage(&mut ctx, recorder.as_deref(), &counters, CloudPass::Shade, |pass| {
             pass.set_pipeline(shade);
@@ -114,7 +123,7 @@ pub(crate) fn illuminate_clouds(
                 for &i in &v.plan.shade {
                     let light = &v.lights[i];
                     let group = bind(
-                        &pipelines.shade,
+                        shade_stage,
                         &BindGroupEntries::sequential((
                             v.params_buffer.as_entire_binding(),
                             light.params.as_entire_binding(),
@@ -123,8 +132,12 @@ pub(crate) fn illuminate_clouds(
                         )),
                     );
                     pass.set_bind_group(0, &group, &[]);
-                    let g = v.params.n.div_ceil(8);
-                    pass.dispatch_workgroups(g, g, 1);
+                    if brute_force {
+                        dispatch_volume(pass, v.params.n);
+                    } else {
+                        let g = v.params.n.div_ceil(8);
+                        pass.dispatch_workgroups(g, g, 1);
+                    }
                     runs += 1;
                 }
             }

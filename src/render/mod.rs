@@ -33,7 +33,7 @@ use bevy::{
     },
 };
 
-use crate::{cloud::ParticleCloud, stats::CloudPassCounters};
+use crate::{cloud::ParticleCloud, settings::ShadingMethod, stats::CloudPassCounters};
 use self::{extract::ExtractedCloud, shaders::CloudShaders};
 
 impl SyncComponent for ParticleCloud {
@@ -47,6 +47,13 @@ impl bevy::render::extract_resource::ExtractResource for CloudPassCounters {
     }
 }
 
+impl bevy::render::extract_resource::ExtractResource for ShadingMethod {
+    type Source = ShadingMethod;
+    fn extract_resource(source: &Self::Source) -> Self {
+        *source
+    }
+}
+
 /// A cache key of a stage's inputs: a stage reruns only when its key changes.
 pub(crate) fn key_of(value: impl std::hash::Hash) -> u64 {
     use std::hash::{BuildHasher, BuildHasherDefault, DefaultHasher};
@@ -55,10 +62,12 @@ pub(crate) fn key_of(value: impl std::hash::Hash) -> u64 {
 
 pub(crate) fn build(app: &mut App) {
     let shaders = CloudShaders::load(&mut app.world_mut().resource_mut::<Assets<Shader>>());
+    app.init_resource::<ShadingMethod>().register_type::<ShadingMethod>();
     app.insert_resource(shaders.clone()).add_plugins((
         SyncComponentPlugin::<ParticleCloud>::default(),
         RenderAssetPlugin::<particles::GpuParticles>::default(),
         ExtractResourcePlugin::<CloudPassCounters>::default(),
+        ExtractResourcePlugin::<ShadingMethod>::default(),
     ));
     let Some(render_app) = app.get_sub_app_mut(RenderApp) else { return };
     render_app

@@ -6,12 +6,11 @@ use bevy::{
     platform::collections::HashMap,
     prelude::*,
     render::{
-        diagnostic::RecordDiagnostics,
         render_asset::RenderAssets,
         render_resource::{
             binding_types::{storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer_sized},
             BindGroup, BindGroupEntries, BindGroupLayout, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer,
-            BufferDescriptor, BufferUsages, CachedComputePipelineId, ComputePass, ComputePassDescriptor,
+            BufferDescriptor, BufferUsages, CachedComputePipelineId, ComputePass,
             ComputePipeline, ComputePipelineDescriptor, PipelineCache, ShaderStages, ShaderType,
         },
         renderer::{RenderContext, RenderDevice, RenderQueue},
@@ -21,8 +20,8 @@ use bevy::{
 
 use super::{
     key_of,
-    extract::ExtractedCloud, illumination::dispatch_1d, particles::GpuParticles, shaders::CloudShaders,
-    volumes::uniform_bytes,
+    extract::ExtractedCloud, illumination::{dispatch_1d, record_stage}, particles::GpuParticles, shaders::CloudShaders,
+    volumes::{storage, uniform_bytes},
 };
 use crate::{
     cloud::ParticleCloud,
@@ -117,15 +116,6 @@ pub struct SortBuffers {
     params: [Buffer; 4],
 }
 
-fn sort_storage(device: &RenderDevice, label: &'static str, size: u64) -> Buffer {
-    device.create_buffer(&BufferDescriptor {
-        label: Some(label),
-        size: size.max(16),
-        usage: BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC,
-        mapped_at_creation: false,
-    })
-}
-
 impl SortBuffers {
     pub fn new(device: &RenderDevice, capacity: u32) -> Self {
         let bytes = capacity as u64 * 4;
@@ -140,12 +130,12 @@ impl SortBuffers {
         });
         Self {
             capacity,
-            keys: [sort_storage(device, "particle_clouds_sort_keys_a", bytes), sort_storage(device, "particle_clouds_sort_keys_b", bytes)],
+            keys: [storage(device, "particle_clouds_sort_keys_a", bytes), storage(device, "particle_clouds_sort_keys_b", bytes)],
             values: [
-                sort_storage(device, "particle_clouds_sort_values_a", bytes),
-                sort_storage(device, "particle_clouds_sort_values_b", bytes),
+                storage(device, "particle_clouds_sort_values_a", bytes),
+                storage(device, "particle_clouds_sort_values_b", bytes),
             ],
-            histogram: sort_storage(device, "particle_clouds_sort_histogram", tiles * 256 * 4),
+            histogram: storage(device, "particle_clouds_sort_histogram", tiles * 256 * 4),
             params,
         }
     }
@@ -316,23 +306,18 @@ pub(crate) fn sort_cloud_particles(
     let device = ctx.render_device().clone();
     let layout = pipeline_cache.get_bind_group_layout(&pipelines.layout);
     let recorder = ctx.diagnostic_recorder();
-    let recorder = recorder.as_deref();
-    let span = recorder.time_span(ctx.command_encoder(), CloudPass::Sort.span_name());
-    let mut pass = ctx
-        .command_encoder()
-        .begin_compute_pass(&ComputePassDescriptor { label: Some("particle_clouds_sort"), ..default() });
-    let mut runs = 0;
-    for (cloud, mut sorts) in &mut clouds {
-        let Some(gpu) = particles.get(cloud.particles) else { continue };
-        for sort in sorts.0.values_mut().filter(|s| s.pending) {
-            let groups = sort.buffers.bind_groups(&device, &layout, &gpu.buffer);
-            record_sort(&mut pass, &ready, &groups, gpu.count, true);
-            sort.pending = false;
-            sort.ready = true;
-            runs += 1;
+    record_stage(&mut ctx, recorder.as_deref(), &counters, CloudPass::Sort, |pass| {
+        let mut runs = 0;
+        for (cloud, mut sorts) in &mut clouds {
+            let Some(gpu) = particles.get(cloud.particles) else { continue };
+            for sort in sorts.0.values_mut().filter(|s| s.pending) {
+                let groups = sort.buffers.bind_groups(&device, &layout, &gpu.buffer);
+                record_sort(pass, &ready, &groups, gpu.count, true);
+                sort.pending = false;
+                sort.ready = true;
+                runs += 1;
+            }
         }
-    }
-    drop(pass);
-    span.end(ctx.command_encoder());
-    counters.add(CloudPass::Sort, runs);
+        runs
+    });
 }

@@ -129,7 +129,8 @@ fn bits(v: Vec3) -> [u32; 3] {
     v.to_array().map(f32::to_bits)
 }
 
-fn storage(device: &RenderDevice, label: &'static str, size: u64) -> Buffer {
+/// A storage buffer of at least 16 bytes (bindings may not be empty) that can be cleared, copied and read back.
+pub(crate) fn storage(device: &RenderDevice, label: &'static str, size: u64) -> Buffer {
     device.create_buffer(&BufferDescriptor {
         label: Some(label),
         size: size.max(16),

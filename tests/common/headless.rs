@@ -15,6 +15,7 @@ use bevy::{
     camera::{Exposure, Hdr, RenderTarget},
     core_pipeline::tonemapping::{DebandDither, Tonemapping},
     diagnostic::DiagnosticsStore,
+    log::{Level, LogPlugin},
     prelude::*,
     render::{
         diagnostic::RenderDiagnosticsPlugin,
@@ -63,6 +64,8 @@ pub fn headless_app() -> App {
     app.add_plugins(
         DefaultPlugins
             .set(WindowPlugin { primary_window: None, exit_condition: ExitCondition::DontExit, ..default() })
+            // Warnings (refused clouds, wgpu problems) matter; per-app info lines are noise.
+            .set(LogPlugin { level: Level::WARN, ..default() })
             .set(RenderPlugin {
                 render_creation: RenderCreation::Automatic(Box::new(WgpuSettings {
                     backends: Some(Backends::VULKAN),
@@ -71,7 +74,10 @@ pub fn headless_app() -> App {
                 synchronous_pipeline_compilation: true,
                 ..default()
             })
-            .disable::<PipelinedRenderingPlugin>(),
+            .disable::<PipelinedRenderingPlugin>()
+            // The dev build enables winit for the windowed examples; its event loop needs a
+            // display and can be created once per process, so headless apps leave it out.
+            .disable::<bevy::winit::WinitPlugin>(),
     )
     .add_plugins((RenderDiagnosticsPlugin, ParticleCloudsPlugin));
     // The default handler only logs and stops rendering; a test must fail instead.
