@@ -112,3 +112,54 @@ fn a_static_cloud_is_illuminated_once_then_only_drawn() {
     assert_eq!(frame.runs(CloudPass::Gather), 1);
     assert_eq!(frame.runs(CloudPass::Sort), 0);
 }
+
+#[test]
+fn opted_out_and_dark_lights_cost_nothing_and_unseen_clouds_do_no_work() {
+    let (mut app, mut target) = setup(Vec3::ZERO, Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y));
+    headless::spawn_light(&mut app, Vec3::NEG_Y, Vec3::ONE);
+    let opted_out = headless::spawn_light(&mut app, Vec3::X, Vec3::ONE);
+    app.world_mut().entity_mut(opted_out).insert(bevy_particle_clouds::NotCloudLight);
+    headless::spawn_light(&mut app, Vec3::Z, Vec3::ZERO);
+    small_cloud(&mut app, 0.9, Vec3::ZERO);
+    small_cloud(&mut app, 0.9, Vec3::new(0.0, 0.0, 40.0)); // behind the camera: culled
+    target.drawable_clouds = 1;
+    let mut recorder = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut recorder, &target, 20);
+    let total = |pass| recorder.frames.iter().map(|f| f.runs(pass)).sum::<u32>();
+    assert_eq!(total(CloudPass::Voxelize), 1, "only the visible cloud is voxelized");
+    assert_eq!(total(CloudPass::Shade), 1, "only the one lit, opted-in light is shaded");
+    assert_eq!(total(CloudPass::Sort), 1);
+}
+
+#[test]
+fn several_cameras_hdr_and_not_msaa_on_and_off() {
+    let mut app = headless::headless_app();
+    headless::spawn_light(&mut app, Vec3::new(-1.0, -1.0, -1.0), Vec3::splat(3.0));
+    small_cloud(&mut app, 0.95, Vec3::ZERO);
+    // An HDR camera with 4x MSAA and an 8-bit sRGB one without: both must draw the cloud.
+    let hdr = headless::float_target(&mut app, W, H);
+    let camera = headless::spawn_linear_camera(&mut app, hdr.clone(), Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y), 40.0, Vec3::ZERO);
+    app.world_mut().entity_mut(camera).insert(Msaa::Sample4);
+    let mut ldr_image = Image::new_target_texture(W, H, bevy::render::render_resource::TextureFormat::Rgba8UnormSrgb, None);
+    ldr_image.texture_descriptor.usage |= bevy::render::render_resource::TextureUsages::COPY_SRC;
+    let ldr = app.world_mut().resource_mut::<Assets<Image>>().add(ldr_image);
+    app.world_mut().spawn((
+        Camera3d::default(),
+        bevy::camera::RenderTarget::Image(ldr.into()),
+        Msaa::Off,
+        bevy::core_pipeline::tonemapping::Tonemapping::Reinhard,
+        Transform::from_xyz(3.0, 1.0, 3.0).looking_at(Vec3::ZERO, Vec3::Y),
+    ));
+    let mut recorder = FrameRecorder::default();
+    let mut last = Default::default();
+    for _ in 0..5 {
+        last = recorder.frame(&mut app).clone();
+    }
+    assert_eq!(last.runs(CloudPass::Draw), 2, "one draw per camera");
+    assert_eq!(recorder.frames.iter().map(|f| f.runs(CloudPass::Sort)).sum::<u32>(), 2, "one sort per camera");
+    assert_eq!(recorder.frames.iter().map(|f| f.runs(CloudPass::Voxelize)).sum::<u32>(), 1, "illumination is shared by the views");
+    let target = SceneTarget { image: hdr, width: W, height: H, camera, drawable_clouds: 1 };
+    let image = headless::capture(&mut app, &mut recorder, &target);
+    let centre = pixel(&image, W / 2, H / 2);
+    assert!(centre[0] > 1e-3 && centre[0].is_finite(), "the MSAA view shows the cloud: {centre:?}");
+}
