@@ -90,3 +90,20 @@ impl CloudQualitySettings {
 #[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Reflect, Deref, DerefMut)]
 #[reflect(Resource, Default, Debug, PartialEq)]
 pub struct DefaultCloudQuality(pub CloudQualitySettings);
+
+/// How the shade pass computes each light's transmittance volume (docs/illumination.md §2).
+///
+/// A resource of the main world, extracted to the render world. Both methods give the same
+/// volume (up to f32 rounding); the brute force exists to measure what the incremental pass saves
+/// (`cargo run --example benchmark -- --illumination`). A change takes effect the next time a
+/// light is shaded (when a light, the density or the extinction changes).
+#[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
+#[reflect(Resource, Default, Debug, PartialEq)]
+pub enum ShadingMethod {
+    /// The paper's Algorithm 4: one invocation per column along the light, each slice the
+    /// previous one times one step's attenuation: `n²` invocations of `n` steps.
+    #[default]
+    Incremental,
+    /// Every voxel marches to the light on its own: `n³` invocations of up to `n` steps.
+    BruteForce,
+}

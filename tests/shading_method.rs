@@ -1,0 +1,168 @@
+//! `ShadingMethod::BruteForce` (every voxel marches to the light) against the incremental shade
+//! pass (each slice is the previous one times one step): the same trapezoid sums, so the light
+//! volumes and everything computed from them agree up to f32 rounding.
+
+mod common;
+
+use bevy::prelude::*;
+use bevy_particle_clouds::{
+    CloudPass, CloudQualitySettings, LightSample, Medium, Particle, ParticleCloud, Particles,
+    generators::SplitMix64, render::volumes::CloudVolumes, settings::ShadingMethod,
+};
+use common::headless::{self, FrameRecorder, SceneTarget};
+
+/// Largest allowed difference, relative to the volume's largest value.
+const TOLERANCE: f64 = 1e-5;
+
+fn particles() -> Vec<Particle> {
+    let mut rng = SplitMix64::new(5);
+    (0..150)
+        .map(|_| Particle {
+            position: rng.in_unit_ball() * Vec3::new(1.0, 0.7, 0.9),
+            radius: 0.1 + 0.3 * rng.next_f32(),
+            density: 0.3 + rng.next_f32(),
+        })
+        .collect()
+}
+
+struct Volumes {
+    /// One transmittance volume per light.
+    transmittance: Vec<Vec<f64>>,
+    /// Accumulated illumination, RGB.
+    accumulated: Vec<f64>,
+    shade_runs: u32,
+}
+
+fn render(
+    method: ShadingMethod,
+    settings: CloudQualitySettings,
+    lights: &[LightSample],
+) -> Volumes {
+    let mut app = headless::headless_app();
+    app.insert_resource(method);
+    let image = headless::float_target(&mut app, 16, 16);
+    let camera = headless::spawn_linear_camera(
+        &mut app,
+        image.clone(),
+        Transform::from_xyz(0.0, 0.0, 6.0).looking_at(Vec3::ZERO, Vec3::Y),
+        60.0,
+        Vec3::ZERO,
+    );
+    for light in lights {
+        headless::spawn_light(&mut app, light.direction, light.irradiance);
+    }
+    let handle = app
+        .world_mut()
+        .resource_mut::<Assets<Particles>>()
+        .add(Particles::new(particles()));
+    app.world_mut().spawn((
+        ParticleCloud::new(handle).with_medium(Medium {
+            extinction: 12.0,
+            albedo: 0.95,
+        }),
+        settings,
+        Transform::IDENTITY,
+    ));
+    let target = SceneTarget {
+        image,
+        width: 16,
+        height: 16,
+        camera,
+        drawable_clouds: 1,
+    };
+    let mut recorder = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut recorder, &target, 20);
+    let shade_runs = recorder
+        .frames
+        .iter()
+        .map(|f| f.runs(CloudPass::Shade))
+        .sum();
+    let (transmittance, accumulated) = headless::with_render_world(&mut app, |world| {
+        let volumes = world
+            .query::<&CloudVolumes>()
+            .single(world)
+            .expect("one cloud's volumes");
+        let lights: Vec<_> = volumes
+            .lights
+            .iter()
+            .map(|l| l.transmittance.clone())
+            .collect();
+        (lights, volumes.accumulated.clone())
+    });
+    let n3 = (settings.volume_resolution as usize).pow(3);
+    let read = |app: &mut App, buffer| -> Vec<f64> {
+        headless::floats(&headless::read_buffer(app, buffer))
+            .into_iter()
+            .map(f64::from)
+            .collect()
+    };
+    let transmittance = transmittance
+        .iter()
+        .map(|b| read(&mut app, b)[..n3].to_vec())
+        .collect();
+    let accumulated = read(&mut app, &accumulated)[..4 * n3].to_vec();
+    Volumes {
+        transmittance,
+        accumulated,
+        shade_runs,
+    }
+}
+
+/// Largest difference relative to the largest value of `b`.
+fn relative_difference(a: &[f64], b: &[f64]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    let scale = b.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    assert!(scale > 0.0, "an all-zero volume");
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
+        / scale
+}
+
+#[test]
+fn brute_force_and_incremental_shading_agree() {
+    let lights = [
+        LightSample {
+            direction: Vec3::new(-0.5, -0.8, -0.35),
+            irradiance: Vec3::new(1.0, 0.9, 0.8),
+        },
+        LightSample {
+            direction: Vec3::new(0.9, 0.1, 0.3),
+            irradiance: Vec3::new(0.2, 0.3, 1.0),
+        },
+    ];
+    let settings = CloudQualitySettings {
+        volume_resolution: 40,
+        scatter_iterations: 4,
+        ..default()
+    };
+    let incremental = render(ShadingMethod::Incremental, settings, &lights);
+    let brute_force = render(ShadingMethod::BruteForce, settings, &lights);
+    assert_eq!(incremental.shade_runs, 2);
+    assert_eq!(brute_force.shade_runs, 2);
+    assert_eq!(incremental.transmittance.len(), 2);
+    for (i, (b, inc)) in brute_force
+        .transmittance
+        .iter()
+        .zip(&incremental.transmittance)
+        .enumerate()
+    {
+        // The light must be attenuated somewhere, or the comparison proves nothing.
+        let min = inc.iter().copied().fold(f64::INFINITY, f64::min);
+        assert!(
+            min < 0.05,
+            "light {i}: the cloud barely shadows (min transmittance {min})"
+        );
+        let error = relative_difference(b, inc);
+        assert!(
+            error <= TOLERANCE,
+            "light {i}: transmittance differs by {error:e} of its maximum"
+        );
+    }
+    let error = relative_difference(&brute_force.accumulated, &incremental.accumulated);
+    assert!(
+        error <= TOLERANCE,
+        "accumulated illumination differs by {error:e} of its maximum"
+    );
+}
