@@ -26,9 +26,10 @@ use bevy::{
         extract_resource::ExtractResourcePlugin,
         render_asset::RenderAssetPlugin,
         render_phase::AddRenderCommand,
-        render_resource::SpecializedRenderPipelines,
+        render_resource::{DownlevelFlags, SpecializedRenderPipelines},
         renderer::{RenderGraph, RenderGraphSystems},
         sync_component::{SyncComponent, SyncComponentPlugin},
+        renderer::{RenderAdapter, RenderDevice},
         ExtractSchedule, Render, RenderApp, RenderStartup, RenderSystems,
     },
 };
@@ -69,9 +70,41 @@ pub(crate) fn build(app: &mut App) {
         ExtractResourcePlugin::<CloudPassCounters>::default(),
         ExtractResourcePlugin::<ShadingMethod>::default(),
     ));
+    if let Some(render_app) = app.get_sub_app_mut(RenderApp) {
+        render_app.insert_resource(shaders);
+    }
+}
+
+/// Why this adapter cannot run the plugin, if it cannot: the passes need compute shaders, storage
+/// buffers in the vertex stage and six storage buffers per stage (the sort).
+fn unsupported(render_app: &SubApp) -> Option<String> {
+    let adapter = render_app.world().resource::<RenderAdapter>();
+    let flags = adapter.get_downlevel_capabilities().flags;
+    let limits = render_app.world().resource::<RenderDevice>().limits();
+    if !flags.contains(DownlevelFlags::COMPUTE_SHADERS) {
+        return Some("the adapter has no compute shaders".into());
+    }
+    if !flags.contains(DownlevelFlags::VERTEX_STORAGE) {
+        return Some("the adapter cannot read storage buffers in vertex shaders".into());
+    }
+    if limits.max_storage_buffers_per_shader_stage < 6 {
+        return Some(format!(
+            "the adapter allows {} storage buffers per shader stage; 6 are needed",
+            limits.max_storage_buffers_per_shader_stage
+        ));
+    }
+    None
+}
+
+/// Adds the render-world systems once the adapter is known to support them (like Bevy's
+/// atmosphere, which checks its adapter in `Plugin::finish`).
+pub(crate) fn finish(app: &mut App) {
     let Some(render_app) = app.get_sub_app_mut(RenderApp) else { return };
+    if let Some(reason) = unsupported(render_app) {
+        error!("bevy_particle_clouds is disabled: {reason}; particle clouds will not be drawn");
+        return;
+    }
     render_app
-        .insert_resource(shaders)
         .init_resource::<extract::ExtractedCloudLights>()
         .init_resource::<SpecializedRenderPipelines<draw::BillboardPipeline>>()
         .add_render_command::<Transparent3d, draw::DrawCloudBillboards>()
@@ -96,5 +129,3 @@ pub(crate) fn build(app: &mut App) {
                 .before(camera_driver),
         );
 }
-
-pub(crate) fn finish(_app: &mut App) {}
