@@ -163,3 +163,57 @@ fn several_cameras_hdr_and_not_msaa_on_and_off() {
     let centre = pixel(&image, W / 2, H / 2);
     assert!(centre[0] > 1e-3 && centre[0].is_finite(), "the MSAA view shows the cloud: {centre:?}");
 }
+
+/// Renders the small cloud on black at the given camera `ev100`.
+fn cloud_at_exposure(ev100: f32) -> bevy_particle_clouds::image_io::LinearImage {
+    let (mut app, mut target) = setup(Vec3::ZERO, Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y));
+    app.world_mut().entity_mut(target.camera).insert(bevy::camera::Exposure { ev100 });
+    headless::spawn_light(&mut app, Vec3::new(-1.0, -1.0, -0.5), Vec3::splat(2.0));
+    small_cloud(&mut app, 0.9, Vec3::ZERO);
+    target.drawable_clouds = 1;
+    let mut recorder = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut recorder, &target, 20);
+    headless::capture(&mut app, &mut recorder, &target)
+}
+
+#[test]
+fn the_camera_exposure_scales_clouds_like_lit_surfaces() {
+    let unit = cloud_at_exposure(headless::UNIT_EXPOSURE_EV100);
+    // One stop more: Bevy's exposure factor halves, and so must the cloud's radiance.
+    let half = cloud_at_exposure(headless::UNIT_EXPOSURE_EV100 + 1.0);
+    let mut compared = 0;
+    for (a, b) in unit.pixels.iter().zip(&half.pixels) {
+        if a[0] > 0.02 {
+            assert!((b[0] - 0.5 * a[0]).abs() <= 2e-3 * a[0] + 1e-4, "{} vs half of {}", b[0], a[0]);
+            compared += 1;
+        }
+    }
+    assert!(compared > 50, "the cloud covers pixels");
+}
+
+#[test]
+fn changing_the_particles_revoxelizes_and_resorts() {
+    let (mut app, mut target) = setup(Vec3::ZERO, Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y));
+    headless::spawn_light(&mut app, Vec3::NEG_Y, Vec3::ONE);
+    let cloud = small_cloud(&mut app, 0.9, Vec3::ZERO);
+    target.drawable_clouds = 1;
+    let mut recorder = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut recorder, &target, 20);
+    let handle = app.world().get::<ParticleCloud>(cloud).unwrap().particles.clone();
+    app.world_mut().resource_mut::<Assets<Particles>>().get_mut(&handle).unwrap().particles[0].position.x += 0.1;
+    let mut runs = [0; 2];
+    for _ in 0..3 {
+        let frame = recorder.frame(&mut app);
+        runs[0] += frame.runs(CloudPass::Voxelize);
+        runs[1] += frame.runs(CloudPass::Sort);
+    }
+    assert_eq!(runs, [1, 1], "one re-voxelization and one re-sort after the asset changed");
+    // Turning the cloud re-sorts but never re-voxelizes (the grid is cloud-local).
+    app.world_mut().entity_mut(cloud).insert(Transform::from_rotation(Quat::from_rotation_y(0.5)));
+    let frame = recorder.frame(&mut app).clone();
+    assert_eq!((frame.runs(CloudPass::Voxelize), frame.runs(CloudPass::Sort)), (0, 1));
+    // Sliding it sideways keeps every view depth's order: no sort at all.
+    app.world_mut().entity_mut(cloud).insert(Transform::from_rotation(Quat::from_rotation_y(0.5)).with_translation(Vec3::X * 0.2));
+    let frame = recorder.frame(&mut app).clone();
+    assert_eq!((frame.runs(CloudPass::Voxelize), frame.runs(CloudPass::Sort)), (0, 0));
+}
