@@ -56,7 +56,12 @@ fn vertex(@builtin(vertex_index) vertex_index: u32, @builtin(instance_index) ins
     var out: VertexOutput;
     out.centre_radius = vec4(centre, radius);
     out.colour_density = vec4(colours[index].xyz, particle.density.x);
-    if depth - radius >= near_plane() {
+    if depth + radius <= near_plane() {
+        // Entirely behind the near plane: a degenerate triangle, culled before rasterisation.
+        out.clip_position = vec4(2.0, 2.0, 2.0, 1.0);
+        out.world_position = centre;
+        out.on_near_plane = 0u;
+    } else if depth - radius >= near_plane() {
         // A quad in the plane at the particle's depth covering the sphere's silhouette: for a
         // sphere seen at angle theta off-axis, its silhouette cone (half-angle alpha) cuts that
         // plane within R / cos(theta + alpha) of the centre.
