@@ -60,7 +60,16 @@ impl CloudPass {
     /// The diagnostic holding this pass's GPU time in milliseconds (needs `RenderDiagnosticsPlugin`
     /// and an adapter with timestamp queries).
     pub fn diagnostic_path(self) -> DiagnosticPath {
-        DiagnosticPath::from_components(["render", self.span_name(), "elapsed_gpu"])
+        match self {
+            // The draw's span is nested in Bevy's span of the transparent pass.
+            Self::Draw => DiagnosticPath::from_components([
+                "render",
+                "main_transparent_pass_3d",
+                self.span_name(),
+                "elapsed_gpu",
+            ]),
+            _ => DiagnosticPath::from_components(["render", self.span_name(), "elapsed_gpu"]),
+        }
     }
 }
 

@@ -14,6 +14,7 @@ use bevy::{
     platform::collections::HashMap,
     prelude::*,
     render::{
+        diagnostic::{DiagnosticsRecorder, RecordDiagnostics},
         render_asset::RenderAssets,
         render_phase::{
             DrawFunctions, PhaseItem, PhaseItemExtraIndex, RenderCommand, RenderCommandResult, SetItemPipeline,
@@ -263,7 +264,7 @@ impl<P: PhaseItem, const I: usize> RenderCommand<P> for SetBillboardViewBindGrou
 pub struct DrawBillboards<const I: usize>;
 
 impl<P: PhaseItem, const I: usize> RenderCommand<P> for DrawBillboards<I> {
-    type Param = (SRes<RenderAssets<GpuParticles>>, SRes<CloudPassCounters>);
+    type Param = (SRes<RenderAssets<GpuParticles>>, SRes<CloudPassCounters>, Option<SRes<DiagnosticsRecorder>>);
     type ViewQuery = Read<ExtractedView>;
     type ItemQuery = (Read<ExtractedCloud>, Read<CloudDrawBindGroups>);
 
@@ -271,14 +272,19 @@ impl<P: PhaseItem, const I: usize> RenderCommand<P> for DrawBillboards<I> {
         _: &P,
         view: ROQueryItem<'w, '_, Self::ViewQuery>,
         cloud: Option<ROQueryItem<'w, '_, Self::ItemQuery>>,
-        (particles, counters): SystemParamItem<'w, '_, Self::Param>,
+        (particles, counters, recorder): SystemParamItem<'w, '_, Self::Param>,
         pass: &mut TrackedRenderPass<'w>,
     ) -> RenderCommandResult {
         let Some((cloud, groups)) = cloud else { return RenderCommandResult::Skip };
         let Some(group) = groups.groups.get(&view.retained_view_entity) else { return RenderCommandResult::Skip };
         let Some(gpu) = particles.into_inner().get(cloud.particles) else { return RenderCommandResult::Skip };
         pass.set_bind_group(I, group, &[]);
+        // A timestamp span only: Bevy's own span around the transparent pass already holds the
+        // pass's pipeline-statistics query, and those cannot nest.
+        let recorder = recorder.map(|r| r.into_inner());
+        let span = recorder.time_span(pass.wgpu_pass(), CloudPass::Draw.span_name());
         pass.draw(0..6, 0..gpu.count);
+        span.end(pass.wgpu_pass());
         counters.add(CloudPass::Draw, 1);
         RenderCommandResult::Success
     }

@@ -248,13 +248,16 @@ impl FrameRecorder {
     fn collect_gpu_times(&mut self, app: &App) {
         let Some(store) = app.world().get_resource::<DiagnosticsStore>() else { return };
         for pass in CloudPass::ALL {
-            let Some(m) = store.get(&pass.diagnostic_path()).and_then(|d| d.measurement()) else { continue };
-            if self.last_seen.get(&pass) == Some(&m.time) {
+            let Some(diagnostic) = store.get(&pass.diagnostic_path()) else { continue };
+            let Some(latest) = diagnostic.measurement().map(|m| m.time) else { continue };
+            if self.last_seen.get(&pass) == Some(&latest) {
                 continue;
             }
-            self.last_seen.insert(pass, m.time);
+            self.last_seen.insert(pass, latest);
+            // One frame's spans of a pass (e.g. one per cloud and view) share the sync instant.
+            let total: f64 = diagnostic.measurements().filter(|m| m.time == latest).map(|m| m.value).sum();
             if let Some(frame) = self.waiting.get_mut(&pass).and_then(VecDeque::pop_front) {
-                self.frames[frame].gpu_ms.insert(pass, m.value);
+                self.frames[frame].gpu_ms.insert(pass, total);
             }
         }
     }
