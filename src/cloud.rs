@@ -2,7 +2,10 @@
 
 use bevy::{
     asset::Asset,
-    camera::{primitives::Aabb, visibility::{add_visibility_class, VisibilityClass}},
+    camera::{
+        primitives::Aabb,
+        visibility::{VisibilityClass, add_visibility_class},
+    },
     prelude::*,
 };
 
@@ -33,7 +36,10 @@ impl Particles {
 
     /// Checks every particle (PHYSICS.md ranges).
     pub fn validate(&self) -> Result<(), InvalidMedium> {
-        self.particles.iter().enumerate().try_for_each(|(i, p)| p.validate(i))
+        self.particles
+            .iter()
+            .enumerate()
+            .try_for_each(|(i, p)| p.validate(i))
     }
 }
 
@@ -68,7 +74,11 @@ impl ParticleCloud {
     /// A cloud of the given particles with the default medium (extinction 10 /m, albedo 0.99).
     pub fn new(particles: Handle<Particles>) -> Self {
         let medium = Medium::default();
-        Self { particles, extinction: medium.extinction, albedo: medium.albedo }
+        Self {
+            particles,
+            extinction: medium.extinction,
+            albedo: medium.albedo,
+        }
     }
 
     /// Sets the medium.
@@ -80,7 +90,10 @@ impl ParticleCloud {
 
     /// The medium of this cloud.
     pub fn medium(&self) -> Medium {
-        Medium { extinction: self.extinction, albedo: self.albedo }
+        Medium {
+            extinction: self.extinction,
+            albedo: self.albedo,
+        }
     }
 }
 
@@ -100,9 +113,9 @@ pub(crate) fn update_cloud_aabbs(
     let changed: Vec<AssetId<Particles>> = events
         .read()
         .filter_map(|e| match e {
-            AssetEvent::Added { id } | AssetEvent::Modified { id } | AssetEvent::LoadedWithDependencies { id } => {
-                Some(*id)
-            }
+            AssetEvent::Added { id }
+            | AssetEvent::Modified { id }
+            | AssetEvent::LoadedWithDependencies { id } => Some(*id),
             _ => None,
         })
         .collect();
@@ -113,6 +126,8 @@ pub(crate) fn update_cloud_aabbs(
         let Some(bounds) = assets.get(&cloud.particles).and_then(Particles::bounds) else {
             continue;
         };
-        commands.entity(entity).try_insert(Aabb::from_min_max(bounds.0, bounds.1));
+        commands
+            .entity(entity)
+            .try_insert(Aabb::from_min_max(bounds.0, bounds.1));
     }
 }

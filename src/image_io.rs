@@ -170,9 +170,16 @@ pub fn write_png(img: &LinearImage, path: &Path) -> Result<(), ImageIoError> {
 
 /// Refuses an output path whose extension is neither `.exr` nor `.png`, before any rendering.
 pub fn check_output_path(path: &Path) -> Result<(), ImageIoError> {
-    match path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref() {
+    match path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .as_deref()
+    {
         Some("exr" | "png") => Ok(()),
-        _ => Err(ImageIoError::Extension { path: path.to_path_buf() }),
+        _ => Err(ImageIoError::Extension {
+            path: path.to_path_buf(),
+        }),
     }
 }
 

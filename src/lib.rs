@@ -52,8 +52,8 @@ pub use stats::{CloudPass, CloudPassCounters};
 /// Everything a Bevy user needs.
 pub mod prelude {
     pub use crate::{
-        generators, CloudQualitySettings, DefaultCloudQuality, Medium, NotCloudLight, Particle,
-        ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil,
+        CloudQualitySettings, DefaultCloudQuality, Medium, NotCloudLight, Particle, ParticleCloud,
+        ParticleCloudsPlugin, Particles, ScatterStencil, generators,
     };
 }
 
@@ -75,7 +75,8 @@ impl Plugin for ParticleCloudsPlugin {
             .init_resource::<CloudPassCounters>()
             .add_systems(
                 PostUpdate,
-                cloud::update_cloud_aabbs.before(bevy::camera::visibility::VisibilitySystems::CheckVisibility),
+                cloud::update_cloud_aabbs
+                    .before(bevy::camera::visibility::VisibilitySystems::CheckVisibility),
             );
         render::build(app);
     }

@@ -34,7 +34,10 @@ pub struct Medium {
 impl Default for Medium {
     /// A bright cumulus-like medium: 10 /m at density 1, albedo 0.99.
     fn default() -> Self {
-        Self { extinction: 10.0, albedo: 0.99 }
+        Self {
+            extinction: 10.0,
+            albedo: 0.99,
+        }
     }
 }
 
@@ -57,13 +60,22 @@ impl Particle {
     /// Checks the particle against PHYSICS.md; `index` is only used in the error message.
     pub fn validate(&self, index: usize) -> Result<(), InvalidMedium> {
         if !self.position.is_finite() {
-            return Err(InvalidMedium::Position { index, value: self.position });
+            return Err(InvalidMedium::Position {
+                index,
+                value: self.position,
+            });
         }
         if !(self.radius.is_finite() && self.radius > 0.0) {
-            return Err(InvalidMedium::Radius { index, value: self.radius });
+            return Err(InvalidMedium::Radius {
+                index,
+                value: self.radius,
+            });
         }
         if !(self.density.is_finite() && self.density >= 0.0) {
-            return Err(InvalidMedium::Density { index, value: self.density });
+            return Err(InvalidMedium::Density {
+                index,
+                value: self.density,
+            });
         }
         Ok(())
     }
@@ -115,7 +127,10 @@ impl Medium {
 /// Validates a whole cloud: the medium first, then every particle.
 pub fn validate_cloud(medium: &Medium, particles: &[Particle]) -> Result<(), InvalidMedium> {
     medium.validate()?;
-    particles.iter().enumerate().try_for_each(|(i, p)| p.validate(i))
+    particles
+        .iter()
+        .enumerate()
+        .try_for_each(|(i, p)| p.validate(i))
 }
 
 /// A directional light as the physics sees it (PHYSICS.md, "Lights").

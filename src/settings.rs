@@ -62,7 +62,9 @@ impl Default for CloudQualitySettings {
 /// Why a settings value is refused; each variant names the field, its value and what is allowed.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum InvalidSettings {
-    #[error("`volume_resolution` is {0}; allowed is {MIN_VOLUME_RESOLUTION}..={MAX_VOLUME_RESOLUTION}")]
+    #[error(
+        "`volume_resolution` is {0}; allowed is {MIN_VOLUME_RESOLUTION}..={MAX_VOLUME_RESOLUTION}"
+    )]
     VolumeResolution(u32),
     #[error("`scatter_iterations` is {0}; allowed is 0..={MAX_SCATTER_ITERATIONS}")]
     ScatterIterations(u32),

@@ -6,8 +6,8 @@
 //! (`RenderDiagnosticsPlugin`), under the paths [`CloudPass::diagnostic_path`].
 
 use std::sync::{
-    atomic::{AtomicU32, Ordering},
     Arc,
+    atomic::{AtomicU32, Ordering},
 };
 
 use bevy::{diagnostic::DiagnosticPath, prelude::*};
@@ -30,8 +30,14 @@ pub enum CloudPass {
 }
 
 impl CloudPass {
-    pub const ALL: [CloudPass; 6] =
-        [Self::Voxelize, Self::Shade, Self::Gather, Self::Scatter, Self::Sort, Self::Draw];
+    pub const ALL: [CloudPass; 6] = [
+        Self::Voxelize,
+        Self::Shade,
+        Self::Gather,
+        Self::Scatter,
+        Self::Sort,
+        Self::Draw,
+    ];
 
     /// The lower-case name used in statistics files.
     pub fn name(self) -> &'static str {

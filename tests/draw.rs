@@ -7,22 +7,25 @@ use bevy::{
     math::{DQuat, DVec3},
     prelude::*,
     render::{
-        render_resource::{BufferInitDescriptor, BufferUsages, CommandEncoderDescriptor, ComputePassDescriptor, PipelineCache},
+        render_resource::{
+            BufferInitDescriptor, BufferUsages, CommandEncoderDescriptor, ComputePassDescriptor,
+            PipelineCache,
+        },
         renderer::{RenderDevice, RenderQueue},
     },
 };
 use bevy_particle_clouds::{
+    CloudPass, CloudQualitySettings, LightSample, Medium, Particle, ParticleCloud, Particles,
     generators::SplitMix64,
     image_io::LinearImage,
     reference::{
         camera::PinholeCamera,
-        composite::{composite, BillboardCloud, CloudPlacement},
-        illumination::{illuminate, LocalLight},
+        composite::{BillboardCloud, CloudPlacement, composite},
+        illumination::{LocalLight, illuminate},
         metrics::relative_rmse,
     },
-    render::sort::{record_sort, SortBuffers, SortPipelines},
+    render::sort::{SortBuffers, SortPipelines, record_sort},
     scene::{ObjectShape, SceneObject},
-    CloudPass, CloudQualitySettings, LightSample, Medium, Particle, ParticleCloud, Particles,
 };
 use common::headless::{self, FrameRecorder, SceneTarget};
 
@@ -38,20 +41,31 @@ fn gpu_sort(app: &mut App, keys: &[u32]) -> (Vec<u32>, Vec<u32>) {
         let buffers = SortBuffers::new(&device, count);
         buffers.write_params(&queue, count, Vec4::ZERO);
         queue.write_buffer(buffers.keys(), 0, bytemuck::cast_slice(keys));
-        queue.write_buffer(buffers.values(), 0, bytemuck::cast_slice(&(0..count).collect::<Vec<u32>>()));
+        queue.write_buffer(
+            buffers.values(),
+            0,
+            bytemuck::cast_slice(&(0..count).collect::<Vec<u32>>()),
+        );
         let dummy = device.create_buffer_with_data(&BufferInitDescriptor {
             label: Some("no_particles"),
             contents: &[0; 32],
             usage: BufferUsages::STORAGE,
         });
-        let groups = buffers.bind_groups(&device, &cache.get_bind_group_layout(&pipelines.layout), &dummy);
+        let groups = buffers.bind_groups(
+            &device,
+            &cache.get_bind_group_layout(&pipelines.layout),
+            &dummy,
+        );
         let mut encoder = device.create_command_encoder(&CommandEncoderDescriptor::default());
         {
             let mut pass = encoder.begin_compute_pass(&ComputePassDescriptor::default());
             record_sort(&mut pass, &ready, &groups, count, false);
         }
         queue.submit([encoder.finish()]);
-        (buffers.sorted_keys().clone(), buffers.sorted_values().clone())
+        (
+            buffers.sorted_keys().clone(),
+            buffers.sorted_values().clone(),
+        )
     });
     let read = |app: &mut App, b| -> Vec<u32> {
         bytemuck::cast_slice(&headless::read_buffer(app, b)[..keys.len() * 4]).to_vec()
@@ -77,8 +91,16 @@ fn gpu_sort_equals_a_stable_cpu_sort() {
         let mut expected: Vec<(u32, u32)> = keys.iter().copied().zip(0..).collect();
         expected.sort_by_key(|&(k, _)| k); // stable: equal keys keep their index order
         let (sorted_keys, sorted_values) = gpu_sort(&mut app, &keys);
-        assert_eq!(sorted_keys, expected.iter().map(|e| e.0).collect::<Vec<_>>(), "keys, size {size}");
-        assert_eq!(sorted_values, expected.iter().map(|e| e.1).collect::<Vec<_>>(), "values, size {size}");
+        assert_eq!(
+            sorted_keys,
+            expected.iter().map(|e| e.0).collect::<Vec<_>>(),
+            "keys, size {size}"
+        );
+        assert_eq!(
+            sorted_values,
+            expected.iter().map(|e| e.1).collect::<Vec<_>>(),
+            "values, size {size}"
+        );
     }
 }
 
@@ -105,16 +127,30 @@ struct Setup {
 fn render(setup: &Setup) -> (App, SceneTarget, Render) {
     let mut app = headless::headless_app();
     let image = headless::float_target(&mut app, W, H);
-    let camera = headless::spawn_linear_camera(&mut app, image.clone(), setup.camera, FOV, setup.background);
+    let camera =
+        headless::spawn_linear_camera(&mut app, image.clone(), setup.camera, FOV, setup.background);
     for light in &setup.lights {
         headless::spawn_light(&mut app, light.direction, light.irradiance);
     }
     for object in &setup.objects {
         headless::spawn_object(&mut app, object.shape, object.translation, object.color);
     }
-    let handle = app.world_mut().resource_mut::<Assets<Particles>>().add(Particles::new(setup.particles.clone()));
-    app.world_mut().spawn((ParticleCloud::new(handle).with_medium(setup.medium), setup.settings, setup.transform));
-    let target = SceneTarget { image, width: W, height: H, camera, drawable_clouds: 1 };
+    let handle = app
+        .world_mut()
+        .resource_mut::<Assets<Particles>>()
+        .add(Particles::new(setup.particles.clone()));
+    app.world_mut().spawn((
+        ParticleCloud::new(handle).with_medium(setup.medium),
+        setup.settings,
+        setup.transform,
+    ));
+    let target = SceneTarget {
+        image,
+        width: W,
+        height: H,
+        camera,
+        drawable_clouds: 1,
+    };
     let mut frames = FrameRecorder::default();
     headless::render_until_steady(&mut app, &mut frames, &target, 20);
     let image = headless::capture(&mut app, &mut frames, &target);
@@ -125,8 +161,19 @@ fn render(setup: &Setup) -> (App, SceneTarget, Render) {
 fn reference(setup: &Setup) -> Vec<[f32; 4]> {
     let rotation = DQuat::from(setup.transform.rotation.as_dquat());
     let scale = setup.transform.scale.x as f64;
-    let lights: Vec<LocalLight> = setup.lights.iter().map(|l| LocalLight::from_world(l, rotation)).collect();
-    let illumination = illuminate(&setup.particles, &setup.medium, scale, &lights, &setup.settings).unwrap();
+    let lights: Vec<LocalLight> = setup
+        .lights
+        .iter()
+        .map(|l| LocalLight::from_world(l, rotation))
+        .collect();
+    let illumination = illuminate(
+        &setup.particles,
+        &setup.medium,
+        scale,
+        &lights,
+        &setup.settings,
+    )
+    .unwrap();
     let colours = illumination.particle_colours(&setup.particles, setup.medium.albedo as f64);
     let eye = setup.camera.translation;
     let camera = PinholeCamera::looking_at(
@@ -139,24 +186,47 @@ fn reference(setup: &Setup) -> Vec<[f32; 4]> {
     );
     let cloud = BillboardCloud {
         particles: &setup.particles,
-        world_from_local: CloudPlacement { translation: setup.transform.translation.as_dvec3(), rotation, scale },
+        world_from_local: CloudPlacement {
+            translation: setup.transform.translation.as_dvec3(),
+            rotation,
+            scale,
+        },
         medium: setup.medium,
         colours: &colours,
     };
-    composite(&camera, setup.background.as_dvec3(), &setup.objects, &[cloud], 1.0)
+    composite(
+        &camera,
+        setup.background.as_dvec3(),
+        &setup.objects,
+        &[cloud],
+        1.0,
+    )
 }
 
 fn cloud_setup(seed: u64, camera: Transform) -> Setup {
     let mut rng = SplitMix64::new(seed);
     Setup {
         particles: (0..40)
-            .map(|_| Particle { position: rng.in_unit_ball() * 0.8, radius: 0.15 + 0.3 * rng.next_f32(), density: 0.5 + rng.next_f32() })
+            .map(|_| Particle {
+                position: rng.in_unit_ball() * 0.8,
+                radius: 0.15 + 0.3 * rng.next_f32(),
+                density: 0.5 + rng.next_f32(),
+            })
             .collect(),
-        medium: Medium { extinction: 4.0, albedo: 0.95 },
+        medium: Medium {
+            extinction: 4.0,
+            albedo: 0.95,
+        },
         transform: Transform::from_xyz(0.1, 0.0, 0.0).with_rotation(Quat::from_rotation_y(0.4)),
         lights: vec![
-            LightSample { direction: Vec3::new(-1.0, -0.6, -0.3), irradiance: Vec3::new(2.0, 1.8, 1.5) },
-            LightSample { direction: Vec3::new(1.0, -0.2, 0.4), irradiance: Vec3::new(0.2, 0.3, 0.9) },
+            LightSample {
+                direction: Vec3::new(-1.0, -0.6, -0.3),
+                irradiance: Vec3::new(2.0, 1.8, 1.5),
+            },
+            LightSample {
+                direction: Vec3::new(1.0, -0.2, 0.4),
+                irradiance: Vec3::new(0.2, 0.3, 0.9),
+            },
         ],
         objects: vec![],
         camera,
@@ -166,20 +236,41 @@ fn cloud_setup(seed: u64, camera: Transform) -> Setup {
 }
 
 fn assert_images_match(gpu: &LinearImage, cpu: &[[f32; 4]], what: &str) {
-    let rgb = |p: &[[f32; 4]]| p.iter().map(|c| [c[0], c[1], c[2], 1.0]).collect::<Vec<_>>();
+    let rgb = |p: &[[f32; 4]]| {
+        p.iter()
+            .map(|c| [c[0], c[1], c[2], 1.0])
+            .collect::<Vec<_>>()
+    };
     let error = relative_rmse(&rgb(&gpu.pixels), &rgb(cpu));
-    let max = cpu.iter().flat_map(|c| &c[..3]).fold(0.0f32, |m, v| m.max(*v));
-    let worst = gpu.pixels.iter().zip(cpu).flat_map(|(g, c)| (0..3).map(move |i| (g[i] - c[i]).abs())).fold(0.0, f32::max);
+    let max = cpu
+        .iter()
+        .flat_map(|c| &c[..3])
+        .fold(0.0f32, |m, v| m.max(*v));
+    let worst = gpu
+        .pixels
+        .iter()
+        .zip(cpu)
+        .flat_map(|(g, c)| (0..3).map(move |i| (g[i] - c[i]).abs()))
+        .fold(0.0, f32::max);
     // f16 output (2^-11 relative: measured RMSE 4e-4 to 2e-3) and f32 illumination; rasterisation
     // samples pixel centres as the CPU does.
     eprintln!("{what}: relative RMSE {error:e}, worst {worst:e} of max {max}");
-    assert!(error < 3e-3, "{what}: relative RMSE {error} against the CPU billboards");
-    assert!(worst < 4e-3 * max, "{what}: worst pixel differs by {worst} (max radiance {max})");
+    assert!(
+        error < 3e-3,
+        "{what}: relative RMSE {error} against the CPU billboards"
+    );
+    assert!(
+        worst < 4e-3 * max,
+        "{what}: worst pixel differs by {worst} (max radiance {max})"
+    );
 }
 
 #[test]
 fn a_cloud_image_equals_the_cpu_billboard_reference() {
-    let setup = cloud_setup(21, Transform::from_xyz(0.3, 0.4, 4.0).looking_at(Vec3::ZERO, Vec3::Y));
+    let setup = cloud_setup(
+        21,
+        Transform::from_xyz(0.3, 0.4, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
+    );
     let (_, _, gpu) = render(&setup);
     assert_images_match(&gpu.image, &reference(&setup), "cloud");
 }
@@ -187,15 +278,29 @@ fn a_cloud_image_equals_the_cpu_billboard_reference() {
 #[test]
 fn two_overlapping_particles_composite_back_to_front_from_either_side() {
     // A lit particle and a shadowed one behind it along the light: different colours.
-    let a = Particle { position: Vec3::new(0.0, 0.0, 0.3), radius: 0.5, density: 2.0 };
-    let b = Particle { position: Vec3::new(0.05, 0.02, -0.3), radius: 0.45, density: 2.0 };
+    let a = Particle {
+        position: Vec3::new(0.0, 0.0, 0.3),
+        radius: 0.5,
+        density: 2.0,
+    };
+    let b = Particle {
+        position: Vec3::new(0.05, 0.02, -0.3),
+        radius: 0.45,
+        density: 2.0,
+    };
     for particles in [vec![a, b], vec![b, a]] {
         for eye in [Vec3::new(0.1, 0.1, 3.0), Vec3::new(-0.1, 0.1, -3.0)] {
             let setup = Setup {
                 particles: particles.clone(),
-                medium: Medium { extinction: 3.0, albedo: 1.0 },
+                medium: Medium {
+                    extinction: 3.0,
+                    albedo: 1.0,
+                },
                 transform: Transform::IDENTITY,
-                lights: vec![LightSample { direction: Vec3::NEG_Z, irradiance: Vec3::new(3.0, 1.0, 0.5) }],
+                lights: vec![LightSample {
+                    direction: Vec3::NEG_Z,
+                    irradiance: Vec3::new(3.0, 1.0, 0.5),
+                }],
                 objects: vec![],
                 camera: Transform::from_translation(eye).looking_at(Vec3::ZERO, Vec3::Y),
                 background: Vec3::ZERO,
@@ -214,49 +319,103 @@ fn opaque_objects_hide_the_cloud_and_the_cloud_blends_over_objects_behind() {
     let front = Vec3::new(0.9, 0.1, 0.1);
     let back = Vec3::new(0.1, 0.9, 0.1);
     setup.objects = vec![
-        SceneObject { shape: ObjectShape::Cuboid(Vec3::new(0.4, 0.4, 0.1)), translation: Vec3::new(-0.3, 0.0, 2.0), color: front },
-        SceneObject { shape: ObjectShape::Cuboid(Vec3::new(3.0, 3.0, 0.1)), translation: Vec3::new(0.0, 0.0, -2.0), color: back },
+        SceneObject {
+            shape: ObjectShape::Cuboid(Vec3::new(0.4, 0.4, 0.1)),
+            translation: Vec3::new(-0.3, 0.0, 2.0),
+            color: front,
+        },
+        SceneObject {
+            shape: ObjectShape::Cuboid(Vec3::new(3.0, 3.0, 0.1)),
+            translation: Vec3::new(0.0, 0.0, -2.0),
+            color: back,
+        },
     ];
     let (_, _, gpu) = render(&setup);
     let cpu = reference(&setup);
     assert_images_match(&gpu.image, &cpu, "occlusion");
     // The object in front shows exactly its colour where it covers the cloud.
-    let camera_model = PinholeCamera::looking_at(DVec3::new(0.0, 0.0, 5.0), DVec3::ZERO, DVec3::Y, FOV as f64, W, H);
+    let camera_model = PinholeCamera::looking_at(
+        DVec3::new(0.0, 0.0, 5.0),
+        DVec3::ZERO,
+        DVec3::Y,
+        FOV as f64,
+        W,
+        H,
+    );
     let mut covered = 0;
     for y in 0..H {
         for x in 0..W {
             let dir = camera_model.pixel_ray(x, y);
-            let hit = bevy_particle_clouds::reference::geometry::nearest_object(&setup.objects, camera_model.position, dir);
+            let hit = bevy_particle_clouds::reference::geometry::nearest_object(
+                &setup.objects,
+                camera_model.position,
+                dir,
+            );
             let p = gpu.image.pixels[(y * W + x) as usize];
             if hit.is_some_and(|(_, i)| i == 0) {
                 covered += 1;
-                assert!((p[0] - front.x).abs() < 1e-3 && (p[1] - front.y).abs() < 1e-3, "pixel {x},{y}: {p:?}");
+                assert!(
+                    (p[0] - front.x).abs() < 1e-3 && (p[1] - front.y).abs() < 1e-3,
+                    "pixel {x},{y}: {p:?}"
+                );
             }
         }
     }
     assert!(covered > 10, "the front object covers pixels");
     // Somewhere the cloud blends over the back wall: neither the wall nor the background.
-    assert!(gpu.image.pixels.iter().any(|p| p[1] < back.y - 0.05 && p[0] > 0.05), "the cloud is over the wall");
+    assert!(
+        gpu.image
+            .pixels
+            .iter()
+            .any(|p| p[1] < back.y - 0.05 && p[0] > 0.05),
+        "the cloud is over the wall"
+    );
 }
 
 #[test]
 fn a_static_camera_does_not_resort_and_a_moving_one_does() {
-    let setup = cloud_setup(8, Transform::from_xyz(0.0, 0.5, 4.0).looking_at(Vec3::ZERO, Vec3::Y));
+    let setup = cloud_setup(
+        8,
+        Transform::from_xyz(0.0, 0.5, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
+    );
     let (mut app, target, mut gpu) = render(&setup);
     for _ in 0..2 {
-        assert_eq!(gpu.frames.frame(&mut app).runs(CloudPass::Sort), 0, "static camera: no sort");
+        assert_eq!(
+            gpu.frames.frame(&mut app).runs(CloudPass::Sort),
+            0,
+            "static camera: no sort"
+        );
     }
-    app.world_mut().entity_mut(target.camera).insert(Transform::from_xyz(1.0, 0.5, 4.0).looking_at(Vec3::ZERO, Vec3::Y));
+    app.world_mut()
+        .entity_mut(target.camera)
+        .insert(Transform::from_xyz(1.0, 0.5, 4.0).looking_at(Vec3::ZERO, Vec3::Y));
     let frame = gpu.frames.frame(&mut app).clone();
     assert_eq!(frame.runs(CloudPass::Sort), 1, "moved camera: sorted again");
-    assert_eq!(frame.runs(CloudPass::Voxelize) + frame.runs(CloudPass::Shade), 0, "illumination is view-independent");
+    assert_eq!(
+        frame.runs(CloudPass::Voxelize) + frame.runs(CloudPass::Shade),
+        0,
+        "illumination is view-independent"
+    );
 }
 
 #[test]
 fn the_camera_inside_a_cloud_sees_finite_partial_chords() {
-    let mut setup = cloud_setup(13, Transform::from_xyz(0.0, 0.0, 0.0).looking_at(Vec3::new(0.0, 0.0, -1.0), Vec3::Y));
-    setup.particles.push(Particle { position: Vec3::ZERO, radius: 0.9, density: 0.5 });
+    let mut setup = cloud_setup(
+        13,
+        Transform::from_xyz(0.0, 0.0, 0.0).looking_at(Vec3::new(0.0, 0.0, -1.0), Vec3::Y),
+    );
+    setup.particles.push(Particle {
+        position: Vec3::ZERO,
+        radius: 0.9,
+        density: 0.5,
+    });
     let (_, _, gpu) = render(&setup);
-    assert!(gpu.image.pixels.iter().flatten().all(|v| v.is_finite() && *v >= 0.0));
+    assert!(
+        gpu.image
+            .pixels
+            .iter()
+            .flatten()
+            .all(|v| v.is_finite() && *v >= 0.0)
+    );
     assert_images_match(&gpu.image, &reference(&setup), "inside");
 }

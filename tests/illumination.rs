@@ -9,10 +9,10 @@ mod common;
 
 use bevy::{math::DQuat, prelude::*};
 use bevy_particle_clouds::{
-    generators::SplitMix64,
-    reference::illumination::{illuminate, LocalLight},
-    render::volumes::CloudVolumes,
     CloudQualitySettings, LightSample, Medium, Particle, ParticleCloud, Particles, ScatterStencil,
+    generators::SplitMix64,
+    reference::illumination::{LocalLight, illuminate},
+    render::volumes::CloudVolumes,
 };
 use common::headless::{self, FrameRecorder, SceneTarget};
 
@@ -45,11 +45,19 @@ fn random_direction(rng: &mut SplitMix64) -> Vec3 {
 fn relative_error(gpu: &[f64], cpu: &[f64]) -> f64 {
     assert_eq!(gpu.len(), cpu.len());
     let scale = cpu.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(1e-30);
-    gpu.iter().zip(cpu).map(|(g, c)| (g - c).abs()).fold(0.0, f64::max) / scale
+    gpu.iter()
+        .zip(cpu)
+        .map(|(g, c)| (g - c).abs())
+        .fold(0.0, f64::max)
+        / scale
 }
 
 fn rgb(bytes: &[u8]) -> Vec<f64> {
-    headless::floats(bytes).chunks_exact(4).flat_map(|c| [c[0], c[1], c[2]]).map(f64::from).collect()
+    headless::floats(bytes)
+        .chunks_exact(4)
+        .flat_map(|c| [c[0], c[1], c[2]])
+        .map(f64::from)
+        .collect()
 }
 
 fn check(case: Case) {
@@ -66,31 +74,72 @@ fn check(case: Case) {
     for light in &case.lights {
         headless::spawn_light(&mut app, light.direction, light.irradiance);
     }
-    let handle = app.world_mut().resource_mut::<Assets<Particles>>().add(Particles::new(case.particles.clone()));
-    app.world_mut().spawn((ParticleCloud::new(handle).with_medium(case.medium), case.settings, case.transform));
-    let target = SceneTarget { image, width: 16, height: 16, camera, drawable_clouds: 1 };
+    let handle = app
+        .world_mut()
+        .resource_mut::<Assets<Particles>>()
+        .add(Particles::new(case.particles.clone()));
+    app.world_mut().spawn((
+        ParticleCloud::new(handle).with_medium(case.medium),
+        case.settings,
+        case.transform,
+    ));
+    let target = SceneTarget {
+        image,
+        width: 16,
+        height: 16,
+        camera,
+        drawable_clouds: 1,
+    };
     headless::render_until_steady(&mut app, &mut FrameRecorder::default(), &target, 20);
 
     let (density, source, accumulated, colours) = headless::with_render_world(&mut app, |world| {
-        let volumes = world.query::<&CloudVolumes>().single(world).expect("one cloud's volumes");
-        (volumes.density.clone(), volumes.source.clone(), volumes.accumulated.clone(), volumes.colours.clone())
+        let volumes = world
+            .query::<&CloudVolumes>()
+            .single(world)
+            .expect("one cloud's volumes");
+        (
+            volumes.density.clone(),
+            volumes.source.clone(),
+            volumes.accumulated.clone(),
+            volumes.colours.clone(),
+        )
     });
-    let gpu_density: Vec<f64> = headless::floats(&headless::read_buffer(&mut app, &density)).into_iter().map(f64::from).collect();
+    let gpu_density: Vec<f64> = headless::floats(&headless::read_buffer(&mut app, &density))
+        .into_iter()
+        .map(f64::from)
+        .collect();
     let gpu_source = rgb(&headless::read_buffer(&mut app, &source));
     let gpu_accumulated = rgb(&headless::read_buffer(&mut app, &accumulated));
     let gpu_colours = rgb(&headless::read_buffer(&mut app, &colours));
 
     let rotation = DQuat::from(case.transform.rotation.as_dquat());
-    let lights: Vec<LocalLight> = case.lights.iter().map(|l| LocalLight::from_world(l, rotation)).collect();
+    let lights: Vec<LocalLight> = case
+        .lights
+        .iter()
+        .map(|l| LocalLight::from_world(l, rotation))
+        .collect();
     let scale = case.transform.scale.max_element() as f64;
-    let cpu = illuminate(&case.particles, &case.medium, scale, &lights, &case.settings).expect("a cloud with density");
+    let cpu = illuminate(
+        &case.particles,
+        &case.medium,
+        scale,
+        &lights,
+        &case.settings,
+    )
+    .expect("a cloud with density");
     let flat = |v: &[bevy::math::DVec3]| v.iter().flat_map(|c| c.to_array()).collect::<Vec<f64>>();
 
     let n3 = (case.settings.volume_resolution as usize).pow(3);
     let errors = [
         ("density", relative_error(&gpu_density[..n3], &cpu.grid.rho)),
-        ("source", relative_error(&gpu_source[..3 * n3], &flat(&cpu.single_scattering))),
-        ("accumulated", relative_error(&gpu_accumulated[..3 * n3], &flat(&cpu.accumulated))),
+        (
+            "source",
+            relative_error(&gpu_source[..3 * n3], &flat(&cpu.single_scattering)),
+        ),
+        (
+            "accumulated",
+            relative_error(&gpu_accumulated[..3 * n3], &flat(&cpu.accumulated)),
+        ),
         (
             "colours",
             relative_error(
@@ -100,17 +149,29 @@ fn check(case: Case) {
         ),
     ];
     for (name, error) in errors {
-        assert!(error <= TOLERANCE, "{name}: GPU differs from the CPU reference by {error:e} of its maximum");
+        assert!(
+            error <= TOLERANCE,
+            "{name}: GPU differs from the CPU reference by {error:e} of its maximum"
+        );
     }
-    assert!(cpu.accumulated.iter().any(|s| s.max_element() > 0.0), "the case lights the cloud");
+    assert!(
+        cpu.accumulated.iter().any(|s| s.max_element() > 0.0),
+        "the case lights the cloud"
+    );
 }
 
 #[test]
 fn one_light_straight_down() {
     check(Case {
         particles: random_particles(1, 60),
-        medium: Medium { extinction: 6.0, albedo: 0.9 },
-        lights: vec![LightSample { direction: Vec3::NEG_Y, irradiance: Vec3::new(1.0, 0.9, 0.8) }],
+        medium: Medium {
+            extinction: 6.0,
+            albedo: 0.9,
+        },
+        lights: vec![LightSample {
+            direction: Vec3::NEG_Y,
+            irradiance: Vec3::new(1.0, 0.9, 0.8),
+        }],
         transform: Transform::IDENTITY,
         settings: headless::quality(16, 4),
     });
@@ -121,11 +182,23 @@ fn three_lights_along_axes_on_a_rotated_scaled_cloud() {
     let mut rng = SplitMix64::new(7);
     check(Case {
         particles: random_particles(2, 120),
-        medium: Medium { extinction: 3.0, albedo: 0.99 },
+        medium: Medium {
+            extinction: 3.0,
+            albedo: 0.99,
+        },
         lights: vec![
-            LightSample { direction: Vec3::X, irradiance: Vec3::new(0.2, 0.4, 1.0) },
-            LightSample { direction: Vec3::NEG_Z, irradiance: Vec3::new(1.0, 0.3, 0.2) },
-            LightSample { direction: random_direction(&mut rng), irradiance: Vec3::splat(0.5) },
+            LightSample {
+                direction: Vec3::X,
+                irradiance: Vec3::new(0.2, 0.4, 1.0),
+            },
+            LightSample {
+                direction: Vec3::NEG_Z,
+                irradiance: Vec3::new(1.0, 0.3, 0.2),
+            },
+            LightSample {
+                direction: random_direction(&mut rng),
+                irradiance: Vec3::splat(0.5),
+            },
         ],
         transform: Transform::from_xyz(0.5, -0.2, 0.3)
             .with_rotation(Quat::from_euler(EulerRot::YXZ, 0.7, -0.3, 0.2))
@@ -139,12 +212,21 @@ fn eight_random_lights_with_the_paper_stencil() {
     let mut rng = SplitMix64::new(11);
     check(Case {
         particles: random_particles(3, 40),
-        medium: Medium { extinction: 10.0, albedo: 0.8 },
+        medium: Medium {
+            extinction: 10.0,
+            albedo: 0.8,
+        },
         lights: (0..8)
-            .map(|i| LightSample { direction: random_direction(&mut rng), irradiance: Vec3::splat(0.1 + 0.1 * i as f32) })
+            .map(|i| LightSample {
+                direction: random_direction(&mut rng),
+                irradiance: Vec3::splat(0.1 + 0.1 * i as f32),
+            })
             .collect(),
         transform: Transform::IDENTITY,
-        settings: CloudQualitySettings { scatter_stencil: ScatterStencil::Paper, ..headless::quality(8, 3) },
+        settings: CloudQualitySettings {
+            scatter_stencil: ScatterStencil::Paper,
+            ..headless::quality(8, 3)
+        },
     });
 }
 
@@ -152,9 +234,18 @@ fn eight_random_lights_with_the_paper_stencil() {
 fn forward_scattering_and_a_light_along_the_view() {
     check(Case {
         particles: random_particles(4, 80),
-        medium: Medium { extinction: 5.0, albedo: 0.95 },
-        lights: vec![LightSample { direction: Vec3::NEG_Z, irradiance: Vec3::ONE }],
+        medium: Medium {
+            extinction: 5.0,
+            albedo: 0.95,
+        },
+        lights: vec![LightSample {
+            direction: Vec3::NEG_Z,
+            irradiance: Vec3::ONE,
+        }],
         transform: Transform::IDENTITY,
-        settings: CloudQualitySettings { forward_scattering: 0.5, ..headless::quality(20, 2) },
+        settings: CloudQualitySettings {
+            forward_scattering: 0.5,
+            ..headless::quality(20, 2)
+        },
     });
 }

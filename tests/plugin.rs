@@ -4,7 +4,9 @@
 mod common;
 
 use bevy::prelude::*;
-use bevy_particle_clouds::{scene::ObjectShape, CloudPass, Medium, Particle, ParticleCloud, Particles};
+use bevy_particle_clouds::{
+    CloudPass, Medium, Particle, ParticleCloud, Particles, scene::ObjectShape,
+};
 use common::headless::{self, FrameRecorder, SceneTarget};
 
 const W: u32 = 64;
@@ -14,7 +16,16 @@ fn setup(background: Vec3, camera: Transform) -> (App, SceneTarget) {
     let mut app = headless::headless_app();
     let image = headless::float_target(&mut app, W, H);
     let camera = headless::spawn_linear_camera(&mut app, image.clone(), camera, 40.0, background);
-    (app, SceneTarget { image, width: W, height: H, camera, drawable_clouds: 0 })
+    (
+        app,
+        SceneTarget {
+            image,
+            width: W,
+            height: H,
+            camera,
+            drawable_clouds: 0,
+        },
+    )
 }
 
 fn pixel(image: &bevy_particle_clouds::image_io::LinearImage, x: u32, y: u32) -> [f32; 4] {
@@ -22,20 +33,32 @@ fn pixel(image: &bevy_particle_clouds::image_io::LinearImage, x: u32, y: u32) ->
 }
 
 fn close(a: [f32; 4], b: Vec3, tolerance: f32) -> bool {
-    (a[0] - b.x).abs() <= tolerance && (a[1] - b.y).abs() <= tolerance && (a[2] - b.z).abs() <= tolerance
+    (a[0] - b.x).abs() <= tolerance
+        && (a[1] - b.y).abs() <= tolerance
+        && (a[2] - b.z).abs() <= tolerance
 }
 
 fn small_cloud(app: &mut App, albedo: f32, translation: Vec3) -> Entity {
     let particles: Vec<Particle> = (0..20)
         .map(|i| {
             let a = i as f32 * 0.7;
-            Particle { position: Vec3::new(a.cos() * 0.4, (i as f32 * 0.05) - 0.5, a.sin() * 0.4), radius: 0.35, density: 1.0 }
+            Particle {
+                position: Vec3::new(a.cos() * 0.4, (i as f32 * 0.05) - 0.5, a.sin() * 0.4),
+                radius: 0.35,
+                density: 1.0,
+            }
         })
         .collect();
-    let handle = app.world_mut().resource_mut::<Assets<Particles>>().add(Particles::new(particles));
+    let handle = app
+        .world_mut()
+        .resource_mut::<Assets<Particles>>()
+        .add(Particles::new(particles));
     app.world_mut()
         .spawn((
-            ParticleCloud::new(handle).with_medium(Medium { extinction: 4.0, albedo }),
+            ParticleCloud::new(handle).with_medium(Medium {
+                extinction: 4.0,
+                albedo,
+            }),
             headless::quality(16, 4),
             Transform::from_translation(translation),
         ))
@@ -45,7 +68,10 @@ fn small_cloud(app: &mut App, albedo: f32, translation: Vec3) -> Entity {
 #[test]
 fn without_clouds_the_plain_scene_renders_and_no_pass_runs() {
     let background = Vec3::new(0.25, 0.5, 1.0);
-    let (mut app, target) = setup(background, Transform::from_xyz(0.0, 0.0, 5.0).looking_at(Vec3::ZERO, Vec3::Y));
+    let (mut app, target) = setup(
+        background,
+        Transform::from_xyz(0.0, 0.0, 5.0).looking_at(Vec3::ZERO, Vec3::Y),
+    );
     headless::spawn_light(&mut app, Vec3::new(0.0, -1.0, -0.3), Vec3::splat(2.0));
     let mut recorder = FrameRecorder::default();
     for _ in 0..4 {
@@ -53,10 +79,16 @@ fn without_clouds_the_plain_scene_renders_and_no_pass_runs() {
     }
     let image = headless::capture(&mut app, &mut recorder, &target);
     for frame in &recorder.frames {
-        assert!(frame.passes.iter().all(|(_, runs)| *runs == 0), "a pass ran without clouds: {frame:?}");
+        assert!(
+            frame.passes.iter().all(|(_, runs)| *runs == 0),
+            "a pass ran without clouds: {frame:?}"
+        );
     }
     for &p in &image.pixels {
-        assert!(close(p, background, 1e-3), "pixel {p:?} differs from the background {background}");
+        assert!(
+            close(p, background, 1e-3),
+            "pixel {p:?} differs from the background {background}"
+        );
     }
 }
 
@@ -64,48 +96,131 @@ fn without_clouds_the_plain_scene_renders_and_no_pass_runs() {
 fn an_opaque_object_renders_exactly_its_color() {
     let background = Vec3::new(0.1, 0.1, 0.1);
     let color = Vec3::new(0.8, 0.2, 0.05);
-    let (mut app, target) = setup(background, Transform::from_xyz(0.0, 0.0, 5.0).looking_at(Vec3::ZERO, Vec3::Y));
-    headless::spawn_object(&mut app, ObjectShape::Cuboid(Vec3::new(1.0, 1.0, 0.2)), Vec3::ZERO, color);
+    let (mut app, target) = setup(
+        background,
+        Transform::from_xyz(0.0, 0.0, 5.0).looking_at(Vec3::ZERO, Vec3::Y),
+    );
+    headless::spawn_object(
+        &mut app,
+        ObjectShape::Cuboid(Vec3::new(1.0, 1.0, 0.2)),
+        Vec3::ZERO,
+        color,
+    );
     let mut recorder = FrameRecorder::default();
     for _ in 0..3 {
         recorder.frame(&mut app);
     }
     let image = headless::capture(&mut app, &mut recorder, &target);
     // f16 storage: 11 significant bits.
-    assert!(close(pixel(&image, W / 2, H / 2), color, color.max_element() / 1024.0), "{:?}", pixel(&image, W / 2, H / 2));
+    assert!(
+        close(
+            pixel(&image, W / 2, H / 2),
+            color,
+            color.max_element() / 1024.0
+        ),
+        "{:?}",
+        pixel(&image, W / 2, H / 2)
+    );
     assert!(close(pixel(&image, 1, 1), background, 1e-3));
 }
 
 #[test]
 fn a_static_cloud_is_illuminated_once_then_only_drawn() {
     let background = Vec3::new(0.0, 0.0, 0.0);
-    let (mut app, mut target) = setup(background, Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y));
-    headless::spawn_light(&mut app, Vec3::new(-1.0, -1.0, -0.5), Vec3::new(2.0, 1.8, 1.6));
+    let (mut app, mut target) = setup(
+        background,
+        Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
+    );
+    headless::spawn_light(
+        &mut app,
+        Vec3::new(-1.0, -1.0, -0.5),
+        Vec3::new(2.0, 1.8, 1.6),
+    );
     small_cloud(&mut app, 0.9, Vec3::ZERO);
     target.drawable_clouds = 1;
     let mut recorder = FrameRecorder::default();
     let frames = headless::render_until_steady(&mut app, &mut recorder, &target, 20);
     let first_work: u32 = recorder.frames.iter().map(|f| f.work()).sum();
-    assert_eq!(recorder.frames.iter().map(|f| f.runs(CloudPass::Voxelize)).sum::<u32>(), 1, "voxelized once");
-    assert_eq!(recorder.frames.iter().map(|f| f.runs(CloudPass::Shade)).sum::<u32>(), 1, "one light shaded once");
-    assert_eq!(recorder.frames.iter().map(|f| f.runs(CloudPass::Gather)).sum::<u32>(), 1);
-    assert_eq!(recorder.frames.iter().map(|f| f.runs(CloudPass::Scatter)).sum::<u32>(), 4, "4 iterations");
-    assert_eq!(recorder.frames.iter().map(|f| f.runs(CloudPass::Sort)).sum::<u32>(), 1, "one view sorted once");
-    assert!(first_work > 0 && frames <= 3, "illumination took {frames} frames");
+    assert_eq!(
+        recorder
+            .frames
+            .iter()
+            .map(|f| f.runs(CloudPass::Voxelize))
+            .sum::<u32>(),
+        1,
+        "voxelized once"
+    );
+    assert_eq!(
+        recorder
+            .frames
+            .iter()
+            .map(|f| f.runs(CloudPass::Shade))
+            .sum::<u32>(),
+        1,
+        "one light shaded once"
+    );
+    assert_eq!(
+        recorder
+            .frames
+            .iter()
+            .map(|f| f.runs(CloudPass::Gather))
+            .sum::<u32>(),
+        1
+    );
+    assert_eq!(
+        recorder
+            .frames
+            .iter()
+            .map(|f| f.runs(CloudPass::Scatter))
+            .sum::<u32>(),
+        4,
+        "4 iterations"
+    );
+    assert_eq!(
+        recorder
+            .frames
+            .iter()
+            .map(|f| f.runs(CloudPass::Sort))
+            .sum::<u32>(),
+        1,
+        "one view sorted once"
+    );
+    assert!(
+        first_work > 0 && frames <= 3,
+        "illumination took {frames} frames"
+    );
     for _ in 0..3 {
         let frame = recorder.frame(&mut app);
         assert_eq!(frame.work(), 0, "a static scene repeats no work: {frame:?}");
         assert_eq!(frame.runs(CloudPass::Draw), 1);
     }
     let image = headless::capture(&mut app, &mut recorder, &target);
-    assert!(image.pixels.iter().flatten().all(|v| v.is_finite() && *v >= 0.0));
+    assert!(
+        image
+            .pixels
+            .iter()
+            .flatten()
+            .all(|v| v.is_finite() && *v >= 0.0)
+    );
     let centre = pixel(&image, W / 2, H / 2);
-    assert!(centre[3] > 0.0 && centre[0] > 1e-3, "the cloud is visible and lit: {centre:?}");
-    assert!(close(pixel(&image, 0, 0), background, 1e-4), "outside the cloud the background shows");
+    assert!(
+        centre[3] > 0.0 && centre[0] > 1e-3,
+        "the cloud is visible and lit: {centre:?}"
+    );
+    assert!(
+        close(pixel(&image, 0, 0), background, 1e-4),
+        "outside the cloud the background shows"
+    );
 
     // Moving the light re-shades, gathers and scatters, but never re-voxelizes or re-sorts.
-    let light = app.world_mut().query_filtered::<Entity, With<DirectionalLight>>().single(app.world()).unwrap();
-    app.world_mut().entity_mut(light).insert(Transform::default().looking_to(Vec3::new(1.0, -1.0, 0.0), Vec3::Y));
+    let light = app
+        .world_mut()
+        .query_filtered::<Entity, With<DirectionalLight>>()
+        .single(app.world())
+        .unwrap();
+    app.world_mut()
+        .entity_mut(light)
+        .insert(Transform::default().looking_to(Vec3::new(1.0, -1.0, 0.0), Vec3::Y));
     let frame = recorder.frame(&mut app).clone();
     assert_eq!(frame.runs(CloudPass::Voxelize), 0);
     assert_eq!(frame.runs(CloudPass::Shade), 1);
@@ -115,10 +230,15 @@ fn a_static_cloud_is_illuminated_once_then_only_drawn() {
 
 #[test]
 fn opted_out_and_dark_lights_cost_nothing_and_unseen_clouds_do_no_work() {
-    let (mut app, mut target) = setup(Vec3::ZERO, Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y));
+    let (mut app, mut target) = setup(
+        Vec3::ZERO,
+        Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
+    );
     headless::spawn_light(&mut app, Vec3::NEG_Y, Vec3::ONE);
     let opted_out = headless::spawn_light(&mut app, Vec3::X, Vec3::ONE);
-    app.world_mut().entity_mut(opted_out).insert(bevy_particle_clouds::NotCloudLight);
+    app.world_mut()
+        .entity_mut(opted_out)
+        .insert(bevy_particle_clouds::NotCloudLight);
     headless::spawn_light(&mut app, Vec3::Z, Vec3::ZERO);
     small_cloud(&mut app, 0.9, Vec3::ZERO);
     small_cloud(&mut app, 0.9, Vec3::new(0.0, 0.0, 40.0)); // behind the camera: culled
@@ -126,8 +246,16 @@ fn opted_out_and_dark_lights_cost_nothing_and_unseen_clouds_do_no_work() {
     let mut recorder = FrameRecorder::default();
     headless::render_until_steady(&mut app, &mut recorder, &target, 20);
     let total = |pass| recorder.frames.iter().map(|f| f.runs(pass)).sum::<u32>();
-    assert_eq!(total(CloudPass::Voxelize), 1, "only the visible cloud is voxelized");
-    assert_eq!(total(CloudPass::Shade), 1, "only the one lit, opted-in light is shaded");
+    assert_eq!(
+        total(CloudPass::Voxelize),
+        1,
+        "only the visible cloud is voxelized"
+    );
+    assert_eq!(
+        total(CloudPass::Shade),
+        1,
+        "only the one lit, opted-in light is shaded"
+    );
     assert_eq!(total(CloudPass::Sort), 1);
 }
 
@@ -138,11 +266,25 @@ fn several_cameras_hdr_and_not_msaa_on_and_off() {
     small_cloud(&mut app, 0.95, Vec3::ZERO);
     // An HDR camera with 4x MSAA and an 8-bit sRGB one without: both must draw the cloud.
     let hdr = headless::float_target(&mut app, W, H);
-    let camera = headless::spawn_linear_camera(&mut app, hdr.clone(), Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y), 40.0, Vec3::ZERO);
+    let camera = headless::spawn_linear_camera(
+        &mut app,
+        hdr.clone(),
+        Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
+        40.0,
+        Vec3::ZERO,
+    );
     app.world_mut().entity_mut(camera).insert(Msaa::Sample4);
-    let mut ldr_image = Image::new_target_texture(W, H, bevy::render::render_resource::TextureFormat::Rgba8UnormSrgb, None);
+    let mut ldr_image = Image::new_target_texture(
+        W,
+        H,
+        bevy::render::render_resource::TextureFormat::Rgba8UnormSrgb,
+        None,
+    );
     ldr_image.texture_descriptor.usage |= bevy::render::render_resource::TextureUsages::COPY_SRC;
-    let ldr = app.world_mut().resource_mut::<Assets<Image>>().add(ldr_image);
+    let ldr = app
+        .world_mut()
+        .resource_mut::<Assets<Image>>()
+        .add(ldr_image);
     app.world_mut().spawn((
         Camera3d::default(),
         bevy::camera::RenderTarget::Image(ldr.into()),
@@ -156,18 +298,48 @@ fn several_cameras_hdr_and_not_msaa_on_and_off() {
         last = recorder.frame(&mut app).clone();
     }
     assert_eq!(last.runs(CloudPass::Draw), 2, "one draw per camera");
-    assert_eq!(recorder.frames.iter().map(|f| f.runs(CloudPass::Sort)).sum::<u32>(), 2, "one sort per camera");
-    assert_eq!(recorder.frames.iter().map(|f| f.runs(CloudPass::Voxelize)).sum::<u32>(), 1, "illumination is shared by the views");
-    let target = SceneTarget { image: hdr, width: W, height: H, camera, drawable_clouds: 1 };
+    assert_eq!(
+        recorder
+            .frames
+            .iter()
+            .map(|f| f.runs(CloudPass::Sort))
+            .sum::<u32>(),
+        2,
+        "one sort per camera"
+    );
+    assert_eq!(
+        recorder
+            .frames
+            .iter()
+            .map(|f| f.runs(CloudPass::Voxelize))
+            .sum::<u32>(),
+        1,
+        "illumination is shared by the views"
+    );
+    let target = SceneTarget {
+        image: hdr,
+        width: W,
+        height: H,
+        camera,
+        drawable_clouds: 1,
+    };
     let image = headless::capture(&mut app, &mut recorder, &target);
     let centre = pixel(&image, W / 2, H / 2);
-    assert!(centre[0] > 1e-3 && centre[0].is_finite(), "the MSAA view shows the cloud: {centre:?}");
+    assert!(
+        centre[0] > 1e-3 && centre[0].is_finite(),
+        "the MSAA view shows the cloud: {centre:?}"
+    );
 }
 
 /// Renders the small cloud on black at the given camera `ev100`.
 fn cloud_at_exposure(ev100: f32) -> bevy_particle_clouds::image_io::LinearImage {
-    let (mut app, mut target) = setup(Vec3::ZERO, Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y));
-    app.world_mut().entity_mut(target.camera).insert(bevy::camera::Exposure { ev100 });
+    let (mut app, mut target) = setup(
+        Vec3::ZERO,
+        Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
+    );
+    app.world_mut()
+        .entity_mut(target.camera)
+        .insert(bevy::camera::Exposure { ev100 });
     headless::spawn_light(&mut app, Vec3::new(-1.0, -1.0, -0.5), Vec3::splat(2.0));
     small_cloud(&mut app, 0.9, Vec3::ZERO);
     target.drawable_clouds = 1;
@@ -184,7 +356,12 @@ fn the_camera_exposure_scales_clouds_like_lit_surfaces() {
     let mut compared = 0;
     for (a, b) in unit.pixels.iter().zip(&half.pixels) {
         if a[0] > 0.02 {
-            assert!((b[0] - 0.5 * a[0]).abs() <= 2e-3 * a[0] + 1e-4, "{} vs half of {}", b[0], a[0]);
+            assert!(
+                (b[0] - 0.5 * a[0]).abs() <= 2e-3 * a[0] + 1e-4,
+                "{} vs half of {}",
+                b[0],
+                a[0]
+            );
             compared += 1;
         }
     }
@@ -193,27 +370,55 @@ fn the_camera_exposure_scales_clouds_like_lit_surfaces() {
 
 #[test]
 fn changing_the_particles_revoxelizes_and_resorts() {
-    let (mut app, mut target) = setup(Vec3::ZERO, Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y));
+    let (mut app, mut target) = setup(
+        Vec3::ZERO,
+        Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
+    );
     headless::spawn_light(&mut app, Vec3::NEG_Y, Vec3::ONE);
     let cloud = small_cloud(&mut app, 0.9, Vec3::ZERO);
     target.drawable_clouds = 1;
     let mut recorder = FrameRecorder::default();
     headless::render_until_steady(&mut app, &mut recorder, &target, 20);
-    let handle = app.world().get::<ParticleCloud>(cloud).unwrap().particles.clone();
-    app.world_mut().resource_mut::<Assets<Particles>>().get_mut(&handle).unwrap().particles[0].position.x += 0.1;
+    let handle = app
+        .world()
+        .get::<ParticleCloud>(cloud)
+        .unwrap()
+        .particles
+        .clone();
+    app.world_mut()
+        .resource_mut::<Assets<Particles>>()
+        .get_mut(&handle)
+        .unwrap()
+        .particles[0]
+        .position
+        .x += 0.1;
     let mut runs = [0; 2];
     for _ in 0..3 {
         let frame = recorder.frame(&mut app);
         runs[0] += frame.runs(CloudPass::Voxelize);
         runs[1] += frame.runs(CloudPass::Sort);
     }
-    assert_eq!(runs, [1, 1], "one re-voxelization and one re-sort after the asset changed");
+    assert_eq!(
+        runs,
+        [1, 1],
+        "one re-voxelization and one re-sort after the asset changed"
+    );
     // Turning the cloud re-sorts but never re-voxelizes (the grid is cloud-local).
-    app.world_mut().entity_mut(cloud).insert(Transform::from_rotation(Quat::from_rotation_y(0.5)));
+    app.world_mut()
+        .entity_mut(cloud)
+        .insert(Transform::from_rotation(Quat::from_rotation_y(0.5)));
     let frame = recorder.frame(&mut app).clone();
-    assert_eq!((frame.runs(CloudPass::Voxelize), frame.runs(CloudPass::Sort)), (0, 1));
+    assert_eq!(
+        (frame.runs(CloudPass::Voxelize), frame.runs(CloudPass::Sort)),
+        (0, 1)
+    );
     // Sliding it sideways keeps every view depth's order: no sort at all.
-    app.world_mut().entity_mut(cloud).insert(Transform::from_rotation(Quat::from_rotation_y(0.5)).with_translation(Vec3::X * 0.2));
+    app.world_mut().entity_mut(cloud).insert(
+        Transform::from_rotation(Quat::from_rotation_y(0.5)).with_translation(Vec3::X * 0.2),
+    );
     let frame = recorder.frame(&mut app).clone();
-    assert_eq!((frame.runs(CloudPass::Voxelize), frame.runs(CloudPass::Sort)), (0, 0));
+    assert_eq!(
+        (frame.runs(CloudPass::Voxelize), frame.runs(CloudPass::Sort)),
+        (0, 0)
+    );
 }

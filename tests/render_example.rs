@@ -11,20 +11,35 @@ use bevy_particle_clouds::image_io::read_exr;
 /// The example's binary, built by `cargo test` beside this test's binary.
 fn render_binary() -> PathBuf {
     let exe = std::env::current_exe().expect("test binary path");
-    let dir = exe.parent().and_then(Path::parent).expect("target profile directory");
-    let binary = dir.join("examples").join(format!("render{}", std::env::consts::EXE_SUFFIX));
-    assert!(binary.exists(), "{} is missing: run the tests with `cargo test`", binary.display());
+    let dir = exe
+        .parent()
+        .and_then(Path::parent)
+        .expect("target profile directory");
+    let binary = dir
+        .join("examples")
+        .join(format!("render{}", std::env::consts::EXE_SUFFIX));
+    assert!(
+        binary.exists(),
+        "{} is missing: run the tests with `cargo test`",
+        binary.display()
+    );
     binary
 }
 
 fn scratch_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("bevy_particle_clouds_{name}_{}", std::process::id()));
+    let dir = std::env::temp_dir().join(format!(
+        "bevy_particle_clouds_{name}_{}",
+        std::process::id()
+    ));
     std::fs::create_dir_all(&dir).unwrap();
     dir
 }
 
 fn run(args: &[&str]) -> Output {
-    Command::new(render_binary()).args(args).output().expect("run the render example")
+    Command::new(render_binary())
+        .args(args)
+        .output()
+        .expect("run the render example")
 }
 
 /// The example of SCENE_FORMAT.md, unchanged.
@@ -62,38 +77,84 @@ fn the_scene_format_example_renders_to_exr_png_and_stats() {
     let dir = scratch_dir("example");
     let scene = dir.join("scene.ron");
     std::fs::write(&scene, SCENE_FORMAT_EXAMPLE).unwrap();
-    let (exr, png, stats) = (dir.join("out.exr"), dir.join("out.png"), dir.join("stats.json"));
-    let out = run(&[scene.to_str().unwrap(), "--out", exr.to_str().unwrap(), "--stats", stats.to_str().unwrap(), "--frames", "3"]);
-    assert!(out.status.success(), "render failed: {}", String::from_utf8_lossy(&out.stderr));
+    let (exr, png, stats) = (
+        dir.join("out.exr"),
+        dir.join("out.png"),
+        dir.join("stats.json"),
+    );
+    let out = run(&[
+        scene.to_str().unwrap(),
+        "--out",
+        exr.to_str().unwrap(),
+        "--stats",
+        stats.to_str().unwrap(),
+        "--frames",
+        "3",
+    ]);
+    assert!(
+        out.status.success(),
+        "render failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(stderr.contains("render: wrote"), "progress on stderr: {stderr}");
+    assert!(
+        stderr.contains("render: wrote"),
+        "progress on stderr: {stderr}"
+    );
 
     let image = read_exr(&exr).unwrap();
     assert_eq!((image.width, image.height), (160, 120));
-    assert!(image.pixels.iter().flatten().all(|v| v.is_finite() && *v >= 0.0));
+    assert!(
+        image
+            .pixels
+            .iter()
+            .flatten()
+            .all(|v| v.is_finite() && *v >= 0.0)
+    );
     // The occluder's pixels show its radiance; the cloud is lit somewhere.
-    assert!(image.pixels.iter().any(|p| (p[0] - 0.05).abs() < 1e-3 && (p[2] - 0.05).abs() < 1e-3));
+    assert!(
+        image
+            .pixels
+            .iter()
+            .any(|p| (p[0] - 0.05).abs() < 1e-3 && (p[2] - 0.05).abs() < 1e-3)
+    );
     assert!(image.pixels.iter().any(|p| p[0] > 0.02), "the cloud is lit");
 
-    let stats: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&stats).unwrap()).unwrap();
+    let stats: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&stats).unwrap()).unwrap();
     assert!(stats["adapter"].as_str().is_some_and(|a| !a.is_empty()));
     let frames = stats["frames"].as_array().unwrap();
     assert!(frames.len() >= 3);
     let runs = |frame: &serde_json::Value, pass: &str| frame["passes"][pass].as_u64().unwrap();
-    assert_eq!(frames.iter().map(|f| runs(f, "voxelize")).sum::<u64>(), 1, "voxelized once");
+    assert_eq!(
+        frames.iter().map(|f| runs(f, "voxelize")).sum::<u64>(),
+        1,
+        "voxelized once"
+    );
     let last = frames.last().unwrap();
     for pass in ["voxelize", "shade", "gather", "scatter", "sort"] {
-        assert_eq!(runs(last, pass), 0, "the last frame of a static scene runs no {pass}");
+        assert_eq!(
+            runs(last, pass),
+            0,
+            "the last frame of a static scene runs no {pass}"
+        );
     }
     assert_eq!(runs(last, "draw"), 1);
     for frame in frames {
         for (pass, ms) in frame["gpu_ms"].as_object().unwrap() {
-            assert!(ms.is_null() || (ms.as_f64().unwrap() >= 0.0 && runs(frame, pass) > 0), "{pass}: {ms}");
+            assert!(
+                ms.is_null() || (ms.as_f64().unwrap() >= 0.0 && runs(frame, pass) > 0),
+                "{pass}: {ms}"
+            );
         }
     }
 
     let out = run(&[scene.to_str().unwrap(), "--out", png.to_str().unwrap()]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let png = image::open(&png).unwrap().to_rgba8();
     assert_eq!(png.dimensions(), (160, 120));
 }
@@ -107,13 +168,33 @@ const INLINE_PARTICLES: &str = "Inline([
 fn invalid_scenes_are_refused_with_the_field_and_value() {
     let dir = scratch_dir("invalid");
     let cases = [
-        ("albedo: 0.99", "albedo: 1.5", "clouds[0].medium.albedo is 1.5"),
-        ("radius: 0.2", "radius: -0.2", "clouds[0].particles[0].radius is -0.2"),
-        ("direction: (-0.5, -0.8, -0.35)", "direction: (0.0, 0.0, 0.0)", "lights[0].direction is (0, 0, 0)"),
+        (
+            "albedo: 0.99",
+            "albedo: 1.5",
+            "clouds[0].medium.albedo is 1.5",
+        ),
+        (
+            "radius: 0.2",
+            "radius: -0.2",
+            "clouds[0].particles[0].radius is -0.2",
+        ),
+        (
+            "direction: (-0.5, -0.8, -0.35)",
+            "direction: (0.0, 0.0, 0.0)",
+            "lights[0].direction is (0, 0, 0)",
+        ),
         ("width: 160", "width: 0", "camera.width is 0"),
         ("width: 160", "width: 160, colour: 1", "colour"),
-        ("volume_resolution: 128", "volume_resolution: 100000", "settings.volume_resolution is 100000"),
-        (INLINE_PARTICLES, "Ply(\"missing.ply\")", "clouds[0].particles: cannot read 'missing.ply'"),
+        (
+            "volume_resolution: 128",
+            "volume_resolution: 100000",
+            "settings.volume_resolution is 100000",
+        ),
+        (
+            INLINE_PARTICLES,
+            "Ply(\"missing.ply\")",
+            "clouds[0].particles: cannot read 'missing.ply'",
+        ),
     ];
     for (i, (from, to, expected)) in cases.iter().enumerate() {
         assert!(SCENE_FORMAT_EXAMPLE.contains(from), "case {i}");
@@ -124,7 +205,10 @@ fn invalid_scenes_are_refused_with_the_field_and_value() {
         let out = run(&[scene.to_str().unwrap(), "--out", out_path.to_str().unwrap()]);
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(2), "case {i} must fail: {stderr}");
-        assert!(stderr.contains(expected), "case {i}: expected {expected:?} in {stderr}");
+        assert!(
+            stderr.contains(expected),
+            "case {i}: expected {expected:?} in {stderr}"
+        );
         assert!(!stderr.contains("panicked"), "case {i} panicked: {stderr}");
         assert!(!out_path.exists(), "case {i} wrote an image");
     }

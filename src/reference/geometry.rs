@@ -9,7 +9,9 @@ pub fn intersect_object(object: &SceneObject, origin: DVec3, dir: DVec3) -> Opti
     let centre = object.translation.as_dvec3();
     match object.shape {
         ObjectShape::Sphere(radius) => intersect_sphere(centre, radius as f64, origin, dir),
-        ObjectShape::Cuboid(extents) => intersect_box(centre, extents.as_dvec3() * 0.5, origin, dir),
+        ObjectShape::Cuboid(extents) => {
+            intersect_box(centre, extents.as_dvec3() * 0.5, origin, dir)
+        }
     }
 }
 

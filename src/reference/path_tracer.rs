@@ -71,7 +71,11 @@ pub struct PathTracerSettings {
 
 impl Default for PathTracerSettings {
     fn default() -> Self {
-        Self { samples_per_pixel: 256, seed: 0, progress: false }
+        Self {
+            samples_per_pixel: 256,
+            seed: 0,
+            progress: false,
+        }
     }
 }
 
@@ -106,7 +110,9 @@ impl SplitMix64 {
     /// The generator of sample `sample` of pixel `pixel` in a render seeded with `seed`.
     /// Nested mixing (rather than e.g. `seed + pixel`) keeps nearby streams uncorrelated.
     pub fn for_sample(seed: u64, pixel: u64, sample: u64) -> Self {
-        Self::new(mix64(mix64(seed ^ 0x5851_F42D_4C95_7F2D).wrapping_add(pixel)).wrapping_add(sample))
+        Self::new(
+            mix64(mix64(seed ^ 0x5851_F42D_4C95_7F2D).wrapping_add(pixel)).wrapping_add(sample),
+        )
     }
 
     /// Next 64 random bits.
@@ -321,9 +327,11 @@ impl ParticleMedia {
                 cell_particles: Vec::new(),
             };
         }
-        let (lo, hi) = particles.iter().fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), p| {
-            (lo.min(p.centre - p.radius), hi.max(p.centre + p.radius))
-        });
+        let (lo, hi) = particles
+            .iter()
+            .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), p| {
+                (lo.min(p.centre - p.radius), hi.max(p.centre + p.radius))
+            });
         let (cell_size, dims) = grid_shape(&particles, lo, hi);
         let hi = lo + cell_size * DVec3::new(dims[0] as f64, dims[1] as f64, dims[2] as f64);
         let mut media = Self {
@@ -373,7 +381,8 @@ impl ParticleMedia {
         for z in first[2]..=last[2] {
             for y in first[1]..=last[1] {
                 for x in first[0]..=last[0] {
-                    let cell_lo = self.lo + self.cell_size * DVec3::new(x as f64, y as f64, z as f64);
+                    let cell_lo =
+                        self.lo + self.cell_size * DVec3::new(x as f64, y as f64, z as f64);
                     let nearest = p.centre.clamp(cell_lo, cell_lo + self.cell_size);
                     let k_max = kernel_u2((p.centre - nearest).length_squared() * p.inv_r2);
                     if k_max > 0.0 {
@@ -388,7 +397,11 @@ impl ParticleMedia {
     fn cell_of(&self, x: DVec3) -> [usize; 3] {
         let rel = (x - self.lo) / self.cell_size;
         let clamp = |v: f64, n: usize| (v.floor().max(0.0) as usize).min(n - 1);
-        [clamp(rel.x, self.dims[0]), clamp(rel.y, self.dims[1]), clamp(rel.z, self.dims[2])]
+        [
+            clamp(rel.x, self.dims[0]),
+            clamp(rel.y, self.dims[1]),
+            clamp(rel.z, self.dims[2]),
+        ]
     }
 
     #[inline]
@@ -438,9 +451,15 @@ fn grid_shape(particles: &[TracedParticle], lo: DVec3, hi: DVec3) -> (f64, [usiz
     let extent = (hi - lo).max(DVec3::splat(1e-9));
     let cells = |h: f64| (extent / h).ceil().max(DVec3::ONE);
     // Upper bound of the list entries: a particle overlaps at most (2r/h + 2)³ cells.
-    let entries = |h: f64| particles.iter().map(|p| (2.0 * p.radius / h + 2.0).powi(3)).sum::<f64>();
+    let entries = |h: f64| {
+        particles
+            .iter()
+            .map(|p| (2.0 * p.radius / h + 2.0).powi(3))
+            .sum::<f64>()
+    };
     let mut h = median * CELL_PER_RADIUS;
-    while cells(h).element_product() > MAX_GRID_CELLS as f64 || entries(h) > MAX_LIST_ENTRIES as f64 {
+    while cells(h).element_product() > MAX_GRID_CELLS as f64 || entries(h) > MAX_LIST_ENTRIES as f64
+    {
         h *= 1.25;
     }
     let n = cells(h);
@@ -494,7 +513,12 @@ impl Media for ParticleMedia {
                 let cell = self.linear(idx);
                 let majorant = self.majorant[cell];
                 if majorant > 0.0 {
-                    visit(Segment { t0: t, t1: seg_end, majorant, cell: cell as u32 })?;
+                    visit(Segment {
+                        t0: t,
+                        t1: seg_end,
+                        majorant,
+                        cell: cell as u32,
+                    })?;
                 }
                 t = seg_end;
             }
@@ -633,7 +657,11 @@ impl Lighting {
                 irradiance: l.irradiance.as_dvec3(),
             })
             .collect();
-        Self { background: scene.background.as_dvec3(), lights, objects: scene.objects.clone() }
+        Self {
+            background: scene.background.as_dvec3(),
+            lights,
+            objects: scene.objects.clone(),
+        }
     }
 
     /// `Σ_l E_l T_l(x)`: unscattered irradiance at `x` from all lights, with exact transmittance.
@@ -672,7 +700,9 @@ pub fn radiance<M: Media>(
         let t_max = object.map_or(f64::INFINITY, |(t, _)| t);
         let Some((t, c)) = sample_free_flight(media, o, d, t_max, rng) else {
             // Unscattered to the end of the ray: the object's radiance or the background.
-            return l + object.map_or(lighting.background, |(_, i)| lighting.objects[i].color.as_dvec3());
+            return l + object.map_or(lighting.background, |(_, i)| {
+                lighting.objects[i].color.as_dvec3()
+            });
         };
         let x = o + d * t;
         // σ_s/σ_t: a real collision was accepted with probability σ_t/majorant > 0, so σ_t > 0.
@@ -714,17 +744,20 @@ pub fn render_media<M: Media>(
         return image;
     }
     let rows_done = AtomicUsize::new(0);
-    image.par_chunks_mut(width).enumerate().for_each(|(py, row)| {
-        for (px, out) in row.iter_mut().enumerate() {
-            let pixel = (py * width + px) as u64;
-            let l = pixel_radiance(media, lighting, camera, settings, pixel, px, py);
-            *out = [l.x as f32, l.y as f32, l.z as f32, 1.0];
-        }
-        let done = rows_done.fetch_add(1, Ordering::Relaxed) + 1;
-        if settings.progress {
-            report_progress(done, height);
-        }
-    });
+    image
+        .par_chunks_mut(width)
+        .enumerate()
+        .for_each(|(py, row)| {
+            for (px, out) in row.iter_mut().enumerate() {
+                let pixel = (py * width + px) as u64;
+                let l = pixel_radiance(media, lighting, camera, settings, pixel, px, py);
+                *out = [l.x as f32, l.y as f32, l.z as f32, 1.0];
+            }
+            let done = rows_done.fetch_add(1, Ordering::Relaxed) + 1;
+            if settings.progress {
+                report_progress(done, height);
+            }
+        });
     image
 }
 
@@ -745,7 +778,14 @@ fn pixel_radiance<M: Media>(
         let x = px as f64 + rng.next_f64();
         let y = py as f64 + rng.next_f64();
         let dir = camera.ray_direction(x, y);
-        sum += radiance(media, lighting, camera.position, dir, MAX_SCATTER_EVENTS, &mut rng);
+        sum += radiance(
+            media,
+            lighting,
+            camera.position,
+            dir,
+            MAX_SCATTER_EVENTS,
+            &mut rng,
+        );
     }
     sum / spp as f64
 }
@@ -777,19 +817,34 @@ mod tests {
     use crate::settings::CloudQualitySettings;
     use bevy::math::Vec3;
 
-    fn cloud(translation: Vec3, extinction: f32, albedo: f32, particles: Vec<Particle>) -> ResolvedCloud {
-        ResolvedCloud { translation, medium: Medium { extinction, albedo }, particles }
+    fn cloud(
+        translation: Vec3,
+        extinction: f32,
+        albedo: f32,
+        particles: Vec<Particle>,
+    ) -> ResolvedCloud {
+        ResolvedCloud {
+            translation,
+            medium: Medium { extinction, albedo },
+            particles,
+        }
     }
 
     fn particle(x: f32, y: f32, z: f32, radius: f32, density: f32) -> Particle {
-        Particle { position: Vec3::new(x, y, z), radius, density }
+        Particle {
+            position: Vec3::new(x, y, z),
+            radius,
+            density,
+        }
     }
 
     /// `n` particles in `[-1, 1]³`, radii 0.2–0.5, densities 0.2–1.5.
     fn random_particles(n: usize, seed: u64) -> Vec<Particle> {
         let mut rng = SplitMix64::new(seed);
         let mut u = |a: f64, b: f64| (a + (b - a) * rng.next_f64()) as f32;
-        (0..n).map(|_| particle(u(-1., 1.), u(-1., 1.), u(-1., 1.), u(0.2, 0.5), u(0.2, 1.5))).collect()
+        (0..n)
+            .map(|_| particle(u(-1., 1.), u(-1., 1.), u(-1., 1.), u(0.2, 0.5), u(0.2, 1.5)))
+            .collect()
     }
 
     fn scene(
@@ -846,12 +901,22 @@ mod tests {
     fn mean_and_error(samples: &[DVec3]) -> (DVec3, DVec3) {
         let n = samples.len() as f64;
         let mean = samples.iter().copied().sum::<DVec3>() / n;
-        let var = samples.iter().map(|s| (*s - mean) * (*s - mean)).sum::<DVec3>() / (n - 1.0);
+        let var = samples
+            .iter()
+            .map(|s| (*s - mean) * (*s - mean))
+            .sum::<DVec3>()
+            / (n - 1.0);
         (mean, (var / n).map(f64::sqrt))
     }
 
     /// Asserts `|mean - expected| <= sigmas * error + abs` per channel.
-    fn assert_close(what: &str, (mean, error): (DVec3, DVec3), expected: DVec3, sigmas: f64, abs: f64) {
+    fn assert_close(
+        what: &str,
+        (mean, error): (DVec3, DVec3),
+        expected: DVec3,
+        sigmas: f64,
+        abs: f64,
+    ) {
         let diff = (mean - expected).abs();
         let tol = error * sigmas + DVec3::splat(abs);
         println!("{what}: estimate {mean} ± {error}, expected {expected}");
@@ -891,12 +956,16 @@ mod tests {
         }
 
         fn coefficients(&self, _: DVec3, _: &Segment) -> Coefficients {
-            Coefficients { extinction: self.extinction, scattering: self.albedo * self.extinction }
+            Coefficients {
+                extinction: self.extinction,
+                scattering: self.albedo * self.extinction,
+            }
         }
 
         fn optical_depth(&self, origin: DVec3, dir: DVec3, t_max: f64) -> f64 {
-            box_interval(self.lo, self.hi, origin, dir)
-                .map_or(0.0, |(t0, t1)| self.extinction * (t1.min(t_max) - t0).max(0.0))
+            box_interval(self.lo, self.hi, origin, dir).map_or(0.0, |(t0, t1)| {
+                self.extinction * (t1.min(t_max) - t0).max(0.0)
+            })
         }
     }
 
@@ -905,9 +974,15 @@ mod tests {
         let mut rng = SplitMix64::for_sample(1, 2, 3);
         let n = 100_000;
         let mean = (0..n).map(|_| rng.next_f64()).sum::<f64>() / n as f64;
-        assert!((mean - 0.5).abs() < 5.0 * (1.0 / 12.0f64 / n as f64).sqrt(), "mean {mean}");
+        assert!(
+            (mean - 0.5).abs() < 5.0 * (1.0 / 12.0f64 / n as f64).sqrt(),
+            "mean {mean}"
+        );
         let dir_mean = (0..n).map(|_| rng.unit_sphere()).sum::<DVec3>() / n as f64;
-        assert!(dir_mean.length() < 0.02, "directions not isotropic: {dir_mean}");
+        assert!(
+            dir_mean.length() < 0.02,
+            "directions not isotropic: {dir_mean}"
+        );
         let a = SplitMix64::for_sample(1, 2, 3).next_u64();
         assert_ne!(a, SplitMix64::for_sample(1, 2, 4).next_u64());
         assert_ne!(a, SplitMix64::for_sample(1, 3, 3).next_u64());
@@ -934,7 +1009,10 @@ mod tests {
                 "at {x}: grid {grid:?}, brute force {brute:?}"
             );
             assert!((grid.scattering - brute.scattering).abs() <= 1e-12 * (1.0 + brute.scattering));
-            assert!(brute.extinction <= media.majorant_at(x) * (1.0 + 1e-12), "majorant below σ_t at {x}");
+            assert!(
+                brute.extinction <= media.majorant_at(x) * (1.0 + 1e-12),
+                "majorant below σ_t at {x}"
+            );
         }
     }
 
@@ -954,12 +1032,24 @@ mod tests {
             } else {
                 rng.unit_sphere() * 4.0
             };
-            let dir = if i % 2 == 0 { rng.unit_sphere() } else { (-origin + rng.unit_sphere()).normalize() };
-            let t_max = if i % 4 < 2 { f64::INFINITY } else { 1.0 + 3.0 * rng.next_f64() };
+            let dir = if i % 2 == 0 {
+                rng.unit_sphere()
+            } else {
+                (-origin + rng.unit_sphere()).normalize()
+            };
+            let t_max = if i % 4 < 2 {
+                f64::INFINITY
+            } else {
+                1.0 + 3.0 * rng.next_f64()
+            };
             let exact = media.optical_depth(origin, dir, t_max);
-            let quad =
-                simpson(0.0, t_max.min(8.0), 40_000, |t| brute_force(&clouds, origin + dir * t).extinction);
-            assert!((exact - quad).abs() <= 1e-6 * (1.0 + quad), "ray {i}: exact {exact}, quadrature {quad}");
+            let quad = simpson(0.0, t_max.min(8.0), 40_000, |t| {
+                brute_force(&clouds, origin + dir * t).extinction
+            });
+            assert!(
+                (exact - quad).abs() <= 1e-6 * (1.0 + quad),
+                "ray {i}: exact {exact}, quadrature {quad}"
+            );
         }
     }
 
@@ -970,8 +1060,12 @@ mod tests {
         // Values as the f32 scene stores them, so the closed form sees the same numbers.
         let (k, eta, r) = (2.5, 1.3f32 as f64, 0.7f32 as f64);
         let centre = DVec3::new(0.3, -0.2, 0.1).as_vec3().as_dvec3();
-        let clouds =
-            vec![cloud(centre.as_vec3(), k as f32, 0.5, vec![particle(0.0, 0.0, 0.0, r as f32, eta as f32)])];
+        let clouds = vec![cloud(
+            centre.as_vec3(),
+            k as f32,
+            0.5,
+            vec![particle(0.0, 0.0, 0.0, r as f32, eta as f32)],
+        )];
         let media = ParticleMedia::new(&clouds);
         let dir = DVec3::new(1.0, 2.0, -0.5).normalize();
         let side = dir.any_orthonormal_vector();
@@ -989,9 +1083,17 @@ mod tests {
             let ratio: Vec<DVec3> = (0..n)
                 .map(|_| DVec3::splat(transmittance(&media, origin, dir, f64::INFINITY, &mut rng)))
                 .collect();
-            assert_close("ratio tracking", mean_and_error(&ratio), DVec3::splat(t), 4.0, 1e-9);
+            assert_close(
+                "ratio tracking",
+                mean_and_error(&ratio),
+                DVec3::splat(t),
+                4.0,
+                1e-9,
+            );
             let escaped = (0..n)
-                .filter(|_| sample_free_flight(&media, origin, dir, f64::INFINITY, &mut rng).is_none())
+                .filter(|_| {
+                    sample_free_flight(&media, origin, dir, f64::INFINITY, &mut rng).is_none()
+                })
                 .count();
             let binomial = (t * (1.0 - t) / n as f64).sqrt();
             let p = escaped as f64 / n as f64;
@@ -1017,25 +1119,53 @@ mod tests {
         let mut rng = SplitMix64::new(20);
         let n = 40_000;
         // Transmittances 0.18, 0.15 and 0.004 (deep into ratio tracking's roulette).
-        for dir in [DVec3::Z, DVec3::new(0.5, 0.2, 1.0).normalize(), DVec3::new(3.0, 0.0, 1.0).normalize()] {
+        for dir in [
+            DVec3::Z,
+            DVec3::new(0.5, 0.2, 1.0).normalize(),
+            DVec3::new(3.0, 0.0, 1.0).normalize(),
+        ] {
             let origin = DVec3::new(0.0, 0.0, -1.0);
             let length = 1.0 / dir.z;
             let t = (-sigma * length).exp();
             let ratio: Vec<DVec3> = (0..n)
                 .map(|_| DVec3::splat(transmittance(&slab, origin, dir, f64::INFINITY, &mut rng)))
                 .collect();
-            assert_close("slab ratio tracking", mean_and_error(&ratio), DVec3::splat(t), 4.0, 1e-9);
+            assert_close(
+                "slab ratio tracking",
+                mean_and_error(&ratio),
+                DVec3::splat(t),
+                4.0,
+                1e-9,
+            );
             // Delta tracking: P(escape) = T, and E[(t - t_entry) · 1{collision}] = (1 - T(1 + σL)) / σ.
             let flights: Vec<Option<f64>> = (0..n)
-                .map(|_| sample_free_flight(&slab, origin, dir, f64::INFINITY, &mut rng).map(|(t, _)| t))
+                .map(|_| {
+                    sample_free_flight(&slab, origin, dir, f64::INFINITY, &mut rng).map(|(t, _)| t)
+                })
                 .collect();
-            let escapes: Vec<DVec3> =
-                flights.iter().map(|f| DVec3::splat(f.is_none() as u8 as f64)).collect();
-            assert_close("slab escape", mean_and_error(&escapes), DVec3::splat(t), 4.5, 1e-9);
-            let depth: Vec<DVec3> =
-                flights.iter().map(|f| DVec3::splat(f.map_or(0.0, |t| t - 1.0 / dir.z))).collect();
+            let escapes: Vec<DVec3> = flights
+                .iter()
+                .map(|f| DVec3::splat(f.is_none() as u8 as f64))
+                .collect();
+            assert_close(
+                "slab escape",
+                mean_and_error(&escapes),
+                DVec3::splat(t),
+                4.5,
+                1e-9,
+            );
+            let depth: Vec<DVec3> = flights
+                .iter()
+                .map(|f| DVec3::splat(f.map_or(0.0, |t| t - 1.0 / dir.z)))
+                .collect();
             let expected = (1.0 - t * (1.0 + sigma * length)) / sigma;
-            assert_close("slab collision depth", mean_and_error(&depth), DVec3::splat(expected), 4.5, 1e-9);
+            assert_close(
+                "slab collision depth",
+                mean_and_error(&depth),
+                DVec3::splat(expected),
+                4.5,
+                1e-9,
+            );
         }
     }
 
@@ -1052,8 +1182,10 @@ mod tests {
             vec![particle(0.0, 0.0, 0.0, r as f32, eta as f32)],
         )];
         let media = ParticleMedia::new(&clouds);
-        let light =
-            LightSample { direction: Vec3::new(-0.3, -1.0, -0.2), irradiance: Vec3::new(1.0, 0.5, 0.25) };
+        let light = LightSample {
+            direction: Vec3::new(-0.3, -1.0, -0.2),
+            irradiance: Vec3::new(1.0, 0.5, 0.25),
+        };
         let background = Vec3::new(0.1, 0.2, 0.3);
         let s = scene(clouds.clone(), vec![light], background, vec![], (1, 1));
         let lighting = Lighting::from_scene(&s);
@@ -1062,10 +1194,13 @@ mod tests {
         // Optical depth along a ray up to distance `len` (the particle is left after 2r).
         let tau = |o: DVec3, d: DVec3, len: f64| simpson(0.0, len, 400, |t| sigma_t(o + d * t));
         let eye = DVec3::new(0.0, 0.0, 5.0);
-        for (j, target) in
-            [DVec3::new(0.1, 0.0, -0.2), DVec3::new(0.4, 0.3, -0.2), DVec3::new(-0.6, 0.5, -0.2)]
-                .into_iter()
-                .enumerate()
+        for (j, target) in [
+            DVec3::new(0.1, 0.0, -0.2),
+            DVec3::new(0.4, 0.3, -0.2),
+            DVec3::new(-0.6, 0.5, -0.2),
+        ]
+        .into_iter()
+        .enumerate()
         {
             let dir = (target - eye).normalize();
             // Chord of the ray through the particle.
@@ -1080,11 +1215,19 @@ mod tests {
                 t_cam * omega * sigma_t(x) / (4.0 * std::f64::consts::PI) * t_light
             });
             let t_total = (-particle_optical_depth(k, eta, r, b2.sqrt())).exp();
-            let expected = background.as_dvec3() * t_total + lighting.lights[0].irradiance * scattered;
+            let expected =
+                background.as_dvec3() * t_total + lighting.lights[0].irradiance * scattered;
             let mut rng = SplitMix64::new(30 + j as u64);
-            let samples: Vec<DVec3> =
-                (0..40_000).map(|_| radiance(&media, &lighting, eye, dir, 1, &mut rng)).collect();
-            assert_close("single scattering", mean_and_error(&samples), expected, 4.5, 1e-6);
+            let samples: Vec<DVec3> = (0..40_000)
+                .map(|_| radiance(&media, &lighting, eye, dir, 1, &mut rng))
+                .collect();
+            assert_close(
+                "single scattering",
+                mean_and_error(&samples),
+                expected,
+                4.5,
+                1e-6,
+            );
         }
     }
 
@@ -1095,7 +1238,10 @@ mod tests {
         let particles = random_particles(30, 40);
         let (k, translation) = (2.0, Vec3::new(0.0, 0.2, 0.0));
         let clouds = vec![cloud(translation, k as f32, 0.0, particles.clone())];
-        let light = LightSample { direction: Vec3::new(0.0, -1.0, 0.3), irradiance: Vec3::splat(5.0) };
+        let light = LightSample {
+            direction: Vec3::new(0.0, -1.0, 0.3),
+            irradiance: Vec3::splat(5.0),
+        };
         let background = Vec3::new(1.0, 0.5, 0.25);
         let s = scene(clouds, vec![light], background, vec![], (1, 1));
         let media = ParticleMedia::from_scene(&s);
@@ -1115,12 +1261,19 @@ mod tests {
                 })
                 .sum();
             let t = (-tau).exp();
-            let samples: Vec<DVec3> =
-                (0..n).map(|_| radiance(&media, &lighting, eye, dir, MAX_SCATTER_EVENTS, &mut rng)).collect();
+            let samples: Vec<DVec3> = (0..n)
+                .map(|_| radiance(&media, &lighting, eye, dir, MAX_SCATTER_EVENTS, &mut rng))
+                .collect();
             // Each sample is B or 0: binomial error.
             let error = background.as_dvec3() * (t * (1.0 - t) / n as f64).sqrt();
             let mean = mean_and_error(&samples).0;
-            assert_close(&format!("absorbing ray {j}"), (mean, error), background.as_dvec3() * t, 4.5, 1e-9);
+            assert_close(
+                &format!("absorbing ray {j}"),
+                (mean, error),
+                background.as_dvec3() * t,
+                4.5,
+                1e-9,
+            );
         }
     }
 
@@ -1135,11 +1288,18 @@ mod tests {
             cloud(Vec3::new(0.4, 0.2, 0.0), 8.0, 1.0, random_particles(20, 51)),
         ];
         let s = scene(clouds, vec![], background, vec![], (16, 12));
-        let settings = PathTracerSettings { samples_per_pixel: 4, seed: 1, progress: false };
+        let settings = PathTracerSettings {
+            samples_per_pixel: 4,
+            seed: 1,
+            progress: false,
+        };
         let image = render(&s, &settings);
         for px in &image {
             for c in 0..3 {
-                assert!((px[c] - background[c]).abs() <= 1e-6 * background[c], "pixel {px:?}");
+                assert!(
+                    (px[c] - background[c]).abs() <= 1e-6 * background[c],
+                    "pixel {px:?}"
+                );
             }
             assert_eq!(px[3], 1.0);
         }
@@ -1147,7 +1307,10 @@ mod tests {
         grey.clouds.iter_mut().for_each(|c| c.medium.albedo = 0.7);
         let image = render(&grey, &settings);
         let centre = image[6 * 16 + 8];
-        assert!(centre[2] < 0.9 * background.z, "albedo 0.7 cloud not darker: {centre:?}");
+        assert!(
+            centre[2] < 0.9 * background.z,
+            "albedo 0.7 cloud not darker: {centre:?}"
+        );
     }
 
     /// A uniform environment `B` equals directional lights from all directions: `N` lights in a
@@ -1159,7 +1322,12 @@ mod tests {
     #[test]
     fn environment_equals_many_lights() {
         let (k, r) = (2.0, 1.0);
-        let clouds = vec![cloud(Vec3::ZERO, k as f32, 0.9, vec![particle(0.0, 0.0, 0.0, r as f32, 1.0)])];
+        let clouds = vec![cloud(
+            Vec3::ZERO,
+            k as f32,
+            0.9,
+            vec![particle(0.0, 0.0, 0.0, r as f32, 1.0)],
+        )];
         let background = DVec3::new(1.0, 0.6, 0.3);
         let env = scene(clouds, vec![], background.as_vec3(), vec![], (1, 1));
         let media = ParticleMedia::from_scene(&env);
@@ -1170,7 +1338,11 @@ mod tests {
             .map(|i| {
                 let z = 1.0 - (2.0 * i as f64 + 1.0) / n_lights as f64;
                 let s = (1.0 - z * z).sqrt();
-                DVec3::new(s * (golden * i as f64).cos(), s * (golden * i as f64).sin(), z)
+                DVec3::new(
+                    s * (golden * i as f64).cos(),
+                    s * (golden * i as f64).sin(),
+                    z,
+                )
             })
             .collect();
         // Uniformly random rotation (Shoemake's unit quaternion).
@@ -1191,7 +1363,11 @@ mod tests {
                     irradiance: background * (4.0 * std::f64::consts::PI / n_lights as f64),
                 })
                 .collect();
-            Lighting { background: DVec3::ZERO, lights, objects: vec![] }
+            Lighting {
+                background: DVec3::ZERO,
+                lights,
+                objects: vec![],
+            }
         };
         let eye = DVec3::new(0.0, 0.0, 4.0);
         let n = 100_000;
@@ -1202,8 +1378,14 @@ mod tests {
             let mut rng = SplitMix64::new(60 + j as u64);
             let env_samples: Vec<DVec3> = (0..n)
                 .map(|_| {
-                    radiance(&media, &env_lighting, eye, dir, MAX_SCATTER_EVENTS, &mut rng)
-                        - background * t_direct
+                    radiance(
+                        &media,
+                        &env_lighting,
+                        eye,
+                        dir,
+                        MAX_SCATTER_EVENTS,
+                        &mut rng,
+                    ) - background * t_direct
                 })
                 .collect();
             let lit_samples: Vec<DVec3> = (0..n)
@@ -1215,7 +1397,13 @@ mod tests {
             let (env_mean, env_err) = mean_and_error(&env_samples);
             let (lit_mean, lit_err) = mean_and_error(&lit_samples);
             let err = (env_err * env_err + lit_err * lit_err).map(f64::sqrt);
-            assert_close("lights vs environment", (lit_mean, err), env_mean, 4.5, 1e-9);
+            assert_close(
+                "lights vs environment",
+                (lit_mean, err),
+                env_mean,
+                4.5,
+                1e-9,
+            );
         }
     }
 
@@ -1224,7 +1412,10 @@ mod tests {
     #[test]
     fn objects_block_camera_and_shadow_rays() {
         let particles = vec![particle(0.0, 0.0, 0.0, 1.0, 1.0)];
-        let light = LightSample { direction: Vec3::new(0.0, -1.0, 0.0), irradiance: Vec3::ONE };
+        let light = LightSample {
+            direction: Vec3::new(0.0, -1.0, 0.0),
+            irradiance: Vec3::ONE,
+        };
         let eye = DVec3::new(0.0, 0.0, 5.0);
         let dir = -DVec3::Z;
         // A big sphere above the cloud shadows it completely; background and object are black.
@@ -1239,12 +1430,14 @@ mod tests {
         let media = ParticleMedia::from_scene(&open);
         let mut rng = SplitMix64::new(70);
         let lighting = Lighting::from_scene(&shaded);
-        let total: DVec3 =
-            (0..2000).map(|_| radiance(&media, &lighting, eye, dir, MAX_SCATTER_EVENTS, &mut rng)).sum();
+        let total: DVec3 = (0..2000)
+            .map(|_| radiance(&media, &lighting, eye, dir, MAX_SCATTER_EVENTS, &mut rng))
+            .sum();
         assert_eq!(total, DVec3::ZERO, "shadowed cloud received light");
         let lighting = Lighting::from_scene(&open);
-        let total: DVec3 =
-            (0..2000).map(|_| radiance(&media, &lighting, eye, dir, MAX_SCATTER_EVENTS, &mut rng)).sum();
+        let total: DVec3 = (0..2000)
+            .map(|_| radiance(&media, &lighting, eye, dir, MAX_SCATTER_EVENTS, &mut rng))
+            .sum();
         assert!(total.x > 0.0, "lit cloud is black");
         // An object behind an absorbing cloud: its colour times the transmittance; beside the
         // cloud: exactly its colour.
@@ -1268,8 +1461,9 @@ mod tests {
         assert_eq!(beside, color.as_dvec3());
         let n = 20_000;
         let t = (-particle_optical_depth(1.5, 1.0, 1.0, 0.0)).exp();
-        let samples: Vec<DVec3> =
-            (0..n).map(|_| radiance(&media, &lighting, eye, dir, MAX_SCATTER_EVENTS, &mut rng)).collect();
+        let samples: Vec<DVec3> = (0..n)
+            .map(|_| radiance(&media, &lighting, eye, dir, MAX_SCATTER_EVENTS, &mut rng))
+            .collect();
         let error = color.as_dvec3() * (t * (1.0 - t) / n as f64).sqrt();
         assert_close(
             "object behind cloud",
@@ -1282,24 +1476,50 @@ mod tests {
 
     fn test_scene(size: (u32, u32)) -> Scene {
         let clouds = vec![cloud(Vec3::ZERO, 6.0, 0.95, random_particles(100, 80))];
-        let light =
-            LightSample { direction: Vec3::new(-0.5, -0.8, -0.35), irradiance: Vec3::new(1.0, 0.97, 0.9) };
-        scene(clouds, vec![light], Vec3::new(0.05, 0.07, 0.1), vec![], size)
+        let light = LightSample {
+            direction: Vec3::new(-0.5, -0.8, -0.35),
+            irradiance: Vec3::new(1.0, 0.97, 0.9),
+        };
+        scene(
+            clouds,
+            vec![light],
+            Vec3::new(0.05, 0.07, 0.1),
+            vec![],
+            size,
+        )
     }
 
     /// Same seed → bit-identical image, whatever the thread count; another seed → another image.
     #[test]
     fn deterministic_for_seed_and_thread_count() {
         let s = test_scene((12, 9));
-        let settings = PathTracerSettings { samples_per_pixel: 4, seed: 7, progress: false };
-        let pool = |n| rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap();
+        let settings = PathTracerSettings {
+            samples_per_pixel: 4,
+            seed: 7,
+            progress: false,
+        };
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
         let one = pool(1).install(|| render(&s, &settings));
         let three = pool(3).install(|| render(&s, &settings));
         assert_eq!(one, three);
         assert_eq!(one, render(&s, &settings));
-        let other = render(&s, &PathTracerSettings { seed: 8, ..settings });
+        let other = render(
+            &s,
+            &PathTracerSettings {
+                seed: 8,
+                ..settings
+            },
+        );
         assert_ne!(one, other);
-        assert!(one.iter().all(|p| p.iter().all(|c| c.is_finite() && *c >= 0.0)));
+        assert!(
+            one.iter()
+                .all(|p| p.iter().all(|c| c.is_finite() && *c >= 0.0))
+        );
     }
 
     /// The noise level of two independent renders is finite, positive and falls like `1/√spp`.
@@ -1309,15 +1529,34 @@ mod tests {
         let mut levels = Vec::new();
         for spp in [16, 64] {
             let start = std::time::Instant::now();
-            let a = render(&s, &PathTracerSettings { samples_per_pixel: spp, seed: 1, progress: false });
+            let a = render(
+                &s,
+                &PathTracerSettings {
+                    samples_per_pixel: spp,
+                    seed: 1,
+                    progress: false,
+                },
+            );
             let elapsed = start.elapsed();
-            let b = render(&s, &PathTracerSettings { samples_per_pixel: spp, seed: 2, progress: false });
+            let b = render(
+                &s,
+                &PathTracerSettings {
+                    samples_per_pixel: spp,
+                    seed: 2,
+                    progress: false,
+                },
+            );
             let noise = noise_level(&a, &b);
-            println!("32x24, 100 particles, {spp} spp: noise level {noise:.4}, {elapsed:.2?} per render");
+            println!(
+                "32x24, 100 particles, {spp} spp: noise level {noise:.4}, {elapsed:.2?} per render"
+            );
             assert!(noise.is_finite() && noise > 0.0);
             levels.push(noise);
         }
         let ratio = levels[1] / levels[0];
-        assert!((0.35..0.7).contains(&ratio), "noise ratio 64/16 spp = {ratio}, expected ≈ 0.5");
+        assert!(
+            (0.35..0.7).contains(&ratio),
+            "noise ratio 64/16 spp = {ratio}, expected ≈ 0.5"
+        );
     }
 }

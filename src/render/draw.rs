@@ -3,12 +3,12 @@
 //! depth writes off, premultiplied-alpha blending.
 
 use bevy::{
-    core_pipeline::core_3d::{Transparent3d, TransparentSortingInfo3d, CORE_3D_DEPTH_FORMAT},
+    core_pipeline::core_3d::{CORE_3D_DEPTH_FORMAT, Transparent3d, TransparentSortingInfo3d},
     ecs::{
         query::ROQueryItem,
         system::{
-            lifetimeless::{Read, SRes},
             SystemParamItem,
+            lifetimeless::{Read, SRes},
         },
     },
     platform::collections::HashMap,
@@ -17,27 +17,30 @@ use bevy::{
         diagnostic::{DiagnosticsRecorder, RecordDiagnostics},
         render_asset::RenderAssets,
         render_phase::{
-            DrawFunctions, PhaseItem, PhaseItemExtraIndex, RenderCommand, RenderCommandResult, SetItemPipeline,
-            TrackedRenderPass, ViewSortedRenderPhases,
+            DrawFunctions, PhaseItem, PhaseItemExtraIndex, RenderCommand, RenderCommandResult,
+            SetItemPipeline, TrackedRenderPass, ViewSortedRenderPhases,
         },
         render_resource::{
-            binding_types::{storage_buffer_read_only_sized, uniform_buffer, uniform_buffer_sized},
-            BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, BlendState, Buffer,
-            BufferInitDescriptor, BufferUsages, ColorTargetState, ColorWrites, CompareFunction, DepthBiasState,
-            DepthStencilState, FragmentState, MultisampleState, PipelineCache, PrimitiveState, RenderPipelineDescriptor,
-            ShaderStages, ShaderType, SpecializedRenderPipeline, SpecializedRenderPipelines, StencilState, TextureFormat,
+            BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries,
+            BlendState, Buffer, BufferInitDescriptor, BufferUsages, ColorTargetState, ColorWrites,
+            CompareFunction, DepthBiasState, DepthStencilState, FragmentState, MultisampleState,
+            PipelineCache, PrimitiveState, RenderPipelineDescriptor, ShaderStages, ShaderType,
+            SpecializedRenderPipeline, SpecializedRenderPipelines, StencilState, TextureFormat,
             VertexState,
+            binding_types::{storage_buffer_read_only_sized, uniform_buffer, uniform_buffer_sized},
         },
         renderer::RenderDevice,
         sync_world::MainEntity,
-        view::{ExtractedView, Msaa, RenderVisibleEntities, RetainedViewEntity, ViewUniform, ViewUniformOffset, ViewUniforms},
+        view::{
+            ExtractedView, Msaa, RenderVisibleEntities, RetainedViewEntity, ViewUniform,
+            ViewUniformOffset, ViewUniforms,
+        },
     },
 };
 
 use super::{
-    key_of,
-    extract::ExtractedCloud, particles::GpuParticles, shaders::CloudShaders, sort::CloudSorts, volumes::uniform_bytes,
-    volumes::CloudVolumes,
+    extract::ExtractedCloud, key_of, particles::GpuParticles, shaders::CloudShaders,
+    sort::CloudSorts, volumes::CloudVolumes, volumes::uniform_bytes,
 };
 use crate::{
     cloud::ParticleCloud,
@@ -63,7 +66,10 @@ pub struct BillboardPipeline {
 pub(crate) fn init_billboard_pipeline(mut commands: Commands, shaders: Res<CloudShaders>) {
     let view_layout = BindGroupLayoutDescriptor::new(
         "particle_clouds_view_layout",
-        &BindGroupLayoutEntries::single(ShaderStages::VERTEX_FRAGMENT, uniform_buffer::<ViewUniform>(true)),
+        &BindGroupLayoutEntries::single(
+            ShaderStages::VERTEX_FRAGMENT,
+            uniform_buffer::<ViewUniform>(true),
+        ),
     );
     let read = || storage_buffer_read_only_sized(false, None);
     let cloud_layout = BindGroupLayoutDescriptor::new(
@@ -73,7 +79,11 @@ pub(crate) fn init_billboard_pipeline(mut commands: Commands, shaders: Res<Cloud
             (uniform_buffer_sized(false, None), read(), read(), read()),
         ),
     );
-    commands.insert_resource(BillboardPipeline { view_layout, cloud_layout, shader: shaders.billboard.clone() });
+    commands.insert_resource(BillboardPipeline {
+        view_layout,
+        cloud_layout,
+        shader: shaders.billboard.clone(),
+    });
 }
 
 /// What a billboard pipeline depends on: the view's target.
@@ -106,7 +116,10 @@ impl SpecializedRenderPipeline for BillboardPipeline {
                     write_mask: ColorWrites::ALL,
                 })],
             }),
-            primitive: PrimitiveState { cull_mode: None, ..default() },
+            primitive: PrimitiveState {
+                cull_mode: None,
+                ..default()
+            },
             depth_stencil: Some(DepthStencilState {
                 format: CORE_3D_DEPTH_FORMAT,
                 // Read-only depth: opaque geometry hides particles, particles hide nothing.
@@ -115,7 +128,11 @@ impl SpecializedRenderPipeline for BillboardPipeline {
                 stencil: StencilState::default(),
                 bias: DepthBiasState::default(),
             }),
-            multisample: MultisampleState { count: key.samples, mask: !0, alpha_to_coverage_enabled: false },
+            multisample: MultisampleState {
+                count: key.samples,
+                mask: !0,
+                alpha_to_coverage_enabled: false,
+            },
             ..default()
         }
     }
@@ -140,11 +157,19 @@ pub(crate) fn prepare_billboard_bind_groups(
     pipeline_cache: Res<PipelineCache>,
     device: Res<RenderDevice>,
     view_uniforms: Res<ViewUniforms>,
-    clouds: Query<(Entity, &ExtractedCloud, &CloudVolumes, &CloudSorts, Option<&CloudDrawBindGroups>)>,
+    clouds: Query<(
+        Entity,
+        &ExtractedCloud,
+        &CloudVolumes,
+        &CloudSorts,
+        Option<&CloudDrawBindGroups>,
+    )>,
     particles: Res<RenderAssets<GpuParticles>>,
 ) {
     let Some(pipeline) = pipeline else { return };
-    let Some(view_binding) = view_uniforms.uniforms.binding() else { return };
+    let Some(view_binding) = view_uniforms.uniforms.binding() else {
+        return;
+    };
     commands.insert_resource(BillboardViewBindGroup(device.create_bind_group(
         "particle_clouds_view_bind_group",
         &pipeline_cache.get_bind_group_layout(&pipeline.view_layout),
@@ -152,7 +177,9 @@ pub(crate) fn prepare_billboard_bind_groups(
     )));
     let layout = pipeline_cache.get_bind_group_layout(&pipeline.cloud_layout);
     for (entity, cloud, volumes, sorts, existing) in &clouds {
-        let Some(gpu) = particles.get(cloud.particles) else { continue };
+        let Some(gpu) = particles.get(cloud.particles) else {
+            continue;
+        };
         let params = DrawParams {
             world_from_local: Mat4::from(cloud.world_from_local),
             scale: cloud.scale(),
@@ -160,7 +187,11 @@ pub(crate) fn prepare_billboard_bind_groups(
             _padding: Vec2::ZERO,
         };
         // Order-independent over the views (a hash map's order is arbitrary).
-        let views = sorts.0.iter().map(|(view, sort)| key_of((view, sort.buffers.sorted_values().id()))).fold(0, |a, h| a ^ h);
+        let views = sorts
+            .0
+            .iter()
+            .map(|(view, sort)| key_of((view, sort.buffers.sorted_values().id())))
+            .fold(0, |a, h| a ^ h);
         let key = key_of((
             params.world_from_local.to_cols_array().map(f32::to_bits),
             params.extinction.to_bits(),
@@ -193,7 +224,11 @@ pub(crate) fn prepare_billboard_bind_groups(
                 (*view, group)
             })
             .collect();
-        commands.entity(entity).insert(CloudDrawBindGroups { key, _params: params, groups });
+        commands.entity(entity).insert(CloudDrawBindGroups {
+            key,
+            _params: params,
+            groups,
+        });
     }
 }
 
@@ -211,22 +246,41 @@ pub(crate) fn queue_cloud_billboards(
     let Some(pipeline) = pipeline else { return };
     let draw_function = draw_functions.read().id::<DrawCloudBillboards>();
     for (view, msaa, visible) in &views {
-        let Some(phase) = phases.get_mut(&view.retained_view_entity) else { continue };
-        let Some(class) = visible.get::<ParticleCloud>() else { continue };
-        let key = BillboardPipelineKey { target_format: view.target_format, samples: msaa.samples() };
+        let Some(phase) = phases.get_mut(&view.retained_view_entity) else {
+            continue;
+        };
+        let Some(class) = visible.get::<ParticleCloud>() else {
+            continue;
+        };
+        let key = BillboardPipelineKey {
+            target_format: view.target_format,
+            samples: msaa.samples(),
+        };
         let pipeline_id = pipelines.specialize(&pipeline_cache, &pipeline, key);
         for &(render_entity, _) in &class.entities_cpu_culling {
-            let Ok((cloud, volumes, sorts, main_entity)) = clouds.get(render_entity) else { continue };
+            let Ok((cloud, volumes, sorts, main_entity)) = clouds.get(render_entity) else {
+                continue;
+            };
             let drawable = volumes.ready
                 && cloud.extinction > 0.0
-                && sorts.0.get(&view.retained_view_entity).is_some_and(|s| s.ready);
-            let Some(gpu) = particles.get(cloud.particles) else { continue };
+                && sorts
+                    .0
+                    .get(&view.retained_view_entity)
+                    .is_some_and(|s| s.ready);
+            let Some(gpu) = particles.get(cloud.particles) else {
+                continue;
+            };
             if !drawable || gpu.count == 0 {
                 continue;
             }
-            let centre = cloud.world_from_local.transform_point3(gpu.bounds.map_or(Vec3::ZERO, |b| b.centre));
+            let centre = cloud
+                .world_from_local
+                .transform_point3(gpu.bounds.map_or(Vec3::ZERO, |b| b.centre));
             phase.add_transient(Transparent3d {
-                sorting_info: TransparentSortingInfo3d::Sorted { mesh_center: centre, depth_bias: 0.0 },
+                sorting_info: TransparentSortingInfo3d::Sorted {
+                    mesh_center: centre,
+                    depth_bias: 0.0,
+                },
                 distance: 0.0,
                 pipeline: pipeline_id,
                 entity: (render_entity, *main_entity),
@@ -239,7 +293,11 @@ pub(crate) fn queue_cloud_billboards(
     }
 }
 
-pub type DrawCloudBillboards = (SetItemPipeline, SetBillboardViewBindGroup<0>, DrawBillboards<1>);
+pub type DrawCloudBillboards = (
+    SetItemPipeline,
+    SetBillboardViewBindGroup<0>,
+    DrawBillboards<1>,
+);
 
 pub struct SetBillboardViewBindGroup<const I: usize>;
 
@@ -264,7 +322,11 @@ impl<P: PhaseItem, const I: usize> RenderCommand<P> for SetBillboardViewBindGrou
 pub struct DrawBillboards<const I: usize>;
 
 impl<P: PhaseItem, const I: usize> RenderCommand<P> for DrawBillboards<I> {
-    type Param = (SRes<RenderAssets<GpuParticles>>, SRes<CloudPassCounters>, Option<SRes<DiagnosticsRecorder>>);
+    type Param = (
+        SRes<RenderAssets<GpuParticles>>,
+        SRes<CloudPassCounters>,
+        Option<SRes<DiagnosticsRecorder>>,
+    );
     type ViewQuery = Read<ExtractedView>;
     type ItemQuery = (Read<ExtractedCloud>, Read<CloudDrawBindGroups>);
 
@@ -275,9 +337,15 @@ impl<P: PhaseItem, const I: usize> RenderCommand<P> for DrawBillboards<I> {
         (particles, counters, recorder): SystemParamItem<'w, '_, Self::Param>,
         pass: &mut TrackedRenderPass<'w>,
     ) -> RenderCommandResult {
-        let Some((cloud, groups)) = cloud else { return RenderCommandResult::Skip };
-        let Some(group) = groups.groups.get(&view.retained_view_entity) else { return RenderCommandResult::Skip };
-        let Some(gpu) = particles.into_inner().get(cloud.particles) else { return RenderCommandResult::Skip };
+        let Some((cloud, groups)) = cloud else {
+            return RenderCommandResult::Skip;
+        };
+        let Some(group) = groups.groups.get(&view.retained_view_entity) else {
+            return RenderCommandResult::Skip;
+        };
+        let Some(gpu) = particles.into_inner().get(cloud.particles) else {
+            return RenderCommandResult::Skip;
+        };
         pass.set_bind_group(I, group, &[]);
         // A timestamp span only: Bevy's own span around the transparent pass already holds the
         // pass's pipeline-statistics query, and those cannot nest.

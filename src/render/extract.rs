@@ -6,7 +6,7 @@ use bevy::{
     math::Affine3A,
     platform::collections::HashMap,
     prelude::*,
-    render::{sync_world::RenderEntity, Extract},
+    render::{Extract, sync_world::RenderEntity},
 };
 
 use crate::{
@@ -32,7 +32,10 @@ impl ExtractedCloud {
     /// Uniform scale of the cloud (the largest axis factor for a non-uniform transform).
     pub fn scale(&self) -> f32 {
         let m = self.world_from_local.matrix3;
-        m.x_axis.length().max(m.y_axis.length()).max(m.z_axis.length())
+        m.x_axis
+            .length()
+            .max(m.y_axis.length())
+            .max(m.z_axis.length())
     }
 
     /// Rotation part, world from local.
@@ -84,7 +87,8 @@ pub(crate) fn extract_clouds(
         match problem {
             Some(problem) => {
                 if refused.0.get(&entity) != Some(&problem) {
-                    let label = name.map_or_else(|| format!("{entity}"), |n| format!("{entity} ({n})"));
+                    let label =
+                        name.map_or_else(|| format!("{entity}"), |n| format!("{entity} ({n})"));
                     warn!("particle cloud {label} is not drawn: {problem}");
                     refused.0.insert(entity, problem);
                 }
@@ -120,7 +124,9 @@ fn validate(
     }
     let affine = transform.affine();
     if !affine.is_finite() || affine.matrix3.determinant() == 0.0 {
-        return Some(format!("`GlobalTransform` is {affine:?}; it must be finite and invertible"));
+        return Some(format!(
+            "`GlobalTransform` is {affine:?}; it must be finite and invertible"
+        ));
     }
     if let Some(particles) = particles
         && let Err(e) = particles.validate()
@@ -132,16 +138,34 @@ fn validate(
 
 pub(crate) fn extract_cloud_lights(
     mut lights: ResMut<ExtractedCloudLights>,
-    query: Extract<Query<(Entity, &DirectionalLight, &GlobalTransform, &InheritedVisibility), Without<NotCloudLight>>>,
+    query: Extract<
+        Query<
+            (
+                Entity,
+                &DirectionalLight,
+                &GlobalTransform,
+                &InheritedVisibility,
+            ),
+            Without<NotCloudLight>,
+        >,
+    >,
 ) {
     lights.0.clear();
     for (entity, light, transform, visibility) in &query {
         let irradiance = light.color.to_linear().to_vec3() * light.illuminance;
         let direction = transform.forward().as_vec3();
         // Hidden, dark or broken lights cost nothing.
-        if !visibility.get() || !irradiance.is_finite() || irradiance.max_element() <= 0.0 || !direction.is_finite() {
+        if !visibility.get()
+            || !irradiance.is_finite()
+            || irradiance.max_element() <= 0.0
+            || !direction.is_finite()
+        {
             continue;
         }
-        lights.0.push(CloudLight { entity, direction, irradiance });
+        lights.0.push(CloudLight {
+            entity,
+            direction,
+            irradiance,
+        });
     }
 }

@@ -7,7 +7,10 @@ use bevy::{
     render::{
         diagnostic::{DiagnosticsRecorder, RecordDiagnostics},
         render_asset::RenderAssets,
-        render_resource::{BindGroup, BindGroupEntries, BindGroupEntry, ComputePass, ComputePassDescriptor, PipelineCache},
+        render_resource::{
+            BindGroup, BindGroupEntries, BindGroupEntry, ComputePass, ComputePassDescriptor,
+            PipelineCache,
+        },
         renderer::RenderContext,
     },
 };
@@ -48,7 +51,10 @@ pub(crate) fn record_stage(
     let span = recorder.time_span(ctx.command_encoder(), stage.span_name());
     let mut pass = ctx
         .command_encoder()
-        .begin_compute_pass(&ComputePassDescriptor { label: Some(stage.span_name()), ..default() });
+        .begin_compute_pass(&ComputePassDescriptor {
+            label: Some(stage.span_name()),
+            ..default()
+        });
     let runs = body(&mut pass);
     drop(pass);
     span.end(ctx.command_encoder());
@@ -70,10 +76,15 @@ pub(crate) fn illuminate_clouds(
         return;
     }
     let brute_force = shading.is_some_and(|s| *s == ShadingMethod::BruteForce);
-    let shade_stage = if brute_force { &pipelines.shade_brute_force } else { &pipelines.shade };
-    let (Some([voxelize, _, gather, scatter, colour]), Some(shade)) =
-        (pipelines.ready(&pipeline_cache), shade_stage.get(&pipeline_cache))
-    else {
+    let shade_stage = if brute_force {
+        &pipelines.shade_brute_force
+    } else {
+        &pipelines.shade
+    };
+    let (Some([voxelize, _, gather, scatter, colour]), Some(shade)) = (
+        pipelines.ready(&pipeline_cache),
+        shade_stage.get(&pipeline_cache),
+    ) else {
         // Not compiled yet: forget the plan so that the next frame does all of it.
         clouds.iter_mut().for_each(|(_, mut v)| v.invalidate());
         return;
@@ -81,7 +92,11 @@ pub(crate) fn illuminate_clouds(
     let device = ctx.render_device().clone();
     let recorder = ctx.diagnostic_recorder();
     let bind = |stage: &ComputeStage, entries: &[BindGroupEntry]| -> BindGroup {
-        device.create_bind_group(None, &pipeline_cache.get_bind_group_layout(&stage.layout), entries)
+        device.create_bind_group(
+            None,
+            &pipeline_cache.get_bind_group_layout(&stage.layout),
+            entries,
+        )
     };
     let clouds: Vec<_> = clouds
         .iter_mut()
@@ -95,127 +110,159 @@ pub(crate) fn illuminate_clouds(
         for (_, v) in &voxelizing {
             ctx.command_encoder().clear_buffer(&v.density, 0, None);
         }
-        record_stage(&mut ctx, recorder.as_deref(), &counters, CloudPass::Voxelize, |pass| {
-            pass.set_pipeline(voxelize);
-            for (gpu, v) in &voxelizing {
-                let group = bind(
-                    &pipelines.voxelize,
-                    &BindGroupEntries::sequential((
-                        v.params_buffer.as_entire_binding(),
-                        gpu.buffer.as_entire_binding(),
-                        v.density.as_entire_binding(),
-                    )),
-                );
-                pass.set_bind_group(0, &group, &[]);
-                dispatch_1d(pass, gpu.count);
-            }
-            voxelizing.len() as u32
-        });
+        record_stage(
+            &mut ctx,
+            recorder.as_deref(),
+            &counters,
+            CloudPass::Voxelize,
+            |pass| {
+                pass.set_pipeline(voxelize);
+                for (gpu, v) in &voxelizing {
+                    let group = bind(
+                        &pipelines.voxelize,
+                        &BindGroupEntries::sequential((
+                            v.params_buffer.as_entire_binding(),
+                            gpu.buffer.as_entire_binding(),
+                            v.density.as_entire_binding(),
+                        )),
+                    );
+                    pass.set_bind_group(0, &group, &[]);
+                    dispatch_1d(pass, gpu.count);
+                }
+                voxelizing.len() as u32
+            },
+        );
     }
 
     // Shade (§2): one column per invocation, marching slice by slice away from the light (or, with
     // `ShadingMethod::BruteForce`, one voxel per invocation marching all the way to the light).
     if clouds.iter().any(|(_, v)| !v.plan.shade.is_empty()) {
-        record_stage(&mut ctx, recorder.as_deref(), &counters, CloudPass::Shade, |pass| {
-            pass.set_pipeline(shade);
-            let mut runs = 0;
-            for (_, v) in &clouds {
-                for &i in &v.plan.shade {
-                    let light = &v.lights[i];
-                    let group = bind(
-                        shade_stage,
-                        &BindGroupEntries::sequential((
-                            v.params_buffer.as_entire_binding(),
-                            light.params.as_entire_binding(),
-                            v.density.as_entire_binding(),
-                            light.transmittance.as_entire_binding(),
-                        )),
-                    );
-                    pass.set_bind_group(0, &group, &[]);
-                    if brute_force {
-                        dispatch_volume(pass, v.params.n);
-                    } else {
-                        let g = v.params.n.div_ceil(8);
-                        pass.dispatch_workgroups(g, g, 1);
+        record_stage(
+            &mut ctx,
+            recorder.as_deref(),
+            &counters,
+            CloudPass::Shade,
+            |pass| {
+                pass.set_pipeline(shade);
+                let mut runs = 0;
+                for (_, v) in &clouds {
+                    for &i in &v.plan.shade {
+                        let light = &v.lights[i];
+                        let group = bind(
+                            shade_stage,
+                            &BindGroupEntries::sequential((
+                                v.params_buffer.as_entire_binding(),
+                                light.params.as_entire_binding(),
+                                v.density.as_entire_binding(),
+                                light.transmittance.as_entire_binding(),
+                            )),
+                        );
+                        pass.set_bind_group(0, &group, &[]);
+                        if brute_force {
+                            dispatch_volume(pass, v.params.n);
+                        } else {
+                            let g = v.params.n.div_ceil(8);
+                            pass.dispatch_workgroups(g, g, 1);
+                        }
+                        runs += 1;
                     }
-                    runs += 1;
                 }
-            }
-            runs
-        });
+                runs
+            },
+        );
     }
 
     // Gather (§3): the first light writes S_0, the others add to it.
     if clouds.iter().any(|(_, v)| v.plan.gather) {
-        record_stage(&mut ctx, recorder.as_deref(), &counters, CloudPass::Gather, |pass| {
-            pass.set_pipeline(gather);
-            let mut runs = 0;
-            for (_, v) in clouds.iter().filter(|(_, v)| v.plan.gather) {
-                for light in &v.lights {
-                    let group = bind(
-                        &pipelines.gather,
-                        &BindGroupEntries::sequential((
-                            v.params_buffer.as_entire_binding(),
-                            light.params.as_entire_binding(),
-                            light.transmittance.as_entire_binding(),
-                            v.source.as_entire_binding(),
-                        )),
-                    );
-                    pass.set_bind_group(0, &group, &[]);
-                    dispatch_volume(pass, v.params.n);
+        record_stage(
+            &mut ctx,
+            recorder.as_deref(),
+            &counters,
+            CloudPass::Gather,
+            |pass| {
+                pass.set_pipeline(gather);
+                let mut runs = 0;
+                for (_, v) in clouds.iter().filter(|(_, v)| v.plan.gather) {
+                    for light in &v.lights {
+                        let group = bind(
+                            &pipelines.gather,
+                            &BindGroupEntries::sequential((
+                                v.params_buffer.as_entire_binding(),
+                                light.params.as_entire_binding(),
+                                light.transmittance.as_entire_binding(),
+                                v.source.as_entire_binding(),
+                            )),
+                        );
+                        pass.set_bind_group(0, &group, &[]);
+                        dispatch_volume(pass, v.params.n);
+                    }
+                    runs += 1;
                 }
-                runs += 1;
-            }
-            runs
-        });
+                runs
+            },
+        );
     }
 
     // Multiple scattering (§4) and the particles' colours (§5).
-    let scattering: Vec<_> = clouds.iter().filter(|(_, v)| v.plan.scatter.is_some()).collect();
+    let scattering: Vec<_> = clouds
+        .iter()
+        .filter(|(_, v)| v.plan.scatter.is_some())
+        .collect();
     if !scattering.is_empty() {
         for (_, v) in &scattering {
-            ctx.command_encoder().copy_buffer_to_buffer(&v.source, 0, &v.accumulated, 0, None);
+            ctx.command_encoder()
+                .copy_buffer_to_buffer(&v.source, 0, &v.accumulated, 0, None);
         }
-        record_stage(&mut ctx, recorder.as_deref(), &counters, CloudPass::Scatter, |pass| {
-            let mut runs = 0;
-            pass.set_pipeline(scatter);
-            for (_, v) in &scattering {
-                let iterations = v.plan.scatter.unwrap_or(0);
-                for k in 0..iterations {
-                    // S_0 is the source; then the two order volumes alternate.
-                    let input = if k == 0 { &v.source } else { &v.orders[(k as usize - 1) % 2] };
-                    let output = &v.orders[k as usize % 2];
+        record_stage(
+            &mut ctx,
+            recorder.as_deref(),
+            &counters,
+            CloudPass::Scatter,
+            |pass| {
+                let mut runs = 0;
+                pass.set_pipeline(scatter);
+                for (_, v) in &scattering {
+                    let iterations = v.plan.scatter.unwrap_or(0);
+                    for k in 0..iterations {
+                        // S_0 is the source; then the two order volumes alternate.
+                        let input = if k == 0 {
+                            &v.source
+                        } else {
+                            &v.orders[(k as usize - 1) % 2]
+                        };
+                        let output = &v.orders[k as usize % 2];
+                        let group = bind(
+                            &pipelines.scatter,
+                            &BindGroupEntries::sequential((
+                                v.params_buffer.as_entire_binding(),
+                                v.density.as_entire_binding(),
+                                input.as_entire_binding(),
+                                output.as_entire_binding(),
+                                v.accumulated.as_entire_binding(),
+                            )),
+                        );
+                        pass.set_bind_group(0, &group, &[]);
+                        dispatch_volume(pass, v.params.n);
+                    }
+                    runs += iterations;
+                }
+                pass.set_pipeline(colour);
+                for (gpu, v) in &scattering {
                     let group = bind(
-                        &pipelines.scatter,
+                        &pipelines.colour,
                         &BindGroupEntries::sequential((
                             v.params_buffer.as_entire_binding(),
-                            v.density.as_entire_binding(),
-                            input.as_entire_binding(),
-                            output.as_entire_binding(),
+                            gpu.buffer.as_entire_binding(),
                             v.accumulated.as_entire_binding(),
+                            v.colours.as_entire_binding(),
                         )),
                     );
                     pass.set_bind_group(0, &group, &[]);
-                    dispatch_volume(pass, v.params.n);
+                    dispatch_1d(pass, gpu.count);
                 }
-                runs += iterations;
-            }
-            pass.set_pipeline(colour);
-            for (gpu, v) in &scattering {
-                let group = bind(
-                    &pipelines.colour,
-                    &BindGroupEntries::sequential((
-                        v.params_buffer.as_entire_binding(),
-                        gpu.buffer.as_entire_binding(),
-                        v.accumulated.as_entire_binding(),
-                        v.colours.as_entire_binding(),
-                    )),
-                );
-                pass.set_bind_group(0, &group, &[]);
-                dispatch_1d(pass, gpu.count);
-            }
-            runs
-        });
+                runs
+            },
+        );
     }
     drop(scattering);
 

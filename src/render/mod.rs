@@ -23,22 +23,27 @@ use bevy::{
     core_pipeline::{core_3d::Transparent3d, schedule::camera_driver},
     prelude::*,
     render::{
+        ExtractSchedule, Render, RenderApp, RenderStartup, RenderSystems,
         extract_resource::ExtractResourcePlugin,
         render_asset::RenderAssetPlugin,
         render_phase::AddRenderCommand,
         render_resource::{DownlevelFlags, SpecializedRenderPipelines},
+        renderer::{RenderAdapter, RenderDevice},
         renderer::{RenderGraph, RenderGraphSystems},
         sync_component::{SyncComponent, SyncComponentPlugin},
-        renderer::{RenderAdapter, RenderDevice},
-        ExtractSchedule, Render, RenderApp, RenderStartup, RenderSystems,
     },
 };
 
-use crate::{cloud::ParticleCloud, settings::ShadingMethod, stats::CloudPassCounters};
 use self::{extract::ExtractedCloud, shaders::CloudShaders};
+use crate::{cloud::ParticleCloud, settings::ShadingMethod, stats::CloudPassCounters};
 
 impl SyncComponent for ParticleCloud {
-    type Target = (ExtractedCloud, volumes::CloudVolumes, sort::CloudSorts, draw::CloudDrawBindGroups);
+    type Target = (
+        ExtractedCloud,
+        volumes::CloudVolumes,
+        sort::CloudSorts,
+        draw::CloudDrawBindGroups,
+    );
 }
 
 impl bevy::render::extract_resource::ExtractResource for CloudPassCounters {
@@ -63,7 +68,8 @@ pub(crate) fn key_of(value: impl std::hash::Hash) -> u64 {
 
 pub(crate) fn build(app: &mut App) {
     let shaders = CloudShaders::load(&mut app.world_mut().resource_mut::<Assets<Shader>>());
-    app.init_resource::<ShadingMethod>().register_type::<ShadingMethod>();
+    app.init_resource::<ShadingMethod>()
+        .register_type::<ShadingMethod>();
     app.insert_resource(shaders.clone()).add_plugins((
         SyncComponentPlugin::<ParticleCloud>::default(),
         RenderAssetPlugin::<particles::GpuParticles>::default(),
@@ -99,7 +105,9 @@ fn unsupported(render_app: &SubApp) -> Option<String> {
 /// Adds the render-world systems once the adapter is known to support them (like Bevy's
 /// atmosphere, which checks its adapter in `Plugin::finish`).
 pub(crate) fn finish(app: &mut App) {
-    let Some(render_app) = app.get_sub_app_mut(RenderApp) else { return };
+    let Some(render_app) = app.get_sub_app_mut(RenderApp) else {
+        return;
+    };
     if let Some(reason) = unsupported(render_app) {
         error!("bevy_particle_clouds is disabled: {reason}; particle clouds will not be drawn");
         return;
@@ -110,13 +118,21 @@ pub(crate) fn finish(app: &mut App) {
         .add_render_command::<Transparent3d, draw::DrawCloudBillboards>()
         .add_systems(
             RenderStartup,
-            (pipelines::init_illumination_pipelines, sort::init_sort_pipelines, draw::init_billboard_pipeline),
+            (
+                pipelines::init_illumination_pipelines,
+                sort::init_sort_pipelines,
+                draw::init_billboard_pipeline,
+            ),
         )
-        .add_systems(ExtractSchedule, (extract::extract_clouds, extract::extract_cloud_lights))
+        .add_systems(
+            ExtractSchedule,
+            (extract::extract_clouds, extract::extract_cloud_lights),
+        )
         .add_systems(
             Render,
             (
-                (volumes::prepare_cloud_volumes, sort::prepare_cloud_sorts).in_set(RenderSystems::PrepareResources),
+                (volumes::prepare_cloud_volumes, sort::prepare_cloud_sorts)
+                    .in_set(RenderSystems::PrepareResources),
                 draw::prepare_billboard_bind_groups.in_set(RenderSystems::PrepareBindGroups),
                 draw::queue_cloud_billboards.in_set(RenderSystems::Queue),
             ),

@@ -3,7 +3,7 @@
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use bevy::{
-    ecs::system::{lifetimeless::SRes, SystemParamItem},
+    ecs::system::{SystemParamItem, lifetimeless::SRes},
     prelude::*,
     render::{
         render_asset::{PrepareAssetError, RenderAsset},
@@ -78,6 +78,11 @@ impl RenderAsset for GpuParticles {
             centre: (lo + hi) * 0.5,
             side: (hi - lo).max_element(),
         });
-        Ok(Self { buffer, count, bounds, generation: GENERATION.fetch_add(1, Ordering::Relaxed) })
+        Ok(Self {
+            buffer,
+            count,
+            bounds,
+            generation: GENERATION.fetch_add(1, Ordering::Relaxed),
+        })
     }
 }

@@ -3,12 +3,14 @@
 use super::shaders::CloudShaders;
 use bevy::{
     prelude::*,
-    shader::Shader,
     render::render_resource::{
-        binding_types::{storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer_sized},
-        BindGroupLayoutDescriptor, BindGroupLayoutEntries, CachedComputePipelineId, ComputePipeline,
-        ComputePipelineDescriptor, PipelineCache, ShaderStages,
+        BindGroupLayoutDescriptor, BindGroupLayoutEntries, CachedComputePipelineId,
+        ComputePipeline, ComputePipelineDescriptor, PipelineCache, ShaderStages,
+        binding_types::{
+            storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer_sized,
+        },
     },
+    shader::Shader,
 };
 
 /// One compute pipeline with its (single) bind group layout.
@@ -78,48 +80,40 @@ pub(crate) fn init_illumination_pipelines(
     );
     let shade = BindGroupLayoutDescriptor::new(
         "particle_clouds_shade_layout",
-        &BindGroupLayoutEntries::sequential(ShaderStages::COMPUTE, (uniform(), uniform(), read(), write())),
+        &BindGroupLayoutEntries::sequential(
+            ShaderStages::COMPUTE,
+            (uniform(), uniform(), read(), write()),
+        ),
     );
     let gather = BindGroupLayoutDescriptor::new(
         "particle_clouds_gather_layout",
-        &BindGroupLayoutEntries::sequential(ShaderStages::COMPUTE, (uniform(), uniform(), read(), write())),
+        &BindGroupLayoutEntries::sequential(
+            ShaderStages::COMPUTE,
+            (uniform(), uniform(), read(), write()),
+        ),
     );
     let scatter = BindGroupLayoutDescriptor::new(
         "particle_clouds_scatter_layout",
-        &BindGroupLayoutEntries::sequential(ShaderStages::COMPUTE, (uniform(), read(), read(), write(), write())),
+        &BindGroupLayoutEntries::sequential(
+            ShaderStages::COMPUTE,
+            (uniform(), read(), read(), write(), write()),
+        ),
     );
     let colour = BindGroupLayoutDescriptor::new(
         "particle_clouds_colour_layout",
-        &BindGroupLayoutEntries::sequential(ShaderStages::COMPUTE, (uniform(), read(), read(), write())),
+        &BindGroupLayoutEntries::sequential(
+            ShaderStages::COMPUTE,
+            (uniform(), read(), read(), write()),
+        ),
     );
     let cache = pipeline_cache.as_ref();
     let shade_shader = shaders.shade.clone();
     commands.insert_resource(IlluminationPipelines {
-        voxelize: ComputeStage::new(
-            cache,
-            shaders.voxelize.clone(),
-            "deposit",
-            voxelize,
-        ),
+        voxelize: ComputeStage::new(cache, shaders.voxelize.clone(), "deposit", voxelize),
         shade: ComputeStage::new(cache, shade_shader.clone(), "shade", shade.clone()),
         shade_brute_force: ComputeStage::new(cache, shade_shader, "shade_brute_force", shade),
-        gather: ComputeStage::new(
-            cache,
-            shaders.gather.clone(),
-            "gather",
-            gather,
-        ),
-        scatter: ComputeStage::new(
-            cache,
-            shaders.scatter.clone(),
-            "scatter",
-            scatter,
-        ),
-        colour: ComputeStage::new(
-            cache,
-            shaders.particle_colour.clone(),
-            "colour",
-            colour,
-        ),
+        gather: ComputeStage::new(cache, shaders.gather.clone(), "gather", gather),
+        scatter: ComputeStage::new(cache, shaders.scatter.clone(), "scatter", scatter),
+        colour: ComputeStage::new(cache, shaders.particle_colour.clone(), "colour", colour),
     });
 }

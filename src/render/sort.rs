@@ -8,10 +8,13 @@ use bevy::{
     render::{
         render_asset::RenderAssets,
         render_resource::{
-            binding_types::{storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer_sized},
-            BindGroup, BindGroupEntries, BindGroupLayout, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer,
-            BufferDescriptor, BufferUsages, CachedComputePipelineId, ComputePass,
-            ComputePipeline, ComputePipelineDescriptor, PipelineCache, ShaderStages, ShaderType,
+            BindGroup, BindGroupEntries, BindGroupLayout, BindGroupLayoutDescriptor,
+            BindGroupLayoutEntries, Buffer, BufferDescriptor, BufferUsages,
+            CachedComputePipelineId, ComputePass, ComputePipeline, ComputePipelineDescriptor,
+            PipelineCache, ShaderStages, ShaderType,
+            binding_types::{
+                storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer_sized,
+            },
         },
         renderer::{RenderContext, RenderDevice, RenderQueue},
         view::{ExtractedView, RenderVisibleEntities, RetainedViewEntity},
@@ -19,8 +22,11 @@ use bevy::{
 };
 
 use super::{
+    extract::ExtractedCloud,
+    illumination::{dispatch_1d, record_stage},
     key_of,
-    extract::ExtractedCloud, illumination::{dispatch_1d, record_stage}, particles::GpuParticles, shaders::CloudShaders,
+    particles::GpuParticles,
+    shaders::CloudShaders,
     volumes::{storage, uniform_bytes},
 };
 use crate::{
@@ -70,7 +76,11 @@ impl SortPipelines {
     }
 }
 
-pub(crate) fn init_sort_pipelines(mut commands: Commands, shaders: Res<CloudShaders>, cache: Res<PipelineCache>) {
+pub(crate) fn init_sort_pipelines(
+    mut commands: Commands,
+    shaders: Res<CloudShaders>,
+    cache: Res<PipelineCache>,
+) {
     let write = || storage_buffer_sized(false, None);
     let layout = BindGroupLayoutDescriptor::new(
         "particle_clouds_sort_layout",
@@ -130,7 +140,10 @@ impl SortBuffers {
         });
         Self {
             capacity,
-            keys: [storage(device, "particle_clouds_sort_keys_a", bytes), storage(device, "particle_clouds_sort_keys_b", bytes)],
+            keys: [
+                storage(device, "particle_clouds_sort_keys_a", bytes),
+                storage(device, "particle_clouds_sort_keys_b", bytes),
+            ],
             values: [
                 storage(device, "particle_clouds_sort_values_a", bytes),
                 storage(device, "particle_clouds_sort_values_b", bytes),
@@ -175,7 +188,12 @@ impl SortBuffers {
     }
 
     /// Bind groups of the four digit passes; pass `k` reads buffer set `k % 2` and writes the other.
-    pub fn bind_groups(&self, device: &RenderDevice, layout: &BindGroupLayout, particles: &Buffer) -> [BindGroup; 4] {
+    pub fn bind_groups(
+        &self,
+        device: &RenderDevice,
+        layout: &BindGroupLayout,
+        particles: &Buffer,
+    ) -> [BindGroup; 4] {
         std::array::from_fn(|pass| {
             let (src, dst) = (pass % 2, 1 - pass % 2);
             device.create_bind_group(
@@ -246,14 +264,20 @@ pub(crate) fn prepare_cloud_sorts(
 ) {
     let mut visible_in: HashMap<Entity, Vec<&ExtractedView>> = HashMap::default();
     for (view, visible) in &views {
-        let Some(class) = visible.get::<ParticleCloud>() else { continue };
+        let Some(class) = visible.get::<ParticleCloud>() else {
+            continue;
+        };
         for (entity, _) in &class.entities_cpu_culling {
             visible_in.entry(*entity).or_default().push(view);
         }
     }
     for (entity, views) in visible_in {
-        let Ok((cloud, sorts)) = clouds.get_mut(entity) else { continue };
-        let Some(gpu) = particles.get(cloud.particles) else { continue };
+        let Ok((cloud, sorts)) = clouds.get_mut(entity) else {
+            continue;
+        };
+        let Some(gpu) = particles.get(cloud.particles) else {
+            continue;
+        };
         let mut fresh = CloudSorts::default();
         let is_fresh = sorts.is_none();
         let sorts = match sorts {
@@ -263,15 +287,19 @@ pub(crate) fn prepare_cloud_sorts(
         let retained: Vec<_> = views.iter().map(|v| v.retained_view_entity).collect();
         sorts.0.retain(|k, _| retained.contains(k));
         for view in views {
-            let view_from_local = view.world_from_view.to_matrix().inverse() * Mat4::from(cloud.world_from_local);
+            let view_from_local =
+                view.world_from_view.to_matrix().inverse() * Mat4::from(cloud.world_from_local);
             let depth_row = view_from_local.row(2);
             let key = key_of((depth_row.to_array().map(f32::to_bits), gpu.generation));
-            let sort = sorts.0.entry(view.retained_view_entity).or_insert_with(|| ViewSort {
-                buffers: SortBuffers::new(&device, gpu.count),
-                key: 0,
-                pending: false,
-                ready: false,
-            });
+            let sort = sorts
+                .0
+                .entry(view.retained_view_entity)
+                .or_insert_with(|| ViewSort {
+                    buffers: SortBuffers::new(&device, gpu.count),
+                    key: 0,
+                    pending: false,
+                    ready: false,
+                });
             if sort.buffers.capacity != gpu.count {
                 sort.buffers = SortBuffers::new(&device, gpu.count);
                 sort.key = 0;
@@ -302,22 +330,32 @@ pub(crate) fn sort_cloud_particles(
     if !clouds.iter().any(|(_, s)| s.0.values().any(|v| v.pending)) {
         return;
     }
-    let Some(ready) = pipelines.ready(&pipeline_cache) else { return };
+    let Some(ready) = pipelines.ready(&pipeline_cache) else {
+        return;
+    };
     let device = ctx.render_device().clone();
     let layout = pipeline_cache.get_bind_group_layout(&pipelines.layout);
     let recorder = ctx.diagnostic_recorder();
-    record_stage(&mut ctx, recorder.as_deref(), &counters, CloudPass::Sort, |pass| {
-        let mut runs = 0;
-        for (cloud, mut sorts) in &mut clouds {
-            let Some(gpu) = particles.get(cloud.particles) else { continue };
-            for sort in sorts.0.values_mut().filter(|s| s.pending) {
-                let groups = sort.buffers.bind_groups(&device, &layout, &gpu.buffer);
-                record_sort(pass, &ready, &groups, gpu.count, true);
-                sort.pending = false;
-                sort.ready = true;
-                runs += 1;
+    record_stage(
+        &mut ctx,
+        recorder.as_deref(),
+        &counters,
+        CloudPass::Sort,
+        |pass| {
+            let mut runs = 0;
+            for (cloud, mut sorts) in &mut clouds {
+                let Some(gpu) = particles.get(cloud.particles) else {
+                    continue;
+                };
+                for sort in sorts.0.values_mut().filter(|s| s.pending) {
+                    let groups = sort.buffers.bind_groups(&device, &layout, &gpu.buffer);
+                    record_sort(pass, &ready, &groups, gpu.count, true);
+                    sort.pending = false;
+                    sort.ready = true;
+                    runs += 1;
+                }
             }
-        }
-        runs
-    });
+            runs
+        },
+    );
 }

@@ -9,14 +9,14 @@ use bevy::{
     prelude::*,
     render::{
         render_asset::RenderAssets,
-        render_resource::{encase, Buffer, BufferDescriptor, BufferUsages, ShaderType},
+        render_resource::{Buffer, BufferDescriptor, BufferUsages, ShaderType, encase},
         renderer::{RenderDevice, RenderQueue},
     },
 };
 
 use super::{
-    key_of,
     extract::{ExtractedCloud, ExtractedCloudLights},
+    key_of,
     particles::{CloudBounds, GpuParticles},
 };
 use crate::{reference::illumination::light_basis, settings::ScatterStencil};
@@ -53,10 +53,21 @@ pub struct LightParams {
 
 impl LightParams {
     /// The light box of a light travelling along `direction_local` (docs/illumination.md §2).
-    pub fn new(cloud: &CloudParams, direction_local: Vec3, irradiance: Vec3, accumulate: bool) -> Self {
+    pub fn new(
+        cloud: &CloudParams,
+        direction_local: Vec3,
+        irradiance: Vec3,
+        accumulate: bool,
+    ) -> Self {
         let [u, v, w] = light_basis(direction_local.as_dvec3().normalize()).map(|a| a.as_vec3());
         let side = cloud.h * cloud.n as f32;
-        let half_extents = 0.5 * side * Vec3::new(u.abs().element_sum(), v.abs().element_sum(), w.abs().element_sum());
+        let half_extents = 0.5
+            * side
+            * Vec3::new(
+                u.abs().element_sum(),
+                v.abs().element_sum(),
+                w.abs().element_sum(),
+            );
         let h = 2.0 * half_extents / cloud.n as f32;
         Self {
             u,
@@ -151,7 +162,9 @@ fn uniform(device: &RenderDevice, label: &'static str, size: u64) -> Buffer {
 /// Encodes a `ShaderType` value as uniform-buffer bytes.
 pub fn uniform_bytes<T: ShaderType + encase::internal::WriteInto>(value: &T) -> Vec<u8> {
     let mut buffer = encase::UniformBuffer::new(Vec::new());
-    buffer.write(value).expect("uniform encoding cannot fail for plain structs");
+    buffer
+        .write(value)
+        .expect("uniform encoding cannot fail for plain structs");
     buffer.into_inner()
 }
 
@@ -160,7 +173,11 @@ impl CloudVolumes {
         let voxels = (n as u64).pow(3);
         Self {
             params: CloudParams::default(),
-            params_buffer: uniform(device, "particle_clouds_params", CloudParams::min_size().get()),
+            params_buffer: uniform(
+                device,
+                "particle_clouds_params",
+                CloudParams::min_size().get(),
+            ),
             density: storage(device, "particle_clouds_density", voxels * 4),
             source: storage(device, "particle_clouds_source", voxels * 16),
             orders: [
@@ -168,7 +185,11 @@ impl CloudVolumes {
                 storage(device, "particle_clouds_order_b", voxels * 16),
             ],
             accumulated: storage(device, "particle_clouds_accumulated", voxels * 16),
-            colours: storage(device, "particle_clouds_colours", particle_count as u64 * 16),
+            colours: storage(
+                device,
+                "particle_clouds_colours",
+                particle_count as u64 * 16,
+            ),
             lights: Vec::new(),
             density_key: 0,
             gather_key: 0,
@@ -212,7 +233,9 @@ pub(crate) fn prepare_cloud_volumes(
 ) {
     let max_binding = device.limits().max_storage_buffer_binding_size as u64;
     for (entity, cloud, volumes) in &mut clouds {
-        let Some(gpu) = particles.get(cloud.particles) else { continue };
+        let Some(gpu) = particles.get(cloud.particles) else {
+            continue;
+        };
         let Some(bounds) = gpu.bounds else {
             commands.entity(entity).remove::<CloudVolumes>();
             continue;
@@ -230,7 +253,9 @@ pub(crate) fn prepare_cloud_volumes(
             continue; // cached volumes stay; no work for clouds nobody sees or that are transparent
         }
         match volumes {
-            Some(mut v) if v.fits(n, gpu.count) => plan_cloud(&mut v, cloud, gpu, bounds, &lights, &device, &queue),
+            Some(mut v) if v.fits(n, gpu.count) => {
+                plan_cloud(&mut v, cloud, gpu, bounds, &lights, &device, &queue)
+            }
             _ => {
                 let mut v = CloudVolumes::new(&device, n, gpu.count);
                 plan_cloud(&mut v, cloud, gpu, bounds, &lights, &device, &queue);
@@ -275,8 +300,16 @@ fn plan_cloud(
     volumes.lights.truncate(lights.0.len());
     while volumes.lights.len() < lights.0.len() {
         volumes.lights.push(LightVolume {
-            params: uniform(device, "particle_clouds_light_params", LightParams::min_size().get()),
-            transmittance: storage(device, "particle_clouds_transmittance", (n as u64).pow(3) * 4),
+            params: uniform(
+                device,
+                "particle_clouds_light_params",
+                LightParams::min_size().get(),
+            ),
+            transmittance: storage(
+                device,
+                "particle_clouds_transmittance",
+                (n as u64).pow(3) * 4,
+            ),
             key: 0,
         });
     }
@@ -284,7 +317,14 @@ fn plan_cloud(
         .0
         .iter()
         .enumerate()
-        .map(|(i, l)| LightParams::new(&params, (to_local * l.direction).normalize(), l.irradiance, i > 0))
+        .map(|(i, l)| {
+            LightParams::new(
+                &params,
+                (to_local * l.direction).normalize(),
+                l.irradiance,
+                i > 0,
+            )
+        })
         .collect();
     let mut gather_inputs = Vec::with_capacity(light_params.len());
     for (i, (light, slot)) in light_params.iter().zip(&mut volumes.lights).enumerate() {

@@ -18,6 +18,7 @@ use bevy::{
     log::{Level, LogPlugin},
     prelude::*,
     render::{
+        RenderApp, RenderPlugin,
         diagnostic::RenderDiagnosticsPlugin,
         error_handler::RenderErrorHandler,
         pipelined_rendering::PipelinedRenderingPlugin,
@@ -25,14 +26,14 @@ use bevy::{
         renderer::{RenderAdapterInfo, RenderDevice},
         settings::{Backends, RenderCreation, WgpuSettings},
         view::screenshot::{Screenshot, ScreenshotCaptured},
-        RenderApp, RenderPlugin,
     },
     window::ExitCondition,
 };
 use bevy_particle_clouds::{
+    CloudPass, CloudPassCounters, CloudQualitySettings, ParticleCloud, ParticleCloudsPlugin,
+    Particles,
     image_io::LinearImage,
     scene::{ObjectShape, Scene},
-    CloudPass, CloudPassCounters, CloudQualitySettings, ParticleCloud, ParticleCloudsPlugin, Particles,
 };
 
 /// What to do when no adapter exists: say how to get one (tests fail, never skip).
@@ -63,9 +64,16 @@ pub fn headless_app() -> App {
     let mut app = App::new();
     app.add_plugins(
         DefaultPlugins
-            .set(WindowPlugin { primary_window: None, exit_condition: ExitCondition::DontExit, ..default() })
+            .set(WindowPlugin {
+                primary_window: None,
+                exit_condition: ExitCondition::DontExit,
+                ..default()
+            })
             // Warnings (refused clouds, wgpu problems) matter; per-app info lines are noise.
-            .set(LogPlugin { level: Level::WARN, ..default() })
+            .set(LogPlugin {
+                level: Level::WARN,
+                ..default()
+            })
             .set(RenderPlugin {
                 render_creation: RenderCreation::Automatic(Box::new(WgpuSettings {
                     backends: Some(Backends::VULKAN),
@@ -91,7 +99,11 @@ pub fn headless_app() -> App {
 
 /// The adapter's name, e.g. `llvmpipe (LLVM 15.0.6, 256 bits)`.
 pub fn adapter_name(app: &mut App) -> String {
-    app.sub_app(RenderApp).world().resource::<RenderAdapterInfo>().name.clone()
+    app.sub_app(RenderApp)
+        .world()
+        .resource::<RenderAdapterInfo>()
+        .name
+        .clone()
 }
 
 /// The render target of a spawned scene.
@@ -114,18 +126,36 @@ pub fn float_target(app: &mut App, width: u32, height: u32) -> Handle<Image> {
 
 /// A camera rendering linear radiance at exposure 1 into `target`: HDR, no tonemapping, no
 /// dithering, no MSAA (so pixels are exact), clear colour = background.
-pub fn spawn_linear_camera(app: &mut App, target: Handle<Image>, transform: Transform, fov_degrees: f32, background: Vec3) -> Entity {
+pub fn spawn_linear_camera(
+    app: &mut App,
+    target: Handle<Image>,
+    transform: Transform,
+    fov_degrees: f32,
+    background: Vec3,
+) -> Entity {
     app.world_mut()
         .spawn((
             Camera3d::default(),
-            Camera { clear_color: ClearColorConfig::Custom(Color::linear_rgb(background.x, background.y, background.z)), ..default() },
+            Camera {
+                clear_color: ClearColorConfig::Custom(Color::linear_rgb(
+                    background.x,
+                    background.y,
+                    background.z,
+                )),
+                ..default()
+            },
             RenderTarget::Image(target.into()),
-            Projection::Perspective(PerspectiveProjection { fov: fov_degrees.to_radians(), ..default() }),
+            Projection::Perspective(PerspectiveProjection {
+                fov: fov_degrees.to_radians(),
+                ..default()
+            }),
             Hdr,
             Tonemapping::None,
             DebandDither::Disabled,
             Msaa::Off,
-            Exposure { ev100: UNIT_EXPOSURE_EV100 },
+            Exposure {
+                ev100: UNIT_EXPOSURE_EV100,
+            },
             transform,
         ))
         .id()
@@ -134,7 +164,11 @@ pub fn spawn_linear_camera(app: &mut App, target: Handle<Image>, transform: Tran
 /// A directional light with irradiance `E` (linear RGB) travelling along `direction`.
 pub fn spawn_light(app: &mut App, direction: Vec3, irradiance: Vec3) -> Entity {
     let direction = direction.normalize();
-    let up = if direction.cross(Vec3::Y).length_squared() < 1e-6 { Vec3::X } else { Vec3::Y };
+    let up = if direction.cross(Vec3::Y).length_squared() < 1e-6 {
+        Vec3::X
+    } else {
+        Vec3::Y
+    };
     app.world_mut()
         .spawn((
             DirectionalLight {
@@ -152,14 +186,24 @@ pub fn spawn_light(app: &mut App, direction: Vec3, irradiance: Vec3) -> Entity {
 pub fn spawn_scene(app: &mut App, scene: &Scene) -> SceneTarget {
     let camera = &scene.camera;
     let image = float_target(app, camera.width, camera.height);
-    let transform = Transform::from_translation(camera.position).looking_at(camera.look_at, camera.up);
-    let camera_entity = spawn_linear_camera(app, image.clone(), transform, camera.vertical_fov_degrees, scene.background);
+    let transform =
+        Transform::from_translation(camera.position).looking_at(camera.look_at, camera.up);
+    let camera_entity = spawn_linear_camera(
+        app,
+        image.clone(),
+        transform,
+        camera.vertical_fov_degrees,
+        scene.background,
+    );
     for light in &scene.lights {
         spawn_light(app, light.direction, light.irradiance);
     }
     let mut drawable_clouds = 0;
     for cloud in &scene.clouds {
-        let handle = app.world_mut().resource_mut::<Assets<Particles>>().add(Particles::new(cloud.particles.clone()));
+        let handle = app
+            .world_mut()
+            .resource_mut::<Assets<Particles>>()
+            .add(Particles::new(cloud.particles.clone()));
         if cloud.medium.extinction > 0.0 && cloud.particles.iter().any(|p| p.density > 0.0) {
             drawable_clouds += 1;
         }
@@ -172,7 +216,13 @@ pub fn spawn_scene(app: &mut App, scene: &Scene) -> SceneTarget {
     for object in &scene.objects {
         spawn_object(app, object.shape, object.translation, object.color);
     }
-    SceneTarget { image, width: camera.width, height: camera.height, camera: camera_entity, drawable_clouds }
+    SceneTarget {
+        image,
+        width: camera.width,
+        height: camera.height,
+        camera: camera_entity,
+        drawable_clouds,
+    }
 }
 
 /// An opaque, unlit object showing the constant linear radiance `color`.
@@ -182,12 +232,21 @@ pub fn spawn_object(app: &mut App, shape: ObjectShape, translation: Vec3, color:
         ObjectShape::Sphere(radius) => Sphere::new(radius).mesh().ico(5).expect("ico sphere"),
     };
     let mesh = app.world_mut().resource_mut::<Assets<Mesh>>().add(mesh);
-    let material = app.world_mut().resource_mut::<Assets<StandardMaterial>>().add(StandardMaterial {
-        base_color: Color::linear_rgb(color.x, color.y, color.z),
-        unlit: true,
-        ..default()
-    });
-    app.world_mut().spawn((Mesh3d(mesh), MeshMaterial3d(material), Transform::from_translation(translation))).id()
+    let material = app
+        .world_mut()
+        .resource_mut::<Assets<StandardMaterial>>()
+        .add(StandardMaterial {
+            base_color: Color::linear_rgb(color.x, color.y, color.z),
+            unlit: true,
+            ..default()
+        });
+    app.world_mut()
+        .spawn((
+            Mesh3d(mesh),
+            MeshMaterial3d(material),
+            Transform::from_translation(translation),
+        ))
+        .id()
 }
 
 /// What one frame did.
@@ -202,12 +261,19 @@ pub struct FrameStats {
 
 impl FrameStats {
     pub fn runs(&self, pass: CloudPass) -> u32 {
-        self.passes.iter().find(|(p, _)| *p == pass).map_or(0, |(_, n)| *n)
+        self.passes
+            .iter()
+            .find(|(p, _)| *p == pass)
+            .map_or(0, |(_, n)| *n)
     }
 
     /// Runs of the illumination and sort passes (everything but the draw).
     pub fn work(&self) -> u32 {
-        self.passes.iter().filter(|(p, _)| *p != CloudPass::Draw).map(|(_, n)| n).sum()
+        self.passes
+            .iter()
+            .filter(|(p, _)| *p != CloudPass::Draw)
+            .map(|(_, n)| n)
+            .sum()
     }
 }
 
@@ -233,7 +299,11 @@ impl FrameRecorder {
                 self.waiting.entry(pass).or_default().push_back(index);
             }
         }
-        self.frames.push(FrameStats { wall_ms, passes, gpu_ms: HashMap::new() });
+        self.frames.push(FrameStats {
+            wall_ms,
+            passes,
+            gpu_ms: HashMap::new(),
+        });
         self.collect_gpu_times(app);
         &self.frames[index]
     }
@@ -246,16 +316,26 @@ impl FrameRecorder {
     }
 
     fn collect_gpu_times(&mut self, app: &App) {
-        let Some(store) = app.world().get_resource::<DiagnosticsStore>() else { return };
+        let Some(store) = app.world().get_resource::<DiagnosticsStore>() else {
+            return;
+        };
         for pass in CloudPass::ALL {
-            let Some(diagnostic) = store.get(&pass.diagnostic_path()) else { continue };
-            let Some(latest) = diagnostic.measurement().map(|m| m.time) else { continue };
+            let Some(diagnostic) = store.get(&pass.diagnostic_path()) else {
+                continue;
+            };
+            let Some(latest) = diagnostic.measurement().map(|m| m.time) else {
+                continue;
+            };
             if self.last_seen.get(&pass) == Some(&latest) {
                 continue;
             }
             self.last_seen.insert(pass, latest);
             // One frame's spans of a pass (e.g. one per cloud and view) share the sync instant.
-            let total: f64 = diagnostic.measurements().filter(|m| m.time == latest).map(|m| m.value).sum();
+            let total: f64 = diagnostic
+                .measurements()
+                .filter(|m| m.time == latest)
+                .map(|m| m.value)
+                .sum();
             if let Some(frame) = self.waiting.get_mut(&pass).and_then(VecDeque::pop_front) {
                 self.frames[frame].gpu_ms.insert(pass, total);
             }
@@ -266,8 +346,14 @@ impl FrameRecorder {
 /// One `app.update()` plus a blocking GPU poll, so readbacks and timings arrive deterministically.
 pub fn update(app: &mut App) {
     app.update();
-    if let Some(device) = app.sub_app(RenderApp).world().get_resource::<RenderDevice>() {
-        device.poll(PollType::wait_indefinitely()).expect("GPU poll failed");
+    if let Some(device) = app
+        .sub_app(RenderApp)
+        .world()
+        .get_resource::<RenderDevice>()
+    {
+        device
+            .poll(PollType::wait_indefinitely())
+            .expect("GPU poll failed");
     }
     assert!(app.should_exit().is_none(), "the renderer asked to exit");
 }
@@ -275,7 +361,12 @@ pub fn update(app: &mut App) {
 /// Renders until the clouds are drawn with finished illumination: a frame that draws every
 /// drawable cloud and does no illumination or sort work (so it shows their final state).
 /// Returns the frames it took; panics past `max_frames`.
-pub fn render_until_steady(app: &mut App, recorder: &mut FrameRecorder, target: &SceneTarget, max_frames: usize) -> usize {
+pub fn render_until_steady(
+    app: &mut App,
+    recorder: &mut FrameRecorder,
+    target: &SceneTarget,
+    max_frames: usize,
+) -> usize {
     for n in 1..=max_frames {
         let stats = recorder.frame(app);
         if stats.runs(CloudPass::Draw) >= target.drawable_clouds && stats.work() == 0 && n > 1 {
@@ -291,7 +382,9 @@ pub fn capture(app: &mut App, recorder: &mut FrameRecorder, target: &SceneTarget
     let sink = shot.clone();
     app.world_mut()
         .spawn(Screenshot::image(target.image.clone()))
-        .observe(move |captured: On<ScreenshotCaptured>| *sink.lock().unwrap() = Some(captured.image.clone()));
+        .observe(move |captured: On<ScreenshotCaptured>| {
+            *sink.lock().unwrap() = Some(captured.image.clone())
+        });
     recorder.frame(app);
     for _ in 0..10 {
         if let Some(image) = shot.lock().unwrap().take() {
@@ -304,13 +397,23 @@ pub fn capture(app: &mut App, recorder: &mut FrameRecorder, target: &SceneTarget
 
 /// Converts an `Rgba16Float` image into linear floats.
 pub fn decode_rgba16f(image: &Image) -> LinearImage {
-    assert_eq!(image.texture_descriptor.format, TextureFormat::Rgba16Float, "expected an Rgba16Float target");
+    assert_eq!(
+        image.texture_descriptor.format,
+        TextureFormat::Rgba16Float,
+        "expected an Rgba16Float target"
+    );
     let data = image.data.as_ref().expect("screenshot has data");
     let pixels = data
         .chunks_exact(8)
-        .map(|px| std::array::from_fn(|c| f16_to_f32(u16::from_le_bytes([px[2 * c], px[2 * c + 1]]))))
+        .map(|px| {
+            std::array::from_fn(|c| f16_to_f32(u16::from_le_bytes([px[2 * c], px[2 * c + 1]])))
+        })
         .collect();
-    LinearImage { width: image.width(), height: image.height(), pixels }
+    LinearImage {
+        width: image.width(),
+        height: image.height(),
+        pixels,
+    }
 }
 
 /// IEEE 754 half to single precision.
@@ -328,7 +431,11 @@ pub fn f16_to_f32(bits: u16) -> f32 {
 
 /// Quality settings helper for tests.
 pub fn quality(volume_resolution: u32, scatter_iterations: u32) -> CloudQualitySettings {
-    CloudQualitySettings { volume_resolution, scatter_iterations, ..default() }
+    CloudQualitySettings {
+        volume_resolution,
+        scatter_iterations,
+        ..default()
+    }
 }
 
 /// Copies a GPU buffer back to the CPU (blocking).
@@ -350,8 +457,12 @@ pub fn read_buffer(app: &mut App, buffer: &bevy::render::render_resource::Buffer
     encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, buffer.size());
     queue.submit([encoder.finish()]);
     let slice = staging.slice(..);
-    slice.map_async(MapMode::Read, |result| result.expect("map the readback buffer"));
-    device.poll(PollType::wait_indefinitely()).expect("GPU poll failed");
+    slice.map_async(MapMode::Read, |result| {
+        result.expect("map the readback buffer")
+    });
+    device
+        .poll(PollType::wait_indefinitely())
+        .expect("GPU poll failed");
     let data = slice.get_mapped_range().to_vec();
     staging.unmap();
     data
@@ -359,7 +470,10 @@ pub fn read_buffer(app: &mut App, buffer: &bevy::render::render_resource::Buffer
 
 /// Little-endian f32s of a byte buffer.
 pub fn floats(bytes: &[u8]) -> Vec<f32> {
-    bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
+    bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect()
 }
 
 /// Runs a closure on the render world.
