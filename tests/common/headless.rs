@@ -358,20 +358,23 @@ pub fn update(app: &mut App) {
     assert!(app.should_exit().is_none(), "the renderer asked to exit");
 }
 
-/// Renders until the clouds are drawn with finished illumination: a frame that draws every
-/// drawable cloud and does no illumination or sort work (so it shows their final state).
-/// Returns the frames it took; panics past `max_frames`.
+/// Renders until the clouds are drawn with finished illumination: a frame that does no
+/// illumination or sort work and draws every drawable cloud, or, when some cloud is out of view,
+/// the second frame in a row without work. Returns the frames it took; panics past `max_frames`.
 pub fn render_until_steady(
     app: &mut App,
     recorder: &mut FrameRecorder,
     target: &SceneTarget,
     max_frames: usize,
 ) -> usize {
+    let mut idle_before = false;
     for n in 1..=max_frames {
         let stats = recorder.frame(app);
-        if stats.runs(CloudPass::Draw) >= target.drawable_clouds && stats.work() == 0 && n > 1 {
+        let idle = stats.work() == 0;
+        if n > 1 && idle && (stats.runs(CloudPass::Draw) >= target.drawable_clouds || idle_before) {
             return n;
         }
+        idle_before = idle && n > 1;
     }
     panic!("the scene did not reach a finished image within {max_frames} frames");
 }
