@@ -422,3 +422,36 @@ fn changing_the_particles_revoxelizes_and_resorts() {
         (0, 0)
     );
 }
+
+#[test]
+fn render_layers_hide_clouds_from_cameras_on_other_layers() {
+    use bevy::camera::visibility::RenderLayers;
+    let (mut app, _) = setup(
+        Vec3::ZERO,
+        Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
+    );
+    headless::spawn_light(&mut app, Vec3::NEG_Y, Vec3::ONE);
+    let hidden = small_cloud(&mut app, 0.9, Vec3::ZERO);
+    app.world_mut()
+        .entity_mut(hidden)
+        .insert(RenderLayers::layer(1));
+    small_cloud(&mut app, 0.9, Vec3::new(0.5, 0.0, 0.0));
+    let mut recorder = FrameRecorder::default();
+    let mut draws = 0;
+    for _ in 0..4 {
+        draws = recorder.frame(&mut app).runs(CloudPass::Draw);
+    }
+    assert_eq!(
+        draws, 1,
+        "the camera on layer 0 draws only the layer-0 cloud"
+    );
+    assert_eq!(
+        recorder
+            .frames
+            .iter()
+            .map(|f| f.runs(CloudPass::Voxelize))
+            .sum::<u32>(),
+        1,
+        "the unseen cloud does no work"
+    );
+}
