@@ -1,0 +1,170 @@
+//! A field of cumulus clouds over a ground plane, under a sun you can turn.
+//!
+//! ```text
+//! cargo run --example clouds                         # a window
+//! cargo run --example clouds -- --frames 120         # exits after 120 frames (CI, under Xvfb)
+//! cargo run --example clouds -- --screenshot clouds.png [--size 800x450]   # headless picture
+//! ```
+//!
+//! Controls: arrow keys turn the sun (azimuth, elevation); drag with the left mouse button or
+//! A/D/W/S to orbit; wheel or +/- to zoom; [ and ] change the multiple-scattering iterations,
+//! V the volume resolution (both through the `DefaultCloudQuality` resource).
+//!
+//! Exposure: the sun's illuminance is E = 10 000 lux. The lit sides of these clouds (albedo 0.99,
+//! 8 scattering iterations) come out at roughly E / (4π) ≈ 800 (judged from the rendered
+//! pictures; less than the E / (4π) × 3 of fully converged multiple scattering), so the camera's
+//! exposure factor
+//! 1 / (1.2 · 2^ev100) = 1 / 750 (ev100 = 9.3) maps them to about 1: white after ACES tonemapping,
+//! not grey. The ground (albedo ≈ 0.05) stays darker than the clouds, as it should.
+
+mod support;
+
+use std::process::ExitCode;
+
+use bevy::prelude::*;
+use bevy_particle_clouds::prelude::*;
+use support::{Example, Hud, HudLines, KeyLight, Options, OrbitCamera};
+
+const EXAMPLE: Example = Example {
+    title: "bevy_particle_clouds: a field of cumulus",
+    controls: "arrows: sun | drag, A/D/W/S: orbit | wheel, +/-: zoom | [ ]: scatter iterations | V: volume resolution",
+    steady: true,
+};
+
+/// Sun illuminance, lux.
+const SUN_LUX: f32 = 10_000.0;
+
+fn main() -> ExitCode {
+    let usage = format!("clouds {}", support::COMMON_USAGE);
+    let options = match Options::parse(&usage, &[]) {
+        Ok(options) => options,
+        Err(message) => {
+            eprintln!("error: {message}");
+            return ExitCode::from(2);
+        }
+    };
+    support::run(EXAMPLE, options, |app| {
+        app.insert_resource(DefaultCloudQuality(CloudQualitySettings {
+            volume_resolution: 48,
+            scatter_iterations: 8,
+            ..default()
+        }))
+        .add_systems(Startup, setup)
+        .add_systems(Update, (change_quality, describe).chain().in_set(HudLines));
+    })
+}
+
+fn setup(
+    mut commands: Commands,
+    mut particles: ResMut<Assets<Particles>>,
+    mut meshes: ResMut<Assets<Mesh>>,
+    mut materials: ResMut<Assets<StandardMaterial>>,
+) {
+    // Eight cumulus of different sizes on a loose ring, their bases at 6–9 m.
+    let mut rng = generators::SplitMix64::new(2024);
+    for i in 0..8u64 {
+        let size = 5.0 + 7.0 * rng.next_f32();
+        let count = (600.0 * size) as usize;
+        let angle = i as f32 / 8.0 * std::f32::consts::TAU + 0.5 * rng.next_f32();
+        let radius = if i == 0 {
+            0.0
+        } else {
+            18.0 + 14.0 * rng.next_f32()
+        };
+        let position = Vec3::new(
+            angle.cos() * radius,
+            6.0 + 3.0 * rng.next_f32(),
+            angle.sin() * radius,
+        );
+        let handle = particles.add(generators::cumulus(size, count, 100 + i));
+        commands.spawn((
+            // Optical thickness independent of size: extinction ∝ 1 / size.
+            ParticleCloud::new(handle).with_medium(Medium {
+                extinction: 20.0 / size,
+                albedo: 0.99,
+            }),
+            Transform::from_translation(position).with_rotation(Quat::from_rotation_y(angle)),
+        ));
+    }
+    commands.spawn(support::ground(
+        &mut meshes,
+        &mut materials,
+        1000.0,
+        Color::linear_rgb(0.03, 0.055, 0.02),
+    ));
+    commands.spawn(support::key_light(
+        KeyLight {
+            name: "sun",
+            azimuth: 30f32.to_radians(),
+            elevation: 25f32.to_radians(),
+            keys: [
+                KeyCode::ArrowLeft,
+                KeyCode::ArrowRight,
+                KeyCode::ArrowDown,
+                KeyCode::ArrowUp,
+            ],
+        },
+        Color::linear_rgb(1.0, 0.95, 0.85),
+        SUN_LUX,
+    ));
+    let orbit = OrbitCamera {
+        target: Vec3::new(0.0, 8.0, 0.0),
+        distance: 55.0,
+        yaw: 0.3,
+        pitch: 0.12,
+    };
+    commands.spawn(support::camera(
+        orbit,
+        9.3,
+        Color::linear_rgb(0.22, 0.38, 0.75),
+    ));
+}
+
+fn change_quality(keys: Res<ButtonInput<KeyCode>>, mut quality: ResMut<DefaultCloudQuality>) {
+    if keys.just_pressed(KeyCode::BracketRight) {
+        quality.scatter_iterations = (quality.scatter_iterations * 2).clamp(1, 64);
+    }
+    if keys.just_pressed(KeyCode::BracketLeft) {
+        quality.scatter_iterations /= 2;
+    }
+    if keys.just_pressed(KeyCode::KeyV) {
+        quality.volume_resolution = match quality.volume_resolution {
+            0..=32 => 48,
+            33..=48 => 64,
+            65.. => 32,
+            _ => 96,
+        };
+    }
+}
+
+fn describe(
+    mut hud: ResMut<Hud>,
+    quality: Res<DefaultCloudQuality>,
+    sun: Query<&KeyLight>,
+    camera: Query<(&OrbitCamera, &bevy::camera::Exposure)>,
+    clouds: Query<&ParticleCloud>,
+    particles: Res<Assets<Particles>>,
+) {
+    hud.lines.clear();
+    let count: usize = clouds
+        .iter()
+        .filter_map(|c| particles.get(&c.particles))
+        .map(|p| p.particles.len())
+        .sum();
+    hud.lines
+        .push(format!("{} clouds, {count} particles", clouds.iter().len()));
+    hud.lines.push(format!(
+        "volume {}^3, {} scatter iterations, stencil {:?}",
+        quality.volume_resolution, quality.scatter_iterations, quality.scatter_stencil
+    ));
+    for light in &sun {
+        hud.lines
+            .push(format!("{}, {SUN_LUX} lux", light.describe()));
+    }
+    for (orbit, exposure) in &camera {
+        hud.lines.push(format!(
+            "camera {:.0} m from the centre, exposure ev100 {}",
+            orbit.distance, exposure.ev100
+        ));
+    }
+}

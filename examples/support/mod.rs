@@ -1,0 +1,634 @@
+//! What the interactive examples (`clouds`, `multiple_lights`, `animated`, `snow_bunny`) share:
+//! the command line, the windowed and the headless runner, an orbiting camera, lights turned with
+//! the keyboard, and the on-screen text (settings, frame time, GPU time and runs of each pass).
+//!
+//! Every example accepts
+//!
+//! ```text
+//! --frames N                  exit (AppExit::Success) after N frames; headless: render at least N
+//! --window-screenshot PATH    with --frames: save the window's last frame as PNG, then exit
+//! --screenshot PATH.png       render headlessly (no window, no display) and write the picture
+//! --size WxH                  window or picture size in pixels (default 1280x720 / 800x450)
+//! ```
+
+#![allow(dead_code)]
+
+#[path = "../../tests/common/headless.rs"]
+pub mod headless;
+
+use std::{
+    path::PathBuf,
+    process::ExitCode,
+    str::FromStr,
+    sync::{Arc, Mutex},
+    time::Instant,
+};
+
+use bevy::{
+    camera::{Exposure, Hdr, RenderTarget},
+    core_pipeline::tonemapping::{DebandDither, Tonemapping},
+    diagnostic::{DiagnosticsStore, FrameTimeDiagnosticsPlugin},
+    input::mouse::{AccumulatedMouseMotion, AccumulatedMouseScroll, MouseScrollUnit},
+    prelude::*,
+    render::{
+        diagnostic::RenderDiagnosticsPlugin,
+        view::screenshot::{Screenshot, ScreenshotCaptured},
+    },
+};
+use bevy_particle_clouds::{
+    CloudPass, CloudPassCounters, ParticleCloud, ParticleCloudsPlugin, Particles, image_io,
+};
+
+/// The options every example accepts (see the module documentation).
+pub const COMMON_USAGE: &str =
+    "[--frames N] [--screenshot PATH.png] [--window-screenshot PATH.png] [--size WxH]";
+
+/// The parsed command line.
+#[derive(Clone, Debug, Default)]
+pub struct Options {
+    /// `--frames N`: window mode exits after N frames; headless renders at least N frames.
+    pub frames: Option<u32>,
+    /// `--screenshot PATH`: render headlessly into this picture.
+    pub screenshot: Option<PathBuf>,
+    /// `--window-screenshot PATH`: save the window's last frame (needs `--frames`).
+    pub window_screenshot: Option<PathBuf>,
+    /// `--size WxH`.
+    pub size: Option<UVec2>,
+    /// The example's own flags and their values.
+    pub extra: Vec<(&'static str, String)>,
+}
+
+impl Options {
+    /// Parses `std::env::args()`; `extra_flags` are the example's own flags, each taking a value.
+    /// Call it first in `main`: it also points Bevy at this crate's `assets/`.
+    pub fn parse(usage: &str, extra_flags: &[&'static str]) -> Result<Self, String> {
+        // Bevy finds `assets/` through `CARGO_MANIFEST_DIR` under `cargo run`; a binary started
+        // directly (e.g. `target/debug/examples/snow_bunny`) looks next to itself instead. Point it at
+        // this crate's `assets/`.
+        if std::env::var_os("BEVY_ASSET_ROOT").is_none()
+            && std::env::var_os("CARGO_MANIFEST_DIR").is_none()
+        {
+            // SAFETY: no other thread exists yet (`parse` is the first thing each example's `main` calls).
+            unsafe { std::env::set_var("BEVY_ASSET_ROOT", env!("CARGO_MANIFEST_DIR")) };
+        }
+        let mut options = Options::default();
+        let mut args = std::env::args().skip(1);
+        while let Some(arg) = args.next() {
+            let mut value = |name: &str| {
+                args.next()
+                    .ok_or(format!("{name} needs a value\nusage: {usage}"))
+            };
+            match arg.as_str() {
+                "--frames" => {
+                    let v = value("--frames")?;
+                    let n = v.parse().ok().filter(|&n: &u32| n >= 1);
+                    options.frames =
+                        Some(n.ok_or(format!("--frames is {v}; it must be an integer >= 1"))?);
+                }
+                "--screenshot" => options.screenshot = Some(value("--screenshot")?.into()),
+                "--window-screenshot" => {
+                    options.window_screenshot = Some(value("--window-screenshot")?.into())
+                }
+                "--size" => {
+                    let v = value("--size")?;
+                    let size = v
+                        .split_once('x')
+                        .and_then(|(w, h)| Some(UVec2::new(w.parse().ok()?, h.parse().ok()?)))
+                        .filter(|s| (16..=8192).contains(&s.x) && (16..=8192).contains(&s.y));
+                    options.size =
+                        Some(size.ok_or(format!("--size is {v}; it must be WxH, 16..=8192 each"))?);
+                }
+                "-h" | "--help" => return Err(format!("usage: {usage}")),
+                flag => match extra_flags.iter().find(|f| **f == flag) {
+                    Some(&flag) => {
+                        let v = value(flag)?;
+                        options.extra.push((flag, v));
+                    }
+                    None => return Err(format!("unknown argument {flag}\nusage: {usage}")),
+                },
+            }
+        }
+        if options.window_screenshot.is_some() && options.frames.is_none() {
+            return Err(format!(
+                "--window-screenshot needs --frames N\nusage: {usage}"
+            ));
+        }
+        if options.window_screenshot.is_some() && options.screenshot.is_some() {
+            return Err(format!(
+                "--window-screenshot and --screenshot exclude each other\nusage: {usage}"
+            ));
+        }
+        if let Some(path) = &options.screenshot {
+            image_io::check_output_path(path).map_err(|e| e.to_string())?;
+        }
+        Ok(options)
+    }
+
+    /// The value of an example's own flag, parsed.
+    pub fn get<T: FromStr>(&self, flag: &str) -> Result<Option<T>, String> {
+        match self.extra.iter().rev().find(|(f, _)| *f == flag) {
+            None => Ok(None),
+            Some((_, v)) => v
+                .parse()
+                .map(Some)
+                .map_err(|_| format!("{flag} is {v}; not a valid value")),
+        }
+    }
+}
+
+/// Describes an example to the runner.
+pub struct Example {
+    /// Window title and first line of the on-screen text.
+    pub title: &'static str,
+    /// The key bindings, shown on screen.
+    pub controls: &'static str,
+    /// Headless: whether to wait until every cloud's illumination is finished (a frame with no
+    /// illumination or sort work). `false` for scenes that change every frame.
+    pub steady: bool,
+}
+
+/// The camera the examples look through (and the headless runner redirects to a picture).
+#[derive(Component)]
+pub struct MainCamera;
+
+/// A camera orbiting `target`: drag with the left mouse button or A/D (yaw), W/S (pitch); zoom
+/// with the wheel or +/-.
+#[derive(Component, Clone, Copy, Debug)]
+pub struct OrbitCamera {
+    /// The point looked at, metres.
+    pub target: Vec3,
+    /// Distance from `target`, metres.
+    pub distance: f32,
+    /// Radians around +Y; 0 looks along −Z.
+    pub yaw: f32,
+    /// Radians above the horizon of `target`.
+    pub pitch: f32,
+}
+
+impl OrbitCamera {
+    /// The camera's transform.
+    pub fn transform(&self) -> Transform {
+        let offset =
+            Quat::from_euler(EulerRot::YXZ, self.yaw, -self.pitch, 0.0) * Vec3::Z * self.distance;
+        Transform::from_translation(self.target + offset).looking_at(self.target, Vec3::Y)
+    }
+}
+
+/// Everything of the examples' camera: HDR, ACES tonemapping (the same curve the headless
+/// pictures get), a fixed exposure `ev100` (Bevy's exposure factor is `1 / (1.2 · 2^ev100)`),
+/// `sky` as the clear colour (display-referred: the clear colour is not exposed).
+pub fn camera(orbit: OrbitCamera, ev100: f32, sky: Color) -> impl Bundle {
+    (
+        Camera3d::default(),
+        Camera {
+            clear_color: ClearColorConfig::Custom(sky),
+            ..default()
+        },
+        Projection::Perspective(PerspectiveProjection {
+            fov: 45f32.to_radians(),
+            far: 3000.0,
+            ..default()
+        }),
+        Hdr,
+        Tonemapping::AcesFitted,
+        Exposure { ev100 },
+        orbit.transform(),
+        orbit,
+        IsDefaultUiCamera,
+        MainCamera,
+    )
+}
+
+/// A directional light turned with four keys: azimuth −/+, elevation −/+ (60°/s).
+#[derive(Component, Clone, Copy, Debug)]
+pub struct KeyLight {
+    /// Shown on screen, e.g. "sun".
+    pub name: &'static str,
+    /// Radians around +Y of the direction the light comes *from* (0 = from +X).
+    pub azimuth: f32,
+    /// Radians above the horizon of the direction the light comes from.
+    pub elevation: f32,
+    /// Azimuth −, azimuth +, elevation −, elevation +.
+    pub keys: [KeyCode; 4],
+}
+
+impl KeyLight {
+    /// The unit vector towards the light.
+    pub fn towards(&self) -> Vec3 {
+        let (s, c) = self.elevation.sin_cos();
+        Vec3::new(c * self.azimuth.cos(), s, c * self.azimuth.sin())
+    }
+
+    /// The light's transform (its forward is the travel direction, away from the light).
+    pub fn transform(&self) -> Transform {
+        let up = if self.elevation.abs() > 1.5 {
+            Vec3::X
+        } else {
+            Vec3::Y
+        };
+        Transform::default().looking_to(-self.towards(), up)
+    }
+
+    /// `"sun: azimuth 40 deg, elevation 25 deg"` (the default font has no degree sign).
+    pub fn describe(&self) -> String {
+        format!(
+            "{}: azimuth {:.0} deg, elevation {:.0} deg",
+            self.name,
+            self.azimuth.to_degrees().rem_euclid(360.0),
+            self.elevation.to_degrees()
+        )
+    }
+}
+
+/// A directional light of `illuminance` lux and `color`, turned by `key`. No shadow maps: clouds
+/// are not meshes and cast none.
+pub fn key_light(key: KeyLight, color: Color, illuminance: f32) -> impl Bundle {
+    (
+        DirectionalLight {
+            color,
+            illuminance,
+            shadow_maps_enabled: false,
+            ..default()
+        },
+        key.transform(),
+        key,
+    )
+}
+
+/// A large lit ground plane of `size` metres and linear albedo `color`, at `y = 0`.
+pub fn ground(
+    meshes: &mut Assets<Mesh>,
+    materials: &mut Assets<StandardMaterial>,
+    size: f32,
+    color: Color,
+) -> impl Bundle {
+    (
+        Mesh3d(meshes.add(Plane3d::default().mesh().size(size, size))),
+        MeshMaterial3d(materials.add(StandardMaterial {
+            base_color: color,
+            perceptual_roughness: 0.95,
+            reflectance: 0.1,
+            ..default()
+        })),
+    )
+}
+
+/// The example's lines of on-screen text, rewritten by its systems every frame (in [`HudLines`]).
+#[derive(Resource, Default)]
+pub struct Hud {
+    pub lines: Vec<String>,
+}
+
+/// Systems that write [`Hud::lines`] run in this set (the text is composed after it).
+#[derive(SystemSet, Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct HudLines;
+
+/// Runs of each pass during the last rendered frame, and in total.
+#[derive(Resource, Default, Clone, Debug)]
+pub struct PassCounts {
+    pub last: [u32; 6],
+    pub total: [u64; 6],
+    /// Frames counted.
+    pub frames: u64,
+}
+
+impl PassCounts {
+    pub fn last(&self, pass: CloudPass) -> u32 {
+        self.last[pass as usize]
+    }
+}
+
+#[derive(Component)]
+struct HudText;
+
+#[derive(Resource)]
+struct ExampleInfo {
+    title: &'static str,
+    controls: &'static str,
+    headless: bool,
+}
+
+/// Builds the app (a window, or headless with `--screenshot`), lets `build` add the example's
+/// systems, and runs it. Exit code 0 on success, 1 on a failure, 2 on a bad command line.
+pub fn run(example: Example, options: Options, build: impl FnOnce(&mut App)) -> ExitCode {
+    let headless = options.screenshot.is_some();
+    let mut app = if headless {
+        // Already finished: plugins are added, only systems and resources may follow.
+        headless::headless_app()
+    } else {
+        let size = options.size.unwrap_or(UVec2::new(1280, 720));
+        let mut app = App::new();
+        app.add_plugins((
+            DefaultPlugins.set(WindowPlugin {
+                primary_window: Some(Window {
+                    title: example.title.into(),
+                    resolution: (size.x, size.y).into(),
+                    ..default()
+                }),
+                ..default()
+            }),
+            ParticleCloudsPlugin,
+            RenderDiagnosticsPlugin,
+            FrameTimeDiagnosticsPlugin::default(),
+        ));
+        app
+    };
+    app.insert_resource(ExampleInfo {
+        title: example.title,
+        controls: example.controls,
+        headless,
+    })
+    .init_resource::<Hud>()
+    .init_resource::<PassCounts>()
+    .add_systems(Startup, spawn_hud)
+    .add_systems(First, count_passes)
+    .add_systems(Update, (orbit_camera, turn_lights))
+    .add_systems(Update, compose_hud.after(HudLines));
+    build(&mut app);
+    if let Some(path) = options.screenshot.clone() {
+        return match run_headless(app, &example, &options, &path) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(message) => {
+                eprintln!("error: {message}");
+                ExitCode::FAILURE
+            }
+        };
+    }
+    if let Some(frames) = options.frames {
+        let path = options.window_screenshot.clone();
+        app.add_systems(Last, move |mut n: Local<u32>, mut commands: Commands, mut exit: MessageWriter<AppExit>| {
+            *n += 1;
+            if *n == frames {
+                match &path {
+                    None => {
+                        eprintln!("{frames} frames rendered; exiting");
+                        exit.write(AppExit::Success);
+                    }
+                    Some(path) => {
+                        let path = path.clone();
+                        commands.spawn(Screenshot::primary_window()).observe(
+                            move |shot: On<ScreenshotCaptured>, mut exit: MessageWriter<AppExit>| {
+                                let saved = shot.image.clone().try_into_dynamic().map_err(|e| e.to_string()).and_then(
+                                    |image| image.to_rgb8().save(&path).map_err(|e| e.to_string()),
+                                );
+                                match saved {
+                                    Ok(()) => {
+                                        eprintln!("{frames} frames rendered; window saved to {}", path.display());
+                                        exit.write(AppExit::Success);
+                                    }
+                                    Err(e) => {
+                                        eprintln!("error: cannot save the window to {}: {e}", path.display());
+                                        exit.write(AppExit::error());
+                                    }
+                                }
+                            },
+                        );
+                    }
+                }
+            }
+        });
+    }
+    match app.run() {
+        AppExit::Success => ExitCode::SUCCESS,
+        AppExit::Error(code) => ExitCode::from(code.get()),
+    }
+}
+
+/// Renders into a float image until the clouds are finished (or `--frames`), then writes it.
+fn run_headless(
+    mut app: App,
+    example: &Example,
+    options: &Options,
+    path: &std::path::Path,
+) -> Result<(), String> {
+    let start = Instant::now();
+    let size = options.size.unwrap_or(UVec2::new(800, 450));
+    let target = headless::float_target(&mut app, size.x, size.y);
+    let image = target.clone();
+    // The example's camera renders linear radiance into the picture, exposed but not tonemapped:
+    // `image_io` applies the same ACES curve when writing the PNG.
+    app.add_systems(
+        PostStartup,
+        move |mut commands: Commands, cameras: Query<Entity, With<MainCamera>>| {
+            for camera in &cameras {
+                commands.entity(camera).insert((
+                    RenderTarget::Image(image.clone().into()),
+                    Tonemapping::None,
+                    DebandDither::Disabled,
+                    Msaa::Off,
+                ));
+            }
+        },
+    );
+    eprintln!(
+        "{}: rendering headlessly on {}",
+        example.title,
+        headless::adapter_name(&mut app)
+    );
+    let min_frames = options
+        .frames
+        .unwrap_or(if example.steady { 2 } else { 10 });
+    let max_frames = min_frames + 300;
+    let mut frame = 0;
+    loop {
+        headless::update(&mut app);
+        frame += 1;
+        let counts = app.world().resource::<PassCounts>().clone();
+        let clouds = drawable_clouds(app.world_mut());
+        let work: u32 = CloudPass::ALL
+            .iter()
+            .filter(|&&p| p != CloudPass::Draw)
+            .map(|&p| counts.last(p))
+            .sum();
+        let finished =
+            !example.steady || (clouds > 0 && counts.last(CloudPass::Draw) >= clouds && work == 0);
+        if frame >= min_frames && finished {
+            break;
+        }
+        if frame >= max_frames {
+            return Err(format!("the clouds were not finished after {frame} frames"));
+        }
+    }
+    eprintln!(
+        "{}: {frame} frames in {:.1} s",
+        example.title,
+        start.elapsed().as_secs_f64()
+    );
+    let shot: Arc<Mutex<Option<Image>>> = Arc::default();
+    let sink = shot.clone();
+    app.world_mut().spawn(Screenshot::image(target)).observe(
+        move |captured: On<ScreenshotCaptured>| {
+            *sink.lock().unwrap() = Some(captured.image.clone())
+        },
+    );
+    for _ in 0..12 {
+        headless::update(&mut app);
+        if let Some(image) = shot.lock().unwrap().take() {
+            let picture = headless::decode_rgba16f(&image);
+            if picture.pixels.iter().flatten().any(|v| !v.is_finite()) {
+                return Err("the rendered picture has non-finite pixels".into());
+            }
+            image_io::write_image(&picture, path).map_err(|e| e.to_string())?;
+            eprintln!(
+                "{}: wrote {} ({}x{}) in {:.1} s",
+                example.title,
+                path.display(),
+                size.x,
+                size.y,
+                start.elapsed().as_secs_f64()
+            );
+            return Ok(());
+        }
+    }
+    Err("the screenshot did not arrive".into())
+}
+
+/// Clouds whose particles are loaded and carry density.
+fn drawable_clouds(world: &mut World) -> u32 {
+    let mut query = world.query::<&ParticleCloud>();
+    let assets = world.resource::<Assets<Particles>>();
+    query
+        .iter(world)
+        .filter(|c| {
+            c.extinction > 0.0
+                && assets
+                    .get(&c.particles)
+                    .is_some_and(|p| p.bounds().is_some())
+        })
+        .count() as u32
+}
+
+fn count_passes(counters: Res<CloudPassCounters>, mut counts: ResMut<PassCounts>) {
+    let taken = counters.take();
+    for (pass, n) in taken {
+        counts.last[pass as usize] = n;
+        counts.total[pass as usize] += n as u64;
+    }
+    counts.frames += 1;
+}
+
+fn spawn_hud(mut commands: Commands) {
+    commands.spawn((
+        Node {
+            position_type: PositionType::Absolute,
+            top: Val::Px(8.0),
+            left: Val::Px(8.0),
+            padding: UiRect::all(Val::Px(6.0)),
+            ..default()
+        },
+        BackgroundColor(Color::srgba(0.0, 0.0, 0.0, 0.55)),
+        Text::new(""),
+        TextFont::from_font_size(12.0),
+        TextColor(Color::WHITE),
+        HudText,
+    ));
+}
+
+fn compose_hud(
+    info: Res<ExampleInfo>,
+    hud: Res<Hud>,
+    counts: Res<PassCounts>,
+    diagnostics: Option<Res<DiagnosticsStore>>,
+    mut text: Query<&mut Text, With<HudText>>,
+) {
+    let Ok(mut text) = text.single_mut() else {
+        return;
+    };
+    let mut s = format!("{}\n", info.title);
+    for line in &hud.lines {
+        s.push_str(line);
+        s.push('\n');
+    }
+    let store = diagnostics.as_deref();
+    let frame_ms = store
+        .and_then(|d| d.get(&FrameTimeDiagnosticsPlugin::FRAME_TIME))
+        .and_then(|d| d.smoothed());
+    match frame_ms {
+        Some(ms) => s.push_str(&format!(
+            "frame {ms:.1} ms ({:.0} fps)\n",
+            1000.0 / ms.max(1e-3)
+        )),
+        None if info.headless => s.push_str("frame time: n/a (headless)\n"),
+        None => s.push_str("frame time: measuring…\n"),
+    }
+    let runs: Vec<String> = CloudPass::ALL
+        .iter()
+        .map(|&p| format!("{} {}", p.name(), counts.last(p)))
+        .collect();
+    s.push_str(&format!("runs last frame: {}\n", runs.join(", ")));
+    let gpu: Vec<String> = CloudPass::ALL
+        .iter()
+        .map(|&p| {
+            let ms = store
+                .and_then(|d| d.get(&p.diagnostic_path()))
+                .and_then(|d| d.smoothed());
+            format!(
+                "{} {}",
+                p.name(),
+                ms.map_or("-".to_string(), |ms| format!("{ms:.2}"))
+            )
+        })
+        .collect();
+    s.push_str(&format!("GPU ms: {}\n", gpu.join(", ")));
+    s.push_str(info.controls);
+    if text.0 != s {
+        text.0 = s;
+    }
+}
+
+fn orbit_camera(
+    time: Res<Time>,
+    keys: Res<ButtonInput<KeyCode>>,
+    buttons: Res<ButtonInput<MouseButton>>,
+    motion: Res<AccumulatedMouseMotion>,
+    scroll: Res<AccumulatedMouseScroll>,
+    mut cameras: Query<(&mut OrbitCamera, &mut Transform)>,
+) {
+    let dt = time.delta_secs();
+    let axis = |neg: KeyCode, pos: KeyCode| {
+        keys.pressed(pos) as i32 as f32 - keys.pressed(neg) as i32 as f32
+    };
+    let mut yaw = axis(KeyCode::KeyA, KeyCode::KeyD) * 1.2 * dt;
+    let mut pitch = axis(KeyCode::KeyS, KeyCode::KeyW) * 0.8 * dt;
+    if buttons.pressed(MouseButton::Left) {
+        yaw -= motion.delta.x * 0.005;
+        pitch += motion.delta.y * 0.005;
+    }
+    let wheel = match scroll.unit {
+        MouseScrollUnit::Line => scroll.delta.y,
+        MouseScrollUnit::Pixel => scroll.delta.y / 40.0,
+    };
+    let zoom_keys =
+        axis(KeyCode::Equal, KeyCode::Minus) + axis(KeyCode::NumpadAdd, KeyCode::NumpadSubtract);
+    let zoom = (-wheel * 0.1).exp() * (zoom_keys * dt).exp();
+    for (mut orbit, mut transform) in &mut cameras {
+        if yaw == 0.0 && pitch == 0.0 && zoom == 1.0 {
+            continue;
+        }
+        orbit.yaw += yaw;
+        orbit.pitch = (orbit.pitch + pitch).clamp(-1.2, 1.45);
+        orbit.distance = (orbit.distance * zoom).clamp(0.5, 2000.0);
+        *transform = orbit.transform();
+    }
+}
+
+fn turn_lights(
+    time: Res<Time>,
+    keys: Res<ButtonInput<KeyCode>>,
+    mut lights: Query<(&mut KeyLight, &mut Transform)>,
+) {
+    let rate = 60f32.to_radians() * time.delta_secs();
+    for (mut light, mut transform) in &mut lights {
+        let axis = |neg: KeyCode, pos: KeyCode| {
+            keys.pressed(pos) as i32 as f32 - keys.pressed(neg) as i32 as f32
+        };
+        let azimuth = axis(light.keys[0], light.keys[1]) * rate;
+        let elevation = axis(light.keys[2], light.keys[3]) * rate;
+        if azimuth == 0.0 && elevation == 0.0 {
+            continue;
+        }
+        light.azimuth += azimuth;
+        light.elevation = (light.elevation + elevation).clamp(-1.5, 1.5);
+        *transform = light.transform();
+    }
+}
