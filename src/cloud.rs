@@ -16,10 +16,12 @@ use crate::particle::{InvalidMedium, Medium, Particle};
 /// Shared between clouds through its handle; uploaded to the GPU once per change.
 #[derive(Asset, TypePath, Clone, Debug, Default, PartialEq)]
 pub struct Particles {
+    /// The particles (positions and radii in cloud-local metres). Default: none.
     pub particles: Vec<Particle>,
 }
 
 impl Particles {
+    /// Wraps a particle list.
     pub fn new(particles: Vec<Particle>) -> Self {
         Self { particles }
     }

@@ -14,7 +14,9 @@ use image::{DynamicImage, ImageFormat, Rgba, Rgba32FImage, RgbaImage};
 /// row-major, row 0 at the top.
 #[derive(Clone, Debug, PartialEq)]
 pub struct LinearImage {
+    /// Pixels per row.
     pub width: u32,
+    /// Rows.
     pub height: u32,
     /// `width * height` pixels `[r, g, b, a]`, pixel `(x, y)` at `y * width + x`.
     pub pixels: Vec<[f32; 4]>,
@@ -58,13 +60,19 @@ impl LinearImage {
 #[derive(Debug, thiserror::Error)]
 pub enum ImageIoError {
     #[error("cannot write '{}': {error}", path.display())]
+    /// Encoding or writing failed.
     Write {
+        /// The file.
         path: PathBuf,
+        /// The `image` crate's error.
         error: image::ImageError,
     },
     #[error("cannot read '{}': {error}", path.display())]
+    /// Reading or decoding failed.
     Read {
+        /// The file.
         path: PathBuf,
+        /// The `image` crate's error.
         error: image::ImageError,
     },
     #[error(
@@ -72,14 +80,23 @@ pub enum ImageIoError {
          width and height must be > 0 and the pixel count width*height",
         path.display()
     )]
+    /// The image's size does not match its pixel count (or is zero).
     Size {
+        /// The file.
         path: PathBuf,
+        /// The image's width, pixels.
         width: u32,
+        /// The image's height, pixels.
         height: u32,
+        /// The number of pixels it holds.
         pixels: usize,
     },
     #[error("cannot write '{}': unsupported file extension; allowed are .exr (linear float) and .png (tonemapped sRGB)", path.display())]
-    Extension { path: PathBuf },
+    /// The path's extension is neither `.exr` nor `.png`.
+    Extension {
+        /// The file.
+        path: PathBuf,
+    },
 }
 
 /// Writes a 32-bit float RGBA OpenEXR file holding exactly the image's values.

@@ -3,13 +3,13 @@
 //! `AssetLoadFailedEvent<Particles>` with a message naming the file, the line and the problem.
 
 use bevy::{
-    asset::{io::Reader, AssetLoader, LoadContext},
+    asset::{AssetLoader, LoadContext, io::Reader},
     prelude::*,
 };
 
 use crate::{
     cloud::Particles,
-    particle_files::{parse_csv, parse_ply, ParticleFileError},
+    particle_files::{ParticleFileError, parse_csv, parse_ply},
 };
 
 /// The asset loader of particle files (PLY with vertex properties `x y z radius density`,
@@ -20,12 +20,21 @@ pub struct ParticlesLoader;
 /// Why a particle file could not be loaded.
 #[derive(Debug, thiserror::Error)]
 pub enum ParticlesLoadError {
+    /// The asset reader failed.
     #[error("cannot read particle file: {0}")]
     Io(#[from] std::io::Error),
+    /// The file does not follow the PLY or CSV format; the message names the file and the line
+    /// (for binary PLY, the vertex and byte offset).
     #[error(transparent)]
     Format(#[from] ParticleFileError),
+    /// The file parsed but a particle is invalid (NaN position, radius <= 0, negative density).
     #[error("particle file '{path}': {error}")]
-    Invalid { path: String, error: crate::particle::InvalidMedium },
+    Invalid {
+        /// The asset path of the file.
+        path: String,
+        /// Which particle and field.
+        error: crate::particle::InvalidMedium,
+    },
 }
 
 impl AssetLoader for ParticlesLoader {
@@ -42,7 +51,9 @@ impl AssetLoader for ParticlesLoader {
         let mut bytes = Vec::new();
         reader.read_to_end(&mut bytes).await?;
         let path = load_context.path().path().to_path_buf();
-        let is_csv = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("csv"));
+        let is_csv = path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("csv"));
         let particles = if is_csv {
             parse_csv(&path, &String::from_utf8_lossy(&bytes))?
         } else {
@@ -51,7 +62,10 @@ impl AssetLoader for ParticlesLoader {
         let particles = Particles::new(particles);
         particles
             .validate()
-            .map_err(|error| ParticlesLoadError::Invalid { path: path.display().to_string(), error })?;
+            .map_err(|error| ParticlesLoadError::Invalid {
+                path: path.display().to_string(),
+                error,
+            })?;
         Ok(particles)
     }
 

@@ -45,14 +45,34 @@ impl Default for Medium {
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum InvalidMedium {
     #[error("particle {index}: `position` is {value:?}; every coordinate must be finite")]
-    Position { index: usize, value: Vec3 },
+    /// A particle's position has a NaN or infinite coordinate.
+    Position {
+        /// The particle's index in its list.
+        index: usize,
+        /// The position, metres.
+        value: Vec3,
+    },
     #[error("particle {index}: `radius` is {value}; it must be finite and > 0")]
-    Radius { index: usize, value: f32 },
+    /// A particle's radius is not finite and positive.
+    Radius {
+        /// The particle's index in its list.
+        index: usize,
+        /// The radius, metres.
+        value: f32,
+    },
     #[error("particle {index}: `density` is {value}; it must be finite and >= 0")]
-    Density { index: usize, value: f32 },
+    /// A particle's density is negative or not finite.
+    Density {
+        /// The particle's index in its list.
+        index: usize,
+        /// The dimensionless density.
+        value: f32,
+    },
     #[error("`extinction` is {0}; it must be finite and >= 0")]
+    /// The medium's extinction (1/m) is negative or not finite.
     Extinction(f32),
     #[error("`albedo` is {0}; it must lie in [0, 1]")]
+    /// The medium's albedo lies outside `[0, 1]`.
     Albedo(f32),
 }
 

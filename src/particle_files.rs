@@ -25,7 +25,9 @@ pub enum ParticleFileError {
     /// The file could not be opened, read or written.
     #[error("cannot access '{}': {source}", path.display())]
     Io {
+        /// The file.
         path: PathBuf,
+        /// The operating system's error.
         #[source]
         source: std::io::Error,
     },
@@ -33,8 +35,11 @@ pub enum ParticleFileError {
     /// `vertex 3 (byte 245)`.
     #[error("{}: {location}: {message}", path.display())]
     Format {
+        /// The file.
         path: PathBuf,
+        /// Where: `line N` (1-based), `vertex K (byte B)` or `end of file`.
         location: String,
+        /// What is wrong and what is allowed.
         message: String,
     },
 }

@@ -51,7 +51,9 @@ pub struct SceneCloud {
     /// World translation of the cloud's local origin, metres; default origin.
     #[serde(default)]
     pub translation: Vec3,
+    /// The cloud's medium (extinction 1/m at density 1, albedo).
     pub medium: Medium,
+    /// Its particles, in cloud-local metres.
     pub particles: ParticleSource,
 }
 
@@ -68,6 +70,7 @@ pub enum ObjectShape {
 #[derive(Clone, Copy, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SceneObject {
+    /// The shape, metres.
     pub shape: ObjectShape,
     /// World position of the shape's centre, metres; default origin.
     #[serde(default)]
@@ -80,6 +83,7 @@ pub struct SceneObject {
 #[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SceneFile {
+    /// The camera and image size.
     pub camera: SceneCamera,
     /// Linear RGB radiance behind everything; default black.
     #[serde(default)]
@@ -87,9 +91,12 @@ pub struct SceneFile {
     /// Read through a private mirror of `LightSample` that refuses unknown fields.
     #[serde(deserialize_with = "deserialize_lights")]
     pub lights: Vec<LightSample>,
+    /// The clouds; may be empty.
     pub clouds: Vec<SceneCloud>,
+    /// Opaque unlit objects; default none.
     #[serde(default)]
     pub objects: Vec<SceneObject>,
+    /// Quality knobs for every cloud; missing fields take [`CloudQualitySettings`]' defaults.
     #[serde(default)]
     pub settings: CloudQualitySettings,
 }
@@ -97,19 +104,28 @@ pub struct SceneFile {
 /// A cloud with its particles loaded and validated.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ResolvedCloud {
+    /// World translation of the cloud's local origin, metres.
     pub translation: Vec3,
+    /// The validated medium.
     pub medium: Medium,
+    /// The validated particles, cloud-local metres.
     pub particles: Vec<Particle>,
 }
 
 /// A validated scene, particle files loaded: what every renderer consumes.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Scene {
+    /// The camera and image size.
     pub camera: SceneCamera,
+    /// Linear RGB radiance behind everything.
     pub background: Vec3,
+    /// Directional lights: unit travel direction and irradiance (linear RGB).
     pub lights: Vec<LightSample>,
+    /// The clouds, particles loaded.
     pub clouds: Vec<ResolvedCloud>,
+    /// Opaque unlit objects.
     pub objects: Vec<SceneObject>,
+    /// Quality knobs for every cloud.
     pub settings: CloudQualitySettings,
 }
 
@@ -157,35 +173,48 @@ pub enum SceneError {
     /// The scene file itself could not be read.
     #[error("cannot read scene file '{}': {error}", path.display())]
     Io {
+        /// The scene file.
         path: PathBuf,
+        /// The operating system's error.
         error: std::io::Error,
     },
     /// The RON text does not parse or does not match the format (syntax error, unknown or missing
     /// field, unknown variant, wrong type). Displayed as `origin:line:col: message`.
     #[error("{origin}:{error}")]
     Parse {
+        /// The scene file's path, or `scene` for text given to `Scene::from_ron_str`.
         origin: String,
+        /// RON's error with its line and column.
         error: Box<ron::error::SpannedError>,
     },
     /// A value is out of range: `path is value; allowed`.
     #[error("{path} is {value}; {allowed}")]
     Invalid {
+        /// The field, e.g. `clouds[1].medium.albedo`.
         path: String,
+        /// Its value as written.
         value: String,
+        /// What is allowed.
         allowed: String,
     },
     /// A `settings` knob is out of range (message built from [`InvalidSettings`]).
     #[error("{message}")]
     Settings {
+        /// The message naming `settings.<field>`.
         message: String,
+        /// The underlying error.
         error: InvalidSettings,
     },
     /// A particle file could not be read or parsed.
     #[error("{field}: cannot read '{written}' (resolved to {}): {}", resolved.display(), error.detail())]
     ParticleFile {
+        /// The field, e.g. `clouds[0].particles`.
         field: String,
+        /// The path as written in the scene file.
         written: String,
+        /// The path resolved against the scene file's directory.
         resolved: PathBuf,
+        /// What went wrong, with the line.
         error: Box<ParticleFileError>,
     },
 }

@@ -65,10 +65,13 @@ pub enum InvalidSettings {
     #[error(
         "`volume_resolution` is {0}; allowed is {MIN_VOLUME_RESOLUTION}..={MAX_VOLUME_RESOLUTION}"
     )]
+    /// `volume_resolution` outside `MIN_VOLUME_RESOLUTION..=MAX_VOLUME_RESOLUTION`.
     VolumeResolution(u32),
     #[error("`scatter_iterations` is {0}; allowed is 0..={MAX_SCATTER_ITERATIONS}")]
+    /// `scatter_iterations` above `MAX_SCATTER_ITERATIONS`.
     ScatterIterations(u32),
     #[error("`forward_scattering` is {0}; it must lie in [0, 1]")]
+    /// `forward_scattering` outside `[0, 1]` (or NaN).
     ForwardScattering(f32),
 }
 

@@ -30,6 +30,7 @@ pub enum CloudPass {
 }
 
 impl CloudPass {
+    /// Every pass, in the order they run.
     pub const ALL: [CloudPass; 6] = [
         Self::Voxelize,
         Self::Shade,

@@ -16,7 +16,9 @@ pub struct PinholeCamera {
     pub up: DVec3,
     /// `tan(vertical_fov / 2)`.
     pub tan_half_fov: f64,
+    /// Image width, pixels.
     pub width: u32,
+    /// Image height, pixels.
     pub height: u32,
     /// Near-plane distance along `forward`, metres (Bevy's default perspective near is 0.1).
     pub near: f64,

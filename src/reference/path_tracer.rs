@@ -159,7 +159,9 @@ pub struct Coefficients {
 /// A stretch `[t0, t1)` of a ray (metres along a unit direction) over which `σ_t <= majorant`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Segment {
+    /// Start of the stretch, metres along the ray.
     pub t0: f64,
+    /// End of the stretch (exclusive), metres along the ray.
     pub t1: f64,
     /// Upper bound of `σ_t` over the stretch, 1/m, `> 0`.
     pub majorant: f64,
@@ -640,6 +642,7 @@ pub struct DirectionalLight {
 pub struct Lighting {
     /// Linear RGB radiance of every ray that escapes.
     pub background: DVec3,
+    /// The directional lights.
     pub lights: Vec<DirectionalLight>,
     /// Opaque unlit occluders.
     pub objects: Vec<SceneObject>,
