@@ -5,7 +5,7 @@
 //! `AssetServer` (the plugin registers a loader for `.ply` and `.csv` particle files).
 //!
 //! ```text
-//! cargo run --release --example snow_bunny
+//! cargo run --example snow_bunny
 //! cargo run --example snow_bunny -- --particles 50000 --frames 60     # lighter, for CI
 //! cargo run --example snow_bunny -- --screenshot snow_bunny.png [--particles N]
 //! ```
