@@ -30,6 +30,7 @@
 //!
 //! Units and the physical model: `PHYSICS.md`; the discretization: `docs/illumination.md`.
 
+#![warn(missing_docs)]
 pub mod cloud;
 pub mod generators;
 pub mod image_io;

@@ -50,15 +50,22 @@ use crate::{
 /// Mirror of `DrawParams` in `shaders/billboard.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default)]
 pub struct DrawParams {
+    /// World from cloud-local.
     pub world_from_local: Mat4,
+    /// Uniform scale: world metres per local metre.
     pub scale: f32,
+    /// Extinction `K` per world metre at density 1.
     pub extinction: f32,
+    /// Uniform-buffer padding.
     pub _padding: Vec2,
 }
 
+/// The billboard render pipeline's layouts and shader (specialized per view target).
 #[derive(Resource)]
 pub struct BillboardPipeline {
+    /// Group 0: the view uniform.
     pub view_layout: BindGroupLayoutDescriptor,
+    /// Group 1: draw uniform, particles, colours, sorted order.
     pub cloud_layout: BindGroupLayoutDescriptor,
     shader: Handle<Shader>,
 }
@@ -89,7 +96,9 @@ pub(crate) fn init_billboard_pipeline(mut commands: Commands, shaders: Res<Cloud
 /// What a billboard pipeline depends on: the view's target.
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
 pub struct BillboardPipelineKey {
+    /// The view's colour target format (HDR or not).
     pub target_format: TextureFormat,
+    /// MSAA sample count of the view.
     pub samples: u32,
 }
 
@@ -144,6 +153,7 @@ impl SpecializedRenderPipeline for BillboardPipeline {
 pub struct CloudDrawBindGroups {
     key: u64,
     _params: Buffer,
+    /// Group 1 of the billboard pipeline, per view.
     pub groups: HashMap<RetainedViewEntity, BindGroup>,
 }
 
@@ -293,12 +303,14 @@ pub(crate) fn queue_cloud_billboards(
     }
 }
 
+/// The draw function of a cloud's `Transparent3d` item.
 pub type DrawCloudBillboards = (
     SetItemPipeline,
     SetBillboardViewBindGroup<0>,
     DrawBillboards<1>,
 );
 
+/// Binds the view uniform at group `I`.
 pub struct SetBillboardViewBindGroup<const I: usize>;
 
 impl<P: PhaseItem, const I: usize> RenderCommand<P> for SetBillboardViewBindGroup<I> {

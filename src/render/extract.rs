@@ -17,12 +17,15 @@ use crate::{
 /// A cloud as the render world sees it; only valid clouds are extracted.
 #[derive(Component, Clone, Debug)]
 pub struct ExtractedCloud {
+    /// The cloud's particle asset.
     pub particles: AssetId<Particles>,
     /// Extinction per world metre at density 1.
     pub extinction: f32,
+    /// Single-scattering albedo in `[0, 1]`.
     pub albedo: f32,
     /// World from cloud-local; the scale used for optical lengths is its largest factor.
     pub world_from_local: Affine3A,
+    /// The cloud's quality knobs (its component, else the default resource).
     pub settings: CloudQualitySettings,
     /// Visible in at least one view: only such clouds do illumination work.
     pub visible: bool,
@@ -48,6 +51,7 @@ impl ExtractedCloud {
 /// A directional light that illuminates clouds: `E = color (linear) × illuminance`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CloudLight {
+    /// The light's main-world entity.
     pub entity: Entity,
     /// World direction the light travels (unit).
     pub direction: Vec3,

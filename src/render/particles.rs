@@ -28,6 +28,7 @@ pub struct GpuParticle {
 /// The grid the density is voxelized on (docs/illumination.md §1), in cloud-local metres.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CloudBounds {
+    /// Centre of the cube, cloud-local metres.
     pub centre: Vec3,
     /// Side of the cube.
     pub side: f32,
@@ -37,6 +38,7 @@ pub struct CloudBounds {
 pub struct GpuParticles {
     /// `array<Particle>`; usable as storage in every pass.
     pub buffer: Buffer,
+    /// Number of particles (the buffer holds at least one, for a valid binding).
     pub count: u32,
     /// `None` when no particle carries density (nothing to render).
     pub bounds: Option<CloudBounds>,

@@ -15,7 +15,9 @@ use bevy::{
 
 /// One compute pipeline with its (single) bind group layout.
 pub struct ComputeStage {
+    /// Its bind group layout (group 0).
     pub layout: BindGroupLayoutDescriptor,
+    /// The queued pipeline.
     pub pipeline: CachedComputePipelineId,
 }
 
@@ -36,6 +38,7 @@ impl ComputeStage {
         Self { layout, pipeline }
     }
 
+    /// The compiled pipeline, once ready.
     pub fn get<'a>(&self, pipeline_cache: &'a PipelineCache) -> Option<&'a ComputePipeline> {
         pipeline_cache.get_compute_pipeline(self.pipeline)
     }
@@ -44,11 +47,17 @@ impl ComputeStage {
 /// The pipelines of voxelize, shade, gather, scatter and the per-particle colour.
 #[derive(Resource)]
 pub struct IlluminationPipelines {
+    /// `voxelize.wgsl`, `deposit`.
     pub voxelize: ComputeStage,
+    /// `shade.wgsl`, `shade` (incremental).
     pub shade: ComputeStage,
+    /// `shade.wgsl`, `shade_brute_force` (benchmarks).
     pub shade_brute_force: ComputeStage,
+    /// `gather.wgsl`, `gather`.
     pub gather: ComputeStage,
+    /// `scatter.wgsl`, `scatter`.
     pub scatter: ComputeStage,
+    /// `particle_colour.wgsl`, `colour`.
     pub colour: ComputeStage,
 }
 

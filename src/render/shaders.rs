@@ -7,12 +7,19 @@ use bevy::{prelude::*, shader::Shader};
 pub struct CloudShaders {
     /// `bevy_particle_clouds::types`, imported by the others.
     pub types: Handle<Shader>,
+    /// `voxelize.wgsl`.
     pub voxelize: Handle<Shader>,
+    /// `shade.wgsl`.
     pub shade: Handle<Shader>,
+    /// `gather.wgsl`.
     pub gather: Handle<Shader>,
+    /// `scatter.wgsl`.
     pub scatter: Handle<Shader>,
+    /// `particle_colour.wgsl`.
     pub particle_colour: Handle<Shader>,
+    /// `sort.wgsl`.
     pub sort: Handle<Shader>,
+    /// `billboard.wgsl`.
     pub billboard: Handle<Shader>,
 }
 

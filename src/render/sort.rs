@@ -40,32 +40,47 @@ pub const SORT_TILE: u32 = 256;
 /// Mirror of `SortParams` in `shaders/sort.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default)]
 pub struct SortParams {
+    /// Row of view-from-local giving view-space z.
     pub depth_row: Vec4,
+    /// Elements to sort.
     pub count: u32,
+    /// Tiles of `SORT_TILE` elements.
     pub tiles: u32,
+    /// Bit offset of this pass's 8-bit digit.
     pub shift: u32,
+    /// Uniform-buffer padding.
     pub _padding: u32,
 }
 
 /// The sort's compute pipelines.
 #[derive(Resource)]
 pub struct SortPipelines {
+    /// The layout shared by every sort pipeline.
     pub layout: BindGroupLayoutDescriptor,
+    /// View-depth keys and identity values.
     pub depth_keys: CachedComputePipelineId,
+    /// Per-tile digit histograms.
     pub count_digits: CachedComputePipelineId,
+    /// Global exclusive scan of the histograms.
     pub scan_digits: CachedComputePipelineId,
+    /// Stable scatter by digit.
     pub scatter_digits: CachedComputePipelineId,
 }
 
 /// The compiled sort pipelines, in dispatch order.
 pub struct ReadySortPipelines<'a> {
+    /// See [`SortPipelines::depth_keys`].
     pub depth_keys: &'a ComputePipeline,
+    /// See [`SortPipelines::count_digits`].
     pub count_digits: &'a ComputePipeline,
+    /// See [`SortPipelines::scan_digits`].
     pub scan_digits: &'a ComputePipeline,
+    /// See [`SortPipelines::scatter_digits`].
     pub scatter_digits: &'a ComputePipeline,
 }
 
 impl SortPipelines {
+    /// The compiled pipelines, once all are ready.
     pub fn ready<'a>(&self, cache: &'a PipelineCache) -> Option<ReadySortPipelines<'a>> {
         Some(ReadySortPipelines {
             depth_keys: cache.get_compute_pipeline(self.depth_keys)?,
@@ -118,6 +133,7 @@ pub(crate) fn init_sort_pipelines(
 /// The buffers of one sort of up to `capacity` elements. After [`record_sort`] the sorted
 /// values (particle indices, back to front) are in [`SortBuffers::sorted_values`].
 pub struct SortBuffers {
+    /// Elements the buffers hold.
     pub capacity: u32,
     keys: [Buffer; 2],
     values: [Buffer; 2],
@@ -127,6 +143,7 @@ pub struct SortBuffers {
 }
 
 impl SortBuffers {
+    /// Buffers for up to `capacity` elements.
     pub fn new(device: &RenderDevice, capacity: u32) -> Self {
         let bytes = capacity as u64 * 4;
         let tiles = capacity.div_ceil(SORT_TILE) as u64;
@@ -240,6 +257,7 @@ pub fn record_sort(
 
 /// One view's sorted order of one cloud's particles.
 pub struct ViewSort {
+    /// The sort's buffers; the order is in [`SortBuffers::sorted_values`].
     pub buffers: SortBuffers,
     /// Key of (view transform, cloud transform, particles) the order was computed for.
     key: u64,

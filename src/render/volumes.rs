@@ -24,30 +24,50 @@ use crate::{reference::illumination::light_basis, settings::ScatterStencil};
 /// Mirror of `CloudParams` in `shaders/types.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
 pub struct CloudParams {
+    /// Voxels per side.
     pub n: u32,
+    /// Particles in the cloud.
     pub particle_count: u32,
+    /// 0: transmittance stencil, 1: the paper's.
     pub stencil: u32,
+    /// Uniform-buffer padding.
     pub _padding: u32,
+    /// Corner of the density cube, cloud-local metres.
     pub grid_origin: Vec3,
+    /// Voxel size, cloud-local metres.
     pub h: f32,
+    /// Centre of the density cube, cloud-local metres.
     pub grid_centre: Vec3,
+    /// Extinction per cloud-local metre at density 1 (`K` times the cloud's scale).
     pub k_local: f32,
+    /// Single-scattering albedo.
     pub albedo: f32,
+    /// Forward-scattering fraction of the shading pass.
     pub forward_scattering: f32,
 }
 
 /// Mirror of `LightParams` in `shaders/types.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
 pub struct LightParams {
+    /// First axis across the light, cloud-local.
     pub u: Vec3,
+    /// Voxel size along `u`, local metres.
     pub h_u: f32,
+    /// Second axis across the light.
     pub v: Vec3,
+    /// Voxel size along `v`.
     pub h_v: f32,
+    /// The direction the light travels, cloud-local.
     pub w: Vec3,
+    /// Voxel size along `w` (the slice thickness).
     pub h_w: f32,
+    /// Half-extents of the light box along `u`, `v`, `w`.
     pub half_extents: Vec3,
+    /// Extinction per local metre per unit density in the shading pass, `k_local (1 - f albedo)`.
     pub sigma_scale: f32,
+    /// Linear RGB irradiance.
     pub irradiance: Vec3,
+    /// Gather: 0 writes, 1 adds.
     pub accumulate: u32,
 }
 
@@ -86,7 +106,9 @@ impl LightParams {
 
 /// One light's shaded volume inside a cloud.
 pub struct LightVolume {
+    /// Its `LightParams` uniform.
     pub params: Buffer,
+    /// `n³` f32 transmittance towards the light.
     pub transmittance: Buffer,
     /// Key of (density, light direction, extinction) the volume was shaded with.
     pub key: u64,
@@ -95,9 +117,11 @@ pub struct LightVolume {
 /// What the illumination system must do for one cloud this frame.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct WorkPlan {
+    /// Rebuild the density grid.
     pub voxelize: bool,
     /// Indices into `CloudVolumes::lights` to shade.
     pub shade: Vec<usize>,
+    /// Gather every light into `S_0`.
     pub gather: bool,
     /// Restart the accumulation from `S_0`, run the scattering iterations, then compute the
     /// particles' colours.
@@ -107,6 +131,7 @@ pub struct WorkPlan {
 }
 
 impl WorkPlan {
+    /// Nothing to do.
     pub fn is_empty(&self) -> bool {
         *self == Self::default()
     }
@@ -115,7 +140,9 @@ impl WorkPlan {
 /// The GPU volumes of one cloud (render world component).
 #[derive(Component)]
 pub struct CloudVolumes {
+    /// The current uniform values.
     pub params: CloudParams,
+    /// The `CloudParams` uniform.
     pub params_buffer: Buffer,
     /// `n³` f32 density (written as atomic u32 bits by voxelize).
     pub density: Buffer,
@@ -127,10 +154,12 @@ pub struct CloudVolumes {
     pub accumulated: Buffer,
     /// One vec4 per particle: `albedo * S(c_i)`, what the billboards draw.
     pub colours: Buffer,
+    /// One shaded volume per light, in the order of `ExtractedCloudLights`.
     pub lights: Vec<LightVolume>,
     density_key: u64,
     gather_key: u64,
     scatter_key: u64,
+    /// This frame's work, consumed by `illuminate_clouds`.
     pub plan: WorkPlan,
     /// Colours hold a finished illumination: the cloud may be drawn.
     pub ready: bool,
