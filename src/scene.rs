@@ -691,7 +691,7 @@ mod tests {
         );
         assert_eq!(s.settings.scatter_stencil, ScatterStencil::Paper);
         assert_eq!(s.settings.forward_scattering, 0.5);
-        assert_eq!(s.settings.volume_resolution, 64);
+        assert_eq!(s.settings.volume_resolution, CloudQualitySettings::default().volume_resolution);
     }
 
     type Mutation = fn(&mut SceneFile);

@@ -28,7 +28,8 @@ pub enum ScatterStencil {
 #[reflect(Component, Default, Debug, PartialEq)]
 pub struct CloudQualitySettings {
     /// Voxels per side of the cloud's density and illumination volumes (and of each light's
-    /// shaded volume). Allowed: `MIN_VOLUME_RESOLUTION..=MAX_VOLUME_RESOLUTION`. Default 64.
+    /// shaded volume). Allowed: `MIN_VOLUME_RESOLUTION..=MAX_VOLUME_RESOLUTION`. Default 32, on the
+    /// time–error benchmark's Pareto front (README, "Performance and accuracy").
     pub volume_resolution: u32,
     /// Multiple-scattering iterations (orders beyond the first); 0 = single scattering only.
     /// Allowed: `0..=MAX_SCATTER_ITERATIONS`. Default 8.
@@ -51,7 +52,7 @@ pub const MAX_SCATTER_ITERATIONS: u32 = 4096;
 impl Default for CloudQualitySettings {
     fn default() -> Self {
         Self {
-            volume_resolution: 64,
+            volume_resolution: 32,
             scatter_iterations: 8,
             forward_scattering: 0.0,
             scatter_stencil: ScatterStencil::Transmittance,
