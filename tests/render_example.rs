@@ -216,3 +216,45 @@ fn invalid_scenes_are_refused_with_the_field_and_value() {
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/scene.ron"));
 }
+
+#[test]
+fn the_reference_path_tracer_renders_a_scene_file() {
+    let dir = scratch_dir("reference");
+    let scene = dir.join("scene.ron");
+    let small = SCENE_FORMAT_EXAMPLE
+        .replacen("width: 160", "width: 40", 1)
+        .replacen("height: 120", "height: 30", 1);
+    std::fs::write(&scene, small).unwrap();
+    let exr = dir.join("ref.exr");
+    let out = run(&[
+        scene.to_str().unwrap(),
+        "--reference",
+        "--spp",
+        "4",
+        "--seed",
+        "3",
+        "--out",
+        exr.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("path tracer"),
+        "progress on stderr"
+    );
+    let image = read_exr(&exr).unwrap();
+    assert_eq!((image.width, image.height), (40, 30));
+    assert!(
+        image
+            .pixels
+            .iter()
+            .flatten()
+            .all(|v| v.is_finite() && *v >= 0.0)
+    );
+    // The occluder covers pixels with exactly its radiance; the cloud scatters light somewhere.
+    assert!(image.pixels.iter().any(|p| (p[0] - 0.05).abs() < 1e-6));
+    assert!(image.pixels.iter().any(|p| p[0] > 0.02));
+}
