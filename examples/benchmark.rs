@@ -462,12 +462,20 @@ fn downsample(image: &LinearImage, factor: u32) -> LinearImage {
 /// The quality settings of a sweep.
 fn sweep(quick: bool) -> Vec<CloudQualitySettings> {
     let (resolutions, iterations, stencils): (&[u32], &[u32], &[ScatterStencil]) = if quick {
-        (&[32, 64], &[0, 8], &[ScatterStencil::Transmittance])
+        (
+            &[32, 64],
+            &[0, 8],
+            &[ScatterStencil::Transmittance, ScatterStencil::FreePath],
+        )
     } else {
         (
             &[32, 48, 64, 96, 128],
             &[0, 2, 4, 8, 16, 32],
-            &[ScatterStencil::Transmittance, ScatterStencil::Paper],
+            &[
+                ScatterStencil::Transmittance,
+                ScatterStencil::Paper,
+                ScatterStencil::FreePath,
+            ],
         )
     };
     let mut settings = Vec::new();
@@ -716,6 +724,7 @@ fn stencil_name(s: ScatterStencil) -> &'static str {
     match s {
         ScatterStencil::Transmittance => "Transmittance",
         ScatterStencil::Paper => "Paper",
+        ScatterStencil::FreePath => "FreePath",
     }
 }
 
@@ -723,6 +732,7 @@ fn setting_label(s: &CloudQualitySettings) -> String {
     let stencil = match s.scatter_stencil {
         ScatterStencil::Transmittance => "T",
         ScatterStencil::Paper => "P",
+        ScatterStencil::FreePath => "F",
     };
     format!(
         "{}³ ×{} {stencil}",

@@ -18,7 +18,7 @@ struct CloudParams {
     // Voxels per side of every volume.
     n: u32,
     particle_count: u32,
-    // 0: transmittance stencil, 1: the paper's stencil.
+    // 0: transmittance stencil, 1: the paper's stencil, 2: free-path hops.
     stencil: u32,
     _padding: u32,
     // Corner of the density cube, cloud-local metres.

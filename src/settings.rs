@@ -20,6 +20,11 @@ pub enum ScatterStencil {
     /// The paper's Algorithm 2: every neighbour weighted by the voxel's own opacity,
     /// `albedo / 26 * (1 - exp(-sigma_t h)) * S_j`.
     Paper,
+    /// Resolution-consistent hops: along each of the 26 directions, `S` is taken about one mean
+    /// free path away (a whole number of voxels, at least one, inside the grid) and stands for
+    /// the segment of twice that length (midpoint rule), `albedo / 26 * (1 - exp(-2 tau_m)) * S_m`.
+    /// Light no longer needs one scattering per voxel to cross optically thin voxels.
+    FreePath,
 }
 
 /// Per-cloud quality knobs. Missing fields in scene files take these defaults.

@@ -249,3 +249,24 @@ fn forward_scattering_and_a_light_along_the_view() {
         },
     });
 }
+
+#[test]
+fn free_path_hops_on_a_rotated_cloud() {
+    check(Case {
+        particles: random_particles(5, 90),
+        medium: Medium {
+            extinction: 2.0,
+            albedo: 0.99,
+        },
+        lights: vec![LightSample {
+            direction: Vec3::new(0.3, -1.0, 0.2),
+            irradiance: Vec3::new(1.0, 0.9, 0.8),
+        }],
+        transform: Transform::from_rotation(Quat::from_rotation_z(0.3))
+            .with_scale(Vec3::splat(0.7)),
+        settings: CloudQualitySettings {
+            scatter_stencil: ScatterStencil::FreePath,
+            ..headless::quality(20, 6)
+        },
+    });
+}

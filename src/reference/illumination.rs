@@ -512,21 +512,49 @@ fn scatter_voxel(
     let paper_coefficient = weight * opacity(k_local * rho_v * grid.h);
     let mut sum = DVec3::ZERO;
     for &(o, length) in offsets {
-        let (ni, nj, nk) = (i as i64 + o[0], j as i64 + o[1], k as i64 + o[2]);
-        if ni < 0 || nj < 0 || nk < 0 || ni >= n || nj >= n || nk >= n {
-            continue; // neighbours outside the grid contribute 0
+        let v = [i as i64, j as i64, k as i64];
+        // Hops along `o` that stay inside the grid; none: the neighbour is outside and adds 0.
+        let reach = (0..3)
+            .map(|a| match o[a].signum() {
+                1 => n - 1 - v[a],
+                -1 => v[a],
+                _ => n,
+            })
+            .min()
+            .unwrap_or(n);
+        if reach < 1 {
+            continue;
         }
-        let nidx = grid.index(ni as usize, nj as usize, nk as usize);
+        let step = grid.h * length;
+        let hops = match stencil {
+            ScatterStencil::FreePath => free_path_hops(k_local * rho_v * step, reach),
+            _ => 1,
+        };
+        let target = [v[0] + hops * o[0], v[1] + hops * o[1], v[2] + hops * o[2]];
+        let nidx = grid.index(target[0] as usize, target[1] as usize, target[2] as usize);
+        let tau = k_local * (rho_v + grid.rho[nidx]) * 0.5 * step * hops as f64;
         let coefficient = match stencil {
-            ScatterStencil::Transmittance => {
-                let tau = k_local * (rho_v + grid.rho[nidx]) * 0.5 * grid.h * length;
-                weight * opacity(tau)
-            }
+            ScatterStencil::Transmittance => weight * opacity(tau),
             ScatterStencil::Paper => paper_coefficient,
+            // The sample stands for the segment twice as long (midpoint rule).
+            ScatterStencil::FreePath => weight * opacity(2.0 * tau),
         };
         sum += s[nidx] * coefficient;
     }
     sum
+}
+
+/// Hops of one lattice step (optical depth `tau_step` each) that make about one mean free path:
+/// `floor(1 / tau_step)`, at least 1, at most `reach` (the grid's edge). f32 on the GPU; the
+/// floor is taken of the same quotient here.
+fn free_path_hops(tau_step: f64, reach: i64) -> i64 {
+    let per_hop = tau_step as f32;
+    let free = if per_hop * reach as f32 > 1.0 {
+        (1.0 / per_hop).floor() as i64
+    } else {
+        reach
+    };
+    free.clamp(1, reach)
 }
 
 /// Multiple scattering (contract section 4): iterates `S_{n+1} = stencil(S_n)` `iterations` times
@@ -562,17 +590,25 @@ pub fn scatter(
     accumulated
 }
 
-/// The documented upper bound on `max A` (any channel) for both stencils: with
-/// `q_max = albedo (1 - exp(-K_local rho_max h sqrt 3))`,
+/// The documented upper bound on `max A` (any channel): with
+/// `q_max = albedo (1 - exp(-K_local rho_max h sqrt 3 * reach))` (`reach` = 1, or `2 n` for
+/// free-path hops),
 /// `max A <= max_s0 * min(iterations + 1, 1 / (1 - q_max))`. `max_s0` is the largest `S_0` component.
 pub fn energy_bound(
     grid: &DensityGrid,
     k_local: f64,
     albedo: f64,
+    stencil: ScatterStencil,
     iterations: u32,
     max_s0: f64,
 ) -> f64 {
-    let tau_max = k_local * grid.max() * grid.h * 3f64.sqrt();
+    // The longest segment a coefficient stands for: a diagonal neighbour, or for free-path hops
+    // twice the grid's diagonal.
+    let reach = match stencil {
+        ScatterStencil::FreePath => 2.0 * grid.n as f64,
+        _ => 1.0,
+    };
+    let tau_max = k_local * grid.max() * grid.h * 3f64.sqrt() * reach;
     let q_max = albedo * -(-tau_max).exp_m1();
     // For q_max = 1 the geometric factor is infinite and the iteration count bounds A instead.
     let geometric = 1.0 / (1.0 - q_max);
@@ -951,6 +987,54 @@ mod tests {
     }
 
     #[test]
+    fn free_path_hops_reach_about_one_mean_free_path() {
+        // h = 1, rho = 1, K = 0.3: a face step has optical depth 0.3 -> 3 hops, an edge step
+        // 0.42 -> 2 hops, a corner step 0.52 -> 1 hop; each coefficient covers twice the hop.
+        let grid = uniform_grid(9, 1.0);
+        let s = vec![DVec3::ONE; grid.len()];
+        let centre = grid.index(4, 4, 4);
+        let out = scatter_voxel(
+            &grid,
+            0.3,
+            0.9,
+            ScatterStencil::FreePath,
+            &neighbour_offsets(),
+            &s,
+            centre,
+        );
+        let c = |tau: f64| 1.0 - (-2.0 * tau).exp();
+        let expected = 0.9 / 26.0
+            * (6.0 * c(0.3 * 3.0) + 12.0 * c(0.3 * 2f64.sqrt() * 2.0) + 8.0 * c(0.3 * 3f64.sqrt()));
+        assert!((out.x - expected).abs() < 1e-12, "{} vs {expected}", out.x);
+        // Near the edge hops stop at the last voxel inside; thin voxels hop to the grid's edge.
+        assert_eq!(free_path_hops(0.3, 2), 2);
+        assert_eq!(free_path_hops(1e-9, 7), 7);
+        assert_eq!(free_path_hops(0.0, 7), 7);
+        assert_eq!(free_path_hops(5.0, 7), 1);
+        // In thin media, free-path hops carry more light per order than one-voxel steps.
+        let thin = uniform_grid(9, 0.01);
+        let step = scatter_voxel(
+            &thin,
+            1.0,
+            1.0,
+            ScatterStencil::Transmittance,
+            &neighbour_offsets(),
+            &s,
+            centre,
+        );
+        let hop = scatter_voxel(
+            &thin,
+            1.0,
+            1.0,
+            ScatterStencil::FreePath,
+            &neighbour_offsets(),
+            &s,
+            centre,
+        );
+        assert!(hop.x > 4.0 * step.x, "{} vs {}", hop.x, step.x);
+    }
+
+    #[test]
     fn scatter_with_albedo_one_stays_below_energy_bound() {
         let particles = random_cloud(30, 11);
         let grid = voxelize(&particles, 12).unwrap();
@@ -961,12 +1045,17 @@ mod tests {
             let vol = shade(&grid, k, 1.0, 0.0, DVec3::new(0.2, -1.0, 0.1));
             let s0 = gather(&grid, &[(vol, DVec3::new(1.0, 0.8, 0.5))]);
             let max_s0 = max_component(&s0);
-            let bound = energy_bound(&grid, k, 1.0, 1000, max_s0);
+            let bound = energy_bound(&grid, k, 1.0, ScatterStencil::Transmittance, 1000, max_s0);
             assert!(bound.is_finite());
             if k == k_moderate {
                 assert!((bound / max_s0 - 3f64.exp()).abs() < 1e-9);
             }
-            for stencil in [ScatterStencil::Transmittance, ScatterStencil::Paper] {
+            for stencil in [
+                ScatterStencil::Transmittance,
+                ScatterStencil::Paper,
+                ScatterStencil::FreePath,
+            ] {
+                let bound = energy_bound(&grid, k, 1.0, stencil, 1000, max_s0);
                 let a = scatter(&grid, k, 1.0, stencil, &s0, 1000);
                 assert!(a.iter().all(|v| v.is_finite() && v.min_element() >= 0.0));
                 let max_a = max_component(&a);
@@ -977,7 +1066,10 @@ mod tests {
         }
         // With q_max = 1 the bound falls back to (M + 1) max S_0.
         let opaque = uniform_grid(4, 1e6);
-        assert_eq!(energy_bound(&opaque, 1e3, 1.0, 9, 2.0), 20.0);
+        assert_eq!(
+            energy_bound(&opaque, 1e3, 1.0, ScatterStencil::Transmittance, 9, 2.0),
+            20.0
+        );
     }
 
     #[test]

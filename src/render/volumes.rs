@@ -28,7 +28,7 @@ pub struct CloudParams {
     pub n: u32,
     /// Particles in the cloud.
     pub particle_count: u32,
-    /// 0: transmittance stencil, 1: the paper's.
+    /// 0: transmittance stencil, 1: the paper's, 2: free-path hops.
     pub stencil: u32,
     /// Uniform-buffer padding.
     pub _padding: u32,
@@ -403,6 +403,7 @@ fn cloud_params(cloud: &ExtractedCloud, gpu: &GpuParticles, bounds: CloudBounds)
         stencil: match cloud.settings.scatter_stencil {
             ScatterStencil::Transmittance => 0,
             ScatterStencil::Paper => 1,
+            ScatterStencil::FreePath => 2,
         },
         _padding: 0,
         grid_origin: bounds.centre - bounds.side * 0.5,
