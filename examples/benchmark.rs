@@ -1045,7 +1045,7 @@ fn plot(
                 96 => RGBColor(0, 114, 178),
                 _ => RGBColor(213, 94, 0),
             };
-            for stencil in [ScatterStencil::Transmittance, ScatterStencil::Paper] {
+            for stencil in [ScatterStencil::Transmittance, ScatterStencil::Paper, ScatterStencil::FreePath] {
                 let series: Vec<&&Row> = pts
                     .iter()
                     .filter(|r| r.settings.scatter_stencil == stencil)
@@ -1064,6 +1064,9 @@ fn plot(
                             ScatterStencil::Paper => {
                                 TriangleMarker::new(p, 4, c.stroke_width(1)).into_dyn()
                             }
+                            ScatterStencil::FreePath => {
+                                Cross::new(p, 4, c.stroke_width(2)).into_dyn()
+                            }
                         }
                     }))
                     .map_err(|e| e.to_string())?;
@@ -1074,6 +1077,9 @@ fn plot(
                     ScatterStencil::Paper => drawn
                         .label("Paper stencil")
                         .legend(|(x, y)| TriangleMarker::new((x + 7, y), 4, BLACK.stroke_width(1))),
+                    ScatterStencil::FreePath => drawn
+                        .label("FreePath stencil")
+                        .legend(|(x, y)| Cross::new((x + 7, y), 4, BLACK.stroke_width(2))),
                 };
             }
             if let Some(d) = pts
@@ -1087,7 +1093,7 @@ fn plot(
                         ShapeStyle::from(&RED).stroke_width(2),
                     )])
                     .map_err(|e| e.to_string())?
-                    .label("default (64³, 8, T)")
+                    .label("default settings")
                     .legend(|(x, y)| Cross::new((x + 7, y), 5, RED.stroke_width(2)));
             }
         }

@@ -57,8 +57,9 @@ fn scatter(@builtin(global_invocation_id) id: vec3<u32>) {
                 if cloud.stencil == 1u {
                     opacity = own_opacity;
                 } else if cloud.stencil == 2u {
-                    // The sample stands for the segment twice as long (midpoint rule).
-                    opacity = 1.0 - exp(-2.0 * tau);
+                    // The sample stands for the segment twice as long (midpoint rule), cut at the
+                    // grid's edge: beyond it there is no medium to scatter.
+                    opacity = 1.0 - exp(-tau * min(2.0, f32(reach) / f32(hops)));
                 }
                 sum += opacity * s_in[j].xyz;
             }

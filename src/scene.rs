@@ -654,7 +654,7 @@ mod tests {
                 ..Default::default()
             }
         );
-        assert_eq!(s.settings.scatter_stencil, ScatterStencil::Transmittance);
+        assert_eq!(s.settings.scatter_stencil, ScatterStencil::default());
         s.validate().unwrap();
     }
 
@@ -691,7 +691,10 @@ mod tests {
         );
         assert_eq!(s.settings.scatter_stencil, ScatterStencil::Paper);
         assert_eq!(s.settings.forward_scattering, 0.5);
-        assert_eq!(s.settings.volume_resolution, CloudQualitySettings::default().volume_resolution);
+        assert_eq!(
+            s.settings.volume_resolution,
+            CloudQualitySettings::default().volume_resolution
+        );
     }
 
     type Mutation = fn(&mut SceneFile);

@@ -15,7 +15,6 @@ pub enum ScatterStencil {
     /// Derived from transport: neighbour `j` at distance `d_j` contributes
     /// `albedo / 26 * (1 - exp(-tau_j)) * S_j`, `tau_j` the optical depth between the two voxel
     /// centres. Energy can only decrease (see `docs/illumination.md`).
-    #[default]
     Transmittance,
     /// The paper's Algorithm 2: every neighbour weighted by the voxel's own opacity,
     /// `albedo / 26 * (1 - exp(-sigma_t h)) * S_j`.
@@ -23,7 +22,9 @@ pub enum ScatterStencil {
     /// Resolution-consistent hops: along each of the 26 directions, `S` is taken about one mean
     /// free path away (a whole number of voxels, at least one, inside the grid) and stands for
     /// the segment of twice that length (midpoint rule), `albedo / 26 * (1 - exp(-2 tau_m)) * S_m`.
-    /// Light no longer needs one scattering per voxel to cross optically thin voxels.
+    /// Light no longer needs one scattering per voxel to cross optically thin voxels. The default:
+    /// 2.5× lower relative RMSE than `Transmittance` on thick clouds at the same cost (README).
+    #[default]
     FreePath,
 }
 
@@ -43,7 +44,7 @@ pub struct CloudQualitySettings {
     /// pass (the paper's forward scattering): light attenuates with `sigma_t * (1 - f * albedo)`.
     /// Default 0, which is exactly the isotropic model of PHYSICS.md.
     pub forward_scattering: f32,
-    /// The multiple-scattering stencil. Default [`ScatterStencil::Transmittance`].
+    /// The multiple-scattering stencil. Default [`ScatterStencil::FreePath`].
     pub scatter_stencil: ScatterStencil,
 }
 
@@ -60,7 +61,7 @@ impl Default for CloudQualitySettings {
             volume_resolution: 32,
             scatter_iterations: 8,
             forward_scattering: 0.0,
-            scatter_stencil: ScatterStencil::Transmittance,
+            scatter_stencil: ScatterStencil::FreePath,
         }
     }
 }
