@@ -1045,7 +1045,11 @@ fn plot(
                 96 => RGBColor(0, 114, 178),
                 _ => RGBColor(213, 94, 0),
             };
-            for stencil in [ScatterStencil::Transmittance, ScatterStencil::Paper, ScatterStencil::FreePath] {
+            for stencil in [
+                ScatterStencil::Transmittance,
+                ScatterStencil::Paper,
+                ScatterStencil::FreePath,
+            ] {
                 let series: Vec<&&Row> = pts
                     .iter()
                     .filter(|r| r.settings.scatter_stencil == stencil)
