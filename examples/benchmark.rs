@@ -843,7 +843,7 @@ fn markdown(adapter: &str, rows: &[Row], scene_order: &[&'static str]) -> String
          (voxelize + shade + gather + scatter + sort + draw), median; static: a frame with nothing changed (draw only). \
          Wall ms: the frame's wall time (update + GPU wait). Errors against the path-traced reference \
          (relative RMSE, relMSE, mean absolute error); ★ = on the Pareto front of ({}, relative RMSE), \
-         **bold** = the default settings (64³, 8 iterations, Transmittance stencil). Stencil T = Transmittance, P = Paper; \
+         **bold** = the default settings (`CloudQualitySettings::default()`). Stencil T = Transmittance, P = Paper, F = FreePath; \
          forward_scattering 0.\n",
         if wall_axis() {
             "wall ms: on llvmpipe the timestamps miss single-dispatch passes"
@@ -1118,14 +1118,20 @@ fn plot(
             .draw_text("Paper stencil", &text, (210, y - 7))
             .map_err(t)?;
         title
-            .draw(&Cross::new((330, y), 6, RED.stroke_width(2)))
+            .draw(&Cross::new((330, y), 4, BLACK.stroke_width(2)))
             .map_err(t)?;
         title
-            .draw_text("default (64³, 8 iterations, T)", &text, (342, y - 7))
+            .draw_text("FreePath stencil", &text, (340, y - 7))
+            .map_err(t)?;
+        title
+            .draw(&Cross::new((480, y), 6, RED.stroke_width(2)))
+            .map_err(t)?;
+        title
+            .draw_text("default settings", &text, (492, y - 7))
             .map_err(t)?;
         title
             .draw(&PathElement::new(
-                vec![(590, y), (614, y)],
+                vec![(630, y), (654, y)],
                 BLACK.stroke_width(2),
             ))
             .map_err(t)?;
@@ -1133,7 +1139,7 @@ fn plot(
             .draw_text(
                 "Pareto front; grey line: reference noise",
                 &text,
-                (620, y - 7),
+                (660, y - 7),
             )
             .map_err(t)?;
         // Resolution colours, once.
@@ -1402,10 +1408,10 @@ fn replot(args: &Args) -> Result<(), String> {
             volume_resolution: num(res) as u32,
             scatter_iterations: num(iters) as u32,
             forward_scattering: num(fwd) as f32,
-            scatter_stencil: if f(stencil) == "Paper" {
-                ScatterStencil::Paper
-            } else {
-                ScatterStencil::Transmittance
+            scatter_stencil: match f(stencil) {
+                "Paper" => ScatterStencil::Paper,
+                "FreePath" => ScatterStencil::FreePath,
+                _ => ScatterStencil::Transmittance,
             },
         };
         let timing = Timing {

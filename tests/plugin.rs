@@ -141,50 +141,11 @@ fn a_static_cloud_is_illuminated_once_then_only_drawn() {
     let mut recorder = FrameRecorder::default();
     let frames = headless::render_until_steady(&mut app, &mut recorder, &target, 20);
     let first_work: u32 = recorder.frames.iter().map(|f| f.work()).sum();
-    assert_eq!(
-        recorder
-            .frames
-            .iter()
-            .map(|f| f.runs(CloudPass::Voxelize))
-            .sum::<u32>(),
-        1,
-        "voxelized once"
-    );
-    assert_eq!(
-        recorder
-            .frames
-            .iter()
-            .map(|f| f.runs(CloudPass::Shade))
-            .sum::<u32>(),
-        1,
-        "one light shaded once"
-    );
-    assert_eq!(
-        recorder
-            .frames
-            .iter()
-            .map(|f| f.runs(CloudPass::Gather))
-            .sum::<u32>(),
-        1
-    );
-    assert_eq!(
-        recorder
-            .frames
-            .iter()
-            .map(|f| f.runs(CloudPass::Scatter))
-            .sum::<u32>(),
-        4,
-        "4 iterations"
-    );
-    assert_eq!(
-        recorder
-            .frames
-            .iter()
-            .map(|f| f.runs(CloudPass::Sort))
-            .sum::<u32>(),
-        1,
-        "one view sorted once"
-    );
+    assert_eq!(recorder.total(CloudPass::Voxelize), 1, "voxelized once");
+    assert_eq!(recorder.total(CloudPass::Shade), 1, "one light shaded once");
+    assert_eq!(recorder.total(CloudPass::Gather), 1);
+    assert_eq!(recorder.total(CloudPass::Scatter), 4, "4 iterations");
+    assert_eq!(recorder.total(CloudPass::Sort), 1, "one view sorted once");
     assert!(
         first_work > 0 && frames <= 3,
         "illumination took {frames} frames"
@@ -245,18 +206,17 @@ fn opted_out_and_dark_lights_cost_nothing_and_unseen_clouds_do_no_work() {
     target.drawable_clouds = 1;
     let mut recorder = FrameRecorder::default();
     headless::render_until_steady(&mut app, &mut recorder, &target, 20);
-    let total = |pass| recorder.frames.iter().map(|f| f.runs(pass)).sum::<u32>();
     assert_eq!(
-        total(CloudPass::Voxelize),
+        recorder.total(CloudPass::Voxelize),
         1,
         "only the visible cloud is voxelized"
     );
     assert_eq!(
-        total(CloudPass::Shade),
+        recorder.total(CloudPass::Shade),
         1,
         "only the one lit, opted-in light is shaded"
     );
-    assert_eq!(total(CloudPass::Sort), 1);
+    assert_eq!(recorder.total(CloudPass::Sort), 1);
 }
 
 #[test]
@@ -298,21 +258,9 @@ fn several_cameras_hdr_and_not_msaa_on_and_off() {
         last = recorder.frame(&mut app).clone();
     }
     assert_eq!(last.runs(CloudPass::Draw), 2, "one draw per camera");
+    assert_eq!(recorder.total(CloudPass::Sort), 2, "one sort per camera");
     assert_eq!(
-        recorder
-            .frames
-            .iter()
-            .map(|f| f.runs(CloudPass::Sort))
-            .sum::<u32>(),
-        2,
-        "one sort per camera"
-    );
-    assert_eq!(
-        recorder
-            .frames
-            .iter()
-            .map(|f| f.runs(CloudPass::Voxelize))
-            .sum::<u32>(),
+        recorder.total(CloudPass::Voxelize),
         1,
         "illumination is shared by the views"
     );
@@ -446,11 +394,7 @@ fn render_layers_hide_clouds_from_cameras_on_other_layers() {
         "the camera on layer 0 draws only the layer-0 cloud"
     );
     assert_eq!(
-        recorder
-            .frames
-            .iter()
-            .map(|f| f.runs(CloudPass::Voxelize))
-            .sum::<u32>(),
+        recorder.total(CloudPass::Voxelize),
         1,
         "the unseen cloud does no work"
     );

@@ -308,6 +308,11 @@ impl FrameRecorder {
         &self.frames[index]
     }
 
+    /// Runs of `pass` over every recorded frame.
+    pub fn total(&self, pass: CloudPass) -> u32 {
+        self.frames.iter().map(|f| f.runs(pass)).sum()
+    }
+
     /// Updates without recording (to let late GPU times and screenshots arrive).
     pub fn drain(&mut self, app: &mut App) {
         update(app);
