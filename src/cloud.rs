@@ -9,6 +9,8 @@ use bevy::{
     prelude::*,
 };
 
+use bevy::platform::collections::HashMap;
+
 use crate::particle::{InvalidMedium, Medium, Particle};
 
 /// A set of particles: the shape and density of a cloud, in cloud-local metres.
@@ -103,6 +105,35 @@ impl ParticleCloud {
 #[derive(Component, Clone, Copy, Debug, Default, Reflect)]
 #[reflect(Component, Default, Debug)]
 pub struct NotCloudLight;
+
+/// The validation result of every loaded [`Particles`] asset (`None`: valid), refreshed only when
+/// an asset is added or modified, so that extraction does not re-check millions of particles each
+/// frame.
+#[derive(Resource, Default, Debug)]
+pub struct ParticlesValidity(pub HashMap<AssetId<Particles>, Option<String>>);
+
+/// Validates the particle assets that changed this frame (after Bevy wrote the asset events).
+pub(crate) fn validate_changed_particles(
+    mut events: MessageReader<AssetEvent<Particles>>,
+    assets: Res<Assets<Particles>>,
+    mut validity: ResMut<ParticlesValidity>,
+) {
+    for event in events.read() {
+        match *event {
+            AssetEvent::Added { id } | AssetEvent::Modified { id } => {
+                if let Some(particles) = assets.get(id) {
+                    validity
+                        .0
+                        .insert(id, particles.validate().err().map(|e| e.to_string()));
+                }
+            }
+            AssetEvent::Removed { id } | AssetEvent::Unused { id } => {
+                validity.0.remove(&id);
+            }
+            AssetEvent::LoadedWithDependencies { .. } => {}
+        }
+    }
+}
 
 /// Keeps each cloud's [`Aabb`] equal to its particles' bounds, so clouds are frustum-culled like
 /// meshes. Runs when the cloud or its asset changes.

@@ -74,10 +74,14 @@ impl Plugin for ParticleCloudsPlugin {
             .register_type::<DefaultCloudQuality>()
             .init_resource::<DefaultCloudQuality>()
             .init_resource::<CloudPassCounters>()
+            .init_resource::<cloud::ParticlesValidity>()
             .add_systems(
                 PostUpdate,
-                cloud::update_cloud_aabbs
-                    .before(bevy::camera::visibility::VisibilitySystems::CheckVisibility),
+                (
+                    cloud::update_cloud_aabbs
+                        .before(bevy::camera::visibility::VisibilitySystems::CheckVisibility),
+                    cloud::validate_changed_particles.after(bevy::asset::AssetEventSystems),
+                ),
             );
         render::build(app);
     }

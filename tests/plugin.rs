@@ -399,3 +399,46 @@ fn render_layers_hide_clouds_from_cameras_on_other_layers() {
         "the unseen cloud does no work"
     );
 }
+
+#[test]
+fn particles_made_invalid_later_are_refused_on_change() {
+    let (mut app, mut target) = setup(
+        Vec3::ZERO,
+        Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
+    );
+    headless::spawn_light(&mut app, Vec3::NEG_Y, Vec3::ONE);
+    let cloud = small_cloud(&mut app, 0.9, Vec3::ZERO);
+    target.drawable_clouds = 1;
+    let mut recorder = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut recorder, &target, 20);
+    let handle = app
+        .world()
+        .get::<ParticleCloud>(cloud)
+        .unwrap()
+        .particles
+        .clone();
+    app.world_mut()
+        .resource_mut::<Assets<Particles>>()
+        .get_mut(&handle)
+        .unwrap()
+        .particles[3]
+        .radius = -1.0;
+    for _ in 0..2 {
+        assert_eq!(
+            recorder.frame(&mut app).runs(CloudPass::Draw),
+            0,
+            "the now invalid cloud is not drawn"
+        );
+    }
+    app.world_mut()
+        .resource_mut::<Assets<Particles>>()
+        .get_mut(&handle)
+        .unwrap()
+        .particles[3]
+        .radius = 0.3;
+    let mut draws = 0;
+    for _ in 0..3 {
+        draws = recorder.frame(&mut app).runs(CloudPass::Draw);
+    }
+    assert_eq!(draws, 1, "valid again, drawn again");
+}

@@ -10,7 +10,7 @@ use bevy::{
 };
 
 use crate::{
-    cloud::{NotCloudLight, ParticleCloud, Particles},
+    cloud::{NotCloudLight, ParticleCloud, Particles, ParticlesValidity},
     settings::{CloudQualitySettings, DefaultCloudQuality},
 };
 
@@ -81,12 +81,22 @@ pub(crate) fn extract_clouds(
         )>,
     >,
     assets: Extract<Res<Assets<Particles>>>,
+    validity: Extract<Res<ParticlesValidity>>,
     default_quality: Extract<Res<DefaultCloudQuality>>,
     mut refused: Local<RefusedClouds>,
 ) {
     for (entity, render_entity, cloud, transform, visibility, settings, name) in &clouds {
         let settings = settings.copied().unwrap_or(default_quality.0);
-        let problem = validate(cloud, transform, &settings, assets.get(&cloud.particles));
+        // Particles are validated once per asset change; an asset without a verdict yet (added
+        // this frame before the events were written) is checked here.
+        let particles_problem = match validity.0.get(&cloud.particles.id()) {
+            Some(verdict) => verdict.clone(),
+            None => assets
+                .get(&cloud.particles)
+                .and_then(|p| p.validate().err())
+                .map(|e| e.to_string()),
+        };
+        let problem = validate(cloud, transform, &settings).or(particles_problem);
         let mut target = commands.entity(render_entity);
         match problem {
             Some(problem) => {
@@ -118,7 +128,6 @@ fn validate(
     cloud: &ParticleCloud,
     transform: &GlobalTransform,
     settings: &CloudQualitySettings,
-    particles: Option<&Particles>,
 ) -> Option<String> {
     if let Err(e) = cloud.medium().validate() {
         return Some(e.to_string());
@@ -131,11 +140,6 @@ fn validate(
         return Some(format!(
             "`GlobalTransform` is {affine:?}; it must be finite and invertible"
         ));
-    }
-    if let Some(particles) = particles
-        && let Err(e) = particles.validate()
-    {
-        return Some(e.to_string());
     }
     None
 }
