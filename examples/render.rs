@@ -213,13 +213,22 @@ fn real_time(scene: &Scene, args: &Args) -> Result<LinearImage, String> {
         .limits()
         .max_storage_buffer_binding_size as u64;
     let resolution = scene.settings.volume_resolution;
-    if largest_binding(resolution) > limit {
+    let lights = scene.lights.len();
+    let bytes = |n: u32| {
+        let settings = CloudQualitySettings {
+            volume_resolution: n,
+            ..scene.settings
+        };
+        largest_binding(n, settings.light_resolution(), lights)
+    };
+    if bytes(resolution) > limit {
         return Err(format!(
-            "settings.volume_resolution is {resolution}; this adapter ({adapter}) allows at most {} \
-             (its storage buffers hold {limit} bytes)",
+            "settings.volume_resolution is {resolution} (light volumes of {}³ for {lights} lights); \
+             this adapter ({adapter}) allows at most {} (its storage buffers hold {limit} bytes)",
+            scene.settings.light_resolution(),
             (1..=resolution)
                 .rev()
-                .find(|&n| largest_binding(n) <= limit)
+                .find(|&n| bytes(n) <= limit)
                 .unwrap_or(0)
         ));
     }

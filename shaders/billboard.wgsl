@@ -1,32 +1,39 @@
 // The final render (the paper's Algorithm 3): each particle a camera-facing billboard, drawn back
 // to front in the Transparent3d phase. Alpha is exact per pixel: the optical depth of the view
-// ray through the particle's kernel (PHYSICS.md, docs/illumination.md "Draw").
+// ray through the particle's kernel. The colour is the light scattered along that chord, taken at
+// `segments` points (PHYSICS.md; docs/illumination.md §5).
 #import bevy_render::view::View
-#import bevy_particle_clouds::types::Particle
+#import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, PI, grid_coords, light_coords, clamped_lookup, clamped_corner, corner_weight}
 
 struct DrawParams {
     world_from_local: mat4x4<f32>,
+    local_from_world: mat4x4<f32>,
     // Uniform scale of the cloud (world metres per local metre).
     scale: f32,
     // Extinction K per world metre at density 1.
     extinction: f32,
-    _padding: vec2<f32>,
+    // Segments of each chord at which the illumination is evaluated.
+    segments: u32,
+    _padding: u32,
 }
 
 @group(0) @binding(0) var<uniform> view: View;
-@group(1) @binding(0) var<uniform> cloud: DrawParams;
-@group(1) @binding(1) var<storage, read> particles: array<Particle>;
-@group(1) @binding(2) var<storage, read> colours: array<vec4<f32>>;
+@group(1) @binding(0) var<uniform> params: DrawParams;
+@group(1) @binding(1) var<uniform> cloud: CloudParams;
+@group(1) @binding(2) var<storage, read> particles: array<Particle>;
 // Particle indices, back to front for this view.
 @group(1) @binding(3) var<storage, read> order: array<u32>;
+@group(1) @binding(4) var<storage, read> lights: array<LightParams>;
+@group(1) @binding(5) var<storage, read> optical_depth: array<f32>;
+// Multiple scattering S_m per voxel of the density grid.
+@group(1) @binding(6) var<storage, read> multiple: array<vec4<f32>>;
 
 struct VertexOutput {
     @builtin(position) clip_position: vec4<f32>,
     @location(0) world_position: vec3<f32>,
     // World centre (xyz) and world radius (w).
     @location(1) @interpolate(flat) centre_radius: vec4<f32>,
-    // albedo * S (rgb) and density (w).
-    @location(2) @interpolate(flat) colour_density: vec4<f32>,
+    @location(2) @interpolate(flat) density: f32,
     // 1 when the billboard sits on the near plane (the particle reaches it).
     @location(3) @interpolate(flat) on_near_plane: u32,
 }
@@ -44,8 +51,8 @@ fn vertex(@builtin(vertex_index) vertex_index: u32, @builtin(instance_index) ins
     let corner = corners[vertex_index];
     let index = order[instance_index];
     let particle = particles[index];
-    let centre = (cloud.world_from_local * vec4(particle.position_radius.xyz, 1.0)).xyz;
-    let radius = particle.position_radius.w * cloud.scale;
+    let centre = (params.world_from_local * vec4(particle.position_radius.xyz, 1.0)).xyz;
+    let radius = particle.position_radius.w * params.scale;
     let eye = view.world_position;
     let forward = -view.world_from_view[2].xyz;
     let right = view.world_from_view[0].xyz;
@@ -55,7 +62,7 @@ fn vertex(@builtin(vertex_index) vertex_index: u32, @builtin(instance_index) ins
 
     var out: VertexOutput;
     out.centre_radius = vec4(centre, radius);
-    out.colour_density = vec4(colours[index].xyz, particle.density.x);
+    out.density = particle.density.x;
     if depth + radius <= near_plane() {
         // Entirely behind the near plane: a degenerate triangle, culled before rasterisation.
         out.clip_position = vec4(2.0, 2.0, 2.0, 1.0);
@@ -92,6 +99,31 @@ fn chord_integral(s: f32, q: f32, r: f32) -> f32 {
     return r * (q * q * x - 2.0 * q * x * x * x / 3.0 + x * x * x * x * x / 5.0);
 }
 
+// S_1 at a cloud-local point, straight from the light volumes (as gather.wgsl computes it).
+fn single_scattering_at(p: vec3<f32>) -> vec3<f32> {
+    var sum = vec3(0.0);
+    for (var l = 0u; l < cloud.light_count; l++) {
+        let light = lights[l];
+        let t = clamped_lookup(light_coords(cloud, light, p), cloud.light_n);
+        var tau = 0.0;
+        for (var corner = 0u; corner < 8u; corner++) {
+            tau += corner_weight(t, corner) * optical_depth[light.offset + clamped_corner(t, corner, cloud.light_n)];
+        }
+        sum += light.irradiance * exp(-tau);
+    }
+    return sum / (4.0 * PI);
+}
+
+// albedo (S_1 + S_m) at a cloud-local point.
+fn scattered_at(p: vec3<f32>) -> vec3<f32> {
+    let t = clamped_lookup(grid_coords(cloud, p), cloud.n);
+    var s_m = vec3(0.0);
+    for (var corner = 0u; corner < 8u; corner++) {
+        s_m += corner_weight(t, corner) * multiple[clamped_corner(t, corner, cloud.n)].xyz;
+    }
+    return cloud.albedo * (single_scattering_at(p) + s_m);
+}
+
 @fragment
 fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     let eye = view.world_position;
@@ -106,20 +138,31 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
         discard;
     }
     let s1 = radius * sqrt(q);
-    var depth_units: f32;
-    if in.on_near_plane == 0u {
-        // The whole chord: tau_i(b) / (K eta) = R 16/15 q^(5/2).
-        depth_units = radius * (16.0 / 15.0) * q * q * sqrt(q);
-    } else {
+    var s0 = -s1;
+    if in.on_near_plane != 0u {
         let forward = -view.world_from_view[2].xyz;
-        let s0 = max(-s1, near_plane() / dot(w, forward) - t_c);
+        s0 = max(-s1, near_plane() / dot(w, forward) - t_c);
         if s0 >= s1 {
             discard;
         }
-        depth_units = chord_integral(s1, q, radius) - chord_integral(s0, q, radius);
     }
-    let tau = cloud.extinction * in.colour_density.w * depth_units;
-    let alpha = 1.0 - exp(-tau);
-    let colour = in.colour_density.xyz * view.exposure;
-    return vec4(colour * alpha, alpha);
+    // The chord in equal segments, front to back: each adds its opacity times the light it
+    // scatters, seen through the segments in front of it.
+    let sigma = params.extinction * in.density;
+    let ds = (s1 - s0) / f32(params.segments);
+    var colour = vec3(0.0);
+    var transmittance = 1.0;
+    var depth_before = chord_integral(s0, q, radius);
+    for (var k = 1u; k <= params.segments; k++) {
+        let end = s0 + ds * f32(k);
+        let depth_after = chord_integral(end, q, radius);
+        let opacity = 1.0 - exp(-max(sigma * (depth_after - depth_before), 0.0));
+        let x = eye + (t_c + end - 0.5 * ds) * w;
+        let local = (params.local_from_world * vec4(x, 1.0)).xyz;
+        colour += transmittance * opacity * scattered_at(local);
+        transmittance *= 1.0 - opacity;
+        depth_before = depth_after;
+    }
+    let alpha = 1.0 - transmittance;
+    return vec4(colour * view.exposure, alpha);
 }

@@ -1,71 +1,151 @@
-// Multiple scattering: one iteration of the isotropic 26-neighbour stencil (the paper's
-// Algorithm 2 with coefficients derived from transport; docs/illumination.md §4).
-// Reads S_n, writes S_{n+1} and adds it to the accumulation volume.
-#import bevy_particle_clouds::types::{CloudParams, voxel_index}
+// Multiple scattering: one iteration n -> n + 1 (docs/illumination.md §4). Reads S_n, writes
+// S_{n+1} and adds it to the multiple-scattering volume. Two stencils, one entry point each.
+#import bevy_particle_clouds::types::{CloudParams, voxel_index, flat_invocation}
 
-@group(0) @binding(0) var<uniform> cloud: CloudParams;
-@group(0) @binding(1) var<storage, read> density: array<f32>;
-@group(0) @binding(2) var<storage, read> s_in: array<vec4<f32>>;
-@group(0) @binding(3) var<storage, read_write> s_out: array<vec4<f32>>;
-@group(0) @binding(4) var<storage, read_write> accumulated: array<vec4<f32>>;
-
-// Hops along offset `o` from voxel `v` that stay inside the grid.
-fn hops_inside(v: vec3<i32>, o: vec3<i32>, n: i32) -> i32 {
-    var hops = n;
-    for (var a = 0; a < 3; a++) {
-        if o[a] > 0 {
-            hops = min(hops, n - 1 - v[a]);
-        } else if o[a] < 0 {
-            hops = min(hops, v[a]);
-        }
-    }
-    return hops;
+// One direction pair (o, -o) of the discrete-ordinates sweep, o's first non-zero component
+// positive; `first` is 1 for the first of an iteration's 13 dispatches (it overwrites S_{n+1}).
+struct SweepDirection {
+    o: vec3<i32>,
+    first: u32,
 }
 
+@group(0) @binding(0) var<uniform> cloud: CloudParams;
+@group(0) @binding(1) var<uniform> direction: SweepDirection;
+@group(0) @binding(2) var<storage, read> density: array<f32>;
+@group(0) @binding(3) var<storage, read> s_in: array<vec4<f32>>;
+@group(0) @binding(4) var<storage, read_write> s_out: array<vec4<f32>>;
+@group(0) @binding(5) var<storage, read_write> multiple: array<vec4<f32>>;
+
+// Below this optical depth the segment weights use their series: 1 - e and (1 - e)/tau - e
+// cancel in f32.
+const SERIES_BELOW: f32 = 0.02;
+
+// (1 - e, (1 - e)/tau - e), e = exp(-tau): the weights of a segment's constant and linear source.
+fn segment_weights(tau: f32) -> vec2<f32> {
+    if tau < SERIES_BELOW {
+        let t2 = tau * tau;
+        return vec2(tau - t2 / 2.0 + t2 * tau / 6.0, tau / 2.0 - t2 / 3.0 + t2 * tau / 8.0);
+    }
+    let e = exp(-tau);
+    return vec2(1.0 - e, (1.0 - e) / tau - e);
+}
+
+// The voxel at position t along a lattice line: `start` is the line's point at t = 0 in the
+// frame where o has no negative component (`flip` marks the mirrored axes).
+fn line_voxel(start: vec3<i32>, t: i32, flip: vec3<bool>) -> u32 {
+    let n = i32(cloud.n);
+    let step = vec3<i32>(abs(direction.o));
+    let mirrored = start + t * step;
+    let v = select(mirrored, vec3(n - 1) - mirrored, flip);
+    return voxel_index(vec3<u32>(v), cloud.n);
+}
+
+// Radiance arriving at a voxel from its upwind neighbour's side: what arrived there, attenuated
+// over the segment, plus the segment's own scattering with S linear along it.
+fn transport(upwind: vec3<f32>, rho: f32, s: vec3<f32>, rho_up: f32, s_up: vec3<f32>, half_step: f32) -> vec3<f32> {
+    let tau = cloud.k_local * (rho + rho_up) * half_step;
+    let w = segment_weights(tau);
+    return (1.0 - w.x) * upwind + cloud.albedo * (s * w.x + (s_up - s) * w.y);
+}
+
+fn deposit(i: u32, radiance: vec3<f32>, overwrite: bool) {
+    let share = vec4(radiance / 26.0, 0.0);
+    if overwrite {
+        s_out[i] = share;
+    } else {
+        s_out[i] += share;
+    }
+    multiple[i] += share;
+}
+
+// One invocation per lattice line of direction o: marches it against o (radiance arriving from
+// the +o side), then along o (from the -o side). The lines partition the grid, so each voxel is
+// written by one invocation of this dispatch.
+@compute @workgroup_size(64)
+fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let n = i32(cloud.n);
+    let o = direction.o;
+    let first_axis = select(select(2, 1, o.y != 0), 0, o.x != 0);
+    // Decode the line: free axes take any coordinate, the other moving axes an offset from the
+    // first moving axis in -(n - 1)..=(n - 1).
+    var rest = flat_invocation(id, groups);
+    var start = vec3(0);
+    for (var a = 0; a < 3; a++) {
+        if o[a] == 0 {
+            start[a] = i32(rest % cloud.n);
+            rest /= cloud.n;
+        } else if a != first_axis {
+            let span = 2u * cloud.n - 1u;
+            start[a] = i32(rest % span) - (n - 1);
+            rest /= span;
+        }
+    }
+    if rest != 0u {
+        return;
+    }
+    var t0 = 0;
+    var t1 = n;
+    for (var a = 0; a < 3; a++) {
+        if o[a] != 0 {
+            t0 = max(t0, -start[a]);
+            t1 = min(t1, n - start[a]);
+        }
+    }
+    if t0 >= t1 {
+        return;
+    }
+    let flip = o < vec3(0);
+    let half_step = 0.5 * cloud.h * length(vec3<f32>(o));
+    // Against o: radiance arriving from the +o side, zero entering the grid.
+    var radiance = vec3(0.0);
+    var rho_up = 0.0;
+    var s_up = vec3(0.0);
+    for (var t = t1 - 1; t >= t0; t--) {
+        let i = line_voxel(start, t, flip);
+        let rho = density[i];
+        let s = s_in[i].xyz;
+        radiance = transport(radiance, rho, s, rho_up, s_up, half_step);
+        deposit(i, radiance, direction.first != 0u);
+        rho_up = rho;
+        s_up = s;
+    }
+    // Along o: radiance arriving from the -o side.
+    radiance = vec3(0.0);
+    rho_up = 0.0;
+    s_up = vec3(0.0);
+    for (var t = t0; t < t1; t++) {
+        let i = line_voxel(start, t, flip);
+        let rho = density[i];
+        let s = s_in[i].xyz;
+        radiance = transport(radiance, rho, s, rho_up, s_up, half_step);
+        deposit(i, radiance, false);
+        rho_up = rho;
+        s_up = s;
+    }
+}
+
+// The paper's Algorithm 2: every neighbour inside the grid weighted by the voxel's own opacity.
 @compute @workgroup_size(4, 4, 4)
-fn scatter(@builtin(global_invocation_id) id: vec3<u32>) {
+fn scatter_paper(@builtin(global_invocation_id) id: vec3<u32>) {
     let n = cloud.n;
     if any(id >= vec3(n)) {
         return;
     }
-    let i = voxel_index(id, n);
-    let rho = density[i];
-    let sigma = cloud.k_local * rho;
-    // The paper weighs every neighbour by the voxel's own opacity.
-    let own_opacity = 1.0 - exp(-sigma * cloud.h);
     var sum = vec3(0.0);
     for (var z = -1; z <= 1; z++) {
         for (var y = -1; y <= 1; y++) {
             for (var x = -1; x <= 1; x++) {
-                let o = vec3(x, y, z);
-                let reach = hops_inside(vec3<i32>(id), o, i32(n));
-                if all(o == vec3(0)) || reach < 1 {
+                let v = vec3<i32>(id) + vec3(x, y, z);
+                if all(vec3(x, y, z) == vec3(0)) || any(v < vec3(0)) || any(v >= vec3(i32(n))) {
                     continue;
                 }
-                let step = cloud.h * length(vec3<f32>(o));
-                // Free-path hops: about one mean free path, whole voxels, at least one.
-                var hops = 1;
-                if cloud.stencil == 2u {
-                    let per_hop = sigma * step;
-                    let free = select(f32(reach), floor(1.0 / per_hop), per_hop * f32(reach) > 1.0);
-                    hops = clamp(i32(free), 1, reach);
-                }
-                let j = voxel_index(vec3<u32>(vec3<i32>(id) + hops * o), n);
-                // Optical depth between the two voxel centres (trapezoid).
-                let tau = cloud.k_local * 0.5 * (rho + density[j]) * step * f32(hops);
-                var opacity = 1.0 - exp(-tau);
-                if cloud.stencil == 1u {
-                    opacity = own_opacity;
-                } else if cloud.stencil == 2u {
-                    // The sample stands for the segment twice as long (midpoint rule), cut at the
-                    // grid's edge: beyond it there is no medium to scatter.
-                    opacity = 1.0 - exp(-tau * min(2.0, f32(reach) / f32(hops)));
-                }
-                sum += opacity * s_in[j].xyz;
+                sum += s_in[voxel_index(vec3<u32>(v), n)].xyz;
             }
         }
     }
-    let s = sum * (cloud.albedo / 26.0);
+    let i = voxel_index(id, n);
+    let opacity = 1.0 - exp(-cloud.k_local * density[i] * cloud.h);
+    let s = sum * (cloud.albedo / 26.0 * opacity);
     s_out[i] = vec4(s, 0.0);
-    accumulated[i] += vec4(s, 0.0);
+    multiple[i] += vec4(s, 0.0);
 }

@@ -1,5 +1,5 @@
 // Types and small helpers shared by every pass of bevy_particle_clouds.
-// The Rust mirrors are in src/render/illumination.rs (`CloudParams`, `LightParams`)
+// The Rust mirrors are in src/render/volumes.rs (`CloudParams`, `LightParams`, `SweepDirection`)
 // and src/render/particles.rs (`GpuParticle`). Discretization: docs/illumination.md.
 #define_import_path bevy_particle_clouds::types
 
@@ -15,12 +15,13 @@ struct Particle {
 }
 
 struct CloudParams {
-    // Voxels per side of every volume.
+    // Voxels per side N of the density and scattering volumes.
     n: u32,
     particle_count: u32,
-    // 0: transmittance stencil, 1: the paper's stencil, 2: free-path hops.
-    stencil: u32,
-    _padding: u32,
+    // Voxels per side m of each light's optical-depth volume.
+    light_n: u32,
+    // Lights in the `lights` array (and volumes in the optical-depth buffer).
+    light_count: u32,
     // Corner of the density cube, cloud-local metres.
     grid_origin: vec3<f32>,
     // Voxel size, cloud-local metres.
@@ -30,6 +31,9 @@ struct CloudParams {
     k_local: f32,
     albedo: f32,
     forward_scattering: f32,
+    // Sub-points per axis f of each scattering voxel's source (light_supersampling).
+    supersampling: u32,
+    _padding: u32,
 }
 
 struct LightParams {
@@ -46,8 +50,8 @@ struct LightParams {
     sigma_scale: f32,
     // Linear RGB irradiance.
     irradiance: vec3<f32>,
-    // Gather: 0 writes the light's contribution, 1 adds it.
-    accumulate: u32,
+    // First element of this light's volume in the shared optical-depth buffer.
+    offset: u32,
 }
 
 // Linear index of voxel `v` in an n^3 volume.
@@ -67,16 +71,56 @@ fn flat_invocation(id: vec3<u32>, groups: vec3<u32>) -> u32 {
     return id.x + id.y * groups.x * 64u;
 }
 
-// Trilinear weights and base voxel of continuous voxel coordinate `g`, clamped to the volume
-// (the edge voxels extend to the border): returns base in xyz-ints and the fractions.
-struct Clamped {
-    base: vec3<u32>,
+// A trilinear lookup: the base voxel and the fractions towards the next one per axis.
+struct Trilinear {
+    base: vec3<i32>,
     f: vec3<f32>,
 }
 
-fn clamp_trilinear(g: vec3<f32>, n: u32) -> Clamped {
-    let top = f32(n) - 1.0;
-    let gc = clamp(g, vec3(0.0), vec3(top));
-    let base = min(vec3<u32>(floor(gc)), vec3(max(n, 2u) - 2u));
-    return Clamped(base, gc - vec3<f32>(base));
+// Continuous voxel coordinate `g` (voxel i's centre at g = i) clamped to an n^3 volume: the
+// edge voxels extend to the border.
+fn clamped_lookup(g: vec3<f32>, n: u32) -> Trilinear {
+    let gc = clamp(g, vec3(0.0), vec3(f32(n) - 1.0));
+    let base = min(vec3<i32>(floor(gc)), vec3(i32(max(n, 2u)) - 2));
+    return Trilinear(base, gc - vec3<f32>(base));
+}
+
+// `g` with voxels outside the volume counting as 0 (the caller skips them: see `corner_voxel`).
+fn zero_border_lookup(g: vec3<f32>) -> Trilinear {
+    let base = vec3<i32>(floor(g));
+    return Trilinear(base, g - floor(g));
+}
+
+// Weight of corner `corner` (0..8, bits x y z) of a lookup.
+fn corner_weight(t: Trilinear, corner: u32) -> f32 {
+    let o = vec3<u32>(corner & 1u, (corner >> 1u) & 1u, corner >> 2u);
+    let w = select(1.0 - t.f, t.f, vec3<bool>(o));
+    return w.x * w.y * w.z;
+}
+
+// Linear index of corner `corner` of a lookup in an n^3 volume, or -1 outside it.
+fn corner_voxel(t: Trilinear, corner: u32, n: u32) -> i32 {
+    let v = t.base + vec3<i32>(vec3<u32>(corner & 1u, (corner >> 1u) & 1u, corner >> 2u));
+    if any(v < vec3(0)) || any(v >= vec3(i32(n))) {
+        return -1;
+    }
+    return i32(voxel_index(vec3<u32>(v), n));
+}
+
+// Continuous density-grid coordinate of cloud-local point `p`.
+fn grid_coords(cloud: CloudParams, p: vec3<f32>) -> vec3<f32> {
+    return (p - cloud.grid_origin) / cloud.h - 0.5;
+}
+
+// Continuous coordinate of cloud-local point `p` in a light's box of m voxels per side.
+fn light_coords(cloud: CloudParams, light: LightParams, p: vec3<f32>) -> vec3<f32> {
+    let d = p - cloud.grid_centre;
+    let xi = vec3(dot(d, light.u), dot(d, light.v), dot(d, light.w));
+    return (xi + light.half_extents) / vec3(light.h_u, light.h_v, light.h_w) - 0.5;
+}
+
+// Linear index of corner `corner` of a clamped lookup in an n^3 volume.
+fn clamped_corner(t: Trilinear, corner: u32, n: u32) -> u32 {
+    let o = vec3<u32>(corner & 1u, (corner >> 1u) & 1u, corner >> 2u);
+    return voxel_index(min(vec3<u32>(t.base) + o, vec3(n - 1u)), n);
 }

@@ -1,6 +1,6 @@
 // Voxelize: every particle deposits its mass into the cloud's density grid
 // (docs/illumination.md §1). One invocation per particle; float atomics by compare-exchange.
-#import bevy_particle_clouds::types::{Particle, CloudParams, KERNEL_VOLUME, kernel, voxel_index, flat_invocation}
+#import bevy_particle_clouds::types::{Particle, CloudParams, KERNEL_VOLUME, kernel, voxel_index, flat_invocation, zero_border_lookup, corner_weight, corner_voxel}
 
 @group(0) @binding(0) var<uniform> cloud: CloudParams;
 @group(0) @binding(1) var<storage, read> particles: array<Particle>;
@@ -21,27 +21,20 @@ fn atomic_add_density(i: u32, value: f32) {
 // Sub-voxel particle: its whole mass goes to the 8 voxel centres around it, trilinearly,
 // renormalised over the ones inside the grid so no mass is lost at the border.
 fn splat(g: vec3<f32>, density_per_voxel: f32) {
-    let n = i32(cloud.n);
-    let base = vec3<i32>(floor(g));
-    let f = g - floor(g);
+    let t = zero_border_lookup(g);
     var inside = 0.0;
     for (var corner = 0u; corner < 8u; corner++) {
-        let o = vec3<u32>(corner & 1u, (corner >> 1u) & 1u, corner >> 2u);
-        let v = base + vec3<i32>(o);
-        let w = select(1.0 - f, f, vec3<bool>(o));
-        if all(v >= vec3(0)) && all(v < vec3(n)) {
-            inside += w.x * w.y * w.z;
+        if corner_voxel(t, corner, cloud.n) >= 0 {
+            inside += corner_weight(t, corner);
         }
     }
     if inside <= 0.0 {
         return;
     }
     for (var corner = 0u; corner < 8u; corner++) {
-        let o = vec3<u32>(corner & 1u, (corner >> 1u) & 1u, corner >> 2u);
-        let v = base + vec3<i32>(o);
-        let w = select(1.0 - f, f, vec3<bool>(o));
-        if all(v >= vec3(0)) && all(v < vec3(n)) {
-            atomic_add_density(voxel_index(vec3<u32>(v), cloud.n), density_per_voxel * w.x * w.y * w.z / inside);
+        let i = corner_voxel(t, corner, cloud.n);
+        if i >= 0 {
+            atomic_add_density(u32(i), density_per_voxel * corner_weight(t, corner) / inside);
         }
     }
 }

@@ -8,24 +8,21 @@
 use bevy::prelude::*;
 use serde::Deserialize;
 
-/// How one multiple-scattering iteration weighs the 26 neighbours of a voxel.
+/// How one multiple-scattering iteration carries light between voxels (docs/illumination.md §4).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect, Deserialize)]
 #[reflect(Default, Debug, PartialEq)]
 pub enum ScatterStencil {
-    /// Derived from transport: neighbour `j` at distance `d_j` contributes
-    /// `albedo / 26 * (1 - exp(-tau_j)) * S_j`, `tau_j` the optical depth between the two voxel
-    /// centres. Energy can only decrease (see `docs/illumination.md`).
-    Transmittance,
-    /// The paper's Algorithm 2: every neighbour weighted by the voxel's own opacity,
-    /// `albedo / 26 * (1 - exp(-sigma_t h)) * S_j`.
-    Paper,
-    /// Resolution-consistent hops: along each of the 26 directions, `S` is taken about one mean
-    /// free path away (a whole number of voxels, at least one, inside the grid) and stands for
-    /// the segment of twice that length (midpoint rule), `albedo / 26 * (1 - exp(-2 tau_m)) * S_m`.
-    /// Light no longer needs one scattering per voxel to cross optically thin voxels. The default:
-    /// 2.5× lower relative RMSE than `Transmittance` on thick clouds at the same cost (README).
+    /// A discrete-ordinates sweep: along each of the 26 lattice directions, the radiance arriving
+    /// at every voxel is marched from upwind to downwind through the whole grid, attenuated and
+    /// fed by the scattering of every segment it crosses (with `S` linear along each segment).
+    /// Light passes through many voxels in one iteration, so no order is lost to the voxel size,
+    /// and the result converges to the transport solution as the resolution grows. The default.
     #[default]
-    FreePath,
+    DiscreteOrdinates,
+    /// The paper's Algorithm 2: every one of the 26 neighbours weighted by the voxel's own
+    /// opacity, `albedo / 26 * (1 - exp(-sigma_t h)) * S_j`. Kept for comparison: it loses energy
+    /// at every order, more the finer the grid.
+    Paper,
 }
 
 /// Per-cloud quality knobs. Missing fields in scene files take these defaults.
@@ -33,27 +30,42 @@ pub enum ScatterStencil {
 #[serde(default, deny_unknown_fields)]
 #[reflect(Component, Default, Debug, PartialEq)]
 pub struct CloudQualitySettings {
-    /// Voxels per side of the cloud's density and illumination volumes (and of each light's
-    /// shaded volume). Allowed: `MIN_VOLUME_RESOLUTION..=MAX_VOLUME_RESOLUTION`. Default 32, on the
-    /// time–error benchmark's Pareto front (README, "Performance and accuracy").
+    /// Voxels per side `N` of the cloud's density and multiple-scattering volumes. Allowed:
+    /// `MIN_VOLUME_RESOLUTION..=MAX_VOLUME_RESOLUTION`. Default 32, chosen from the time–error
+    /// benchmark (README, "Performance and accuracy").
     pub volume_resolution: u32,
-    /// Multiple-scattering iterations (orders beyond the first); 0 = single scattering only.
-    /// Allowed: `0..=MAX_SCATTER_ITERATIONS`. Default 8.
+    /// Multiple-scattering iterations `M` (scattering orders computed beyond the first); the
+    /// orders past `M` are estimated from the last two (a geometric series). 0 = single
+    /// scattering only. Allowed: `0..=MAX_SCATTER_ITERATIONS`. Default 8.
     pub scatter_iterations: u32,
     /// Fraction `f` in `[0, 1]` of scattered light treated as continuing forward in the shading
     /// pass (the paper's forward scattering): light attenuates with `sigma_t * (1 - f * albedo)`.
     /// Default 0, which is exactly the isotropic model of PHYSICS.md.
     pub forward_scattering: f32,
-    /// The multiple-scattering stencil. Default [`ScatterStencil::FreePath`].
+    /// The multiple-scattering stencil. Default [`ScatterStencil::DiscreteOrdinates`].
     pub scatter_stencil: ScatterStencil,
+    /// Each light's optical-depth volume has `volume_resolution * light_supersampling` voxels per
+    /// side (at most `MAX_VOLUME_RESOLUTION`): single scattering, which the billboards evaluate
+    /// straight from these volumes, is sharper than the multiple-scattering grid. Allowed:
+    /// `1..=MAX_LIGHT_SUPERSAMPLING`. Default 2.
+    pub light_supersampling: u32,
+    /// Segments `K` of each pixel's chord through a particle at which the billboard evaluates the
+    /// illumination (a big particle shows its lit and its dark side). Alpha is exact whatever
+    /// `K`. Allowed: `1..=MAX_CHORD_SEGMENTS`. Default 4.
+    pub chord_segments: u32,
 }
 
 /// Smallest allowed `volume_resolution`.
 pub const MIN_VOLUME_RESOLUTION: u32 = 4;
-/// Largest allowed `volume_resolution` (a 256³ RGBA f32 volume is 256 MiB).
+/// Largest allowed `volume_resolution` (a 256³ RGBA f32 volume is 256 MiB), and the largest
+/// resolution of a light's volume.
 pub const MAX_VOLUME_RESOLUTION: u32 = 256;
 /// Largest allowed `scatter_iterations`.
 pub const MAX_SCATTER_ITERATIONS: u32 = 4096;
+/// Largest allowed `light_supersampling`.
+pub const MAX_LIGHT_SUPERSAMPLING: u32 = 4;
+/// Largest allowed `chord_segments`.
+pub const MAX_CHORD_SEGMENTS: u32 = 16;
 
 impl Default for CloudQualitySettings {
     fn default() -> Self {
@@ -61,8 +73,18 @@ impl Default for CloudQualitySettings {
             volume_resolution: 32,
             scatter_iterations: 8,
             forward_scattering: 0.0,
-            scatter_stencil: ScatterStencil::FreePath,
+            scatter_stencil: ScatterStencil::DiscreteOrdinates,
+            light_supersampling: 2,
+            chord_segments: 4,
         }
+    }
+}
+
+impl CloudQualitySettings {
+    /// Voxels per side of each light's optical-depth volume:
+    /// `volume_resolution * light_supersampling`, at most `MAX_VOLUME_RESOLUTION`.
+    pub fn light_resolution(&self) -> u32 {
+        (self.volume_resolution * self.light_supersampling.max(1)).min(MAX_VOLUME_RESOLUTION)
     }
 }
 
@@ -80,6 +102,12 @@ pub enum InvalidSettings {
     #[error("`forward_scattering` is {0}; it must lie in [0, 1]")]
     /// `forward_scattering` outside `[0, 1]` (or NaN).
     ForwardScattering(f32),
+    #[error("`light_supersampling` is {0}; allowed is 1..={MAX_LIGHT_SUPERSAMPLING}")]
+    /// `light_supersampling` outside `1..=MAX_LIGHT_SUPERSAMPLING`.
+    LightSupersampling(u32),
+    #[error("`chord_segments` is {0}; allowed is 1..={MAX_CHORD_SEGMENTS}")]
+    /// `chord_segments` outside `1..=MAX_CHORD_SEGMENTS`.
+    ChordSegments(u32),
 }
 
 impl CloudQualitySettings {
@@ -93,6 +121,14 @@ impl CloudQualitySettings {
         }
         if !(0.0..=1.0).contains(&self.forward_scattering) {
             return Err(InvalidSettings::ForwardScattering(self.forward_scattering));
+        }
+        if !(1..=MAX_LIGHT_SUPERSAMPLING).contains(&self.light_supersampling) {
+            return Err(InvalidSettings::LightSupersampling(
+                self.light_supersampling,
+            ));
+        }
+        if !(1..=MAX_CHORD_SEGMENTS).contains(&self.chord_segments) {
+            return Err(InvalidSettings::ChordSegments(self.chord_segments));
         }
         Ok(())
     }

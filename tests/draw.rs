@@ -174,7 +174,7 @@ fn reference(setup: &Setup) -> Vec<[f32; 4]> {
         &setup.settings,
     )
     .unwrap();
-    let colours = illumination.particle_colours(&setup.particles, setup.medium.albedo as f64);
+    let scattered = |x: DVec3| illumination.scattered_at(x);
     let eye = setup.camera.translation;
     let camera = PinholeCamera::looking_at(
         eye.as_dvec3(),
@@ -192,7 +192,8 @@ fn reference(setup: &Setup) -> Vec<[f32; 4]> {
             scale,
         },
         medium: setup.medium,
-        colours: &colours,
+        scattered: &scattered,
+        segments: setup.settings.chord_segments,
     };
     composite(
         &camera,

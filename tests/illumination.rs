@@ -1,5 +1,6 @@
 //! The GPU illumination volumes against the f64 CPU reference (docs/illumination.md), voxel by
-//! voxel: density, single-scattering source, accumulated multiple scattering, particle colours.
+//! voxel: density, each light's optical depth, the scattering source, the closure's order ratio
+//! and the multiple scattering.
 //!
 //! Storage is 32-bit float everywhere (RGBA32F / R32F buffers). The GPU sums in f32 with float
 //! atomics in arbitrary order and multiplies `n` slice attenuations, so its error relative to the
@@ -92,25 +93,31 @@ fn check(case: Case) {
     };
     headless::render_until_steady(&mut app, &mut FrameRecorder::default(), &target, 20);
 
-    let (density, source, accumulated, colours) = headless::with_render_world(&mut app, |world| {
-        let volumes = world
-            .query::<&CloudVolumes>()
-            .single(world)
-            .expect("one cloud's volumes");
-        (
-            volumes.density.clone(),
-            volumes.source.clone(),
-            volumes.accumulated.clone(),
-            volumes.colours.clone(),
-        )
-    });
-    let gpu_density: Vec<f64> = headless::floats(&headless::read_buffer(&mut app, &density))
-        .into_iter()
-        .map(f64::from)
-        .collect();
+    let (density, depths, source, ratio, multiple) =
+        headless::with_render_world(&mut app, |world| {
+            let volumes = world
+                .query::<&CloudVolumes>()
+                .single(world)
+                .expect("one cloud's volumes");
+            (
+                volumes.density.clone(),
+                volumes.optical_depth.clone(),
+                volumes.source.clone(),
+                volumes.order_ratio.clone(),
+                volumes.multiple.clone(),
+            )
+        });
+    let read_f64 = |app: &mut App, buffer| -> Vec<f64> {
+        headless::floats(&headless::read_buffer(app, buffer))
+            .into_iter()
+            .map(f64::from)
+            .collect()
+    };
+    let gpu_density = read_f64(&mut app, &density);
+    let gpu_depths = read_f64(&mut app, &depths);
     let gpu_source = rgb(&headless::read_buffer(&mut app, &source));
-    let gpu_accumulated = rgb(&headless::read_buffer(&mut app, &accumulated));
-    let gpu_colours = rgb(&headless::read_buffer(&mut app, &colours));
+    let gpu_ratio = rgb(&headless::read_buffer(&mut app, &ratio));
+    let gpu_multiple = rgb(&headless::read_buffer(&mut app, &multiple));
 
     let rotation = DQuat::from(case.transform.rotation.as_dquat());
     let lights: Vec<LocalLight> = case
@@ -130,24 +137,33 @@ fn check(case: Case) {
     let flat = |v: &[bevy::math::DVec3]| v.iter().flat_map(|c| c.to_array()).collect::<Vec<f64>>();
 
     let n3 = (case.settings.volume_resolution as usize).pow(3);
-    let errors = [
+    let m3 = (case.settings.light_resolution() as usize).pow(3);
+    let cpu_depths: Vec<f64> = cpu
+        .lights
+        .iter()
+        .flat_map(|(v, _)| v.optical_depth.iter().copied())
+        .collect();
+    let mut errors = vec![
         ("density", relative_error(&gpu_density[..n3], &cpu.grid.rho)),
         (
+            "optical depth",
+            relative_error(&gpu_depths[..m3 * cpu.lights.len()], &cpu_depths),
+        ),
+        (
             "source",
-            relative_error(&gpu_source[..3 * n3], &flat(&cpu.single_scattering)),
+            relative_error(&gpu_source[..3 * n3], &flat(&cpu.source)),
         ),
         (
-            "accumulated",
-            relative_error(&gpu_accumulated[..3 * n3], &flat(&cpu.accumulated)),
-        ),
-        (
-            "colours",
-            relative_error(
-                &gpu_colours[..3 * case.particles.len()],
-                &flat(&cpu.particle_colours(&case.particles, case.medium.albedo as f64)),
-            ),
+            "multiple",
+            relative_error(&gpu_multiple[..3 * n3], &flat(&cpu.multiple.total)),
         ),
     ];
+    if case.settings.scatter_iterations > 0 {
+        errors.push((
+            "order ratio",
+            relative_error(&gpu_ratio[..3], &cpu.multiple.ratio.to_array()),
+        ));
+    }
     for (name, error) in errors {
         assert!(
             error <= TOLERANCE,
@@ -155,8 +171,8 @@ fn check(case: Case) {
         );
     }
     assert!(
-        cpu.accumulated.iter().any(|s| s.max_element() > 0.0),
-        "the case lights the cloud"
+        cpu.multiple.total.iter().any(|s| s.max_element() > 0.0),
+        "the case scatters light more than once"
     );
 }
 
@@ -251,12 +267,12 @@ fn forward_scattering_and_a_light_along_the_view() {
 }
 
 #[test]
-fn free_path_hops_on_a_rotated_cloud() {
+fn thick_cloud_at_albedo_one_with_many_iterations_and_no_supersampling() {
     check(Case {
         particles: random_particles(5, 90),
         medium: Medium {
-            extinction: 2.0,
-            albedo: 0.99,
+            extinction: 20.0,
+            albedo: 1.0,
         },
         lights: vec![LightSample {
             direction: Vec3::new(0.3, -1.0, 0.2),
@@ -265,8 +281,8 @@ fn free_path_hops_on_a_rotated_cloud() {
         transform: Transform::from_rotation(Quat::from_rotation_z(0.3))
             .with_scale(Vec3::splat(0.7)),
         settings: CloudQualitySettings {
-            scatter_stencil: ScatterStencil::FreePath,
-            ..headless::quality(20, 6)
+            light_supersampling: 1,
+            ..headless::quality(20, 24)
         },
     });
 }

@@ -2,9 +2,12 @@
 //! particle approximation").
 //!
 //! Every particle is a camera-facing disc whose opacity along a pixel ray is `1 - exp(-tau)`, `tau`
-//! the optical depth of the ray's chord through the particle's sphere. Particles of a cloud are
-//! composited back to front over the opaque scene; clouds are composited in the order given (the
-//! caller orders them back to front, as Bevy's transparent phase does per entity).
+//! the optical depth of the ray's chord through the particle's sphere. Its colour is the
+//! scattered light along that chord: the chord is cut into `K` equal segments, each contributing
+//! `albedo S` at its midpoint times its own opacity and the transmittance of the segments in
+//! front of it. Particles of a cloud are composited back to front over the opaque scene; clouds
+//! are composited in the order given (the caller orders them back to front, as Bevy's
+//! transparent phase does per entity).
 
 use bevy::math::{DQuat, DVec3};
 use rayon::prelude::*;
@@ -39,19 +42,30 @@ impl CloudPlacement {
     pub fn world_point(&self, local: DVec3) -> DVec3 {
         self.translation + self.rotation * (local * self.scale)
     }
+
+    /// Local position of a world point.
+    pub fn local_point(&self, world: DVec3) -> DVec3 {
+        self.rotation.inverse() * (world - self.translation) / self.scale
+    }
 }
 
+/// What a cloud scatters towards the camera at a cloud-local point: `albedo * S(x)`, radiance in
+/// the units of `E` (e.g. [`CloudIllumination::scattered_at`](crate::reference::illumination::CloudIllumination::scattered_at)).
+pub type ScatteredLight<'a> = &'a (dyn Fn(DVec3) -> DVec3 + Sync);
+
 /// One cloud as the compositor draws it.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy)]
 pub struct BillboardCloud<'a> {
     /// Particles in cloud-local space.
     pub particles: &'a [Particle],
     /// The cloud's transform.
     pub world_from_local: CloudPlacement,
-    /// The medium; only `extinction` (world, 1/m) is used here, the albedo is already in `colours`.
+    /// The medium; only `extinction` (world, 1/m) is used here, the albedo is in `scattered`.
     pub medium: Medium,
-    /// Colour of each particle (`albedo * A(c_i)`, radiance in units of `E`), same order as `particles`.
-    pub colours: &'a [DVec3],
+    /// The light scattered at each shading point.
+    pub scattered: ScatteredLight<'a>,
+    /// Segments `K >= 1` of each chord (`chord_segments`).
+    pub segments: u32,
 }
 
 /// A particle prepared for one camera: world centre, world radius `R = s r`, view depth `z_c`.
@@ -61,44 +75,33 @@ struct Billboard {
     radius: f64,
     density: f64,
     depth: f64,
-    colour: DVec3,
 }
 
-/// One cloud's billboards sorted back to front (descending `z_c`) with the cloud's world extinction.
-struct SortedCloud {
-    extinction: f64,
+/// One cloud's billboards sorted back to front (descending `z_c`).
+struct SortedCloud<'a> {
+    cloud: &'a BillboardCloud<'a>,
     billboards: Vec<Billboard>,
 }
 
-fn sort_cloud(camera: &PinholeCamera, cloud: &BillboardCloud) -> SortedCloud {
-    assert_eq!(
-        cloud.particles.len(),
-        cloud.colours.len(),
-        "one colour per particle"
-    );
+fn sort_cloud<'a>(camera: &PinholeCamera, cloud: &'a BillboardCloud<'a>) -> SortedCloud<'a> {
     let placement = &cloud.world_from_local;
     let mut billboards: Vec<Billboard> = cloud
         .particles
         .iter()
-        .zip(cloud.colours)
-        .filter(|(p, _)| p.density > 0.0)
-        .map(|(p, &colour)| {
+        .filter(|p| p.density > 0.0)
+        .map(|p| {
             let centre = placement.world_point(p.position.as_dvec3());
             Billboard {
                 centre,
                 radius: placement.scale * p.radius as f64,
                 density: p.density as f64,
                 depth: camera.view_depth(centre),
-                colour,
             }
         })
         .collect();
     // Stable, so particles at equal depth keep their input order.
     billboards.sort_by(|a, b| b.depth.total_cmp(&a.depth));
-    SortedCloud {
-        extinction: cloud.medium.extinction as f64,
-        billboards,
-    }
+    SortedCloud { cloud, billboards }
 }
 
 /// `F(s) = q² s - 2 q s³ / (3 R²) + s⁵ / (5 R⁴)`, the antiderivative of `(q - s²/R²)²`.
@@ -107,14 +110,21 @@ fn chord_antiderivative(q: f64, r: f64, s: f64) -> f64 {
     s * (q * q - 2.0 * q * s2 / (3.0 * r2) + s2 * s2 / (5.0 * r2 * r2))
 }
 
-/// Where a billboard sits along pixel ray `w` and its optical depth there: `(depth, tau)`, or `None`
-/// when the ray misses the particle (`q <= 0`) or the visible chord is empty.
-fn coverage(
-    camera: &PinholeCamera,
-    w: DVec3,
-    bb: &Billboard,
-    extinction: f64,
-) -> Option<(f64, f64)> {
+/// The visible part of a pixel ray's chord through a particle: `s` runs along the ray from the
+/// point closest to the centre (at ray parameter `t_c`), the chord covers `s0..s1`, and
+/// `q = 1 - b²/R²`.
+struct Chord {
+    /// Depth of the billboard: the particle's view depth, or the near plane.
+    depth: f64,
+    t_c: f64,
+    q: f64,
+    s0: f64,
+    s1: f64,
+}
+
+/// Where a billboard sits along pixel ray `w` and which part of its chord is seen, or `None` when
+/// the ray misses the particle (`q <= 0`) or the visible chord is empty.
+fn chord(camera: &PinholeCamera, w: DVec3, bb: &Billboard) -> Option<Chord> {
     let oc = bb.centre - camera.position;
     let t_c = oc.dot(w);
     let r = bb.radius;
@@ -122,19 +132,56 @@ fn coverage(
     if q <= 0.0 {
         return None;
     }
+    let s1 = r * q.sqrt();
     if bb.depth - r >= camera.near {
         // Wholly beyond the near plane: the full chord, billboard at the particle's depth.
-        let tau = extinction * bb.density * r * (16.0 / 15.0) * q * q * q.sqrt();
-        return Some((bb.depth, tau));
+        return Some(Chord {
+            depth: bb.depth,
+            t_c,
+            q,
+            s0: -s1,
+            s1,
+        });
     }
     // The sphere reaches the near plane: only the chord beyond it counts, billboard on the plane.
-    let s1 = r * q.sqrt();
     let s0 = (-s1).max(camera.near / w.dot(camera.forward) - t_c);
-    if s0 >= s1 {
-        return None;
+    (s0 < s1).then_some(Chord {
+        depth: camera.near,
+        t_c,
+        q,
+        s0,
+        s1,
+    })
+}
+
+/// Premultiplied radiance and alpha of one particle along pixel ray `w`: `K` equal segments of the
+/// chord, front to back, each `(1 - exp(-tau_k))` times the transmittance in front of it times the
+/// scattered light at its midpoint.
+fn particle_radiance(
+    camera: &PinholeCamera,
+    w: DVec3,
+    bb: &Billboard,
+    chord: &Chord,
+    cloud: &BillboardCloud,
+) -> (DVec3, f64) {
+    let sigma = cloud.medium.extinction as f64 * bb.density;
+    let k = cloud.segments.max(1);
+    let ds = (chord.s1 - chord.s0) / k as f64;
+    let (mut colour, mut transmittance) = (DVec3::ZERO, 1.0);
+    for i in 0..k {
+        let a = chord.s0 + ds * i as f64;
+        let b = a + ds;
+        let tau = (sigma
+            * (chord_antiderivative(chord.q, bb.radius, b)
+                - chord_antiderivative(chord.q, bb.radius, a)))
+        .max(0.0);
+        let x = camera.position + w * (chord.t_c + 0.5 * (a + b));
+        let opacity = -(-tau).exp_m1();
+        colour +=
+            (cloud.scattered)(cloud.world_from_local.local_point(x)) * (transmittance * opacity);
+        transmittance *= 1.0 - opacity;
     }
-    let integral = chord_antiderivative(q, r, s1) - chord_antiderivative(q, r, s0);
-    Some((camera.near, (extinction * bb.density * integral).max(0.0)))
+    (colour, 1.0 - transmittance)
 }
 
 /// Radiance of one pixel ray `w`; `clouds` holds only the billboards that may touch its row.
@@ -143,23 +190,23 @@ fn shade_ray(
     w: DVec3,
     background: DVec3,
     objects: &[SceneObject],
-    clouds: &[(f64, Vec<&Billboard>)],
+    clouds: &[(&BillboardCloud, Vec<&Billboard>)],
     exposure: f64,
 ) -> DVec3 {
     let (mut colour, opaque_depth) = match nearest_object(objects, camera.position, w) {
         Some((t, i)) => (objects[i].color.as_dvec3(), t * w.dot(camera.forward)),
         None => (background, f64::INFINITY),
     };
-    for (extinction, billboards) in clouds {
+    for (cloud, billboards) in clouds {
         for bb in billboards {
-            let Some((depth, tau)) = coverage(camera, w, bb, *extinction) else {
+            let Some(chord) = chord(camera, w, bb) else {
                 continue;
             };
-            if opaque_depth < depth {
+            if opaque_depth < chord.depth {
                 continue; // behind the opaque surface: depth test fails
             }
-            let alpha = -(-tau).exp_m1();
-            colour = bb.colour * exposure * alpha + colour * (1.0 - alpha);
+            let (radiance, alpha) = particle_radiance(camera, w, bb, &chord, cloud);
+            colour = radiance * exposure + colour * (1.0 - alpha);
         }
     }
     colour
@@ -170,8 +217,8 @@ fn shade_ray(
 fn row_candidates<'c>(
     camera: &PinholeCamera,
     py: u32,
-    clouds: &'c [SortedCloud],
-) -> Vec<(f64, Vec<&'c Billboard>)> {
+    clouds: &'c [SortedCloud<'c>],
+) -> Vec<(&'c BillboardCloud<'c>, Vec<&'c Billboard>)> {
     let ndc_y = 1.0 - 2.0 * (py as f64 + 0.5) / camera.height as f64;
     let in_plane = camera.forward + camera.up * (ndc_y * camera.tan_half_fov);
     let normal = camera.right.cross(in_plane).normalize();
@@ -183,7 +230,7 @@ fn row_candidates<'c>(
                 .iter()
                 .filter(|bb| (bb.centre - camera.position).dot(normal).abs() < bb.radius)
                 .collect();
-            (cloud.extinction, near_row)
+            (cloud.cloud, near_row)
         })
         .collect()
 }
@@ -252,7 +299,7 @@ mod tests {
 
     fn cloud<'a>(
         particles: &'a [Particle],
-        colours: &'a [DVec3],
+        scattered: ScatteredLight<'a>,
         extinction: f32,
     ) -> BillboardCloud<'a> {
         BillboardCloud {
@@ -262,9 +309,12 @@ mod tests {
                 extinction,
                 albedo: 1.0,
             },
-            colours,
+            scattered,
+            segments: 4,
         }
     }
+
+    const WHITE: ScatteredLight = &|_| DVec3::ONE;
 
     #[test]
     fn single_particle_face_on_has_beer_lambert_alpha() {
@@ -272,7 +322,8 @@ mod tests {
         // Local particle r = 0.5 scaled by 2 into the world: R = 1.
         let particles = [particle(DVec3::new(0.0, 0.0, -1.5), 0.5, 1.5)];
         let colours = [DVec3::new(0.5, 1.0, 2.0)];
-        let mut c = cloud(&particles, &colours, 0.8);
+        let uniform = |_| colours[0];
+        let mut c = cloud(&particles, &uniform, 0.8);
         c.world_from_local = CloudPlacement {
             translation: DVec3::new(0.0, 0.0, -2.0),
             rotation: DQuat::IDENTITY,
@@ -303,8 +354,7 @@ mod tests {
     fn opaque_object_in_front_hides_the_particle_and_behind_shows_through() {
         let cam = camera();
         let particles = [particle(DVec3::new(0.0, 0.0, -5.0), 1.0, 2.0)];
-        let colours = [DVec3::ONE];
-        let c = cloud(&particles, &colours, 1.0);
+        let c = cloud(&particles, WHITE, 1.0);
         let object = |z: f32, color: Vec3| SceneObject {
             shape: ObjectShape::Sphere(0.3),
             translation: Vec3::new(0.0, 0.0, z),
@@ -329,25 +379,18 @@ mod tests {
     #[test]
     fn overlapping_particles_composite_back_to_front_in_any_input_order() {
         let cam = camera();
-        let near = particle(DVec3::new(0.1, 0.0, -4.0), 1.0, 0.7);
-        let far = particle(DVec3::new(-0.1, 0.05, -5.0), 1.5, 1.2);
+        let near = particle(DVec3::new(0.1, 0.0, -3.0), 0.8, 0.7);
+        let far = particle(DVec3::new(-0.1, 0.05, -6.0), 1.5, 1.2);
         let (near_colour, far_colour) = (DVec3::new(1.0, 0.0, 0.0), DVec3::new(0.0, 0.0, 1.0));
+        let field = |x: DVec3| if x.z > -4.5 { near_colour } else { far_colour };
         let background = DVec3::new(0.0, 0.3, 0.0);
-        let a = composite(
-            &cam,
-            background,
-            &[],
-            &[cloud(&[near, far], &[near_colour, far_colour], 1.3)],
-            1.0,
-        );
-        let b = composite(
-            &cam,
-            background,
-            &[],
-            &[cloud(&[far, near], &[far_colour, near_colour], 1.3)],
-            1.0,
-        );
-        assert_eq!(a, b);
+        let draw = |particles: &[Particle]| {
+            let mut c = cloud(particles, &field, 1.3);
+            c.segments = 1;
+            composite(&cam, background, &[], &[c], 1.0)
+        };
+        let a = draw(&[near, far]);
+        assert_eq!(a, draw(&[far, near]));
         let w = cam.pixel_ray(W / 2, H / 2);
         let alpha = |p: &Particle| {
             let c = p.position.as_dvec3();
@@ -366,6 +409,40 @@ mod tests {
     }
 
     #[test]
+    fn chord_segments_converge_to_the_integral_along_the_ray() {
+        // A thick particle on the axis with scattered light rising linearly away from the camera:
+        // the exact pixel is the integral of T(s) sigma(s) c(s) ds along the chord. One segment
+        // takes c at the chord's middle; more segments converge to the integral, whose front (dark
+        // here) weighs most.
+        let cam = camera();
+        let (k, eta, r) = (3.0, 1.0, 1.0);
+        let particles = [particle(DVec3::new(0.0, 0.0, -5.0), r as f32, eta as f32)];
+        let field = |x: DVec3| DVec3::splat(-4.0 - x.z); // 0 at the front (z = -4), 2 at the back
+        let steps = 100_000;
+        let ds = 2.0 * r / steps as f64;
+        let (mut exact, mut t) = (0.0, 1.0);
+        for i in 0..steps {
+            let s = -r + (i as f64 + 0.5) * ds;
+            let sigma = k * eta * (1.0 - s * s) * (1.0 - s * s);
+            exact += t * sigma * ds * (1.0 + s);
+            t *= (-sigma * ds).exp();
+        }
+        let error = |segments: u32| {
+            let mut c = cloud(&particles, &field, k as f32);
+            c.segments = segments;
+            let image = composite(&cam, DVec3::ZERO, &[], &[c], 1.0);
+            (pixel(&image, W / 2, H / 2).x - exact).abs() / exact
+        };
+        let (one, four, sixteen) = (error(1), error(4), error(16));
+        assert!(one > 0.2, "one segment sees the middle only: {one}");
+        assert!(
+            four < one / 4.0 && sixteen < four / 4.0,
+            "{one} {four} {sixteen}"
+        );
+        assert!(sixteen < 0.01, "{sixteen}");
+    }
+
+    #[test]
     fn camera_inside_a_particle_sees_the_partial_chord() {
         // Camera 0.5 m from the centre of a particle of radius 2, looking away from it... and through it.
         let cam = PinholeCamera::looking_at(
@@ -378,12 +455,11 @@ mod tests {
         );
         let (k, eta, r) = (1.5, 0.8, 2.0);
         let particles = [particle(DVec3::ZERO, r as f32, eta as f32)];
-        let colours = [DVec3::ONE];
         let image = composite(
             &cam,
             DVec3::ZERO,
             &[],
-            &[cloud(&particles, &colours, k as f32)],
+            &[cloud(&particles, WHITE, k as f32)],
             1.0,
         );
         assert!(image.iter().flatten().all(|v| v.is_finite()));
@@ -414,7 +490,7 @@ mod tests {
             translation: Vec3::ZERO,
             color: Vec3::X,
         };
-        let clouds = [cloud(&particles, &colours, k as f32)];
+        let clouds = [cloud(&particles, WHITE, k as f32)];
         let image = composite(&cam, DVec3::ZERO, &[obj], &clouds, 1.0);
         let alpha = 1.0 - (-tau).exp();
         let expected = DVec3::ONE * alpha + DVec3::X * (1.0 - alpha);
@@ -430,7 +506,7 @@ mod tests {
                 &cam,
                 DVec3::ZERO,
                 &[],
-                &[cloud(&particles, &[DVec3::ONE], 2.0)],
+                &[cloud(&particles, WHITE, 2.0)],
                 1.0,
             )
         };
@@ -465,8 +541,8 @@ mod tests {
                 )
             })
             .collect();
-        let colours: Vec<DVec3> = (0..60).map(|_| DVec3::new(rnd(), rnd(), rnd())).collect();
-        let mut c = cloud(&particles, &colours, 3.0);
+        let field = |x: DVec3| DVec3::new(x.x.sin() + 1.0, x.y.cos() + 1.0, x.z * x.z);
+        let mut c = cloud(&particles, &field, 3.0);
         c.world_from_local = CloudPlacement {
             translation: DVec3::new(0.2, 0.0, -0.5),
             rotation: DQuat::from_rotation_y(0.7),
@@ -474,9 +550,9 @@ mod tests {
         };
         let image = composite(&cam, DVec3::splat(0.05), &[], &[c], 2.0);
         let sorted = [sort_cloud(&cam, &c)];
-        let all: Vec<(f64, Vec<&Billboard>)> = sorted
+        let all: Vec<(&BillboardCloud, Vec<&Billboard>)> = sorted
             .iter()
-            .map(|s| (s.extinction, s.billboards.iter().collect()))
+            .map(|s| (s.cloud, s.billboards.iter().collect()))
             .collect();
         let mut covered = 0;
         for py in 0..H {

@@ -695,7 +695,32 @@ pub fn radiance<M: Media>(
     max_scatter_events: u32,
     rng: &mut SplitMix64,
 ) -> DVec3 {
-    let mut l = DVec3::ZERO;
+    let mut total = [DVec3::ZERO];
+    radiance_by_order(
+        media,
+        lighting,
+        origin,
+        dir,
+        max_scatter_events,
+        rng,
+        &mut total,
+    );
+    total[0]
+}
+
+/// [`radiance`] split by scattering order: `orders[k]` receives the light that reached the camera
+/// after exactly `k` scattering events (0: the background or an object seen unscattered), the last
+/// entry every order from its own on. The entries sum to [`radiance`]'s estimate.
+pub fn radiance_by_order<M: Media>(
+    media: &M,
+    lighting: &Lighting,
+    origin: DVec3,
+    dir: DVec3,
+    max_scatter_events: u32,
+    rng: &mut SplitMix64,
+    orders: &mut [DVec3],
+) {
+    let last = orders.len() - 1;
     let (mut o, mut d) = (origin, dir);
     let mut events = 0;
     loop {
@@ -703,18 +728,20 @@ pub fn radiance<M: Media>(
         let t_max = object.map_or(f64::INFINITY, |(t, _)| t);
         let Some((t, c)) = sample_free_flight(media, o, d, t_max, rng) else {
             // Unscattered to the end of the ray: the object's radiance or the background.
-            return l + object.map_or(lighting.background, |(_, i)| {
+            orders[(events as usize).min(last)] += object.map_or(lighting.background, |(_, i)| {
                 lighting.objects[i].color.as_dvec3()
             });
+            return;
         };
         let x = o + d * t;
         // σ_s/σ_t: a real collision was accepted with probability σ_t/majorant > 0, so σ_t > 0.
         let albedo = c.scattering / c.extinction;
-        l += lighting.direct_irradiance(media, x) * (albedo * INV_4PI);
         events += 1;
+        orders[(events as usize).min(last)] +=
+            lighting.direct_irradiance(media, x) * (albedo * INV_4PI);
         // Russian roulette on the albedo: survivors keep weight 1.
         if events >= max_scatter_events || rng.next_f64() >= albedo {
-            return l;
+            return;
         }
         o = x;
         d = rng.unit_sphere();
@@ -733,6 +760,20 @@ pub fn render(scene: &Scene, settings: &PathTracerSettings) -> Vec<[f32; 4]> {
     render_media(&media, &lighting, &camera, settings)
 }
 
+/// [`render`] split by scattering order: image `k` holds the light scattered exactly `k` times
+/// (image 0 the background and objects seen directly), the last image every order from its own
+/// on; `orders >= 1` images, which sum to [`render`]'s image.
+pub fn render_orders(
+    scene: &Scene,
+    settings: &PathTracerSettings,
+    orders: usize,
+) -> Vec<Vec<[f32; 4]>> {
+    let media = ParticleMedia::from_scene(scene);
+    let lighting = Lighting::from_scene(scene);
+    let camera = PinholeCamera::from_scene(&scene.camera);
+    render_media_orders(&media, &lighting, &camera, settings, orders)
+}
+
 /// [`render`] for any media: rows in parallel, each sample with its own generator seeded from
 /// `(seed, pixel, sample)`, so the image does not depend on the number of threads.
 pub fn render_media<M: Media>(
@@ -741,30 +782,51 @@ pub fn render_media<M: Media>(
     camera: &PinholeCamera,
     settings: &PathTracerSettings,
 ) -> Vec<[f32; 4]> {
-    let (width, height) = (camera.width as usize, camera.height as usize);
-    let mut image = vec![[0.0f32; 4]; width * height];
-    if width == 0 || height == 0 {
-        return image;
-    }
-    let rows_done = AtomicUsize::new(0);
-    image
-        .par_chunks_mut(width)
-        .enumerate()
-        .for_each(|(py, row)| {
-            for (px, out) in row.iter_mut().enumerate() {
-                let pixel = (py * width + px) as u64;
-                let l = pixel_radiance(media, lighting, camera, settings, pixel, px, py);
-                *out = [l.x as f32, l.y as f32, l.z as f32, 1.0];
-            }
-            let done = rows_done.fetch_add(1, Ordering::Relaxed) + 1;
-            if settings.progress {
-                report_progress(done, height);
-            }
-        });
-    image
+    render_media_orders(media, lighting, camera, settings, 1)
+        .pop()
+        .expect("one image")
 }
 
-/// Mean radiance of `samples_per_pixel` paths through jittered points of pixel `(px, py)`.
+/// [`render_orders`] for any media.
+pub fn render_media_orders<M: Media>(
+    media: &M,
+    lighting: &Lighting,
+    camera: &PinholeCamera,
+    settings: &PathTracerSettings,
+    orders: usize,
+) -> Vec<Vec<[f32; 4]>> {
+    let orders = orders.max(1);
+    let (width, height) = (camera.width as usize, camera.height as usize);
+    let mut pixels = vec![vec![DVec3::ZERO; orders]; width * height];
+    if width > 0 && height > 0 {
+        let rows_done = AtomicUsize::new(0);
+        pixels
+            .par_chunks_mut(width)
+            .enumerate()
+            .for_each(|(py, row)| {
+                for (px, out) in row.iter_mut().enumerate() {
+                    let pixel = (py * width + px) as u64;
+                    pixel_radiance(media, lighting, camera, settings, pixel, px, py, out);
+                }
+                let done = rows_done.fetch_add(1, Ordering::Relaxed) + 1;
+                if settings.progress {
+                    report_progress(done, height);
+                }
+            });
+    }
+    (0..orders)
+        .map(|k| {
+            pixels
+                .iter()
+                .map(|p| [p[k].x as f32, p[k].y as f32, p[k].z as f32, 1.0])
+                .collect()
+        })
+        .collect()
+}
+
+/// Mean radiance of `samples_per_pixel` paths through jittered points of pixel `(px, py)`, split
+/// into `orders.len()` scattering orders.
+#[allow(clippy::too_many_arguments)]
 fn pixel_radiance<M: Media>(
     media: &M,
     lighting: &Lighting,
@@ -773,24 +835,25 @@ fn pixel_radiance<M: Media>(
     pixel: u64,
     px: usize,
     py: usize,
-) -> DVec3 {
+    orders: &mut [DVec3],
+) {
     let spp = settings.samples_per_pixel.max(1);
-    let mut sum = DVec3::ZERO;
     for s in 0..spp {
         let mut rng = SplitMix64::for_sample(settings.seed, pixel, s as u64);
         let x = px as f64 + rng.next_f64();
         let y = py as f64 + rng.next_f64();
         let dir = camera.ray_direction(x, y);
-        sum += radiance(
+        radiance_by_order(
             media,
             lighting,
             camera.position,
             dir,
             MAX_SCATTER_EVENTS,
             &mut rng,
+            orders,
         );
     }
-    sum / spp as f64
+    orders.iter_mut().for_each(|o| *o /= spp as f64);
 }
 
 /// Prints a line each time another tenth of the rows is finished.

@@ -52,12 +52,16 @@ use crate::{
 pub struct DrawParams {
     /// World from cloud-local.
     pub world_from_local: Mat4,
+    /// Cloud-local from world (the shading points' lookups).
+    pub local_from_world: Mat4,
     /// Uniform scale: world metres per local metre.
     pub scale: f32,
     /// Extinction `K` per world metre at density 1.
     pub extinction: f32,
+    /// Segments of each chord at which the illumination is evaluated (`chord_segments`).
+    pub segments: u32,
     /// Uniform-buffer padding.
-    pub _padding: Vec2,
+    pub _padding: u32,
 }
 
 /// The billboard render pipeline's layouts and shader (specialized per view target).
@@ -65,7 +69,8 @@ pub struct DrawParams {
 pub struct BillboardPipeline {
     /// Group 0: the view uniform.
     pub view_layout: BindGroupLayoutDescriptor,
-    /// Group 1: draw uniform, particles, colours, sorted order.
+    /// Group 1: draw uniform, cloud uniform, particles, sorted order, lights, optical depths,
+    /// multiple scattering.
     pub cloud_layout: BindGroupLayoutDescriptor,
     shader: Handle<Shader>,
 }
@@ -83,7 +88,15 @@ pub(crate) fn init_billboard_pipeline(mut commands: Commands, shaders: Res<Cloud
         "particle_clouds_billboard_layout",
         &BindGroupLayoutEntries::sequential(
             ShaderStages::VERTEX_FRAGMENT,
-            (uniform_buffer_sized(false, None), read(), read(), read()),
+            (
+                uniform_buffer_sized(false, None),
+                uniform_buffer_sized(false, None),
+                read(),
+                read(),
+                read(),
+                read(),
+                read(),
+            ),
         ),
     );
     commands.insert_resource(BillboardPipeline {
@@ -190,11 +203,14 @@ pub(crate) fn prepare_billboard_bind_groups(
         let Some(gpu) = particles.get(cloud.particles) else {
             continue;
         };
+        let world_from_local = Mat4::from(cloud.world_from_local);
         let params = DrawParams {
-            world_from_local: Mat4::from(cloud.world_from_local),
+            world_from_local,
+            local_from_world: world_from_local.inverse(),
             scale: cloud.scale(),
             extinction: cloud.extinction,
-            _padding: Vec2::ZERO,
+            segments: cloud.settings.chord_segments,
+            _padding: 0,
         };
         // Order-independent over the views (a hash map's order is arbitrary).
         let views = sorts
@@ -205,8 +221,15 @@ pub(crate) fn prepare_billboard_bind_groups(
         let key = key_of((
             params.world_from_local.to_cols_array().map(f32::to_bits),
             params.extinction.to_bits(),
+            params.segments,
             gpu.buffer.id(),
-            volumes.colours.id(),
+            [
+                &volumes.params_buffer,
+                &volumes.light_array,
+                &volumes.optical_depth,
+                &volumes.multiple,
+            ]
+            .map(|b| b.id()),
             views,
         ));
         if existing.is_some_and(|e| e.key == key) {
@@ -226,9 +249,12 @@ pub(crate) fn prepare_billboard_bind_groups(
                     &layout,
                     &BindGroupEntries::sequential((
                         params.as_entire_binding(),
+                        volumes.params_buffer.as_entire_binding(),
                         gpu.buffer.as_entire_binding(),
-                        volumes.colours.as_entire_binding(),
                         sort.buffers.sorted_values().as_entire_binding(),
+                        volumes.light_array.as_entire_binding(),
+                        volumes.optical_depth.as_entire_binding(),
+                        volumes.multiple.as_entire_binding(),
                     )),
                 );
                 (*view, group)

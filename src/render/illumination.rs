@@ -1,6 +1,6 @@
 //! The illumination passes (the paper's Algorithm 1, lines 2–6), recorded once per frame in the
-//! `RenderGraph` schedule before any camera: voxelize, shade per light, gather, multiple
-//! scattering and the per-particle colour. Only the stages planned by `prepare_cloud_volumes` run.
+//! `RenderGraph` schedule before any camera: voxelize, shade per light, gather and multiple
+//! scattering. Only the stages planned by `prepare_cloud_volumes` run.
 
 use bevy::{
     prelude::*,
@@ -8,8 +8,8 @@ use bevy::{
         diagnostic::{DiagnosticsRecorder, RecordDiagnostics},
         render_asset::RenderAssets,
         render_resource::{
-            BindGroup, BindGroupEntries, BindGroupEntry, ComputePass, ComputePassDescriptor,
-            PipelineCache,
+            BindGroup, BindGroupEntries, BindGroupEntry, Buffer, BufferBinding, ComputePass,
+            ComputePassDescriptor, PipelineCache, ShaderType,
         },
         renderer::RenderContext,
     },
@@ -18,11 +18,14 @@ use bevy::{
 use super::{
     extract::ExtractedCloud,
     particles::GpuParticles,
-    pipelines::{ComputeStage, IlluminationPipelines},
+    pipelines::{
+        ComputeStage, IlluminationPipelines, ReadyPipelines, SWEEP_DIRECTION_STRIDE,
+        SweepDirection, sweep_directions, sweep_lines,
+    },
     volumes::CloudVolumes,
 };
 use crate::{
-    settings::ShadingMethod,
+    settings::{ScatterStencil, ShadingMethod},
     stats::{CloudPass, CloudPassCounters},
 };
 
@@ -81,7 +84,7 @@ pub(crate) fn illuminate_clouds(
     } else {
         &pipelines.shade
     };
-    let (Some([voxelize, _, gather, scatter, colour]), Some(shade)) = (
+    let (Some(ready), Some(shade)) = (
         pipelines.ready(&pipeline_cache),
         shade_stage.get(&pipeline_cache),
     ) else {
@@ -116,7 +119,7 @@ pub(crate) fn illuminate_clouds(
             &counters,
             CloudPass::Voxelize,
             |pass| {
-                pass.set_pipeline(voxelize);
+                pass.set_pipeline(ready.voxelize);
                 for (gpu, v) in &voxelizing {
                     let group = bind(
                         &pipelines.voxelize,
@@ -146,22 +149,22 @@ pub(crate) fn illuminate_clouds(
                 pass.set_pipeline(shade);
                 let mut runs = 0;
                 for (_, v) in &clouds {
+                    let m = v.params.light_n;
                     for &i in &v.plan.shade {
-                        let light = &v.lights[i];
                         let group = bind(
                             shade_stage,
                             &BindGroupEntries::sequential((
                                 v.params_buffer.as_entire_binding(),
-                                light.params.as_entire_binding(),
+                                v.lights[i].params.as_entire_binding(),
                                 v.density.as_entire_binding(),
-                                light.transmittance.as_entire_binding(),
+                                v.optical_depth.as_entire_binding(),
                             )),
                         );
                         pass.set_bind_group(0, &group, &[]);
                         if brute_force {
-                            dispatch_volume(pass, v.params.n);
+                            dispatch_volume(pass, m);
                         } else {
-                            let g = v.params.n.div_ceil(8);
+                            let g = m.div_ceil(8);
                             pass.dispatch_workgroups(g, g, 1);
                         }
                         runs += 1;
@@ -172,7 +175,7 @@ pub(crate) fn illuminate_clouds(
         );
     }
 
-    // Gather (§3): the first light writes S_0, the others add to it.
+    // Gather (§3): every light's single scattering into the scattering source S_0.
     if clouds.iter().any(|(_, v)| v.plan.gather) {
         record_stage(
             &mut ctx,
@@ -180,22 +183,21 @@ pub(crate) fn illuminate_clouds(
             &counters,
             CloudPass::Gather,
             |pass| {
-                pass.set_pipeline(gather);
+                pass.set_pipeline(ready.gather);
                 let mut runs = 0;
                 for (_, v) in clouds.iter().filter(|(_, v)| v.plan.gather) {
-                    for light in &v.lights {
-                        let group = bind(
-                            &pipelines.gather,
-                            &BindGroupEntries::sequential((
-                                v.params_buffer.as_entire_binding(),
-                                light.params.as_entire_binding(),
-                                light.transmittance.as_entire_binding(),
-                                v.source.as_entire_binding(),
-                            )),
-                        );
-                        pass.set_bind_group(0, &group, &[]);
-                        dispatch_volume(pass, v.params.n);
-                    }
+                    let group = bind(
+                        &pipelines.gather,
+                        &BindGroupEntries::sequential((
+                            v.params_buffer.as_entire_binding(),
+                            v.light_array.as_entire_binding(),
+                            v.optical_depth.as_entire_binding(),
+                            v.density.as_entire_binding(),
+                            v.source.as_entire_binding(),
+                        )),
+                    );
+                    pass.set_bind_group(0, &group, &[]);
+                    dispatch_volume(pass, v.params.n);
                     runs += 1;
                 }
                 runs
@@ -203,16 +205,18 @@ pub(crate) fn illuminate_clouds(
         );
     }
 
-    // Multiple scattering (§4) and the particles' colours (§5).
+    // Multiple scattering (§4): the iterations, then the series' closure.
     let scattering: Vec<_> = clouds
         .iter()
         .filter(|(_, v)| v.plan.scatter.is_some())
         .collect();
+    for (_, v) in clouds
+        .iter()
+        .filter(|(_, v)| v.plan.scatter.is_some() || v.plan.unlit)
+    {
+        ctx.command_encoder().clear_buffer(&v.multiple, 0, None);
+    }
     if !scattering.is_empty() {
-        for (_, v) in &scattering {
-            ctx.command_encoder()
-                .copy_buffer_to_buffer(&v.source, 0, &v.accumulated, 0, None);
-        }
         record_stage(
             &mut ctx,
             recorder.as_deref(),
@@ -220,45 +224,10 @@ pub(crate) fn illuminate_clouds(
             CloudPass::Scatter,
             |pass| {
                 let mut runs = 0;
-                pass.set_pipeline(scatter);
                 for (_, v) in &scattering {
                     let iterations = v.plan.scatter.unwrap_or(0);
-                    for k in 0..iterations {
-                        // S_0 is the source; then the two order volumes alternate.
-                        let input = if k == 0 {
-                            &v.source
-                        } else {
-                            &v.orders[(k as usize - 1) % 2]
-                        };
-                        let output = &v.orders[k as usize % 2];
-                        let group = bind(
-                            &pipelines.scatter,
-                            &BindGroupEntries::sequential((
-                                v.params_buffer.as_entire_binding(),
-                                v.density.as_entire_binding(),
-                                input.as_entire_binding(),
-                                output.as_entire_binding(),
-                                v.accumulated.as_entire_binding(),
-                            )),
-                        );
-                        pass.set_bind_group(0, &group, &[]);
-                        dispatch_volume(pass, v.params.n);
-                    }
+                    scatter_cloud(pass, &pipelines, &ready, &bind, v, iterations);
                     runs += iterations;
-                }
-                pass.set_pipeline(colour);
-                for (gpu, v) in &scattering {
-                    let group = bind(
-                        &pipelines.colour,
-                        &BindGroupEntries::sequential((
-                            v.params_buffer.as_entire_binding(),
-                            gpu.buffer.as_entire_binding(),
-                            v.accumulated.as_entire_binding(),
-                            v.colours.as_entire_binding(),
-                        )),
-                    );
-                    pass.set_bind_group(0, &group, &[]);
-                    dispatch_1d(pass, gpu.count);
                 }
                 runs
             },
@@ -267,10 +236,80 @@ pub(crate) fn illuminate_clouds(
     drop(scattering);
 
     for (_, mut v) in clouds {
-        if v.plan.unlit {
-            ctx.command_encoder().clear_buffer(&v.colours, 0, None);
-        }
         v.ready |= v.plan.scatter.is_some() || v.plan.unlit;
         v.plan = default();
     }
+}
+
+/// `S_0` for `k = 0`, else the order written by iteration `k - 1` (the two order volumes alternate).
+fn order(v: &CloudVolumes, k: u32) -> &Buffer {
+    if k == 0 {
+        &v.source
+    } else {
+        &v.orders[(k as usize - 1) % 2]
+    }
+}
+
+/// Records one cloud's scattering iterations and the closure (§4).
+fn scatter_cloud(
+    pass: &mut ComputePass,
+    pipelines: &IlluminationPipelines,
+    ready: &ReadyPipelines,
+    bind: &impl Fn(&ComputeStage, &[BindGroupEntry]) -> BindGroup,
+    v: &CloudVolumes,
+    iterations: u32,
+) {
+    let n = v.params.n;
+    let sweep = v.plan.stencil == ScatterStencil::DiscreteOrdinates;
+    pass.set_pipeline(if sweep {
+        ready.sweep
+    } else {
+        ready.scatter_paper
+    });
+    for k in 0..iterations {
+        let group = bind(
+            &pipelines.sweep,
+            &BindGroupEntries::sequential((
+                v.params_buffer.as_entire_binding(),
+                BufferBinding {
+                    buffer: &pipelines.sweep_directions,
+                    offset: 0,
+                    size: Some(SweepDirection::min_size()),
+                },
+                v.density.as_entire_binding(),
+                order(v, k).as_entire_binding(),
+                order(v, k + 1).as_entire_binding(),
+                v.multiple.as_entire_binding(),
+            )),
+        );
+        if sweep {
+            // One dispatch per direction pair: the lines of one direction partition the grid.
+            for (i, o) in sweep_directions().enumerate() {
+                pass.set_bind_group(0, &group, &[i as u32 * SWEEP_DIRECTION_STRIDE]);
+                dispatch_1d(pass, sweep_lines(o, n));
+            }
+        } else {
+            pass.set_bind_group(0, &group, &[0]);
+            dispatch_volume(pass, n);
+        }
+    }
+    if iterations == 0 {
+        return;
+    }
+    let group = bind(
+        &pipelines.order_ratio,
+        &BindGroupEntries::sequential((
+            v.params_buffer.as_entire_binding(),
+            v.density.as_entire_binding(),
+            order(v, iterations).as_entire_binding(),
+            order(v, iterations - 1).as_entire_binding(),
+            v.multiple.as_entire_binding(),
+            v.order_ratio.as_entire_binding(),
+        )),
+    );
+    pass.set_bind_group(0, &group, &[]);
+    pass.set_pipeline(ready.order_ratio);
+    pass.dispatch_workgroups(1, 1, 1);
+    pass.set_pipeline(ready.extrapolate);
+    dispatch_1d(pass, n.pow(3));
 }

@@ -1,14 +1,19 @@
 //! Compute pipelines of the illumination passes, created once in `RenderStartup`.
 
-use super::shaders::CloudShaders;
+use super::{shaders::CloudShaders, volumes::uniform_bytes};
 use bevy::{
     prelude::*,
-    render::render_resource::{
-        BindGroupLayoutDescriptor, BindGroupLayoutEntries, CachedComputePipelineId,
-        ComputePipeline, ComputePipelineDescriptor, PipelineCache, ShaderStages,
-        binding_types::{
-            storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer_sized,
+    render::{
+        render_resource::{
+            BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, BufferInitDescriptor,
+            BufferUsages, CachedComputePipelineId, ComputePipeline, ComputePipelineDescriptor,
+            PipelineCache, ShaderStages, ShaderType,
+            binding_types::{
+                storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer,
+                uniform_buffer_sized,
+            },
         },
+        renderer::RenderDevice,
     },
     shader::Shader,
 };
@@ -44,7 +49,38 @@ impl ComputeStage {
     }
 }
 
-/// The pipelines of voxelize, shade, gather, scatter and the per-particle colour.
+/// Mirror of `SweepDirection` in `shaders/scatter.wgsl`: one direction pair `(o, -o)` of the
+/// discrete-ordinates sweep.
+#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
+pub struct SweepDirection {
+    /// The lattice direction, its first non-zero component positive.
+    pub o: IVec3,
+    /// 1 for the first dispatch of an iteration (it overwrites `S_{n+1}`), else 0.
+    pub first: u32,
+}
+
+/// The 13 direction pairs of the sweep, each with its number of lattice lines in an `n³` grid:
+/// `n^(3-k) (2n-1)^(k-1)` for `k` non-zero components.
+pub fn sweep_directions() -> impl Iterator<Item = IVec3> {
+    (-1..=1)
+        .flat_map(|z| (-1..=1).flat_map(move |y| (-1..=1).map(move |x| IVec3::new(x, y, z))))
+        .filter(|o| {
+            let first = [o.x, o.y, o.z].into_iter().find(|&c| c != 0);
+            first == Some(1)
+        })
+}
+
+/// Lattice lines of direction `o` in an `n³` grid (one sweep invocation each).
+pub fn sweep_lines(o: IVec3, n: u32) -> u32 {
+    let moving = (o.abs().element_sum()) as u32;
+    n.pow(3 - moving) * (2 * n - 1).pow(moving - 1)
+}
+
+/// Byte stride of the sweep directions in their uniform buffer (the largest dynamic-offset
+/// alignment WebGPU allows adapters to require).
+pub const SWEEP_DIRECTION_STRIDE: u32 = 256;
+
+/// The pipelines of the illumination passes.
 #[derive(Resource)]
 pub struct IlluminationPipelines {
     /// `voxelize.wgsl`, `deposit`.
@@ -55,34 +91,74 @@ pub struct IlluminationPipelines {
     pub shade_brute_force: ComputeStage,
     /// `gather.wgsl`, `gather`.
     pub gather: ComputeStage,
-    /// `scatter.wgsl`, `scatter`.
-    pub scatter: ComputeStage,
-    /// `particle_colour.wgsl`, `colour`.
-    pub colour: ComputeStage,
+    /// `scatter.wgsl`, `sweep` (the discrete-ordinates stencil).
+    pub sweep: ComputeStage,
+    /// `scatter.wgsl`, `scatter_paper` (the paper's stencil; same layout as `sweep`).
+    pub scatter_paper: ComputeStage,
+    /// `closure.wgsl`, `order_ratio`.
+    pub order_ratio: ComputeStage,
+    /// `closure.wgsl`, `extrapolate` (same layout as `order_ratio`).
+    pub extrapolate: ComputeStage,
+    /// The 13 `SweepDirection`s, `SWEEP_DIRECTION_STRIDE` bytes apart (a dynamic uniform).
+    pub sweep_directions: Buffer,
+}
+
+/// The compiled pipelines of every illumination pass (brute-force shading aside).
+pub struct ReadyPipelines<'a> {
+    /// Voxelize.
+    pub voxelize: &'a ComputePipeline,
+    /// Gather.
+    pub gather: &'a ComputePipeline,
+    /// Sweep.
+    pub sweep: &'a ComputePipeline,
+    /// The paper's stencil.
+    pub scatter_paper: &'a ComputePipeline,
+    /// The closure's ratio.
+    pub order_ratio: &'a ComputePipeline,
+    /// The closure's extrapolation.
+    pub extrapolate: &'a ComputePipeline,
 }
 
 impl IlluminationPipelines {
     /// All compiled, or `None` while any still compiles (work waits for the next frame).
-    pub fn ready<'a>(&self, cache: &'a PipelineCache) -> Option<[&'a ComputePipeline; 5]> {
-        Some([
-            self.voxelize.get(cache)?,
-            self.shade.get(cache)?,
-            self.gather.get(cache)?,
-            self.scatter.get(cache)?,
-            self.colour.get(cache)?,
-        ])
+    pub fn ready<'a>(&self, cache: &'a PipelineCache) -> Option<ReadyPipelines<'a>> {
+        Some(ReadyPipelines {
+            voxelize: self.voxelize.get(cache)?,
+            gather: self.gather.get(cache)?,
+            sweep: self.sweep.get(cache)?,
+            scatter_paper: self.scatter_paper.get(cache)?,
+            order_ratio: self.order_ratio.get(cache)?,
+            extrapolate: self.extrapolate.get(cache)?,
+        })
     }
+}
+
+fn sweep_direction_buffer(device: &RenderDevice) -> Buffer {
+    let mut bytes = Vec::new();
+    for (i, o) in sweep_directions().enumerate() {
+        let entry = uniform_bytes(&SweepDirection {
+            o,
+            first: (i == 0) as u32,
+        });
+        bytes.resize(i * SWEEP_DIRECTION_STRIDE as usize, 0);
+        bytes.extend_from_slice(&entry);
+    }
+    device.create_buffer_with_data(&BufferInitDescriptor {
+        label: Some("particle_clouds_sweep_directions"),
+        contents: &bytes,
+        usage: BufferUsages::UNIFORM,
+    })
 }
 
 pub(crate) fn init_illumination_pipelines(
     mut commands: Commands,
     shaders: Res<CloudShaders>,
     pipeline_cache: Res<PipelineCache>,
+    device: Res<RenderDevice>,
 ) {
     let uniform = || uniform_buffer_sized(false, None);
     let read = || storage_buffer_read_only_sized(false, None);
     let write = || storage_buffer_sized(false, None);
-
     let voxelize = BindGroupLayoutDescriptor::new(
         "particle_clouds_voxelize_layout",
         &BindGroupLayoutEntries::sequential(ShaderStages::COMPUTE, (uniform(), read(), write())),
@@ -98,31 +174,65 @@ pub(crate) fn init_illumination_pipelines(
         "particle_clouds_gather_layout",
         &BindGroupLayoutEntries::sequential(
             ShaderStages::COMPUTE,
-            (uniform(), uniform(), read(), write()),
+            (uniform(), read(), read(), read(), write()),
         ),
     );
     let scatter = BindGroupLayoutDescriptor::new(
         "particle_clouds_scatter_layout",
         &BindGroupLayoutEntries::sequential(
             ShaderStages::COMPUTE,
-            (uniform(), read(), read(), write(), write()),
+            (
+                uniform(),
+                uniform_buffer::<SweepDirection>(true),
+                read(),
+                read(),
+                write(),
+                write(),
+            ),
         ),
     );
-    let colour = BindGroupLayoutDescriptor::new(
-        "particle_clouds_colour_layout",
+    let closure = BindGroupLayoutDescriptor::new(
+        "particle_clouds_closure_layout",
         &BindGroupLayoutEntries::sequential(
             ShaderStages::COMPUTE,
-            (uniform(), read(), read(), write()),
+            (uniform(), read(), read(), read(), write(), write()),
         ),
     );
     let cache = pipeline_cache.as_ref();
-    let shade_shader = shaders.shade.clone();
+    let stage =
+        |shader: &Handle<Shader>, entry: &'static str, layout: &BindGroupLayoutDescriptor| {
+            ComputeStage::new(cache, shader.clone(), entry, layout.clone())
+        };
     commands.insert_resource(IlluminationPipelines {
-        voxelize: ComputeStage::new(cache, shaders.voxelize.clone(), "deposit", voxelize),
-        shade: ComputeStage::new(cache, shade_shader.clone(), "shade", shade.clone()),
-        shade_brute_force: ComputeStage::new(cache, shade_shader, "shade_brute_force", shade),
-        gather: ComputeStage::new(cache, shaders.gather.clone(), "gather", gather),
-        scatter: ComputeStage::new(cache, shaders.scatter.clone(), "scatter", scatter),
-        colour: ComputeStage::new(cache, shaders.particle_colour.clone(), "colour", colour),
+        voxelize: stage(&shaders.voxelize, "deposit", &voxelize),
+        shade: stage(&shaders.shade, "shade", &shade),
+        shade_brute_force: stage(&shaders.shade, "shade_brute_force", &shade),
+        gather: stage(&shaders.gather, "gather", &gather),
+        sweep: stage(&shaders.scatter, "sweep", &scatter),
+        scatter_paper: stage(&shaders.scatter, "scatter_paper", &scatter),
+        order_ratio: stage(&shaders.closure, "order_ratio", &closure),
+        extrapolate: stage(&shaders.closure, "extrapolate", &closure),
+        sweep_directions: sweep_direction_buffer(&device),
     });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sweep_lines_cover_the_grid_once_per_direction() {
+        let directions: Vec<IVec3> = sweep_directions().collect();
+        assert_eq!(directions.len(), 13);
+        for o in &directions {
+            assert!(!directions.contains(&-*o), "{o} and its opposite");
+        }
+        // Axis lines are n long; diagonal lines shorter, but each direction's lines hold n³ voxels.
+        let n = 5;
+        for o in directions {
+            let lines = sweep_lines(o, n);
+            let moving = o.abs().element_sum();
+            assert_eq!(lines, [25, 45, 81][moving as usize - 1], "{o}");
+        }
+    }
 }

@@ -15,8 +15,8 @@ pub struct CloudShaders {
     pub gather: Handle<Shader>,
     /// `scatter.wgsl`.
     pub scatter: Handle<Shader>,
-    /// `particle_colour.wgsl`.
-    pub particle_colour: Handle<Shader>,
+    /// `closure.wgsl`.
+    pub closure: Handle<Shader>,
     /// `sort.wgsl`.
     pub sort: Handle<Shader>,
     /// `billboard.wgsl`.
@@ -40,7 +40,7 @@ impl CloudShaders {
             shade: shader!(shaders, "shade.wgsl"),
             gather: shader!(shaders, "gather.wgsl"),
             scatter: shader!(shaders, "scatter.wgsl"),
-            particle_colour: shader!(shaders, "particle_colour.wgsl"),
+            closure: shader!(shaders, "closure.wgsl"),
             sort: shader!(shaders, "sort.wgsl"),
             billboard: shader!(shaders, "billboard.wgsl"),
         }

@@ -24,14 +24,14 @@ use crate::{reference::illumination::light_basis, settings::ScatterStencil};
 /// Mirror of `CloudParams` in `shaders/types.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
 pub struct CloudParams {
-    /// Voxels per side.
+    /// Voxels per side `N` of the density and scattering volumes.
     pub n: u32,
     /// Particles in the cloud.
     pub particle_count: u32,
-    /// 0: transmittance stencil, 1: the paper's, 2: free-path hops.
-    pub stencil: u32,
-    /// Uniform-buffer padding.
-    pub _padding: u32,
+    /// Voxels per side `m` of each light's optical-depth volume.
+    pub light_n: u32,
+    /// Lights in the cloud's light array.
+    pub light_count: u32,
     /// Corner of the density cube, cloud-local metres.
     pub grid_origin: Vec3,
     /// Voxel size, cloud-local metres.
@@ -44,6 +44,10 @@ pub struct CloudParams {
     pub albedo: f32,
     /// Forward-scattering fraction of the shading pass.
     pub forward_scattering: f32,
+    /// Sub-points per axis of each scattering voxel's source (`light_supersampling`).
+    pub supersampling: u32,
+    /// Uniform-buffer padding.
+    pub _padding: u32,
 }
 
 /// Mirror of `LightParams` in `shaders/types.wgsl`.
@@ -67,18 +71,13 @@ pub struct LightParams {
     pub sigma_scale: f32,
     /// Linear RGB irradiance.
     pub irradiance: Vec3,
-    /// Gather: 0 writes, 1 adds.
-    pub accumulate: u32,
+    /// First element of this light's volume in the cloud's optical-depth buffer.
+    pub offset: u32,
 }
 
 impl LightParams {
-    /// The light box of a light travelling along `direction_local` (docs/illumination.md §2).
-    pub fn new(
-        cloud: &CloudParams,
-        direction_local: Vec3,
-        irradiance: Vec3,
-        accumulate: bool,
-    ) -> Self {
+    /// The light box of light `index` travelling along `direction_local` (docs/illumination.md §2).
+    pub fn new(cloud: &CloudParams, direction_local: Vec3, irradiance: Vec3, index: u32) -> Self {
         let [u, v, w] = light_basis(direction_local.as_dvec3().normalize()).map(|a| a.as_vec3());
         let side = cloud.h * cloud.n as f32;
         let half_extents = 0.5
@@ -88,7 +87,7 @@ impl LightParams {
                 v.abs().element_sum(),
                 w.abs().element_sum(),
             );
-        let h = 2.0 * half_extents / cloud.n as f32;
+        let h = 2.0 * half_extents / cloud.light_n as f32;
         Self {
             u,
             h_u: h.x,
@@ -99,17 +98,15 @@ impl LightParams {
             half_extents,
             sigma_scale: cloud.k_local * (1.0 - cloud.forward_scattering * cloud.albedo),
             irradiance,
-            accumulate: accumulate as u32,
+            offset: index * cloud.light_n.pow(3),
         }
     }
 }
 
-/// One light's shaded volume inside a cloud.
+/// One light of a cloud: its uniform (for the shade pass) and the key of its shaded volume.
 pub struct LightVolume {
     /// Its `LightParams` uniform.
     pub params: Buffer,
-    /// `n³` f32 transmittance towards the light.
-    pub transmittance: Buffer,
     /// Key of (density, light direction, extinction) the volume was shaded with.
     pub key: u64,
 }
@@ -121,12 +118,13 @@ pub struct WorkPlan {
     pub voxelize: bool,
     /// Indices into `CloudVolumes::lights` to shade.
     pub shade: Vec<usize>,
-    /// Gather every light into `S_0`.
+    /// Gather every light into the scattering source `S_0`.
     pub gather: bool,
-    /// Restart the accumulation from `S_0`, run the scattering iterations, then compute the
-    /// particles' colours.
+    /// Restart the multiple scattering from `S_0`: this many iterations, then the closure.
     pub scatter: Option<u32>,
-    /// No light reaches the cloud: its colours are zeroed instead of computed.
+    /// The stencil of those iterations.
+    pub stencil: ScatterStencil,
+    /// No light reaches the cloud: its multiple scattering is zeroed instead of computed.
     pub unlit: bool,
 }
 
@@ -146,15 +144,20 @@ pub struct CloudVolumes {
     pub params_buffer: Buffer,
     /// `n³` f32 density (written as atomic u32 bits by voxelize).
     pub density: Buffer,
-    /// `n³` vec4 single-scattering source `S_0`.
+    /// `n³` vec4 multiple-scattering source `S_0`.
     pub source: Buffer,
     /// `n³` vec4 ping-pong scattering orders.
     pub orders: [Buffer; 2],
-    /// `n³` vec4 accumulated `S`.
-    pub accumulated: Buffer,
-    /// One vec4 per particle: `albedo * S(c_i)`, what the billboards draw.
-    pub colours: Buffer,
-    /// One shaded volume per light, in the order of `ExtractedCloudLights`.
+    /// `n³` vec4 multiple scattering `S_m` (all orders past the first), what the billboards add
+    /// to the single scattering.
+    pub multiple: Buffer,
+    /// One vec4: the closure's per-channel order ratio `lambda`.
+    pub order_ratio: Buffer,
+    /// Every light's `LightParams`, a storage array (gather and the billboards).
+    pub light_array: Buffer,
+    /// Every light's `m³` f32 optical depth, light `l` at `l m³`.
+    pub optical_depth: Buffer,
+    /// One entry per light, in the order of `ExtractedCloudLights`.
     pub lights: Vec<LightVolume>,
     density_key: u64,
     gather_key: u64,
@@ -197,11 +200,36 @@ pub fn uniform_bytes<T: ShaderType + encase::internal::WriteInto>(value: &T) -> 
     buffer.into_inner()
 }
 
+/// The storage array of `count` lights' `LightParams` (at least one element: a binding of a
+/// runtime-sized array may not be shorter).
+fn light_array(device: &RenderDevice, count: u32) -> Buffer {
+    storage(
+        device,
+        "particle_clouds_lights",
+        LightParams::min_size().get() * count.max(1) as u64,
+    )
+}
+
+/// Encodes a slice of `ShaderType` values as a storage-buffer array.
+pub fn storage_bytes<T: ShaderType + encase::internal::WriteInto + encase::ShaderSize>(
+    values: &[T],
+) -> Vec<u8> {
+    let mut buffer = encase::StorageBuffer::new(Vec::new());
+    buffer
+        .write(&values)
+        .expect("storage encoding cannot fail for plain structs");
+    buffer.into_inner()
+}
+
 impl CloudVolumes {
     fn new(device: &RenderDevice, n: u32, particle_count: u32) -> Self {
         let voxels = (n as u64).pow(3);
         Self {
-            params: CloudParams::default(),
+            params: CloudParams {
+                n,
+                particle_count,
+                ..default()
+            },
             params_buffer: uniform(
                 device,
                 "particle_clouds_params",
@@ -213,12 +241,10 @@ impl CloudVolumes {
                 storage(device, "particle_clouds_order_a", voxels * 16),
                 storage(device, "particle_clouds_order_b", voxels * 16),
             ],
-            accumulated: storage(device, "particle_clouds_accumulated", voxels * 16),
-            colours: storage(
-                device,
-                "particle_clouds_colours",
-                particle_count as u64 * 16,
-            ),
+            multiple: storage(device, "particle_clouds_multiple", voxels * 16),
+            order_ratio: storage(device, "particle_clouds_order_ratio", 16),
+            light_array: light_array(device, 0),
+            optical_depth: storage(device, "particle_clouds_optical_depth", 0),
             lights: Vec::new(),
             density_key: 0,
             gather_key: 0,
@@ -246,9 +272,10 @@ impl CloudVolumes {
 /// The gather key of a cloud that no light reaches.
 const UNLIT: u64 = 1;
 
-/// Bytes of the volumes of one cloud at resolution `n` (for the adapter-limit check).
-pub fn largest_binding(n: u32) -> u64 {
-    (n as u64).pow(3) * 16
+/// Bytes of the largest buffer of one cloud (for the adapter-limit check): an RGBA volume of
+/// `n³`, or the optical depths of `lights` light volumes of `m³`.
+pub fn largest_binding(n: u32, m: u32, lights: usize) -> u64 {
+    ((n as u64).pow(3) * 16).max((m as u64).pow(3) * 4 * lights as u64)
 }
 
 /// Decides each visible cloud's work for this frame and writes the uniforms it needs.
@@ -270,10 +297,15 @@ pub(crate) fn prepare_cloud_volumes(
             continue;
         };
         let n = cloud.settings.volume_resolution;
-        if largest_binding(n) > max_binding || gpu.count as u64 * 32 > max_binding {
+        let m = cloud.settings.light_resolution();
+        if largest_binding(n, m, lights.0.len()) > max_binding
+            || gpu.count as u64 * 32 > max_binding
+        {
             warn_once!(
-                "particle cloud: `volume_resolution` {n} or {} particles exceed this adapter's storage \
-                 buffer limit of {max_binding} bytes; the cloud is not drawn",
+                "particle cloud: `volume_resolution` {n} (light volumes {m}³ for {} lights) or {} \
+                 particles exceed this adapter's storage buffer limit of {max_binding} bytes; the \
+                 cloud is not drawn",
+                lights.0.len(),
                 gpu.count
             );
             continue;
@@ -304,15 +336,18 @@ fn plan_cloud(
     device: &RenderDevice,
     queue: &RenderQueue,
 ) {
-    let params = cloud_params(cloud, gpu, bounds);
+    let params = cloud_params(cloud, gpu, bounds, lights.0.len());
     let n = params.n;
     let mut plan = WorkPlan::default();
     if lights.0.is_empty() {
-        // Nothing lights the cloud: it only absorbs. Zero its colours once; no pass runs.
+        // Nothing lights the cloud: it only absorbs. Zero its multiple scattering and tell the
+        // billboards there are no lights, once; no pass runs.
         if volumes.gather_key != UNLIT {
             volumes.gather_key = UNLIT;
             volumes.scatter_key = 0;
             plan.unlit = true;
+            queue.write_buffer(&volumes.params_buffer, 0, &uniform_bytes(&params));
+            volumes.params = params;
         }
         volumes.plan = plan;
         return;
@@ -324,9 +359,20 @@ fn plan_cloud(
         volumes.density_key = density_key;
     }
 
-    // Slot i shades the i-th light, in the cloud's local frame.
+    // Slot i shades the i-th light, in the cloud's local frame. A new light count or light
+    // resolution reallocates the shared light buffers, and every light is shaded again.
     let to_local = cloud.rotation().inverse();
-    volumes.lights.truncate(lights.0.len());
+    let light_count = lights.0.len() as u32;
+    if params.light_count != volumes.params.light_count || params.light_n != volumes.params.light_n
+    {
+        volumes.lights.clear();
+        volumes.light_array = light_array(device, light_count);
+        volumes.optical_depth = storage(
+            device,
+            "particle_clouds_optical_depth",
+            (params.light_n as u64).pow(3) * 4 * light_count as u64,
+        );
+    }
     while volumes.lights.len() < lights.0.len() {
         volumes.lights.push(LightVolume {
             params: uniform(
@@ -334,30 +380,31 @@ fn plan_cloud(
                 "particle_clouds_light_params",
                 LightParams::min_size().get(),
             ),
-            transmittance: storage(
-                device,
-                "particle_clouds_transmittance",
-                (n as u64).pow(3) * 4,
-            ),
             key: 0,
         });
     }
     let light_params: Vec<LightParams> = lights
         .0
         .iter()
-        .enumerate()
-        .map(|(i, l)| {
+        .zip(0..light_count)
+        .map(|(l, i)| {
             LightParams::new(
                 &params,
                 (to_local * l.direction).normalize(),
                 l.irradiance,
-                i > 0,
+                i,
             )
         })
         .collect();
     let mut gather_inputs = Vec::with_capacity(light_params.len());
     for (i, (light, slot)) in light_params.iter().zip(&mut volumes.lights).enumerate() {
-        let key = key_of((density_key, bits(light.w), light.sigma_scale.to_bits()));
+        let key = key_of((
+            density_key,
+            bits(light.w),
+            light.sigma_scale.to_bits(),
+            light.offset,
+            params.light_n,
+        ));
         if key != slot.key {
             plan.shade.push(i);
             slot.key = key;
@@ -365,7 +412,7 @@ fn plan_cloud(
         gather_inputs.push((key, bits(light.irradiance)));
     }
 
-    let gather_key = key_of((&gather_inputs, density_key));
+    let gather_key = key_of((&gather_inputs, density_key, params.supersampling));
     if gather_key != volumes.gather_key {
         volumes.gather_key = gather_key;
         plan.gather = true;
@@ -374,12 +421,13 @@ fn plan_cloud(
         gather_key,
         params.k_local.to_bits(),
         params.albedo.to_bits(),
-        params.stencil,
+        cloud.settings.scatter_stencil,
         cloud.settings.scatter_iterations,
     ));
     if scatter_key != volumes.scatter_key {
         volumes.scatter_key = scatter_key;
         plan.scatter = Some(cloud.settings.scatter_iterations);
+        plan.stencil = cloud.settings.scatter_stencil;
     }
 
     if !plan.is_empty() {
@@ -390,27 +438,31 @@ fn plan_cloud(
         for (light, slot) in light_params.iter().zip(&volumes.lights) {
             queue.write_buffer(&slot.params, 0, &uniform_bytes(light));
         }
+        queue.write_buffer(&volumes.light_array, 0, &storage_bytes(&light_params));
     }
     volumes.plan = plan;
 }
 
 /// The uniform of a cloud's illumination passes.
-fn cloud_params(cloud: &ExtractedCloud, gpu: &GpuParticles, bounds: CloudBounds) -> CloudParams {
+fn cloud_params(
+    cloud: &ExtractedCloud,
+    gpu: &GpuParticles,
+    bounds: CloudBounds,
+    light_count: usize,
+) -> CloudParams {
     let n = cloud.settings.volume_resolution;
     CloudParams {
         n,
         particle_count: gpu.count,
-        stencil: match cloud.settings.scatter_stencil {
-            ScatterStencil::Transmittance => 0,
-            ScatterStencil::Paper => 1,
-            ScatterStencil::FreePath => 2,
-        },
-        _padding: 0,
+        light_n: cloud.settings.light_resolution(),
+        light_count: light_count as u32,
         grid_origin: bounds.centre - bounds.side * 0.5,
         h: bounds.side / n as f32,
         grid_centre: bounds.centre,
         k_local: cloud.extinction * cloud.scale(),
         albedo: cloud.albedo,
         forward_scattering: cloud.settings.forward_scattering,
+        supersampling: cloud.settings.light_supersampling,
+        _padding: 0,
     }
 }

@@ -1,0 +1,278 @@
+//! `--decompose`: the real-time transport split into its parts, each compared with the same part
+//! of the path tracer, which splits its paths by scattering order (issue #9's error
+//! decomposition). Computed with the f64 CPU references of the real-time passes
+//! (docs/illumination.md), which the GPU matches within 2e-4 of the maximum (tests/illumination.rs,
+//! tests/draw.rs), so no adapter is needed.
+//!
+//! - single scattering (order 1): billboards shading `albedo S_1`, against paths cut after one
+//!   scattering event;
+//! - each order `n >= 2`: billboards shading `albedo S_{n-1}` of the grid, against paths whose
+//!   light scattered exactly `n` times; the orders past `M + 1` against the closure;
+//! - the multiple-scattering part (orders >= 2) as a whole;
+//! - the billboards alone: order 1 drawn from the exact single scattering (the path tracer's
+//!   transmittance towards each light at every shading point), so only the billboard
+//!   approximation (chord segments, particles composited whole in sorted order) is left.
+
+use std::{f64::consts::PI, fmt::Write};
+
+use bevy::math::DVec3;
+use bevy_particle_clouds::{
+    CloudQualitySettings,
+    image_io::LinearImage,
+    reference::{
+        camera::PinholeCamera,
+        composite::{BillboardCloud, CloudPlacement, composite},
+        illumination::{CloudIllumination, LocalLight, illuminate, single_scattering_at},
+        metrics::relative_rmse,
+        path_tracer::{Lighting, ParticleMedia, PathTracerSettings, noise_level, render_orders},
+    },
+    scene::Scene,
+};
+
+use super::downsample;
+
+/// One scene's parts: real-time and path-traced images per order (index 0 unused: the
+/// background), the last entry every order from its own on.
+struct Parts {
+    real_time: Vec<LinearImage>,
+    /// Order 1 drawn by the billboards from the exact single scattering (the path tracer's
+    /// transmittance at every shading point): what the billboards alone cost.
+    exact_single: LinearImage,
+    truth: Vec<LinearImage>,
+    /// The path tracer's two independent halves, for the noise of each part.
+    halves: [Vec<LinearImage>; 2],
+}
+
+fn energy(image: &LinearImage) -> f64 {
+    image
+        .pixels
+        .iter()
+        .map(|p| (p[0] + p[1] + p[2]) as f64)
+        .sum()
+}
+
+fn sum(images: &[LinearImage]) -> LinearImage {
+    let mut out = images[0].clone();
+    for image in &images[1..] {
+        for (o, p) in out.pixels.iter_mut().zip(&image.pixels) {
+            (0..3).for_each(|c| o[c] += p[c]);
+        }
+    }
+    out
+}
+
+/// The real-time image of the light a field of `albedo S` scatters, box-filtered by `factor`.
+fn billboards(
+    scene: &Scene,
+    scattered: &(dyn Fn(DVec3) -> DVec3 + Sync),
+    settings: &CloudQualitySettings,
+    factor: u32,
+) -> LinearImage {
+    let cloud = &scene.clouds[0];
+    let image = composite(
+        &PinholeCamera::from_scene(&scene.camera),
+        DVec3::ZERO,
+        &[],
+        &[BillboardCloud {
+            particles: &cloud.particles,
+            world_from_local: CloudPlacement::at(cloud.translation.as_dvec3()),
+            medium: cloud.medium,
+            scattered,
+            segments: settings.chord_segments,
+        }],
+        1.0,
+    );
+    downsample(
+        &LinearImage {
+            width: scene.camera.width,
+            height: scene.camera.height,
+            pixels: image,
+        },
+        factor,
+    )
+}
+
+/// Order images of the real-time transport: 1 (single), 2..=M+1 (the grid's orders), M+2 (the
+/// closure).
+fn real_time_orders(
+    scene: &Scene,
+    ill: &CloudIllumination,
+    settings: &CloudQualitySettings,
+    factor: u32,
+) -> Vec<LinearImage> {
+    let albedo = ill.albedo;
+    let grid = &ill.grid;
+    let mut images = vec![billboards(
+        scene,
+        &|x| single_scattering_at(&ill.lights, x) * albedo,
+        settings,
+        factor,
+    )];
+    for order in &ill.multiple.orders {
+        images.push(billboards(
+            scene,
+            &|x| grid.sample_clamped(order, x) * albedo,
+            settings,
+            factor,
+        ));
+    }
+    let mut tail = ill.multiple.total.clone();
+    for order in &ill.multiple.orders {
+        tail.iter_mut().zip(order).for_each(|(t, s)| *t -= *s);
+    }
+    images.push(billboards(
+        scene,
+        &|x| grid.sample_clamped(&tail, x) * albedo,
+        settings,
+        factor,
+    ));
+    images
+}
+
+fn parts(scene: &Scene, settings: &CloudQualitySettings, factor: u32, spp: u32) -> Parts {
+    let cloud = &scene.clouds[0];
+    let lights: Vec<LocalLight> = scene
+        .lights
+        .iter()
+        .map(|l| LocalLight::from_world(l, Default::default()))
+        .collect();
+    let ill = illuminate(&cloud.particles, &cloud.medium, 1.0, &lights, settings)
+        .expect("a cloud with density");
+    let real_time = real_time_orders(scene, &ill, settings, factor);
+    let media = ParticleMedia::from_scene(scene);
+    let lighting = Lighting::from_scene(scene);
+    let albedo = ill.albedo;
+    let exact_single = billboards(
+        scene,
+        &|x| {
+            lighting.direct_irradiance(&media, x + cloud.translation.as_dvec3())
+                * (albedo / (4.0 * PI))
+        },
+        settings,
+        factor,
+    );
+    let mut small = scene.clone();
+    small.camera.width /= factor;
+    small.camera.height /= factor;
+    let orders = real_time.len() + 1; // index 0: the background
+    let half = |seed| -> Vec<LinearImage> {
+        render_orders(
+            &small,
+            &PathTracerSettings {
+                samples_per_pixel: spp,
+                seed,
+                progress: true,
+            },
+            orders,
+        )
+        .into_iter()
+        .skip(1)
+        .map(|pixels| LinearImage {
+            width: small.camera.width,
+            height: small.camera.height,
+            pixels,
+        })
+        .collect()
+    };
+    let halves = [half(1), half(2)];
+    let truth = halves[0]
+        .iter()
+        .zip(&halves[1])
+        .map(|(a, b)| {
+            let mut mean = a.clone();
+            for (m, p) in mean.pixels.iter_mut().zip(&b.pixels) {
+                (0..3).for_each(|c| m[c] = 0.5 * (m[c] + p[c]));
+            }
+            mean
+        })
+        .collect();
+    Parts {
+        real_time,
+        exact_single,
+        truth,
+        halves,
+    }
+}
+
+/// Relative RMSE of `x` against the mean of the two halves, and the mean's noise.
+fn error(x: &LinearImage, truth: &LinearImage, halves: [&LinearImage; 2]) -> (f64, f64) {
+    let noise = noise_level(&halves[0].pixels, &halves[1].pixels) / std::f64::consts::SQRT_2;
+    (relative_rmse(&x.pixels, &truth.pixels), noise)
+}
+
+/// The markdown section of one scene.
+pub fn decompose(
+    name: &str,
+    scene: &Scene,
+    settings: &CloudQualitySettings,
+    factor: u32,
+    spp: u32,
+) -> String {
+    let p = parts(scene, settings, factor, spp);
+    let mut s = format!(
+        "\n### {name}\n\nReference: 2 × {spp} spp at {}×{}. Settings: `{settings:?}`.\n\n",
+        scene.camera.width / factor,
+        scene.camera.height / factor
+    );
+    let multiple = |images: &[LinearImage]| sum(&images[1..]);
+    let rows = [
+        ("single scattering (order 1)", {
+            error(
+                &p.real_time[0],
+                &p.truth[0],
+                [&p.halves[0][0], &p.halves[1][0]],
+            )
+        }),
+        ("order 1, billboards shading the exact S_1", {
+            error(
+                &p.exact_single,
+                &p.truth[0],
+                [&p.halves[0][0], &p.halves[1][0]],
+            )
+        }),
+        ("multiple scattering (orders ≥ 2)", {
+            let (a, b) = (multiple(&p.halves[0]), multiple(&p.halves[1]));
+            error(&multiple(&p.real_time), &multiple(&p.truth), [&a, &b])
+        }),
+        ("everything", {
+            let (a, b) = (sum(&p.halves[0]), sum(&p.halves[1]));
+            error(&sum(&p.real_time), &sum(&p.truth), [&a, &b])
+        }),
+    ];
+    s.push_str("| part | relative RMSE | reference noise | denoised | energy real-time / truth |\n|---|---:|---:|---:|---:|\n");
+    let energies = [
+        energy(&p.real_time[0]) / energy(&p.truth[0]),
+        energy(&p.exact_single) / energy(&p.truth[0]),
+        energy(&multiple(&p.real_time)) / energy(&multiple(&p.truth)),
+        energy(&sum(&p.real_time)) / energy(&sum(&p.truth)),
+    ];
+    for ((label, (e, noise)), ratio) in rows.iter().zip(energies) {
+        let _ = writeln!(
+            s,
+            "| {label} | {e:.4} | {noise:.4} | {:.4} | {ratio:.3} |",
+            (e * e - noise * noise).max(0.0).sqrt()
+        );
+    }
+    s.push_str("\n| order | energy real-time | energy truth | real-time / truth | λ real-time | λ truth |\n|---|---:|---:|---:|---:|---:|\n");
+    let last = p.real_time.len() - 1;
+    for (n, (rt, truth)) in p.real_time.iter().zip(&p.truth).enumerate() {
+        let (e_rt, e_tr) = (energy(rt), energy(truth));
+        let lambda = |images: &[LinearImage]| {
+            (n > 0 && n < last).then(|| energy(&images[n]) / energy(&images[n - 1]))
+        };
+        let fmt = |v: Option<f64>| v.map_or("".into(), |v| format!("{v:.3}"));
+        let label = if n == last {
+            format!("≥ {} (closure)", n + 1)
+        } else {
+            format!("{}", n + 1)
+        };
+        let _ = writeln!(
+            s,
+            "| {label} | {e_rt:.4e} | {e_tr:.4e} | {:.3} | {} | {} |",
+            e_rt / e_tr,
+            fmt(lambda(&p.real_time)),
+            fmt(lambda(&p.truth)),
+        );
+    }
+    s
+}

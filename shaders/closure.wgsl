@@ -1,0 +1,56 @@
+// Closing the scattering series (docs/illumination.md §4): the orders past M are taken as
+// geometric with the per-channel ratio of the last two, lambda = sum rho S_M / sum rho S_{M-1},
+// and S_M lambda / (1 - lambda) is added to the multiple-scattering volume.
+#import bevy_particle_clouds::types::{CloudParams, flat_invocation}
+
+@group(0) @binding(0) var<uniform> cloud: CloudParams;
+@group(0) @binding(1) var<storage, read> density: array<f32>;
+// S_M and S_{M-1}.
+@group(0) @binding(2) var<storage, read> last: array<vec4<f32>>;
+@group(0) @binding(3) var<storage, read> before: array<vec4<f32>>;
+@group(0) @binding(4) var<storage, read_write> multiple: array<vec4<f32>>;
+// lambda per channel (xyz).
+@group(0) @binding(5) var<storage, read_write> ratio: array<vec4<f32>>;
+
+const MAX_ORDER_RATIO: f32 = 0.995;
+const THREADS: u32 = 256u;
+
+var<workgroup> numerators: array<vec3<f32>, THREADS>;
+var<workgroup> denominators: array<vec3<f32>, THREADS>;
+
+// One workgroup: the two density-weighted sums, then lambda.
+@compute @workgroup_size(256)
+fn order_ratio(@builtin(local_invocation_index) i: u32) {
+    let voxels = cloud.n * cloud.n * cloud.n;
+    var numerator = vec3(0.0);
+    var denominator = vec3(0.0);
+    for (var v = i; v < voxels; v += THREADS) {
+        numerator += density[v] * last[v].xyz;
+        denominator += density[v] * before[v].xyz;
+    }
+    numerators[i] = numerator;
+    denominators[i] = denominator;
+    workgroupBarrier();
+    for (var stride = THREADS / 2u; stride > 0u; stride /= 2u) {
+        if i < stride {
+            numerators[i] += numerators[i + stride];
+            denominators[i] += denominators[i + stride];
+        }
+        workgroupBarrier();
+    }
+    if i == 0u {
+        let den = denominators[0];
+        let lambda = clamp(numerators[0] / max(den, vec3(1e-30)), vec3(0.0), vec3(MAX_ORDER_RATIO));
+        ratio[0] = vec4(select(vec3(0.0), lambda, den > vec3(0.0)), 0.0);
+    }
+}
+
+@compute @workgroup_size(64)
+fn extrapolate(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let v = flat_invocation(id, groups);
+    if v >= cloud.n * cloud.n * cloud.n {
+        return;
+    }
+    let lambda = ratio[0].xyz;
+    multiple[v] += vec4(last[v].xyz * (lambda / (1.0 - lambda)), 0.0);
+}
