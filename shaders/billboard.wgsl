@@ -3,7 +3,7 @@
 // ray through the particle's kernel. The colour is the light scattered along that chord, taken at
 // `segments` points (PHYSICS.md; docs/illumination.md §5).
 #import bevy_render::view::View
-#import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, PI, grid_coords, light_coords, clamped_lookup, clamped_corner, corner_weight}
+#import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, PI, grid_coords, light_coords, clamped_lookup, clamped_corner, corner_weight, opacity}
 
 struct DrawParams {
     world_from_local: mat4x4<f32>,
@@ -156,11 +156,11 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     for (var k = 1u; k <= params.segments; k++) {
         let end = s0 + ds * f32(k);
         let depth_after = chord_integral(end, q, radius);
-        let opacity = 1.0 - exp(-max(sigma * (depth_after - depth_before), 0.0));
+        let segment = opacity(max(sigma * (depth_after - depth_before), 0.0));
         let x = eye + (t_c + end - 0.5 * ds) * w;
         let local = (params.local_from_world * vec4(x, 1.0)).xyz;
-        colour += transmittance * opacity * scattered_at(local);
-        transmittance *= 1.0 - opacity;
+        colour += transmittance * segment * scattered_at(local);
+        transmittance *= 1.0 - segment;
         depth_before = depth_after;
     }
     let alpha = 1.0 - transmittance;

@@ -1,13 +1,16 @@
-// Gather: the multiple-scattering source S_0 of every density voxel, the density-weighted mean of
-// the single scattering S_1 = (1 / 4 pi) sum_l E_l exp(-tau_l) over the voxel's f^3 sub-points,
-// all lights in one dispatch (docs/illumination.md §3).
-#import bevy_particle_clouds::types::{CloudParams, LightParams, PI, voxel_index, grid_coords, light_coords, clamped_lookup, clamped_corner, zero_border_lookup, corner_weight, corner_voxel}
+// Gather: for every voxel of the scattering grid, its density (the mean of its f^3 children in
+// the fine grid, docs/illumination.md §1) and its multiple-scattering source S_0, the
+// density-weighted mean over those children of the single scattering
+// S_1 = (1 / 4 pi) sum_l E_l exp(-tau_l), all lights in one dispatch (§3).
+#import bevy_particle_clouds::types::{CloudParams, LightParams, PI, voxel_index, light_coords, clamped_lookup, clamped_corner, corner_weight}
 
 @group(0) @binding(0) var<uniform> cloud: CloudParams;
 @group(0) @binding(1) var<storage, read> lights: array<LightParams>;
 @group(0) @binding(2) var<storage, read> optical_depth: array<f32>;
-@group(0) @binding(3) var<storage, read> density: array<f32>;
-@group(0) @binding(4) var<storage, read_write> source: array<vec4<f32>>;
+// The fine density grid, light_n^3 voxels.
+@group(0) @binding(3) var<storage, read> fine_density: array<f32>;
+@group(0) @binding(4) var<storage, read_write> density: array<f32>;
+@group(0) @binding(5) var<storage, read_write> source: array<vec4<f32>>;
 
 // S_1 at a cloud-local point. (billboard.wgsl evaluates the same sum at its shading points.)
 fn single_scattering_at(p: vec3<f32>) -> vec3<f32> {
@@ -24,18 +27,6 @@ fn single_scattering_at(p: vec3<f32>) -> vec3<f32> {
     return sum / (4.0 * PI);
 }
 
-fn density_at(p: vec3<f32>) -> f32 {
-    let t = zero_border_lookup(grid_coords(cloud, p));
-    var sum = 0.0;
-    for (var corner = 0u; corner < 8u; corner++) {
-        let i = corner_voxel(t, corner, cloud.n);
-        if i >= 0 {
-            sum += corner_weight(t, corner) * density[i];
-        }
-    }
-    return sum;
-}
-
 @compute @workgroup_size(4, 4, 4)
 fn gather(@builtin(global_invocation_id) id: vec3<u32>) {
     let n = cloud.n;
@@ -43,19 +34,21 @@ fn gather(@builtin(global_invocation_id) id: vec3<u32>) {
         return;
     }
     let f = cloud.supersampling;
-    let centre = cloud.grid_origin + (vec3<f32>(id) + 0.5) * cloud.h;
+    let fine_h = cloud.h / f32(f);
     var weighted = vec3(0.0);
     var mass = 0.0;
     var plain = vec3(0.0);
     for (var s = 0u; s < f * f * f; s++) {
-        let sub = vec3(s % f, (s / f) % f, s / (f * f));
-        let p = centre + ((vec3<f32>(sub) + 0.5) / f32(f) - 0.5) * cloud.h;
+        let child = id * f + vec3(s % f, (s / f) % f, s / (f * f));
+        let p = cloud.grid_origin + (vec3<f32>(child) + 0.5) * fine_h;
         let scattered = single_scattering_at(p);
-        let rho = density_at(p);
+        let rho = fine_density[voxel_index(child, cloud.light_n)];
         weighted += rho * scattered;
         mass += rho;
         plain += scattered;
     }
-    let mean = select(plain / f32(f * f * f), weighted / mass, mass > 0.0);
-    source[voxel_index(id, n)] = vec4(mean, 0.0);
+    let children = f32(f * f * f);
+    let i = voxel_index(id, n);
+    density[i] = mass / children;
+    source[i] = vec4(select(plain / children, weighted / mass, mass > 0.0), 0.0);
 }

@@ -124,3 +124,11 @@ fn clamped_corner(t: Trilinear, corner: u32, n: u32) -> u32 {
     let o = vec3<u32>(corner & 1u, (corner >> 1u) & 1u, corner >> 2u);
     return voxel_index(min(vec3<u32>(t.base) + o, vec3(n - 1u)), n);
 }
+
+// Opacity 1 - exp(-tau), without f32 cancellation for thin segments (series below 0.02).
+fn opacity(tau: f32) -> f32 {
+    if tau < 0.02 {
+        return tau * (1.0 - tau * (0.5 - tau / 6.0));
+    }
+    return 1.0 - exp(-tau);
+}

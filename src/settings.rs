@@ -44,10 +44,11 @@ pub struct CloudQualitySettings {
     pub forward_scattering: f32,
     /// The multiple-scattering stencil. Default [`ScatterStencil::DiscreteOrdinates`].
     pub scatter_stencil: ScatterStencil,
-    /// Each light's optical-depth volume has `volume_resolution * light_supersampling` voxels per
-    /// side (at most `MAX_VOLUME_RESOLUTION`): single scattering, which the billboards evaluate
-    /// straight from these volumes, is sharper than the multiple-scattering grid. Allowed:
-    /// `1..=MAX_LIGHT_SUPERSAMPLING`. Default 2.
+    /// The density the lights shine through and each light's optical-depth volume have
+    /// `volume_resolution * light_supersampling` voxels per side (the factor lowered until that is
+    /// at most `MAX_VOLUME_RESOLUTION`; see [`Self::light_resolution`]). Single scattering, which
+    /// the billboards evaluate straight from these volumes, is then sharper than the
+    /// multiple-scattering grid. Allowed: `1..=MAX_LIGHT_SUPERSAMPLING`. Default 2.
     pub light_supersampling: u32,
     /// Segments `K` of each pixel's chord through a particle at which the billboard evaluates the
     /// illumination (a big particle shows its lit and its dark side). Alpha is exact whatever
@@ -81,10 +82,17 @@ impl Default for CloudQualitySettings {
 }
 
 impl CloudQualitySettings {
-    /// Voxels per side of each light's optical-depth volume:
-    /// `volume_resolution * light_supersampling`, at most `MAX_VOLUME_RESOLUTION`.
+    /// The supersampling factor in effect: `light_supersampling`, lowered (to 1 at least) until
+    /// `volume_resolution` times it is at most `MAX_VOLUME_RESOLUTION`.
+    pub fn supersampling(&self) -> u32 {
+        let fits = (MAX_VOLUME_RESOLUTION / self.volume_resolution.max(1)).max(1);
+        self.light_supersampling.clamp(1, fits)
+    }
+
+    /// Voxels per side of the fine density grid and of each light's optical-depth volume:
+    /// `volume_resolution * supersampling()`.
     pub fn light_resolution(&self) -> u32 {
-        (self.volume_resolution * self.light_supersampling.max(1)).min(MAX_VOLUME_RESOLUTION)
+        self.volume_resolution * self.supersampling()
     }
 }
 

@@ -253,15 +253,15 @@ fn assert_images_match(gpu: &LinearImage, cpu: &[[f32; 4]], what: &str) {
         .zip(cpu)
         .flat_map(|(g, c)| (0..3).map(move |i| (g[i] - c[i]).abs()))
         .fold(0.0, f32::max);
-    // f16 output (2^-11 relative: measured RMSE 4e-4 to 2e-3) and f32 illumination; rasterisation
-    // samples pixel centres as the CPU does.
+    // f16 output (2^-11 relative: measured RMSE 4e-4 to 2.5e-3, the most with the camera inside
+    // the cloud) and f32 illumination; rasterisation samples pixel centres as the CPU does.
     eprintln!("{what}: relative RMSE {error:e}, worst {worst:e} of max {max}");
     assert!(
         error < 3e-3,
         "{what}: relative RMSE {error} against the CPU billboards"
     );
     assert!(
-        worst < 4e-3 * max,
+        worst < 5e-3 * max,
         "{what}: worst pixel differs by {worst} (max radiance {max})"
     );
 }

@@ -1,6 +1,6 @@
 //! The GPU illumination volumes against the f64 CPU reference (docs/illumination.md), voxel by
-//! voxel: density, each light's optical depth, the scattering source, the closure's order ratio
-//! and the multiple scattering.
+//! voxel: the fine and the scattering grid's density, each light's optical depth, the scattering
+//! source, the closure's order ratio and the multiple scattering.
 //!
 //! Storage is 32-bit float everywhere (RGBA32F / R32F buffers). The GPU sums in f32 with float
 //! atomics in arbitrary order and multiplies `n` slice attenuations, so its error relative to the
@@ -93,13 +93,14 @@ fn check(case: Case) {
     };
     headless::render_until_steady(&mut app, &mut FrameRecorder::default(), &target, 20);
 
-    let (density, depths, source, ratio, multiple) =
+    let (fine_density, density, depths, source, ratio, multiple) =
         headless::with_render_world(&mut app, |world| {
             let volumes = world
                 .query::<&CloudVolumes>()
                 .single(world)
                 .expect("one cloud's volumes");
             (
+                volumes.fine_density.clone(),
                 volumes.density.clone(),
                 volumes.optical_depth.clone(),
                 volumes.source.clone(),
@@ -113,6 +114,7 @@ fn check(case: Case) {
             .map(f64::from)
             .collect()
     };
+    let gpu_fine_density = read_f64(&mut app, &fine_density);
     let gpu_density = read_f64(&mut app, &density);
     let gpu_depths = read_f64(&mut app, &depths);
     let gpu_source = rgb(&headless::read_buffer(&mut app, &source));
@@ -144,6 +146,10 @@ fn check(case: Case) {
         .flat_map(|(v, _)| v.optical_depth.iter().copied())
         .collect();
     let mut errors = vec![
+        (
+            "fine density",
+            relative_error(&gpu_fine_density[..m3], &cpu.fine.rho),
+        ),
         ("density", relative_error(&gpu_density[..n3], &cpu.grid.rho)),
         (
             "optical depth",
@@ -247,7 +253,7 @@ fn eight_random_lights_with_the_paper_stencil() {
 }
 
 #[test]
-fn forward_scattering_and_a_light_along_the_view() {
+fn forward_scattering_supersampling_3_and_a_light_along_the_view() {
     check(Case {
         particles: random_particles(4, 80),
         medium: Medium {
@@ -261,6 +267,7 @@ fn forward_scattering_and_a_light_along_the_view() {
         transform: Transform::IDENTITY,
         settings: CloudQualitySettings {
             forward_scattering: 0.5,
+            light_supersampling: 3,
             ..headless::quality(20, 2)
         },
     });

@@ -1268,7 +1268,17 @@ fn main() -> ExitCode {
 
 /// `--decompose`: every chosen scene's error at the default settings, part by part.
 fn decomposition(args: &Args, chosen: &[&BenchScene]) -> Result<(), String> {
-    let settings = CloudQualitySettings::default();
+    let settings = CloudQualitySettings {
+        volume_resolution: std::env::var("DECOMPOSE_N")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(32),
+        light_supersampling: std::env::var("DECOMPOSE_L")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(2),
+        ..default()
+    };
     let mut md = String::from(
         "The default settings' error split by scattering order (`cargo run --example benchmark -- \
          --decompose`), computed with the f64 CPU references of the real-time passes (which the GPU \

@@ -162,6 +162,27 @@ impl DensityGrid {
     pub fn mass(&self) -> f64 {
         self.rho.iter().sum::<f64>() * self.h.powi(3)
     }
+
+    /// The same cube at `n / f` voxels per side, each the mean of its `f³` children (mass-exact;
+    /// contract section 1). `f` must divide `n`.
+    pub fn downsample(&self, f: usize) -> DensityGrid {
+        assert!(f > 0 && self.n % f == 0, "{f} must divide {}", self.n);
+        let n = self.n / f;
+        let mut rho = vec![0.0; n * n * n];
+        for (idx, value) in self.rho.iter().enumerate() {
+            let (i, j, k) = unravel(idx, self.n);
+            rho[i / f + n * (j / f + n * (k / f))] += value;
+        }
+        let children = (f * f * f) as f64;
+        rho.iter_mut().for_each(|r| *r /= children);
+        DensityGrid {
+            n,
+            centre: self.centre,
+            side: self.side,
+            h: self.h * f as f64,
+            rho,
+        }
+    }
 }
 
 /// Bounds `(lo, hi)` of the supports of the particles with `density > 0`, if any.
@@ -479,37 +500,26 @@ pub fn single_scattering_at(lights: &[(LightVolume, DVec3)], p: DVec3) -> DVec3 
     }) / (4.0 * PI)
 }
 
-/// Offsets of the `f³` sub-points of a scattering voxel, in voxels from its centre:
-/// `(s + 0.5) / f - 0.5` per axis, `s` in `0..f`.
-fn sub_points(f: usize) -> Vec<DVec3> {
-    let axis = |s: usize| (s as f64 + 0.5) / f as f64 - 0.5;
-    (0..f * f * f)
-        .map(|i| {
-            let (a, b, c) = unravel(i, f);
-            DVec3::new(axis(a), axis(b), axis(c))
-        })
-        .collect()
-}
-
-/// The multiple-scattering source `S_0` of every density voxel (contract section 3): the
-/// density-weighted mean of [`single_scattering_at`] over the voxel's `f³` sub-points
-/// (`f = supersampling`), or their plain mean where the density is zero at all of them. Lights
-/// with zero irradiance may be left out.
+/// The multiple-scattering source `S_0` of every voxel of `grid` (contract section 3): the
+/// density-weighted mean of [`single_scattering_at`] over the centres of its `f³` children in
+/// `fine` (`f = fine.n / grid.n`), weighted by their density, or their plain mean where all of
+/// them are empty. Lights with zero irradiance may be left out.
 pub fn gather(
     grid: &DensityGrid,
+    fine: &DensityGrid,
     lights: &[(LightVolume, DVec3)],
-    supersampling: usize,
 ) -> Vec<DVec3> {
-    let offsets = sub_points(supersampling.max(1));
+    let f = fine.n / grid.n;
     (0..grid.len())
         .into_par_iter()
         .map(|idx| {
-            let centre = grid.voxel_centre_linear(idx);
+            let (i, j, k) = unravel(idx, grid.n);
             let (mut weighted, mut mass, mut plain) = (DVec3::ZERO, 0.0, DVec3::ZERO);
-            for o in &offsets {
-                let p = centre + *o * grid.h;
-                let s = single_scattering_at(lights, p);
-                let rho = grid.sample(p);
+            for child in 0..f * f * f {
+                let (a, b, c) = unravel(child, f);
+                let (fi, fj, fk) = (i * f + a, j * f + b, k * f + c);
+                let s = single_scattering_at(lights, fine.voxel_centre(fi, fj, fk));
+                let rho = fine.rho[fine.index(fi, fj, fk)];
                 weighted += s * rho;
                 mass += rho;
                 plain += s;
@@ -517,7 +527,7 @@ pub fn gather(
             if mass > 0.0 {
                 weighted / mass
             } else {
-                plain / offsets.len() as f64
+                plain / (f * f * f) as f64
             }
         })
         .collect()
@@ -773,8 +783,11 @@ impl LocalLight {
 /// Everything [`illuminate`] computed for one cloud.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CloudIllumination {
-    /// The density grid (section 1).
+    /// The scattering grid's density (section 1), `volume_resolution` voxels per side.
     pub grid: DensityGrid,
+    /// The fine density grid the lights are shaded through (section 1), `light_resolution()`
+    /// voxels per side.
+    pub fine: DensityGrid,
     /// Local extinction `K_local = K s` used, 1/local metre.
     pub k_local: f64,
     /// The medium's albedo used.
@@ -801,7 +814,8 @@ pub fn illuminate(
     lights_local: &[LocalLight],
     settings: &CloudQualitySettings,
 ) -> Option<CloudIllumination> {
-    let grid = voxelize(particles, settings.volume_resolution as usize)?;
+    let fine = voxelize(particles, settings.light_resolution() as usize)?;
+    let grid = fine.downsample(settings.supersampling() as usize);
     let inputs = ShadeInputs {
         k_local: medium.extinction as f64 * scale,
         albedo: medium.albedo as f64,
@@ -811,9 +825,9 @@ pub fn illuminate(
     let lights: Vec<(LightVolume, DVec3)> = lights_local
         .iter()
         .filter(|l| l.irradiance != DVec3::ZERO && l.direction.try_normalize().is_some())
-        .map(|l| (shade(&grid, &inputs, l.direction), l.irradiance))
+        .map(|l| (shade(&fine, &inputs, l.direction), l.irradiance))
         .collect();
-    let source = gather(&grid, &lights, settings.light_supersampling as usize);
+    let source = gather(&grid, &fine, &lights);
     let multiple = scatter(
         &grid,
         inputs.k_local,
@@ -824,6 +838,7 @@ pub fn illuminate(
     );
     Some(CloudIllumination {
         grid,
+        fine,
         k_local: inputs.k_local,
         albedo: inputs.albedo,
         lights,
@@ -1177,7 +1192,7 @@ mod tests {
         let grid = voxelize(&particles, 12).unwrap();
         let k = 4.0 / (grid.max() * grid.h); // ~4 mean free paths per voxel at the densest
         let vol = shade(&grid, &inputs(k, 0.99, 0.0, 12), DVec3::new(0.2, -1.0, 0.1));
-        let s0 = gather(&grid, &[(vol, DVec3::ONE)], 1);
+        let s0 = gather(&grid, &grid, &[(vol, DVec3::ONE)]);
         let total = |m: Vec<DVec3>| -> f64 { m.iter().zip(&grid.rho).map(|(s, r)| s.x * r).sum() };
         let short = scatter(&grid, k, 0.99, ScatterStencil::DiscreteOrdinates, &s0, 8);
         let long = scatter(&grid, k, 0.99, ScatterStencil::DiscreteOrdinates, &s0, 400);
@@ -1197,10 +1212,11 @@ mod tests {
     #[test]
     fn scatter_with_albedo_one_stays_below_energy_bound() {
         let particles = random_cloud(30, 11);
-        let grid = voxelize(&particles, 12).unwrap();
+        let fine = voxelize(&particles, 24).unwrap();
+        let grid = fine.downsample(2);
         for k in [3.0 / (grid.max() * grid.h), 500.0] {
-            let vol = shade(&grid, &inputs(k, 1.0, 0.0, 24), DVec3::new(0.2, -1.0, 0.1));
-            let s0 = gather(&grid, &[(vol, DVec3::new(1.0, 0.8, 0.5))], 2);
+            let vol = shade(&fine, &inputs(k, 1.0, 0.0, 24), DVec3::new(0.2, -1.0, 0.1));
+            let s0 = gather(&grid, &fine, &[(vol, DVec3::new(1.0, 0.8, 0.5))]);
             let max_s0 = max_component(&s0);
             for stencil in [ScatterStencil::DiscreteOrdinates, ScatterStencil::Paper] {
                 for iterations in [1, 8, 1000] {
@@ -1230,36 +1246,59 @@ mod tests {
     }
 
     #[test]
-    fn gather_weights_sub_points_by_density() {
-        // One lit voxel column: with uniform density the source is the plain mean of the
-        // sub-points; f = 1 samples the voxel centre.
+    fn downsampling_keeps_mass_and_averages_children() {
+        let particles = random_cloud(25, 4);
+        let fine = voxelize(&particles, 16).unwrap();
+        let coarse = fine.downsample(4);
+        assert_eq!((coarse.n, coarse.h), (4, fine.h * 4.0));
+        assert!((coarse.mass() - fine.mass()).abs() < 1e-12 * fine.mass());
+        let children: f64 = (0..4)
+            .flat_map(|k| (0..4).flat_map(move |j| (0..4).map(move |i| (i, j, k))))
+            .map(|(i, j, k)| fine.rho[fine.index(4 + i, 8 + j, 12 + k)])
+            .sum();
+        assert!((coarse.rho[coarse.index(1, 2, 3)] - children / 64.0).abs() < 1e-12);
+        assert_eq!(fine.downsample(1), fine);
+    }
+
+    #[test]
+    fn gather_weights_the_children_by_their_density() {
         let particles = random_cloud(20, 17);
-        let grid = voxelize(&particles, 8).unwrap();
+        let fine = voxelize(&particles, 16).unwrap();
         let vol = shade(
-            &grid,
+            &fine,
             &inputs(3.0, 0.9, 0.0, 16),
             DVec3::new(0.3, -1.0, 0.2),
         );
         let lights = [(vol, DVec3::new(1.0, 2.0, 3.0))];
-        let centre = gather(&grid, &lights, 1);
-        for idx in [0, 100, 300] {
-            let x = grid.voxel_centre_linear(idx);
-            assert!((centre[idx] - single_scattering_at(&lights, x)).length() < 1e-15);
+        // Without supersampling the source is S_1 at the voxel centre.
+        let same = gather(&fine, &fine, &lights);
+        for idx in [0, 100, 3000] {
+            let x = fine.voxel_centre_linear(idx);
+            assert!((same[idx] - single_scattering_at(&lights, x)).length() < 1e-15);
         }
-        let uniform = uniform_grid(8, 1.0);
-        let vol = shade(&uniform, &inputs(0.5, 0.9, 0.0, 16), DVec3::NEG_Y);
-        let lights = [(vol, DVec3::ONE)];
-        let fine = gather(&uniform, &lights, 2);
-        let idx = uniform.index(3, 4, 5);
-        let x = uniform.voxel_centre_linear(idx);
-        let mean = sub_points(2)
-            .iter()
-            .map(|o| single_scattering_at(&lights, x + *o))
-            .sum::<DVec3>()
-            / 8.0;
-        assert!((fine[idx] - mean).length() < 1e-15);
-        // Deeper sub-points are darker, and the mean sits between them.
-        assert!(fine[idx].x < single_scattering_at(&lights, x + DVec3::new(0.0, 0.25, 0.0)).x);
+        // With f = 2, each child's S_1 weighted by its density.
+        let grid = fine.downsample(2);
+        let source = gather(&grid, &fine, &lights);
+        let (mut checked, mut differs) = (0, false);
+        for idx in 0..grid.len() {
+            let (i, j, k) = unravel(idx, grid.n);
+            let (mut weighted, mut mass) = (DVec3::ZERO, 0.0);
+            for c in 0..8 {
+                let (a, b, cc) = unravel(c, 2);
+                let (fi, fj, fk) = (2 * i + a, 2 * j + b, 2 * k + cc);
+                let rho = fine.rho[fine.index(fi, fj, fk)];
+                weighted += single_scattering_at(&lights, fine.voxel_centre(fi, fj, fk)) * rho;
+                mass += rho;
+            }
+            if mass > 0.0 {
+                let expected = weighted / mass;
+                assert!((source[idx] - expected).length() < 1e-12 * expected.length().max(1e-300));
+                let centre = single_scattering_at(&lights, grid.voxel_centre_linear(idx));
+                differs |= (source[idx] - centre).length() > 1e-3 * centre.length();
+                checked += 1;
+            }
+        }
+        assert!(checked > 50 && differs, "{checked} voxels with density");
     }
 
     #[test]

@@ -107,11 +107,12 @@ pub(crate) fn illuminate_clouds(
         .filter_map(|(cloud, v)| Some((particles.get(cloud.particles)?, v)))
         .collect();
 
-    // Voxelize (docs/illumination.md §1): clear, then every particle deposits its mass.
+    // Voxelize (docs/illumination.md §1): clear, then every particle deposits its mass into the
+    // fine grid.
     let voxelizing: Vec<_> = clouds.iter().filter(|(_, v)| v.plan.voxelize).collect();
     if !voxelizing.is_empty() {
         for (_, v) in &voxelizing {
-            ctx.command_encoder().clear_buffer(&v.density, 0, None);
+            ctx.command_encoder().clear_buffer(&v.fine_density, 0, None);
         }
         record_stage(
             &mut ctx,
@@ -124,9 +125,9 @@ pub(crate) fn illuminate_clouds(
                     let group = bind(
                         &pipelines.voxelize,
                         &BindGroupEntries::sequential((
-                            v.params_buffer.as_entire_binding(),
+                            v.fine_params_buffer.as_entire_binding(),
                             gpu.buffer.as_entire_binding(),
-                            v.density.as_entire_binding(),
+                            v.fine_density.as_entire_binding(),
                         )),
                     );
                     pass.set_bind_group(0, &group, &[]);
@@ -154,9 +155,9 @@ pub(crate) fn illuminate_clouds(
                         let group = bind(
                             shade_stage,
                             &BindGroupEntries::sequential((
-                                v.params_buffer.as_entire_binding(),
+                                v.fine_params_buffer.as_entire_binding(),
                                 v.lights[i].params.as_entire_binding(),
-                                v.density.as_entire_binding(),
+                                v.fine_density.as_entire_binding(),
                                 v.optical_depth.as_entire_binding(),
                             )),
                         );
@@ -175,7 +176,8 @@ pub(crate) fn illuminate_clouds(
         );
     }
 
-    // Gather (§3): every light's single scattering into the scattering source S_0.
+    // Gather (§1, §3): the scattering grid's density, and every light's single scattering into
+    // its source S_0.
     if clouds.iter().any(|(_, v)| v.plan.gather) {
         record_stage(
             &mut ctx,
@@ -192,6 +194,7 @@ pub(crate) fn illuminate_clouds(
                             v.params_buffer.as_entire_binding(),
                             v.light_array.as_entire_binding(),
                             v.optical_depth.as_entire_binding(),
+                            v.fine_density.as_entire_binding(),
                             v.density.as_entire_binding(),
                             v.source.as_entire_binding(),
                         )),

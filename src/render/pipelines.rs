@@ -174,7 +174,7 @@ pub(crate) fn init_illumination_pipelines(
         "particle_clouds_gather_layout",
         &BindGroupLayoutEntries::sequential(
             ShaderStages::COMPUTE,
-            (uniform(), read(), read(), read(), write()),
+            (uniform(), read(), read(), read(), write(), write()),
         ),
     );
     let scatter = BindGroupLayoutDescriptor::new(

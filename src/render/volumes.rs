@@ -142,7 +142,14 @@ pub struct CloudVolumes {
     pub params: CloudParams,
     /// The `CloudParams` uniform.
     pub params_buffer: Buffer,
-    /// `n³` f32 density (written as atomic u32 bits by voxelize).
+    /// The fine grid's uniform: `CloudParams` with `m` voxels per side of size `h / f`.
+    pub fine_params: CloudParams,
+    /// Its buffer (voxelize and shade).
+    pub fine_params_buffer: Buffer,
+    /// `m³` f32 fine density (written as atomic u32 bits by voxelize), what the lights shine
+    /// through.
+    pub fine_density: Buffer,
+    /// `n³` f32 density of the scattering grid (the mean of each voxel's children, by gather).
     pub density: Buffer,
     /// `n³` vec4 multiple-scattering source `S_0`.
     pub source: Buffer,
@@ -222,18 +229,30 @@ pub fn storage_bytes<T: ShaderType + encase::internal::WriteInto + encase::Shade
 }
 
 impl CloudVolumes {
-    fn new(device: &RenderDevice, n: u32, particle_count: u32) -> Self {
+    fn new(device: &RenderDevice, n: u32, m: u32, particle_count: u32) -> Self {
         let voxels = (n as u64).pow(3);
         Self {
             params: CloudParams {
                 n,
                 particle_count,
+                light_n: m,
                 ..default()
             },
             params_buffer: uniform(
                 device,
                 "particle_clouds_params",
                 CloudParams::min_size().get(),
+            ),
+            fine_params: CloudParams::default(),
+            fine_params_buffer: uniform(
+                device,
+                "particle_clouds_fine_params",
+                CloudParams::min_size().get(),
+            ),
+            fine_density: storage(
+                device,
+                "particle_clouds_fine_density",
+                (m as u64).pow(3) * 4,
             ),
             density: storage(device, "particle_clouds_density", voxels * 4),
             source: storage(device, "particle_clouds_source", voxels * 16),
@@ -264,8 +283,10 @@ impl CloudVolumes {
         self.plan = WorkPlan::default();
     }
 
-    fn fits(&self, n: u32, particle_count: u32) -> bool {
-        self.params.n == n && self.params.particle_count == particle_count
+    fn fits(&self, n: u32, m: u32, particle_count: u32) -> bool {
+        self.params.n == n
+            && self.params.light_n == m
+            && self.params.particle_count == particle_count
     }
 }
 
@@ -273,9 +294,9 @@ impl CloudVolumes {
 const UNLIT: u64 = 1;
 
 /// Bytes of the largest buffer of one cloud (for the adapter-limit check): an RGBA volume of
-/// `n³`, or the optical depths of `lights` light volumes of `m³`.
+/// `n³`, or the optical depths of `lights` light volumes of `m³` (at least the fine density's `m³`).
 pub fn largest_binding(n: u32, m: u32, lights: usize) -> u64 {
-    ((n as u64).pow(3) * 16).max((m as u64).pow(3) * 4 * lights as u64)
+    ((n as u64).pow(3) * 16).max((m as u64).pow(3) * 4 * lights.max(1) as u64)
 }
 
 /// Decides each visible cloud's work for this frame and writes the uniforms it needs.
@@ -314,11 +335,11 @@ pub(crate) fn prepare_cloud_volumes(
             continue; // cached volumes stay; no work for clouds nobody sees or that are transparent
         }
         match volumes {
-            Some(mut v) if v.fits(n, gpu.count) => {
+            Some(mut v) if v.fits(n, m, gpu.count) => {
                 plan_cloud(&mut v, cloud, gpu, bounds, &lights, &device, &queue)
             }
             _ => {
-                let mut v = CloudVolumes::new(&device, n, gpu.count);
+                let mut v = CloudVolumes::new(&device, n, m, gpu.count);
                 plan_cloud(&mut v, cloud, gpu, bounds, &lights, &device, &queue);
                 commands.entity(entity).insert(v);
             }
@@ -353,7 +374,7 @@ fn plan_cloud(
         return;
     }
 
-    let density_key = key_of((gpu.generation, n));
+    let density_key = key_of((gpu.generation, n, params.light_n));
     if density_key != volumes.density_key {
         plan.voxelize = true;
         volumes.density_key = density_key;
@@ -435,12 +456,27 @@ fn plan_cloud(
             queue.write_buffer(&volumes.params_buffer, 0, &uniform_bytes(&params));
             volumes.params = params;
         }
+        let fine = fine_params(&params);
+        if fine != volumes.fine_params {
+            queue.write_buffer(&volumes.fine_params_buffer, 0, &uniform_bytes(&fine));
+            volumes.fine_params = fine;
+        }
         for (light, slot) in light_params.iter().zip(&volumes.lights) {
             queue.write_buffer(&slot.params, 0, &uniform_bytes(light));
         }
         queue.write_buffer(&volumes.light_array, 0, &storage_bytes(&light_params));
     }
     volumes.plan = plan;
+}
+
+/// The uniform of the fine grid (voxelize and shade): the same cube at `m` voxels per side.
+fn fine_params(params: &CloudParams) -> CloudParams {
+    CloudParams {
+        n: params.light_n,
+        h: params.h / params.supersampling as f32,
+        supersampling: 1,
+        ..*params
+    }
 }
 
 /// The uniform of a cloud's illumination passes.
@@ -462,7 +498,7 @@ fn cloud_params(
         k_local: cloud.extinction * cloud.scale(),
         albedo: cloud.albedo,
         forward_scattering: cloud.settings.forward_scattering,
-        supersampling: cloud.settings.light_supersampling,
+        supersampling: cloud.settings.supersampling(),
         _padding: 0,
     }
 }
