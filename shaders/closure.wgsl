@@ -18,15 +18,22 @@ const THREADS: u32 = 256u;
 var<workgroup> numerators: array<vec3<f32>, THREADS>;
 var<workgroup> denominators: array<vec3<f32>, THREADS>;
 
-// One workgroup: the two density-weighted sums, then lambda.
+// One workgroup: the two density-weighted sums, then lambda. Each thread takes 4 voxels per
+// iteration (a 256^3 grid stays within software rasterisers' 65535 loop iterations).
 @compute @workgroup_size(256)
 fn order_ratio(@builtin(local_invocation_index) i: u32) {
     let voxels = cloud.n * cloud.n * cloud.n;
     var numerator = vec3(0.0);
     var denominator = vec3(0.0);
-    for (var v = i; v < voxels; v += THREADS) {
-        numerator += density[v] * last[v].xyz;
-        denominator += density[v] * before[v].xyz;
+    for (var first = 4u * i; first < voxels; first += 4u * THREADS) {
+        // Unrolled by hand: a nested loop would count against the same limit.
+        let v = min(vec4(first) + vec4(0u, 1u, 2u, 3u), vec4(voxels - 1u));
+        let inside = vec4<f32>(vec4(first) + vec4(0u, 1u, 2u, 3u) < vec4(voxels));
+        let rho = vec4(density[v.x], density[v.y], density[v.z], density[v.w]) * inside;
+        numerator += rho.x * last[v.x].xyz + rho.y * last[v.y].xyz + rho.z * last[v.z].xyz
+            + rho.w * last[v.w].xyz;
+        denominator += rho.x * before[v.x].xyz + rho.y * before[v.y].xyz
+            + rho.z * before[v.z].xyz + rho.w * before[v.w].xyz;
     }
     numerators[i] = numerator;
     denominators[i] = denominator;

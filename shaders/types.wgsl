@@ -31,9 +31,10 @@ struct CloudParams {
     k_local: f32,
     albedo: f32,
     forward_scattering: f32,
-    // Sub-points per axis f of each scattering voxel's source (light_supersampling).
+    // Fine voxels per scattering voxel and axis, f (light_supersampling in effect).
     supersampling: u32,
-    _padding: u32,
+    // Rows per axis of the largest particle's support in the fine grid (the voxelize dispatch).
+    rows: u32,
 }
 
 struct LightParams {

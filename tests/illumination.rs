@@ -293,3 +293,27 @@ fn thick_cloud_at_albedo_one_with_many_iterations_and_no_supersampling() {
         },
     });
 }
+
+#[test]
+fn one_particle_filling_a_fine_grid_of_256_cubed() {
+    // Every voxel of the grid in one particle's support, 256³ fine voxels, 128³ scattering
+    // voxels: voxelize splits the support into rows and the closure's sums stay short, so no
+    // invocation loops past what software rasterisers allow (lavapipe stops at 65535 iterations).
+    check(Case {
+        particles: vec![Particle {
+            position: Vec3::ZERO,
+            radius: 1.0,
+            density: 1.0,
+        }],
+        medium: Medium {
+            extinction: 6.0,
+            albedo: 0.9,
+        },
+        lights: vec![LightSample {
+            direction: Vec3::new(0.3, -1.0, 0.2),
+            irradiance: Vec3::new(1.0, 0.9, 0.8),
+        }],
+        transform: Transform::IDENTITY,
+        settings: headless::quality(128, 2),
+    });
+}

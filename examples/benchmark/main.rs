@@ -140,8 +140,9 @@ struct BenchScene {
     /// reference rendered at the reduced size (the path tracer jitters over whole pixels, so a
     /// reference pixel is exactly the average of the pixels it covers).
     error_downsample: u32,
-    /// Samples per pixel of each of the two reference renders (they are averaged); a quarter of
-    /// this with `--quick`.
+    /// Samples per pixel of each of the two reference renders (they are averaged), chosen so that
+    /// the reference's noise is at most a third of the scene's accuracy goal; a quarter of this
+    /// with `--quick`.
     spp: u32,
     /// Part of `--quick`.
     quick: bool,
@@ -185,7 +186,7 @@ const SCENES: &[BenchScene] = &[
         particle_file: "two_lights.csv",
         generate: round_cloud,
         error_downsample: 2,
-        spp: 2048,
+        spp: 4096,
         quick: true,
     },
     BenchScene {
@@ -193,7 +194,7 @@ const SCENES: &[BenchScene] = &[
         particle_file: "",
         generate: Vec::new,
         error_downsample: 2,
-        spp: 2048,
+        spp: 4096,
         quick: true,
     },
     BenchScene {
@@ -1268,17 +1269,7 @@ fn main() -> ExitCode {
 
 /// `--decompose`: every chosen scene's error at the default settings, part by part.
 fn decomposition(args: &Args, chosen: &[&BenchScene]) -> Result<(), String> {
-    let settings = CloudQualitySettings {
-        volume_resolution: std::env::var("DECOMPOSE_N")
-            .ok()
-            .and_then(|v| v.parse().ok())
-            .unwrap_or(32),
-        light_supersampling: std::env::var("DECOMPOSE_L")
-            .ok()
-            .and_then(|v| v.parse().ok())
-            .unwrap_or(2),
-        ..default()
-    };
+    let settings = CloudQualitySettings::default();
     let mut md = String::from(
         "The default settings' error split by scattering order (`cargo run --example benchmark -- \
          --decompose`), computed with the f64 CPU references of the real-time passes (which the GPU \
@@ -1287,7 +1278,7 @@ fn decomposition(args: &Args, chosen: &[&BenchScene]) -> Result<(), String> {
     );
     for bench in chosen {
         let scene = load_scene(bench)?;
-        let spp = args.spp.unwrap_or(bench.spp / 2);
+        let spp = args.spp.unwrap_or(bench.spp);
         eprintln!(
             "benchmark: {}: decomposing at {spp} spp per half",
             bench.name

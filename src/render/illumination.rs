@@ -108,11 +108,12 @@ pub(crate) fn illuminate_clouds(
         .collect();
 
     // Voxelize (docs/illumination.md §1): clear, then every particle deposits its mass into the
-    // fine grid.
+    // fine grid, one row of its support per invocation: the kernel's sums, then the deposit.
     let voxelizing: Vec<_> = clouds.iter().filter(|(_, v)| v.plan.voxelize).collect();
     if !voxelizing.is_empty() {
         for (_, v) in &voxelizing {
             ctx.command_encoder().clear_buffer(&v.fine_density, 0, None);
+            ctx.command_encoder().clear_buffer(&v.kernel_sums, 0, None);
         }
         record_stage(
             &mut ctx,
@@ -120,18 +121,28 @@ pub(crate) fn illuminate_clouds(
             &counters,
             CloudPass::Voxelize,
             |pass| {
-                pass.set_pipeline(ready.voxelize);
-                for (gpu, v) in &voxelizing {
-                    let group = bind(
-                        &pipelines.voxelize,
-                        &BindGroupEntries::sequential((
-                            v.fine_params_buffer.as_entire_binding(),
-                            gpu.buffer.as_entire_binding(),
-                            v.fine_density.as_entire_binding(),
-                        )),
-                    );
-                    pass.set_bind_group(0, &group, &[]);
-                    dispatch_1d(pass, gpu.count);
+                let groups: Vec<_> = voxelizing
+                    .iter()
+                    .map(|(gpu, v)| {
+                        let group = bind(
+                            &pipelines.voxelize,
+                            &BindGroupEntries::sequential((
+                                v.fine_params_buffer.as_entire_binding(),
+                                gpu.buffer.as_entire_binding(),
+                                v.fine_density.as_entire_binding(),
+                                v.kernel_sums.as_entire_binding(),
+                            )),
+                        );
+                        let rows = v.fine_params.rows;
+                        (group, [gpu.count.div_ceil(64).max(1), rows, rows])
+                    })
+                    .collect();
+                for pipeline in [ready.kernel_sums, ready.voxelize] {
+                    pass.set_pipeline(pipeline);
+                    for (group, [x, y, z]) in &groups {
+                        pass.set_bind_group(0, group, &[]);
+                        pass.dispatch_workgroups(*x, *y, *z);
+                    }
                 }
                 voxelizing.len() as u32
             },

@@ -32,6 +32,8 @@ pub struct CloudBounds {
     pub centre: Vec3,
     /// Side of the cube.
     pub side: f32,
+    /// The largest radius of a particle that carries density, local metres.
+    pub max_radius: f32,
 }
 
 /// A particle set uploaded to the GPU.
@@ -76,9 +78,15 @@ impl RenderAsset for GpuParticles {
             contents: bytemuck::cast_slice(&data),
             usage: BufferUsages::STORAGE | BufferUsages::COPY_DST,
         });
+        let max_radius = source
+            .particles
+            .iter()
+            .filter(|p| p.density > 0.0)
+            .fold(0.0f32, |m, p| m.max(p.radius));
         let bounds = source.bounds().map(|(lo, hi)| CloudBounds {
             centre: (lo + hi) * 0.5,
             side: (hi - lo).max_element(),
+            max_radius,
         });
         Ok(Self {
             buffer,

@@ -83,7 +83,9 @@ pub const SWEEP_DIRECTION_STRIDE: u32 = 256;
 /// The pipelines of the illumination passes.
 #[derive(Resource)]
 pub struct IlluminationPipelines {
-    /// `voxelize.wgsl`, `deposit`.
+    /// `voxelize.wgsl`, `kernel_sums` (voxelize's first pass).
+    pub kernel_sums: ComputeStage,
+    /// `voxelize.wgsl`, `deposit` (same layout as `kernel_sums`).
     pub voxelize: ComputeStage,
     /// `shade.wgsl`, `shade` (incremental).
     pub shade: ComputeStage,
@@ -105,7 +107,9 @@ pub struct IlluminationPipelines {
 
 /// The compiled pipelines of every illumination pass (brute-force shading aside).
 pub struct ReadyPipelines<'a> {
-    /// Voxelize.
+    /// Voxelize's kernel sums.
+    pub kernel_sums: &'a ComputePipeline,
+    /// Voxelize's deposit.
     pub voxelize: &'a ComputePipeline,
     /// Gather.
     pub gather: &'a ComputePipeline,
@@ -123,6 +127,7 @@ impl IlluminationPipelines {
     /// All compiled, or `None` while any still compiles (work waits for the next frame).
     pub fn ready<'a>(&self, cache: &'a PipelineCache) -> Option<ReadyPipelines<'a>> {
         Some(ReadyPipelines {
+            kernel_sums: self.kernel_sums.get(cache)?,
             voxelize: self.voxelize.get(cache)?,
             gather: self.gather.get(cache)?,
             sweep: self.sweep.get(cache)?,
@@ -161,7 +166,10 @@ pub(crate) fn init_illumination_pipelines(
     let write = || storage_buffer_sized(false, None);
     let voxelize = BindGroupLayoutDescriptor::new(
         "particle_clouds_voxelize_layout",
-        &BindGroupLayoutEntries::sequential(ShaderStages::COMPUTE, (uniform(), read(), write())),
+        &BindGroupLayoutEntries::sequential(
+            ShaderStages::COMPUTE,
+            (uniform(), read(), write(), write()),
+        ),
     );
     let shade = BindGroupLayoutDescriptor::new(
         "particle_clouds_shade_layout",
@@ -204,6 +212,7 @@ pub(crate) fn init_illumination_pipelines(
             ComputeStage::new(cache, shader.clone(), entry, layout.clone())
         };
     commands.insert_resource(IlluminationPipelines {
+        kernel_sums: stage(&shaders.voxelize, "kernel_sums", &voxelize),
         voxelize: stage(&shaders.voxelize, "deposit", &voxelize),
         shade: stage(&shaders.shade, "shade", &shade),
         shade_brute_force: stage(&shaders.shade, "shade_brute_force", &shade),

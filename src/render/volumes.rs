@@ -44,10 +44,11 @@ pub struct CloudParams {
     pub albedo: f32,
     /// Forward-scattering fraction of the shading pass.
     pub forward_scattering: f32,
-    /// Sub-points per axis of each scattering voxel's source (`light_supersampling`).
+    /// Fine voxels per scattering voxel and axis, `f` (`light_supersampling` in effect).
     pub supersampling: u32,
-    /// Uniform-buffer padding.
-    pub _padding: u32,
+    /// Rows per axis of the largest particle's support in the fine grid: the voxelize dispatch is
+    /// particles × rows × rows.
+    pub rows: u32,
 }
 
 /// Mirror of `LightParams` in `shaders/types.wgsl`.
@@ -151,6 +152,8 @@ pub struct CloudVolumes {
     pub fine_density: Buffer,
     /// `n³` f32 density of the scattering grid (the mean of each voxel's children, by gather).
     pub density: Buffer,
+    /// One f32 per particle: its kernel's sum over the fine voxel centres in its support (voxelize).
+    pub kernel_sums: Buffer,
     /// `n³` vec4 multiple-scattering source `S_0`.
     pub source: Buffer,
     /// `n³` vec4 ping-pong scattering orders.
@@ -255,6 +258,11 @@ impl CloudVolumes {
                 (m as u64).pow(3) * 4,
             ),
             density: storage(device, "particle_clouds_density", voxels * 4),
+            kernel_sums: storage(
+                device,
+                "particle_clouds_kernel_sums",
+                particle_count as u64 * 4,
+            ),
             source: storage(device, "particle_clouds_source", voxels * 16),
             orders: [
                 storage(device, "particle_clouds_order_a", voxels * 16),
@@ -289,6 +297,10 @@ impl CloudVolumes {
             && self.params.particle_count == particle_count
     }
 }
+
+/// The most particles one cloud may hold: the voxelize dispatch gives each 64 particles a
+/// workgroup along x, where at most 65535 fit.
+pub const MAX_PARTICLES: u32 = 65535 * 64;
 
 /// The gather key of a cloud that no light reaches.
 const UNLIT: u64 = 1;
@@ -479,6 +491,14 @@ fn fine_params(params: &CloudParams) -> CloudParams {
     }
 }
 
+/// Rows per axis of the largest support in a grid of `m` voxels per side over `bounds`: at most
+/// `2 r / h + 1` voxel centres, and no more than the grid holds.
+fn support_rows(bounds: CloudBounds, m: u32) -> u32 {
+    let h = bounds.side / m as f32;
+    let rows = 2.0 * (bounds.max_radius / h).ceil() + 1.0;
+    (rows as u32).clamp(1, m + 1)
+}
+
 /// The uniform of a cloud's illumination passes.
 fn cloud_params(
     cloud: &ExtractedCloud,
@@ -499,6 +519,6 @@ fn cloud_params(
         albedo: cloud.albedo,
         forward_scattering: cloud.settings.forward_scattering,
         supersampling: cloud.settings.supersampling(),
-        _padding: 0,
+        rows: support_rows(bounds, cloud.settings.light_resolution()),
     }
 }
