@@ -13,8 +13,8 @@
 //! `target/benchmark`); path-traced references are cached as `DIR/reference-<hash>-s<seed>.exr`,
 //! keyed by a hash of the scene contents, image size, sample count and seed, so a rerun does not
 //! trace them again. `--illumination` instead writes `DIR/illumination.csv` and `.md`: every
-//! pass's GPU time at 64³ and 128³ with 1 and 5 lights, incremental shading against the brute
-//! force march (`ShadingMethod::BruteForce`). `--decompose` writes `DIR/decomposition.md`: the
+//! pass's GPU time at 32³ and 64³ (light volumes of 64³ and 128³) with 1 and 5 lights,
+//! incremental shading against the brute force march (`ShadingMethod::BruteForce`). `--decompose` writes `DIR/decomposition.md`: the
 //! default settings' error split into single scattering, each scattering order and the closure,
 //! against the path tracer split by order (CPU references, no adapter; see `decompose.rs`).
 //!
@@ -154,7 +154,7 @@ const SCENES: &[BenchScene] = &[
         particle_file: "thin_smoke.csv",
         generate: thin_smoke,
         error_downsample: 2,
-        spp: 4096,
+        spp: 20480,
         quick: true,
     },
     BenchScene {
@@ -178,7 +178,7 @@ const SCENES: &[BenchScene] = &[
         particle_file: "cumulus.csv",
         generate: cumulus_2000,
         error_downsample: 2,
-        spp: 2048,
+        spp: 4096,
         quick: true,
     },
     BenchScene {
@@ -186,7 +186,7 @@ const SCENES: &[BenchScene] = &[
         particle_file: "two_lights.csv",
         generate: round_cloud,
         error_downsample: 2,
-        spp: 4096,
+        spp: 6144,
         quick: true,
     },
     BenchScene {
@@ -194,7 +194,7 @@ const SCENES: &[BenchScene] = &[
         particle_file: "",
         generate: Vec::new,
         error_downsample: 2,
-        spp: 4096,
+        spp: 8192,
         quick: true,
     },
     BenchScene {
@@ -202,7 +202,7 @@ const SCENES: &[BenchScene] = &[
         particle_file: "two_lights.csv",
         generate: round_cloud,
         error_downsample: 2,
-        spp: 1024,
+        spp: 2560,
         quick: true,
     },
     BenchScene {
@@ -531,7 +531,7 @@ fn sweep(quick: bool) -> Vec<CloudQualitySettings> {
     let base = CloudQualitySettings::default();
     let (resolutions, iterations, segments, supersampling): (&[u32], &[u32], &[u32], &[u32]) =
         if quick {
-            (&[16, 32, 64], &[0, 8], &[1, 4], &[1, 2])
+            (&[32, 48, 64], &[0, 16], &[1, 4], &[1, 2])
         } else {
             (
                 &[16, 24, 32, 48, 64, 96, 128],
@@ -570,7 +570,19 @@ fn sweep(quick: bool) -> Vec<CloudQualitySettings> {
             ..base
         });
     }
-    let paper: &[u32] = if quick { &[32] } else { &[32, 64, 128] };
+    // Resolution and iterations together, where the front is expected.
+    if !quick {
+        for volume_resolution in [32, 48, 64] {
+            for scatter_iterations in [4, 8, 16, 32] {
+                add(CloudQualitySettings {
+                    volume_resolution,
+                    scatter_iterations,
+                    ..base
+                });
+            }
+        }
+    }
+    let paper: &[u32] = if quick { &[48] } else { &[32, 48, 128] };
     for &volume_resolution in paper {
         add(CloudQualitySettings {
             volume_resolution,
@@ -1710,7 +1722,8 @@ fn illumination_benchmark(args: &Args) -> Result<(), String> {
         let scene = load_scene(bench)?;
         let mut b = Bench::new(&scene);
         adapter = b.adapter.clone();
-        for n in [64u32, 128] {
+        // Light volumes of 64³ and 128³ (light_supersampling 2).
+        for n in [32u32, 64] {
             let mut shade = HashMap::new();
             for method in [ShadingMethod::Incremental, ShadingMethod::BruteForce] {
                 b.app.insert_resource(method);
