@@ -12,9 +12,8 @@ use bevy_particle_clouds::{
     CloudQualitySettings, LightSample, Medium, Particle,
     generators::SplitMix64,
     reference::{
-        camera::PinholeCamera,
-        composite::{BillboardCloud, CloudPlacement, composite},
-        illumination::{LocalLight, illuminate},
+        composite::composite_scene_cloud,
+        illumination::illuminate_scene_cloud,
         metrics::relative_rmse,
         path_tracer::{
             self, Lighting, MAX_SCATTER_EVENTS, ParticleMedia, PathTracerSettings,
@@ -66,28 +65,12 @@ fn scene() -> Scene {
 
 /// The real-time image of `scene` at `settings`, from the CPU reference of every pass.
 fn real_time(scene: &Scene, settings: &CloudQualitySettings) -> Vec<[f32; 4]> {
-    let cloud = &scene.clouds[0];
-    let lights: Vec<LocalLight> = scene
-        .lights
-        .iter()
-        .map(|l| LocalLight::from_world(l, Default::default()))
-        .collect();
-    let illumination = illuminate(&cloud.particles, &cloud.medium, 1.0, &lights, settings)
-        .expect("a cloud with density");
-    let scattered = |x: DVec3| illumination.scattered_at(x);
-    let billboards = BillboardCloud {
-        particles: &cloud.particles,
-        world_from_local: CloudPlacement::at(cloud.translation.as_dvec3()),
-        medium: cloud.medium,
-        scattered: &scattered,
-        segments: settings.chord_segments,
-    };
-    composite(
-        &PinholeCamera::from_scene(&scene.camera),
-        scene.background.as_dvec3(),
-        &[],
-        &[billboards],
-        1.0,
+    let illumination = illuminate_scene_cloud(scene, 0, settings).expect("a cloud with density");
+    composite_scene_cloud(
+        scene,
+        0,
+        &|x| illumination.scattered_at(x),
+        settings.chord_segments,
     )
 }
 
@@ -155,7 +138,6 @@ fn in_scattered_light_converges_with_resolution() {
         .collect();
     let (truth, noise) = in_scattered_light(&scene, &points, 16_000);
     let norm: f64 = truth.iter().map(|s| s.length_squared()).sum();
-    let lights = [LocalLight::from_world(&scene.lights[0], Default::default())];
     let errors: Vec<(u32, f64)> = [32, 64, 128]
         .into_iter()
         .map(|volume_resolution| {
@@ -163,8 +145,7 @@ fn in_scattered_light_converges_with_resolution() {
                 volume_resolution,
                 ..default()
             };
-            let ill = illuminate(&cloud.particles, &cloud.medium, 1.0, &lights, &settings)
-                .expect("a cloud with density");
+            let ill = illuminate_scene_cloud(&scene, 0, &settings).expect("a cloud with density");
             let squared: f64 = points
                 .iter()
                 .zip(&truth)

@@ -20,9 +20,8 @@ use bevy_particle_clouds::{
     CloudQualitySettings,
     image_io::LinearImage,
     reference::{
-        camera::PinholeCamera,
-        composite::{BillboardCloud, CloudPlacement, composite},
-        illumination::{CloudIllumination, LocalLight, illuminate, single_scattering_at},
+        composite::composite_scene_cloud,
+        illumination::{CloudIllumination, illuminate_scene_cloud, single_scattering_at},
         metrics::relative_rmse,
         path_tracer::{Lighting, ParticleMedia, PathTracerSettings, noise_level, render_orders},
     },
@@ -68,25 +67,12 @@ fn billboards(
     settings: &CloudQualitySettings,
     factor: u32,
 ) -> LinearImage {
-    let cloud = &scene.clouds[0];
-    let image = composite(
-        &PinholeCamera::from_scene(&scene.camera),
-        DVec3::ZERO,
-        &[],
-        &[BillboardCloud {
-            particles: &cloud.particles,
-            world_from_local: CloudPlacement::at(cloud.translation.as_dvec3()),
-            medium: cloud.medium,
-            scattered,
-            segments: settings.chord_segments,
-        }],
-        1.0,
-    );
+    let pixels = composite_scene_cloud(scene, 0, scattered, settings.chord_segments);
     downsample(
         &LinearImage {
             width: scene.camera.width,
             height: scene.camera.height,
-            pixels: image,
+            pixels,
         },
         factor,
     )
@@ -131,13 +117,7 @@ fn real_time_orders(
 
 fn parts(scene: &Scene, settings: &CloudQualitySettings, factor: u32, spp: u32) -> Parts {
     let cloud = &scene.clouds[0];
-    let lights: Vec<LocalLight> = scene
-        .lights
-        .iter()
-        .map(|l| LocalLight::from_world(l, Default::default()))
-        .collect();
-    let ill = illuminate(&cloud.particles, &cloud.medium, 1.0, &lights, settings)
-        .expect("a cloud with density");
+    let ill = illuminate_scene_cloud(scene, 0, settings).expect("a cloud with density");
     let real_time = real_time_orders(scene, &ill, settings, factor);
     let media = ParticleMedia::from_scene(scene);
     let lighting = Lighting::from_scene(scene);

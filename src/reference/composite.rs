@@ -15,7 +15,7 @@ use rayon::prelude::*;
 use crate::particle::{Medium, Particle};
 use crate::reference::camera::PinholeCamera;
 use crate::reference::geometry::nearest_object;
-use crate::scene::SceneObject;
+use crate::scene::{Scene, SceneObject};
 
 /// A cloud's `Transform`: world point = `translation + rotation * (scale * local)`.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -262,6 +262,32 @@ pub fn composite(
             }
         });
     image
+}
+
+/// The billboard image of cloud `index` of `scene` (scene clouds are translated only) over a black
+/// background with no objects, shading `scattered` at `segments` points per chord: the
+/// real-time image of that cloud alone, at the scene's camera.
+pub fn composite_scene_cloud(
+    scene: &Scene,
+    index: usize,
+    scattered: ScatteredLight,
+    segments: u32,
+) -> Vec<[f32; 4]> {
+    let cloud = &scene.clouds[index];
+    let billboards = BillboardCloud {
+        particles: &cloud.particles,
+        world_from_local: CloudPlacement::at(cloud.translation.as_dvec3()),
+        medium: cloud.medium,
+        scattered,
+        segments,
+    };
+    composite(
+        &PinholeCamera::from_scene(&scene.camera),
+        DVec3::ZERO,
+        &[],
+        &[billboards],
+        1.0,
+    )
 }
 
 #[cfg(test)]

@@ -847,6 +847,22 @@ pub fn illuminate(
     })
 }
 
+/// [`illuminate`] for cloud `index` of `scene` with the scene's lights (scene clouds are
+/// translated only, so local and world directions agree).
+pub fn illuminate_scene_cloud(
+    scene: &crate::scene::Scene,
+    index: usize,
+    settings: &CloudQualitySettings,
+) -> Option<CloudIllumination> {
+    let cloud = &scene.clouds[index];
+    let lights: Vec<LocalLight> = scene
+        .lights
+        .iter()
+        .map(|l| LocalLight::from_world(l, DQuat::IDENTITY))
+        .collect();
+    illuminate(&cloud.particles, &cloud.medium, 1.0, &lights, settings)
+}
+
 impl CloudIllumination {
     /// What a particle scatters towards the camera at local point `p` (section 5):
     /// `albedo (S_1(p) + S_m(p))`, `S_1` from the light volumes and `S_m` the multiple
