@@ -1,9 +1,13 @@
-// The final render (the paper's Algorithm 3): each particle a camera-facing billboard, drawn back
-// to front in the Transparent3d phase. Alpha is exact per pixel: the optical depth of the view
-// ray through the particle's kernel. The colour is the light scattered along that chord, taken at
-// `segments` points (PHYSICS.md; docs/illumination.md §5).
+// The final render (the paper's Algorithm 3): each particle a camera-facing billboard in the
+// Transparent3d phase. Alpha is exact per pixel: the optical depth of the view ray through the
+// particle's kernel. The colour is the light scattered along that chord, cut into `segments`
+// pieces (PHYSICS.md; docs/illumination.md §5). Two compositings:
+// - VIEW_TRANSMITTANCE: `attenuate` multiplies what is behind by each particle's transmittance,
+//   then `emit` adds each particle's light, seen through the cloud's optical depth towards the
+//   camera (view_volume.wgsl); both are order-independent;
+// - otherwise `fragment` blends particles whole, back to front in the sorted order.
 #import bevy_render::view::View
-#import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, PI, grid_coords, light_coords, clamped_lookup, clamped_corner, corner_weight, opacity}
+#import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, ViewVolumeParams, PI, grid_coords, light_coords, clamped_lookup, clamped_corner, corner_weight, opacity, voxel_index, view_volume_coords}
 
 struct DrawParams {
     world_from_local: mat4x4<f32>,
@@ -21,12 +25,20 @@ struct DrawParams {
 @group(1) @binding(0) var<uniform> params: DrawParams;
 @group(1) @binding(1) var<uniform> cloud: CloudParams;
 @group(1) @binding(2) var<storage, read> particles: array<Particle>;
+#ifdef VIEW_TRANSMITTANCE
+@group(1) @binding(3) var<uniform> view_volume: ViewVolumeParams;
+#else
 // Particle indices, back to front for this view.
 @group(1) @binding(3) var<storage, read> order: array<u32>;
+#endif
 @group(1) @binding(4) var<storage, read> lights: array<LightParams>;
 @group(1) @binding(5) var<storage, read> optical_depth: array<f32>;
 // Multiple scattering S_m per voxel of the density grid.
 @group(1) @binding(6) var<storage, read> multiple: array<vec4<f32>>;
+#ifdef VIEW_TRANSMITTANCE
+// Optical depth from the camera at the view volume's nodes.
+@group(1) @binding(7) var<storage, read> view_optical_depth: array<f32>;
+#endif
 
 struct VertexOutput {
     @builtin(position) clip_position: vec4<f32>,
@@ -49,7 +61,11 @@ fn vertex(@builtin(vertex_index) vertex_index: u32, @builtin(instance_index) ins
         vec2(-1.0, -1.0), vec2(1.0, 1.0), vec2(-1.0, 1.0),
     );
     let corner = corners[vertex_index];
+#ifdef VIEW_TRANSMITTANCE
+    let index = instance_index;
+#else
     let index = order[instance_index];
+#endif
     let particle = particles[index];
     let centre = (params.world_from_local * vec4(particle.position_radius.xyz, 1.0)).xyz;
     let radius = particle.position_radius.w * params.scale;
@@ -124,45 +140,164 @@ fn scattered_at(p: vec3<f32>) -> vec3<f32> {
     return cloud.albedo * (single_scattering_at(p) + s_m);
 }
 
-@fragment
-fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
+// The visible part of a pixel's ray through a particle: s runs along the unit ray w from the
+// point closest to the centre (at ray parameter t_c), the chord covers s0..s1, q = 1 - b^2/R^2.
+struct Chord {
+    w: vec3<f32>,
+    t_c: f32,
+    q: f32,
+    s0: f32,
+    s1: f32,
+    radius: f32,
+    // Extinction per world metre inside the particle at its peak.
+    sigma: f32,
+    // False when the ray misses the particle or sees none of it beyond the near plane.
+    seen: bool,
+}
+
+fn chord(in: VertexOutput) -> Chord {
+    var c: Chord;
     let eye = view.world_position;
-    let w = normalize(in.world_position - eye);
-    let centre = in.centre_radius.xyz;
-    let radius = in.centre_radius.w;
-    let to_centre = centre - eye;
-    let t_c = dot(to_centre, w);
-    let closest = to_centre - t_c * w;
-    let q = 1.0 - dot(closest, closest) / (radius * radius);
-    if q <= 0.0 {
-        discard;
-    }
-    let s1 = radius * sqrt(q);
-    var s0 = -s1;
+    c.w = normalize(in.world_position - eye);
+    c.radius = in.centre_radius.w;
+    c.sigma = params.extinction * in.density;
+    let to_centre = in.centre_radius.xyz - eye;
+    c.t_c = dot(to_centre, c.w);
+    let closest = to_centre - c.t_c * c.w;
+    c.q = 1.0 - dot(closest, closest) / (c.radius * c.radius);
+    c.seen = c.q > 0.0;
+    c.s1 = c.radius * sqrt(max(c.q, 0.0));
+    c.s0 = -c.s1;
     if in.on_near_plane != 0u {
         let forward = -view.world_from_view[2].xyz;
-        s0 = max(-s1, near_plane() / dot(w, forward) - t_c);
-        if s0 >= s1 {
-            discard;
+        c.s0 = max(-c.s1, near_plane() / dot(c.w, forward) - c.t_c);
+        c.seen = c.seen && c.s0 < c.s1;
+    }
+    return c;
+}
+
+// The particle's own optical depth along the chord from s0 to s.
+fn own_depth(c: Chord, s: f32) -> f32 {
+    return max(c.sigma * (chord_integral(s, c.q, c.radius) - chord_integral(c.s0, c.q, c.radius)), 0.0);
+}
+
+fn world_at(c: Chord, s: f32) -> vec3<f32> {
+    return view.world_position + (c.t_c + s) * c.w;
+}
+
+fn local_at(c: Chord, s: f32) -> vec3<f32> {
+    return (params.local_from_world * vec4(world_at(c, s), 1.0)).xyz;
+}
+
+#ifdef VIEW_TRANSMITTANCE
+// Optical depth from the camera to a world point: trilinear in the view volume, clamped to it.
+fn view_optical_depth_at(x: vec3<f32>) -> f32 {
+    let p = (view.view_from_world * vec4(x, 1.0)).xyz;
+    let n = view_volume.n;
+    let g = view_volume_coords(view_volume, p);
+    let base = min(vec3<u32>(floor(g)), vec3(n - 2u));
+    let f = g - vec3<f32>(base);
+    var tau = 0.0;
+    for (var corner = 0u; corner < 8u; corner++) {
+        let o = vec3<u32>(corner & 1u, (corner >> 1u) & 1u, corner >> 2u);
+        let w = select(1.0 - f, f, vec3<bool>(o));
+        tau += w.x * w.y * w.z * view_optical_depth[voxel_index(base + o, n)];
+    }
+    return tau;
+}
+
+// (1 - exp(-x)) / x, 1 at 0: the mean of exp(-x t) over t in [0, 1].
+fn mean_attenuation(x: f32) -> f32 {
+    if abs(x) < 1e-3 {
+        return 1.0 - 0.5 * x;
+    }
+    return -expm1_neg(x) / x;
+}
+
+// exp(-x) - 1 without cancellation for small x.
+fn expm1_neg(x: f32) -> f32 {
+    if abs(x) < 0.02 {
+        return -x * (1.0 - x * (0.5 - x / 6.0));
+    }
+    return exp(-x) - 1.0;
+}
+
+// Mean of S over a segment of optical depth tau, log-linear from a to b, weighted by what each of
+// its points shows through the segment: a g(tau + beta) / g(tau), beta = ln(a / b), per channel;
+// a channel zero at either end is taken linear.
+fn segment_mean(a: vec3<f32>, b: vec3<f32>, tau: f32) -> vec3<f32> {
+    let g = mean_attenuation(tau);
+    let far = select((1.0 / g - 1.0) / tau, 0.5, tau < 1e-3);
+    var mean = a + (b - a) * far;
+    for (var i = 0u; i < 3u; i++) {
+        if a[i] > 0.0 && b[i] > 0.0 {
+            let beta = clamp(log(a[i] / b[i]), -40.0, 40.0);
+            mean[i] = a[i] * mean_attenuation(tau + beta) / g;
         }
     }
-    // The chord in equal segments, front to back: each adds its opacity times the light it
-    // scatters, seen through the segments in front of it.
-    let sigma = params.extinction * in.density;
-    let ds = (s1 - s0) / f32(params.segments);
+    return mean;
+}
+
+// Multiplies what is behind by the particle's transmittance.
+@fragment
+fn attenuate(in: VertexOutput) -> @location(0) vec4<f32> {
+    let c = chord(in);
+    if !c.seen {
+        discard;
+    }
+    return vec4(0.0, 0.0, 0.0, opacity(own_depth(c, c.s1)));
+}
+
+// Adds the particle's light: piece k of the chord adds
+// mean S * tau_k / tau_all * exp(-tau_view(a_k)) * (1 - exp(-tau_all)), tau_all the piece's
+// optical depth with every particle (the view volume's, at least the particle's own tau_k).
+@fragment
+fn emit(in: VertexOutput) -> @location(0) vec4<f32> {
+    let c = chord(in);
+    if !c.seen {
+        discard;
+    }
+    let ds = (c.s1 - c.s0) / f32(params.segments);
+    var light = vec3(0.0);
+    var own_before = 0.0;
+    var view_before = view_optical_depth_at(world_at(c, c.s0));
+    var s_before = scattered_at(local_at(c, c.s0));
+    for (var k = 1u; k <= params.segments; k++) {
+        let end = c.s0 + ds * f32(k);
+        let own_after = own_depth(c, end);
+        let tau = max(own_after - own_before, 0.0);
+        let view_after = view_optical_depth_at(world_at(c, end));
+        let s_after = scattered_at(local_at(c, end));
+        let all = max(view_after - view_before, tau);
+        light += segment_mean(s_before, s_after, all) * (tau * exp(-view_before) * mean_attenuation(all));
+        own_before = own_after;
+        view_before = view_after;
+        s_before = s_after;
+    }
+    return vec4(light * view.exposure, 0.0);
+}
+#else
+// Blends the particle whole: the chord in equal segments, front to back, each adds its opacity
+// times the light it scatters at its midpoint, seen through the segments in front of it.
+@fragment
+fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
+    let c = chord(in);
+    if !c.seen {
+        discard;
+    }
+    let ds = (c.s1 - c.s0) / f32(params.segments);
     var colour = vec3(0.0);
     var transmittance = 1.0;
-    var depth_before = chord_integral(s0, q, radius);
+    var depth_before = 0.0;
     for (var k = 1u; k <= params.segments; k++) {
-        let end = s0 + ds * f32(k);
-        let depth_after = chord_integral(end, q, radius);
-        let segment = opacity(max(sigma * (depth_after - depth_before), 0.0));
-        let x = eye + (t_c + end - 0.5 * ds) * w;
-        let local = (params.local_from_world * vec4(x, 1.0)).xyz;
-        colour += transmittance * segment * scattered_at(local);
+        let end = c.s0 + ds * f32(k);
+        let depth_after = own_depth(c, end);
+        let segment = opacity(max(depth_after - depth_before, 0.0));
+        colour += transmittance * segment * scattered_at(local_at(c, end - 0.5 * ds));
         transmittance *= 1.0 - segment;
         depth_before = depth_after;
     }
     let alpha = 1.0 - transmittance;
     return vec4(colour * view.exposure, alpha);
 }
+#endif

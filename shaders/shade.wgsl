@@ -1,26 +1,12 @@
 // Shade: the optical depth towards one light in a light-aligned volume of m^3 voxels, computed
 // incrementally slice by slice (the paper's Algorithm 4; docs/illumination.md §2). One invocation
 // per column along the light; each slice is the previous one plus this step's optical depth.
-#import bevy_particle_clouds::types::{CloudParams, LightParams, voxel_index, grid_coords, zero_border_lookup, corner_weight, corner_voxel}
+#import bevy_particle_clouds::types::{LightParams, voxel_index}
+#import bevy_particle_clouds::density::{cloud, density_at}
 
-@group(0) @binding(0) var<uniform> cloud: CloudParams;
 @group(0) @binding(1) var<uniform> light: LightParams;
-@group(0) @binding(2) var<storage, read> density: array<f32>;
 // Every light's volume of the cloud; this light's starts at light.offset.
 @group(0) @binding(3) var<storage, read_write> optical_depth: array<f32>;
-
-// Density at a cloud-local point: trilinear between voxel centres, zero outside the grid.
-fn density_at(p: vec3<f32>) -> f32 {
-    let t = zero_border_lookup(grid_coords(cloud, p));
-    var sum = 0.0;
-    for (var corner = 0u; corner < 8u; corner++) {
-        let i = corner_voxel(t, corner, cloud.n);
-        if i >= 0 {
-            sum += corner_weight(t, corner) * density[i];
-        }
-    }
-    return sum;
-}
 
 // Centre of light-volume voxel (a, b, c) in cloud-local space.
 fn light_voxel_centre(v: vec3<u32>) -> vec3<f32> {

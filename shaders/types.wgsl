@@ -133,3 +133,29 @@ fn opacity(tau: f32) -> f32 {
     }
     return 1.0 - exp(-tau);
 }
+
+// A cloud's view transmittance volume (docs/illumination.md §5): optical depth from the camera
+// at n x n rays by n slices. Rust mirror: `ViewVolumeParams` in src/render/view_volume.rs.
+struct ViewVolumeParams {
+    // Cloud-local from view space.
+    local_from_view: mat4x4<f32>,
+    // Tangent rectangle of the rays (u0, u1, v0, v1): u = x / depth, v = y / depth in view space.
+    rect: vec4<f32>,
+    // View depths of the first and last slice, metres.
+    depth: vec2<f32>,
+    // Extinction K per world metre at density 1.
+    extinction: f32,
+    // Rays per side and slices, n.
+    n: u32,
+}
+
+// Continuous node coordinates of view-space point `p` (view looks down -z), clamped to the volume.
+fn view_volume_coords(volume: ViewVolumeParams, p: vec3<f32>) -> vec3<f32> {
+    let depth = -p.z;
+    let uv = p.xy / depth;
+    let t = vec3(
+        (uv - volume.rect.xz) / (volume.rect.yw - volume.rect.xz),
+        (depth - volume.depth.x) / (volume.depth.y - volume.depth.x),
+    );
+    return clamp(t, vec3(0.0), vec3(1.0)) * f32(volume.n - 1u);
+}

@@ -47,14 +47,14 @@ use bevy::prelude::*;
 
 pub use cloud::{NotCloudLight, ParticleCloud, Particles};
 pub use particle::{LightSample, Medium, Particle};
-pub use settings::{CloudQualitySettings, DefaultCloudQuality, ScatterStencil};
-pub use stats::{CloudPass, CloudPassCounters};
+pub use settings::{CloudQualitySettings, Compositing, DefaultCloudQuality, ScatterStencil};
+pub use stats::{CloudPass, CloudPassCounters, PASSES};
 
 /// Everything a Bevy user needs.
 pub mod prelude {
     pub use crate::{
-        CloudQualitySettings, DefaultCloudQuality, Medium, NotCloudLight, Particle, ParticleCloud,
-        ParticleCloudsPlugin, Particles, ScatterStencil, generators,
+        CloudQualitySettings, Compositing, DefaultCloudQuality, Medium, NotCloudLight, Particle,
+        ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil, generators,
     };
 }
 

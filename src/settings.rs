@@ -25,6 +25,23 @@ pub enum ScatterStencil {
     Paper,
 }
 
+/// How a cloud's billboards are composited over what is behind them (docs/illumination.md §5).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect, Deserialize)]
+#[reflect(Default, Debug, PartialEq)]
+pub enum Compositing {
+    /// Every piece of a particle's chord is seen through the whole cloud's optical depth towards
+    /// the camera, read from a per-view volume marched through the density once per view change
+    /// ("view transmittance"). Each particle's light is added and the background is multiplied by
+    /// every particle's transmittance, so no order is needed and particles that overlap in depth
+    /// hide each other's light where they overlap, not as whole discs. The default.
+    #[default]
+    ViewTransmittance,
+    /// The paper's compositing: particles sorted back to front by centre depth (on the GPU, once
+    /// per view change) and blended whole over each other. Exact for particles that do not
+    /// overlap along a ray; optically thick particles that interpenetrate hide light wrongly.
+    Sorted,
+}
+
 /// Per-cloud quality knobs. Missing fields in scene files take these defaults.
 #[derive(Component, Clone, Copy, Debug, PartialEq, Reflect, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -55,6 +72,8 @@ pub struct CloudQualitySettings {
     /// illumination (a big particle shows its lit and its dark side). Alpha is exact whatever
     /// `K`. Allowed: `1..=MAX_CHORD_SEGMENTS`. Default 4.
     pub chord_segments: u32,
+    /// How the billboards are composited. Default [`Compositing::ViewTransmittance`].
+    pub compositing: Compositing,
 }
 
 /// Smallest allowed `volume_resolution`.
@@ -78,6 +97,7 @@ impl Default for CloudQualitySettings {
             scatter_stencil: ScatterStencil::DiscreteOrdinates,
             light_supersampling: 2,
             chord_segments: 4,
+            compositing: Compositing::ViewTransmittance,
         }
     }
 }

@@ -12,6 +12,9 @@ use std::sync::{
 
 use bevy::{diagnostic::DiagnosticPath, prelude::*};
 
+/// Number of [`CloudPass`]es.
+pub const PASSES: usize = 7;
+
 /// The stages of the renderer, in the order they run.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Reflect)]
 pub enum CloudPass {
@@ -23,20 +26,23 @@ pub enum CloudPass {
     Gather,
     /// Multiple-scattering iterations, per cloud (one count per iteration).
     Scatter,
-    /// Back-to-front particle sort, per cloud and view.
+    /// Back-to-front particle sort, per cloud and view (`Compositing::Sorted`).
     Sort,
+    /// Optical depth from the camera, per cloud and view (`Compositing::ViewTransmittance`).
+    ViewVolume,
     /// Billboard draw, per cloud and view.
     Draw,
 }
 
 impl CloudPass {
     /// Every pass, in the order they run.
-    pub const ALL: [CloudPass; 6] = [
+    pub const ALL: [CloudPass; PASSES] = [
         Self::Voxelize,
         Self::Shade,
         Self::Gather,
         Self::Scatter,
         Self::Sort,
+        Self::ViewVolume,
         Self::Draw,
     ];
 
@@ -48,6 +54,7 @@ impl CloudPass {
             Self::Gather => "gather",
             Self::Scatter => "scatter",
             Self::Sort => "sort",
+            Self::ViewVolume => "view_volume",
             Self::Draw => "draw",
         }
     }
@@ -60,6 +67,7 @@ impl CloudPass {
             Self::Gather => "particle_clouds_gather",
             Self::Scatter => "particle_clouds_scatter",
             Self::Sort => "particle_clouds_sort",
+            Self::ViewVolume => "particle_clouds_view_volume",
             Self::Draw => "particle_clouds_draw",
         }
     }
@@ -82,7 +90,7 @@ impl CloudPass {
 
 /// Dispatch counters per pass, shared by the main and the render world.
 #[derive(Resource, Clone, Default, Debug)]
-pub struct CloudPassCounters(Arc<[AtomicU32; 6]>);
+pub struct CloudPassCounters(Arc<[AtomicU32; PASSES]>);
 
 impl CloudPassCounters {
     /// Adds `n` runs of `pass`.
@@ -91,7 +99,7 @@ impl CloudPassCounters {
     }
 
     /// The counts since the last `take`, resetting them to zero.
-    pub fn take(&self) -> [(CloudPass, u32); 6] {
+    pub fn take(&self) -> [(CloudPass, u32); PASSES] {
         CloudPass::ALL.map(|p| (p, self.0[p as usize].swap(0, Ordering::Relaxed)))
     }
 }

@@ -70,7 +70,8 @@ fn real_time(scene: &Scene, settings: &CloudQualitySettings) -> Vec<[f32; 4]> {
         scene,
         0,
         &|x| illumination.scattered_at(x),
-        settings.chord_segments,
+        settings,
+        &illumination.fine,
     )
 }
 

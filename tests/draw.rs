@@ -15,12 +15,13 @@ use bevy::{
     },
 };
 use bevy_particle_clouds::{
-    CloudPass, CloudQualitySettings, LightSample, Medium, Particle, ParticleCloud, Particles,
+    CloudPass, CloudQualitySettings, Compositing, LightSample, Medium, Particle, ParticleCloud,
+    Particles,
     generators::SplitMix64,
     image_io::LinearImage,
     reference::{
         camera::PinholeCamera,
-        composite::{BillboardCloud, CloudPlacement, composite},
+        composite::{BillboardCloud, BillboardCompositing, CloudPlacement, composite},
         illumination::{LocalLight, illuminate},
         metrics::relative_rmse,
     },
@@ -194,6 +195,7 @@ fn reference(setup: &Setup) -> Vec<[f32; 4]> {
         medium: setup.medium,
         scattered: &scattered,
         segments: setup.settings.chord_segments,
+        compositing: BillboardCompositing::new(setup.settings.compositing, &illumination.fine),
     };
     composite(
         &camera,
@@ -266,18 +268,23 @@ fn assert_images_match(gpu: &LinearImage, cpu: &[[f32; 4]], what: &str) {
     );
 }
 
+const COMPOSITINGS: [Compositing; 2] = [Compositing::ViewTransmittance, Compositing::Sorted];
+
 #[test]
 fn a_cloud_image_equals_the_cpu_billboard_reference() {
-    let setup = cloud_setup(
-        21,
-        Transform::from_xyz(0.3, 0.4, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
-    );
-    let (_, _, gpu) = render(&setup);
-    assert_images_match(&gpu.image, &reference(&setup), "cloud");
+    for compositing in COMPOSITINGS {
+        let mut setup = cloud_setup(
+            21,
+            Transform::from_xyz(0.3, 0.4, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
+        );
+        setup.settings.compositing = compositing;
+        let (_, _, gpu) = render(&setup);
+        assert_images_match(&gpu.image, &reference(&setup), &format!("{compositing:?}"));
+    }
 }
 
 #[test]
-fn two_overlapping_particles_composite_back_to_front_from_either_side() {
+fn two_overlapping_particles_composite_alike_from_either_side_in_either_order() {
     // A lit particle and a shadowed one behind it along the light: different colours.
     let a = Particle {
         position: Vec3::new(0.0, 0.0, 0.3),
@@ -289,9 +296,12 @@ fn two_overlapping_particles_composite_back_to_front_from_either_side() {
         radius: 0.45,
         density: 2.0,
     };
-    for particles in [vec![a, b], vec![b, a]] {
+    for (particles, compositing) in [
+        (vec![a, b], Compositing::ViewTransmittance),
+        (vec![b, a], Compositing::Sorted),
+    ] {
         for eye in [Vec3::new(0.1, 0.1, 3.0), Vec3::new(-0.1, 0.1, -3.0)] {
-            let setup = Setup {
+            let mut setup = Setup {
                 particles: particles.clone(),
                 medium: Medium {
                     extinction: 3.0,
@@ -307,8 +317,10 @@ fn two_overlapping_particles_composite_back_to_front_from_either_side() {
                 background: Vec3::ZERO,
                 settings: headless::quality(16, 2),
             };
+            setup.settings.compositing = compositing;
             let (_, _, gpu) = render(&setup);
-            assert_images_match(&gpu.image, &reference(&setup), &format!("eye {eye}"));
+            let what = format!("{compositing:?}, eye {eye}");
+            assert_images_match(&gpu.image, &reference(&setup), &what);
         }
     }
 }
@@ -374,49 +386,68 @@ fn opaque_objects_hide_the_cloud_and_the_cloud_blends_over_objects_behind() {
 }
 
 #[test]
-fn a_static_camera_does_not_resort_and_a_moving_one_does() {
-    let setup = cloud_setup(
-        8,
-        Transform::from_xyz(0.0, 0.5, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
-    );
-    let (mut app, target, mut gpu) = render(&setup);
-    for _ in 0..2 {
+fn a_static_camera_reruns_no_view_pass_and_a_moving_one_reruns_only_its_own() {
+    for (compositing, pass, other) in [
+        (Compositing::Sorted, CloudPass::Sort, CloudPass::ViewVolume),
+        (
+            Compositing::ViewTransmittance,
+            CloudPass::ViewVolume,
+            CloudPass::Sort,
+        ),
+    ] {
+        let mut setup = cloud_setup(
+            8,
+            Transform::from_xyz(0.0, 0.5, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
+        );
+        setup.settings.compositing = compositing;
+        let (mut app, target, mut gpu) = render(&setup);
+        for _ in 0..2 {
+            let frame = gpu.frames.frame(&mut app).clone();
+            assert_eq!(frame.runs(pass) + frame.runs(other), 0, "static camera");
+        }
+        app.world_mut()
+            .entity_mut(target.camera)
+            .insert(Transform::from_xyz(1.0, 0.5, 4.0).looking_at(Vec3::ZERO, Vec3::Y));
+        let frame = gpu.frames.frame(&mut app).clone();
         assert_eq!(
-            gpu.frames.frame(&mut app).runs(CloudPass::Sort),
+            frame.runs(pass),
+            1,
+            "{compositing:?}: moved camera reruns {pass:?}"
+        );
+        assert_eq!(frame.runs(other), 0, "{compositing:?} never runs {other:?}");
+        assert_eq!(
+            frame.runs(CloudPass::Voxelize) + frame.runs(CloudPass::Shade),
             0,
-            "static camera: no sort"
+            "illumination is view-independent"
         );
     }
-    app.world_mut()
-        .entity_mut(target.camera)
-        .insert(Transform::from_xyz(1.0, 0.5, 4.0).looking_at(Vec3::ZERO, Vec3::Y));
-    let frame = gpu.frames.frame(&mut app).clone();
-    assert_eq!(frame.runs(CloudPass::Sort), 1, "moved camera: sorted again");
-    assert_eq!(
-        frame.runs(CloudPass::Voxelize) + frame.runs(CloudPass::Shade),
-        0,
-        "illumination is view-independent"
-    );
 }
 
 #[test]
 fn the_camera_inside_a_cloud_sees_finite_partial_chords() {
-    let mut setup = cloud_setup(
-        13,
-        Transform::from_xyz(0.0, 0.0, 0.0).looking_at(Vec3::new(0.0, 0.0, -1.0), Vec3::Y),
-    );
-    setup.particles.push(Particle {
-        position: Vec3::ZERO,
-        radius: 0.9,
-        density: 0.5,
-    });
-    let (_, _, gpu) = render(&setup);
-    assert!(
-        gpu.image
-            .pixels
-            .iter()
-            .flatten()
-            .all(|v| v.is_finite() && *v >= 0.0)
-    );
-    assert_images_match(&gpu.image, &reference(&setup), "inside");
+    for compositing in COMPOSITINGS {
+        let mut setup = cloud_setup(
+            13,
+            Transform::from_xyz(0.0, 0.0, 0.0).looking_at(Vec3::new(0.0, 0.0, -1.0), Vec3::Y),
+        );
+        setup.settings.compositing = compositing;
+        setup.particles.push(Particle {
+            position: Vec3::ZERO,
+            radius: 0.9,
+            density: 0.5,
+        });
+        let (_, _, gpu) = render(&setup);
+        assert!(
+            gpu.image
+                .pixels
+                .iter()
+                .flatten()
+                .all(|v| v.is_finite() && *v >= 0.0)
+        );
+        assert_images_match(
+            &gpu.image,
+            &reference(&setup),
+            &format!("inside, {compositing:?}"),
+        );
+    }
 }

@@ -5,7 +5,8 @@ mod common;
 
 use bevy::prelude::*;
 use bevy_particle_clouds::{
-    CloudPass, Medium, Particle, ParticleCloud, Particles, scene::ObjectShape,
+    CloudPass, CloudQualitySettings, Compositing, Medium, Particle, ParticleCloud, Particles,
+    scene::ObjectShape,
 };
 use common::headless::{self, FrameRecorder, SceneTarget};
 
@@ -145,7 +146,12 @@ fn a_static_cloud_is_illuminated_once_then_only_drawn() {
     assert_eq!(recorder.total(CloudPass::Shade), 1, "one light shaded once");
     assert_eq!(recorder.total(CloudPass::Gather), 1);
     assert_eq!(recorder.total(CloudPass::Scatter), 4, "4 iterations");
-    assert_eq!(recorder.total(CloudPass::Sort), 1, "one view sorted once");
+    assert_eq!(
+        recorder.total(CloudPass::ViewVolume),
+        1,
+        "one view's transmittance marched once"
+    );
+    assert_eq!(recorder.total(CloudPass::Sort), 0, "nothing to sort");
     assert!(
         first_work > 0 && frames <= 3,
         "illumination took {frames} frames"
@@ -173,7 +179,8 @@ fn a_static_cloud_is_illuminated_once_then_only_drawn() {
         "outside the cloud the background shows"
     );
 
-    // Moving the light re-shades, gathers and scatters, but never re-voxelizes or re-sorts.
+    // Moving the light re-shades, gathers and scatters, but never re-voxelizes or reruns a view
+    // pass.
     let light = app
         .world_mut()
         .query_filtered::<Entity, With<DirectionalLight>>()
@@ -186,7 +193,7 @@ fn a_static_cloud_is_illuminated_once_then_only_drawn() {
     assert_eq!(frame.runs(CloudPass::Voxelize), 0);
     assert_eq!(frame.runs(CloudPass::Shade), 1);
     assert_eq!(frame.runs(CloudPass::Gather), 1);
-    assert_eq!(frame.runs(CloudPass::Sort), 0);
+    assert_eq!(frame.runs(CloudPass::ViewVolume), 0);
 }
 
 #[test]
@@ -216,7 +223,7 @@ fn opted_out_and_dark_lights_cost_nothing_and_unseen_clouds_do_no_work() {
         1,
         "only the one lit, opted-in light is shaded"
     );
-    assert_eq!(recorder.total(CloudPass::Sort), 1);
+    assert_eq!(recorder.total(CloudPass::ViewVolume), 1);
 }
 
 #[test]
@@ -258,7 +265,11 @@ fn several_cameras_hdr_and_not_msaa_on_and_off() {
         last = recorder.frame(&mut app).clone();
     }
     assert_eq!(last.runs(CloudPass::Draw), 2, "one draw per camera");
-    assert_eq!(recorder.total(CloudPass::Sort), 2, "one sort per camera");
+    assert_eq!(
+        recorder.total(CloudPass::ViewVolume),
+        2,
+        "one view volume per camera"
+    );
     assert_eq!(
         recorder.total(CloudPass::Voxelize),
         1,
@@ -317,58 +328,71 @@ fn the_camera_exposure_scales_clouds_like_lit_surfaces() {
 }
 
 #[test]
-fn changing_the_particles_revoxelizes_and_resorts() {
-    let (mut app, mut target) = setup(
-        Vec3::ZERO,
-        Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
-    );
-    headless::spawn_light(&mut app, Vec3::NEG_Y, Vec3::ONE);
-    let cloud = small_cloud(&mut app, 0.9, Vec3::ZERO);
-    target.drawable_clouds = 1;
-    let mut recorder = FrameRecorder::default();
-    headless::render_until_steady(&mut app, &mut recorder, &target, 20);
-    let handle = app
-        .world()
-        .get::<ParticleCloud>(cloud)
-        .unwrap()
-        .particles
-        .clone();
-    app.world_mut()
-        .resource_mut::<Assets<Particles>>()
-        .get_mut(&handle)
-        .unwrap()
-        .particles[0]
-        .position
-        .x += 0.1;
-    let mut runs = [0; 2];
-    for _ in 0..3 {
-        let frame = recorder.frame(&mut app);
-        runs[0] += frame.runs(CloudPass::Voxelize);
-        runs[1] += frame.runs(CloudPass::Sort);
+fn changing_the_particles_revoxelizes_and_reruns_the_view_pass() {
+    for (compositing, view_pass, slid) in [
+        (Compositing::ViewTransmittance, CloudPass::ViewVolume, 1),
+        (Compositing::Sorted, CloudPass::Sort, 0),
+    ] {
+        let (mut app, mut target) = setup(
+            Vec3::ZERO,
+            Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
+        );
+        headless::spawn_light(&mut app, Vec3::NEG_Y, Vec3::ONE);
+        let cloud = small_cloud(&mut app, 0.9, Vec3::ZERO);
+        app.world_mut()
+            .entity_mut(cloud)
+            .insert(CloudQualitySettings {
+                compositing,
+                ..headless::quality(16, 4)
+            });
+        target.drawable_clouds = 1;
+        let mut recorder = FrameRecorder::default();
+        headless::render_until_steady(&mut app, &mut recorder, &target, 20);
+        let handle = app
+            .world()
+            .get::<ParticleCloud>(cloud)
+            .unwrap()
+            .particles
+            .clone();
+        app.world_mut()
+            .resource_mut::<Assets<Particles>>()
+            .get_mut(&handle)
+            .unwrap()
+            .particles[0]
+            .position
+            .x += 0.1;
+        let mut runs = [0; 2];
+        for _ in 0..3 {
+            let frame = recorder.frame(&mut app);
+            runs[0] += frame.runs(CloudPass::Voxelize);
+            runs[1] += frame.runs(view_pass);
+        }
+        assert_eq!(
+            runs,
+            [1, 1],
+            "{compositing:?}: one re-voxelization and one {view_pass:?} after the asset changed"
+        );
+        // Turning the cloud reruns the view pass but never re-voxelizes (the grid is cloud-local).
+        app.world_mut()
+            .entity_mut(cloud)
+            .insert(Transform::from_rotation(Quat::from_rotation_y(0.5)));
+        let frame = recorder.frame(&mut app).clone();
+        assert_eq!(
+            (frame.runs(CloudPass::Voxelize), frame.runs(view_pass)),
+            (0, 1)
+        );
+        // Sliding it sideways keeps every view depth's order (no sort) but moves the cloud
+        // across the view (a new view volume).
+        app.world_mut().entity_mut(cloud).insert(
+            Transform::from_rotation(Quat::from_rotation_y(0.5)).with_translation(Vec3::X * 0.2),
+        );
+        let frame = recorder.frame(&mut app).clone();
+        assert_eq!(
+            (frame.runs(CloudPass::Voxelize), frame.runs(view_pass)),
+            (0, slid),
+            "{compositing:?}"
+        );
     }
-    assert_eq!(
-        runs,
-        [1, 1],
-        "one re-voxelization and one re-sort after the asset changed"
-    );
-    // Turning the cloud re-sorts but never re-voxelizes (the grid is cloud-local).
-    app.world_mut()
-        .entity_mut(cloud)
-        .insert(Transform::from_rotation(Quat::from_rotation_y(0.5)));
-    let frame = recorder.frame(&mut app).clone();
-    assert_eq!(
-        (frame.runs(CloudPass::Voxelize), frame.runs(CloudPass::Sort)),
-        (0, 1)
-    );
-    // Sliding it sideways keeps every view depth's order: no sort at all.
-    app.world_mut().entity_mut(cloud).insert(
-        Transform::from_rotation(Quat::from_rotation_y(0.5)).with_translation(Vec3::X * 0.2),
-    );
-    let frame = recorder.frame(&mut app).clone();
-    assert_eq!(
-        (frame.runs(CloudPass::Voxelize), frame.runs(CloudPass::Sort)),
-        (0, 0)
-    );
 }
 
 #[test]

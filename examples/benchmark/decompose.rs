@@ -21,7 +21,9 @@ use bevy_particle_clouds::{
     image_io::LinearImage,
     reference::{
         composite::composite_scene_cloud,
-        illumination::{CloudIllumination, illuminate_scene_cloud, single_scattering_at},
+        illumination::{
+            CloudIllumination, DensityGrid, illuminate_scene_cloud, single_scattering_at,
+        },
         metrics::relative_rmse,
         path_tracer::{Lighting, ParticleMedia, PathTracerSettings, noise_level, render_orders},
     },
@@ -65,9 +67,10 @@ fn billboards(
     scene: &Scene,
     scattered: &(dyn Fn(DVec3) -> DVec3 + Sync),
     settings: &CloudQualitySettings,
+    fine: &DensityGrid,
     factor: u32,
 ) -> LinearImage {
-    let pixels = composite_scene_cloud(scene, 0, scattered, settings.chord_segments);
+    let pixels = composite_scene_cloud(scene, 0, scattered, settings, fine);
     downsample(
         &LinearImage {
             width: scene.camera.width,
@@ -92,6 +95,7 @@ fn real_time_orders(
         scene,
         &|x| single_scattering_at(&ill.lights, x) * albedo,
         settings,
+        &ill.fine,
         factor,
     )];
     for order in &ill.multiple.orders {
@@ -99,6 +103,7 @@ fn real_time_orders(
             scene,
             &|x| grid.sample_clamped(order, x) * albedo,
             settings,
+            &ill.fine,
             factor,
         ));
     }
@@ -110,6 +115,7 @@ fn real_time_orders(
         scene,
         &|x| grid.sample_clamped(&tail, x) * albedo,
         settings,
+        &ill.fine,
         factor,
     ));
     images
@@ -129,6 +135,7 @@ fn parts(scene: &Scene, settings: &CloudQualitySettings, factor: u32, spp: u32) 
                 * (albedo / (4.0 * PI))
         },
         settings,
+        &ill.fine,
         factor,
     );
     let mut small = scene.clone();

@@ -39,7 +39,8 @@ use std::{
 
 use bevy::{diagnostic::DiagnosticsStore, prelude::*};
 use bevy_particle_clouds::{
-    CloudPass, CloudQualitySettings, Particle, ParticleCloud, Particles, ScatterStencil,
+    CloudPass, CloudQualitySettings, Compositing, PASSES, Particle, ParticleCloud, Particles,
+    ScatterStencil,
     image_io::{LinearImage, read_exr, write_exr, write_png},
     particle_files::{write_csv, write_ply_binary},
     reference::{
@@ -582,6 +583,15 @@ fn sweep(quick: bool) -> Vec<CloudQualitySettings> {
             }
         }
     }
+    // The paper's compositing, sorted particles, at the default and the finest grid.
+    let sorted: &[u32] = if quick { &[48] } else { &[48, 128] };
+    for &volume_resolution in sorted {
+        add(CloudQualitySettings {
+            volume_resolution,
+            compositing: Compositing::Sorted,
+            ..base
+        });
+    }
     let paper: &[u32] = if quick { &[48] } else { &[32, 48, 128] };
     for &volume_resolution in paper {
         add(CloudQualitySettings {
@@ -611,7 +621,7 @@ fn median(mut values: Vec<f64>) -> f64 {
 #[derive(Clone, Debug, Default)]
 struct Timing {
     /// Per pass (CloudPass::ALL order, draw from the transparent pass), frames where all rerun.
-    pass_ms: [f64; 6],
+    pass_ms: [f64; PASSES],
     /// GPU time of a frame where every pass runs: median of the per-frame sums.
     gpu_ms_total: f64,
     /// GPU time of a static frame (the draw only).
@@ -715,15 +725,12 @@ impl Bench {
                 .collect()
         };
         let statics = frames_of(&static_frames);
+        // Every illumination pass and the view pass (the sort or the view volume).
         let reran = |f: &FrameStats| {
-            [
-                CloudPass::Voxelize,
-                CloudPass::Shade,
-                CloudPass::Gather,
-                CloudPass::Sort,
-            ]
-            .iter()
-            .all(|&p| f.runs(p) > 0)
+            [CloudPass::Voxelize, CloudPass::Shade, CloudPass::Gather]
+                .iter()
+                .all(|&p| f.runs(p) > 0)
+                && f.runs(CloudPass::Sort) + f.runs(CloudPass::ViewVolume) > 0
         };
         let dynamics: Vec<FrameStats> = frames_of(&dynamic).into_iter().filter(reran).collect();
         if std::env::var_os("BENCHMARK_DEBUG").is_some() {
@@ -739,7 +746,7 @@ impl Bench {
             "none of the {frames} measured frames reran every pass"
         );
         let draw_ms = median(draw);
-        let mut pass_ms = [0.0; 6];
+        let mut pass_ms = [0.0; PASSES];
         for (i, pass) in CloudPass::ALL.iter().enumerate() {
             pass_ms[i] = if *pass == CloudPass::Draw {
                 draw_ms
@@ -831,8 +838,12 @@ fn setting_label(s: &CloudQualitySettings) -> String {
         ScatterStencil::DiscreteOrdinates => "D",
         ScatterStencil::Paper => "P",
     };
+    let compositing = match s.compositing {
+        Compositing::ViewTransmittance => "",
+        Compositing::Sorted => " sorted",
+    };
     format!(
-        "{}³ ×{} {stencil} K{} L{}",
+        "{}³ ×{} {stencil} K{} L{}{compositing}",
         s.volume_resolution, s.scatter_iterations, s.chord_segments, s.light_supersampling
     )
 }
@@ -888,15 +899,15 @@ fn dominating<'a>(rows: &'a [Row]) -> Vec<&'a Row> {
 fn write_csv_results(path: &Path, adapter: &str, rows: &[Row]) -> std::io::Result<()> {
     let mut s = String::from(
         "adapter,scene,particles,lights,width,height,error_width,error_height,volume_resolution,scatter_iterations,\
-         stencil,forward_scattering,chord_segments,light_supersampling,is_default,gpu_ms_total,gpu_ms_voxelize,gpu_ms_shade,gpu_ms_gather,gpu_ms_scatter,\
-         gpu_ms_sort,gpu_ms_draw,gpu_ms_static,wall_ms,wall_ms_static,rel_rmse,rel_mse,mae,reference_spp,reference_noise,pareto,pareto_time_axis,\
+         stencil,forward_scattering,chord_segments,light_supersampling,compositing,is_default,gpu_ms_total,gpu_ms_voxelize,gpu_ms_shade,gpu_ms_gather,gpu_ms_scatter,\
+         gpu_ms_view,gpu_ms_draw,gpu_ms_static,wall_ms,wall_ms_static,rel_rmse,rel_mse,mae,reference_spp,reference_noise,pareto,pareto_time_axis,\
          rel_rmse_denoised,rel_rmse_box4,reference_noise_box4,rel_rmse_box4_denoised\n",
     );
     for r in rows {
         let t = &r.timing;
         let _ = writeln!(
             s,
-            "\"{adapter}\",{},{},{},{},{},{},{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.3},{:.3},{:.6},{:.6},{:.6},{},{:.6},{},{},{:.6},{:.6},{:.6},{:.6}",
+            "\"{adapter}\",{},{},{},{},{},{},{},{},{},{},{},{},{},{:?},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.3},{:.3},{:.6},{:.6},{:.6},{},{:.6},{},{},{:.6},{:.6},{:.6},{:.6}",
             r.scene,
             r.particles,
             r.lights,
@@ -910,14 +921,15 @@ fn write_csv_results(path: &Path, adapter: &str, rows: &[Row]) -> std::io::Resul
             r.settings.forward_scattering,
             r.settings.chord_segments,
             r.settings.light_supersampling,
+            r.settings.compositing,
             r.settings == CloudQualitySettings::default(),
             t.gpu_ms_total,
             t.pass_ms[0],
             t.pass_ms[1],
             t.pass_ms[2],
             t.pass_ms[3],
-            t.pass_ms[4],
-            t.pass_ms[5],
+            t.pass_ms[4] + t.pass_ms[5],
+            t.pass_ms[6],
             t.gpu_ms_static,
             t.wall_ms,
             t.wall_ms_static,
@@ -996,8 +1008,8 @@ fn markdown(adapter: &str, rows: &[Row], scene_order: &[&'static str]) -> String
                 t.pass_ms[1],
                 t.pass_ms[2],
                 t.pass_ms[3],
-                t.pass_ms[4],
-                t.pass_ms[5],
+                t.pass_ms[4] + t.pass_ms[5],
+                t.pass_ms[6],
                 t.gpu_ms_static,
                 t.wall_ms,
                 t.wall_ms_static,
@@ -1497,6 +1509,7 @@ fn replot(args: &Args) -> Result<(), String> {
         fwd,
         segments,
         supersampling,
+        compositing,
         gpu,
         wall,
         rmse,
@@ -1513,6 +1526,7 @@ fn replot(args: &Args) -> Result<(), String> {
         "forward_scattering",
         "chord_segments",
         "light_supersampling",
+        "compositing",
         "gpu_ms_total",
         "wall_ms",
         "rel_rmse",
@@ -1532,6 +1546,8 @@ fn replot(args: &Args) -> Result<(), String> {
         segments?,
         supersampling?,
     );
+    // Results written before the compositing knob existed were all sorted.
+    let compositing = compositing.ok();
     let (gpu, wall, rmse, noise, spp, pareto, axis) =
         (gpu?, wall?, rmse?, noise?, spp?, pareto?, axis?);
     let mut rows = Vec::new();
@@ -1566,6 +1582,10 @@ fn replot(args: &Args) -> Result<(), String> {
             },
             chord_segments: num(segments) as u32,
             light_supersampling: num(supersampling) as u32,
+            compositing: match compositing.map(f) {
+                Some("ViewTransmittance") => Compositing::ViewTransmittance,
+                _ => Compositing::Sorted,
+            },
         };
         let timing = Timing {
             gpu_ms_total: num(gpu),
@@ -1692,7 +1712,7 @@ impl Bench {
 struct WallPasses {
     /// voxelize (with the particles' upload), shade, gather, scatter (with colours), sort, draw
     /// (static frame, with Bevy's per-frame overhead).
-    pass_ms: [f64; 6],
+    pass_ms: [f64; PASSES],
 }
 
 fn wall_passes(b: &mut Bench, frames: usize) -> (WallPasses, Timing) {
@@ -1703,16 +1723,17 @@ fn wall_passes(b: &mut Bench, frames: usize) -> (WallPasses, Timing) {
     let (wd, _) = b.wall_of(Change::Direction, frames);
     let (wc, _) = b.wall_of(Change::Camera, frames);
     let (wp, _) = b.wall_of(Change::Particles, frames);
-    let sort = wc - w0;
-    let pass_ms = [wp - wd - sort, wd - wi, wi - wa, wa - w0, sort, w0];
+    // The camera's move reruns the view pass: the sort or the view volume, whichever runs.
+    let view = wc - w0;
+    let pass_ms = [wp - wd - view, wd - wi, wi - wa, wa - w0, view, 0.0, w0];
     (WallPasses { pass_ms }, timing)
 }
 
 fn illumination_benchmark(args: &Args) -> Result<(), String> {
     let mut csv = String::from(
         "adapter,scene,lights,volume_resolution,shading,gpu_ms_voxelize,gpu_ms_shade,gpu_ms_gather,gpu_ms_scatter,\
-         gpu_ms_sort,gpu_ms_draw,gpu_ms_total,wall_ms,wall_ms_voxelize,wall_ms_shade,wall_ms_gather,wall_ms_scatter,\
-         wall_ms_sort,wall_ms_static\n",
+         gpu_ms_view,gpu_ms_draw,gpu_ms_total,wall_ms,wall_ms_voxelize,wall_ms_shade,wall_ms_gather,wall_ms_scatter,\
+         wall_ms_view,wall_ms_static\n",
     );
     let mut adapter = String::new();
     let mut lines: Vec<(usize, u32, String, Timing, WallPasses)> = Vec::new();
@@ -1747,16 +1768,16 @@ fn illumination_benchmark(args: &Args) -> Result<(), String> {
                     p[1],
                     p[2],
                     p[3],
-                    p[4],
-                    p[5],
+                    p[4] + p[5],
+                    p[6],
                     t.gpu_ms_total,
                     t.wall_ms,
                     q[0],
                     q[1],
                     q[2],
                     q[3],
-                    q[4],
-                    q[5]
+                    q[4] + q[5],
+                    q[6]
                 );
                 shade.insert(method, (t.pass_ms[1], w.pass_ms[1]));
                 lines.push((scene.lights.len(), n, method_name, t, w));
@@ -1790,15 +1811,15 @@ fn illumination_benchmark(args: &Args) -> Result<(), String> {
             p[1],
             p[2],
             p[3],
-            p[4],
-            p[5],
+            p[4] + p[5],
+            p[6],
             t.gpu_ms_total,
             q[0],
             q[1],
             q[2],
             q[3],
-            q[4],
-            q[5],
+            q[4] + q[5],
+            q[6],
             t.wall_ms
         );
     }

@@ -36,7 +36,7 @@ use bevy::{
     },
 };
 use bevy_particle_clouds::{
-    CloudPass, CloudPassCounters, ParticleCloud, ParticleCloudsPlugin, Particles, image_io,
+    CloudPass, CloudPassCounters, PASSES, ParticleCloud, ParticleCloudsPlugin, Particles, image_io,
 };
 
 /// The options every example accepts (see the module documentation).
@@ -286,8 +286,8 @@ pub struct HudLines;
 /// Runs of each pass during the last rendered frame, and in total.
 #[derive(Resource, Default, Clone, Debug)]
 pub struct PassCounts {
-    pub last: [u32; 6],
-    pub total: [u64; 6],
+    pub last: [u32; PASSES],
+    pub total: [u64; PASSES],
     /// Frames counted.
     pub frames: u64,
 }

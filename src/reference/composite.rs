@@ -3,10 +3,18 @@
 //!
 //! Every particle is a camera-facing disc whose opacity along a pixel ray is `1 - exp(-tau)`, `tau`
 //! the optical depth of the ray's chord through the particle's sphere. Its colour is the
-//! scattered light along that chord: the chord is cut into `K` equal segments, each contributing
-//! `albedo S` at its midpoint times its own opacity and the transmittance of the segments in
-//! front of it. Particles of a cloud are composited back to front over the opaque scene; clouds
-//! are composited in the order given (the caller orders them back to front, as Bevy's
+//! scattered light along that chord, cut into `K` equal segments. Two compositings
+//! ([`Compositing`](crate::settings::Compositing)):
+//!
+//! - view transmittance: each segment's light is seen through the whole cloud's optical depth
+//!   towards the camera (a [`ViewVolume`]), shares the segment's extinction with the other
+//!   particles there in proportion to its own, and `S` is taken log-linear between the segment's
+//!   ends; the particles' light adds up and what is behind is multiplied by every particle's
+//!   transmittance, in any order;
+//! - sorted: each segment contributes `albedo S` at its midpoint times its own opacity and the
+//!   transmittance of the segments in front of it; particles are blended back to front.
+//!
+//! Clouds are composited in the order given (the caller orders them back to front, as Bevy's
 //! transparent phase does per entity).
 
 use bevy::math::{DQuat, DVec3};
@@ -15,7 +23,10 @@ use rayon::prelude::*;
 use crate::particle::{Medium, Particle};
 use crate::reference::camera::PinholeCamera;
 use crate::reference::geometry::nearest_object;
+use crate::reference::illumination::DensityGrid;
+use crate::reference::view_volume::ViewVolume;
 use crate::scene::{Scene, SceneObject};
+use crate::settings::{CloudQualitySettings, Compositing};
 
 /// A cloud's `Transform`: world point = `translation + rotation * (scale * local)`.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -66,6 +77,28 @@ pub struct BillboardCloud<'a> {
     pub scattered: ScatteredLight<'a>,
     /// Segments `K >= 1` of each chord (`chord_segments`).
     pub segments: u32,
+    /// How the particles are composited.
+    pub compositing: BillboardCompositing<'a>,
+}
+
+/// [`Compositing`](crate::settings::Compositing) with what it needs.
+#[derive(Clone, Copy)]
+pub enum BillboardCompositing<'a> {
+    /// Through the view transmittance marched in this fine density grid (cloud-local, `rho`).
+    ViewTransmittance(&'a DensityGrid),
+    /// Sorted back to front.
+    Sorted,
+}
+
+impl<'a> BillboardCompositing<'a> {
+    /// The compositing `settings` choose; `fine` is the cloud's fine density grid
+    /// ([`CloudIllumination::fine`](crate::reference::illumination::CloudIllumination::fine)).
+    pub fn new(compositing: Compositing, fine: &'a DensityGrid) -> Self {
+        match compositing {
+            Compositing::ViewTransmittance => Self::ViewTransmittance(fine),
+            Compositing::Sorted => Self::Sorted,
+        }
+    }
 }
 
 /// A particle prepared for one camera: world centre, world radius `R = s r`, view depth `z_c`.
@@ -77,10 +110,12 @@ struct Billboard {
     depth: f64,
 }
 
-/// One cloud's billboards sorted back to front (descending `z_c`).
+/// One cloud's billboards sorted back to front (descending `z_c`), and its view volume when it is
+/// composited through one.
 struct SortedCloud<'a> {
     cloud: &'a BillboardCloud<'a>,
     billboards: Vec<Billboard>,
+    view: Option<ViewVolume>,
 }
 
 fn sort_cloud<'a>(camera: &PinholeCamera, cloud: &'a BillboardCloud<'a>) -> SortedCloud<'a> {
@@ -101,7 +136,20 @@ fn sort_cloud<'a>(camera: &PinholeCamera, cloud: &'a BillboardCloud<'a>) -> Sort
         .collect();
     // Stable, so particles at equal depth keep their input order.
     billboards.sort_by(|a, b| b.depth.total_cmp(&a.depth));
-    SortedCloud { cloud, billboards }
+    let view = match cloud.compositing {
+        BillboardCompositing::ViewTransmittance(fine) => ViewVolume::march(
+            camera,
+            fine,
+            &cloud.world_from_local,
+            cloud.medium.extinction as f64,
+        ),
+        BillboardCompositing::Sorted => None,
+    };
+    SortedCloud {
+        cloud,
+        billboards,
+        view,
+    }
 }
 
 /// `F(s) = q² s - 2 q s³ / (3 R²) + s⁵ / (5 R⁴)`, the antiderivative of `(q - s²/R²)²`.
@@ -184,29 +232,113 @@ fn particle_radiance(
     (colour, 1.0 - transmittance)
 }
 
+/// `(1 - exp(-x)) / x`, 1 at 0: the mean of `exp(-x t)` over `t` in `[0, 1]`.
+fn mean_attenuation(x: f64) -> f64 {
+    if x.abs() < 1e-6 {
+        1.0 - 0.5 * x
+    } else {
+        -(-x).exp_m1() / x
+    }
+}
+
+/// Mean of `S`, log-linear from `a` to `b` over a segment of optical depth `tau`, weighted by what
+/// each point of it shows through the segment (`exp(-tau t)`): `a g(tau + beta) / g(tau)`,
+/// `beta = ln(a / b)`, per channel. Exact for `S` exponential and the extinction constant along
+/// the segment; a channel zero at either end is taken linear instead.
+fn segment_mean(a: DVec3, b: DVec3, tau: f64) -> DVec3 {
+    let g = mean_attenuation(tau);
+    let channel = |a: f64, b: f64| {
+        if a > 0.0 && b > 0.0 {
+            let beta = (a / b).ln().clamp(-40.0, 40.0);
+            a * mean_attenuation(tau + beta) / g
+        } else {
+            // Linear: the weights' centroid `(1 / g - 1) / tau` of the far end.
+            let far = if tau < 1e-6 {
+                0.5
+            } else {
+                (1.0 / g - 1.0) / tau
+            };
+            a + (b - a) * far
+        }
+    };
+    DVec3::new(channel(a.x, b.x), channel(a.y, b.y), channel(a.z, b.z))
+}
+
+/// Light one particle adds along pixel ray `w` when seen through the cloud's view transmittance,
+/// and its own alpha: segment `k` of the chord adds
+/// `mean S * tau_k / tau_all * exp(-tau_view(a_k)) * (1 - exp(-tau_all))`, where `tau_all`, the
+/// segment's optical depth with every particle, is the view volume's (at least the particle's own
+/// `tau_k`).
+fn particle_light_through_view(
+    camera: &PinholeCamera,
+    w: DVec3,
+    bb: &Billboard,
+    chord: &Chord,
+    cloud: &BillboardCloud,
+    view: &ViewVolume,
+) -> (DVec3, f64) {
+    let sigma = cloud.medium.extinction as f64 * bb.density;
+    let k = cloud.segments.max(1);
+    let ds = (chord.s1 - chord.s0) / k as f64;
+    let at = |s: f64| camera.position + w * (chord.t_c + s);
+    let scattered = |s: f64| (cloud.scattered)(cloud.world_from_local.local_point(at(s)));
+    let (mut light, mut own) = (DVec3::ZERO, 0.0);
+    let (mut view_before, mut s_before) =
+        (view.optical_depth_at(at(chord.s0)), scattered(chord.s0));
+    for i in 0..k {
+        let (a, b) = (chord.s0 + ds * i as f64, chord.s0 + ds * (i + 1) as f64);
+        let tau = (sigma
+            * (chord_antiderivative(chord.q, bb.radius, b)
+                - chord_antiderivative(chord.q, bb.radius, a)))
+        .max(0.0);
+        let view_after = view.optical_depth_at(at(b));
+        let s_after = scattered(b);
+        let all = (view_after - view_before).max(tau);
+        light += segment_mean(s_before, s_after, all)
+            * (tau * (-view_before).exp() * mean_attenuation(all));
+        own += tau;
+        (view_before, s_before) = (view_after, s_after);
+    }
+    (light, -(-own).exp_m1())
+}
+
 /// Radiance of one pixel ray `w`; `clouds` holds only the billboards that may touch its row.
 fn shade_ray(
     camera: &PinholeCamera,
     w: DVec3,
     background: DVec3,
     objects: &[SceneObject],
-    clouds: &[(&BillboardCloud, Vec<&Billboard>)],
+    clouds: &[(&SortedCloud, Vec<&Billboard>)],
     exposure: f64,
 ) -> DVec3 {
     let (mut colour, opaque_depth) = match nearest_object(objects, camera.position, w) {
         Some((t, i)) => (objects[i].color.as_dvec3(), t * w.dot(camera.forward)),
         None => (background, f64::INFINITY),
     };
-    for (cloud, billboards) in clouds {
-        for bb in billboards {
-            let Some(chord) = chord(camera, w, bb) else {
-                continue;
-            };
-            if opaque_depth < chord.depth {
-                continue; // behind the opaque surface: depth test fails
+    for (sorted, billboards) in clouds {
+        let cloud = sorted.cloud;
+        let visible = billboards.iter().filter_map(|bb| {
+            let chord = chord(camera, w, bb)?;
+            // Behind the opaque surface: the depth test fails.
+            (opaque_depth >= chord.depth).then_some((*bb, chord))
+        });
+        match &sorted.view {
+            Some(view) => {
+                let (mut light, mut transmittance) = (DVec3::ZERO, 1.0);
+                for (bb, chord) in visible {
+                    let (l, alpha) =
+                        particle_light_through_view(camera, w, bb, &chord, cloud, view);
+                    light += l;
+                    transmittance *= 1.0 - alpha;
+                }
+                colour = colour * transmittance + light * exposure;
             }
-            let (radiance, alpha) = particle_radiance(camera, w, bb, &chord, cloud);
-            colour = radiance * exposure + colour * (1.0 - alpha);
+            None => {
+                for (bb, chord) in visible {
+                    let (radiance, alpha) = particle_radiance(camera, w, bb, &chord, cloud);
+                    colour = radiance * exposure + colour * (1.0 - alpha);
+                }
+            }
         }
     }
     colour
@@ -218,7 +350,7 @@ fn row_candidates<'c>(
     camera: &PinholeCamera,
     py: u32,
     clouds: &'c [SortedCloud<'c>],
-) -> Vec<(&'c BillboardCloud<'c>, Vec<&'c Billboard>)> {
+) -> Vec<(&'c SortedCloud<'c>, Vec<&'c Billboard>)> {
     let ndc_y = 1.0 - 2.0 * (py as f64 + 0.5) / camera.height as f64;
     let in_plane = camera.forward + camera.up * (ndc_y * camera.tan_half_fov);
     let normal = camera.right.cross(in_plane).normalize();
@@ -230,7 +362,7 @@ fn row_candidates<'c>(
                 .iter()
                 .filter(|bb| (bb.centre - camera.position).dot(normal).abs() < bb.radius)
                 .collect();
-            (cloud.cloud, near_row)
+            (cloud, near_row)
         })
         .collect()
 }
@@ -265,13 +397,15 @@ pub fn composite(
 }
 
 /// The billboard image of cloud `index` of `scene` (scene clouds are translated only) over a black
-/// background with no objects, shading `scattered` at `segments` points per chord: the
-/// real-time image of that cloud alone, at the scene's camera.
+/// background with no objects, shading `scattered` with the `chord_segments` and `compositing`
+/// of `settings` (`fine`: the cloud's fine density grid): the real-time image of that cloud alone,
+/// at the scene's camera.
 pub fn composite_scene_cloud(
     scene: &Scene,
     index: usize,
     scattered: ScatteredLight,
-    segments: u32,
+    settings: &CloudQualitySettings,
+    fine: &DensityGrid,
 ) -> Vec<[f32; 4]> {
     let cloud = &scene.clouds[index];
     let billboards = BillboardCloud {
@@ -279,7 +413,8 @@ pub fn composite_scene_cloud(
         world_from_local: CloudPlacement::at(cloud.translation.as_dvec3()),
         medium: cloud.medium,
         scattered,
-        segments,
+        segments: settings.chord_segments,
+        compositing: BillboardCompositing::new(settings.compositing, fine),
     };
     composite(
         &PinholeCamera::from_scene(&scene.camera),
@@ -337,6 +472,7 @@ mod tests {
             },
             scattered,
             segments: 4,
+            compositing: BillboardCompositing::Sorted,
         }
     }
 
@@ -576,9 +712,9 @@ mod tests {
         };
         let image = composite(&cam, DVec3::splat(0.05), &[], &[c], 2.0);
         let sorted = [sort_cloud(&cam, &c)];
-        let all: Vec<(&BillboardCloud, Vec<&Billboard>)> = sorted
+        let all: Vec<(&SortedCloud, Vec<&Billboard>)> = sorted
             .iter()
-            .map(|s| (s.cloud, s.billboards.iter().collect()))
+            .map(|s| (s, s.billboards.iter().collect()))
             .collect();
         let mut covered = 0;
         for py in 0..H {
@@ -596,5 +732,76 @@ mod tests {
             }
         }
         assert!(covered > 20);
+    }
+
+    /// The cloud of `particles` composited through its view transmittance, on an `n³` fine grid.
+    fn through_view(
+        particles: &[Particle],
+        scattered: ScatteredLight,
+        n: usize,
+        segments: u32,
+        background: DVec3,
+    ) -> Vec<[f32; 4]> {
+        let fine = crate::reference::illumination::voxelize(particles, n).unwrap();
+        let mut c = cloud(particles, scattered, 1.5);
+        c.compositing = BillboardCompositing::ViewTransmittance(&fine);
+        c.segments = segments;
+        composite(&camera(), background, &[], &[c], 1.0)
+    }
+
+    #[test]
+    fn view_transmittance_of_one_particle_approaches_its_exact_light() {
+        // Alone, a particle's light is its own chord's (the sorted compositing is exact then);
+        // the view volume only blurs its own density, less the finer its grid.
+        let particles = [particle(DVec3::new(0.1, 0.0, -4.0), 1.0, 1.2)];
+        let field = |x: DVec3| DVec3::new(1.0, 0.5, 0.25) * (2.0 * (x.x + 1.0)).exp();
+        let mut c = cloud(&particles, &field, 1.5);
+        c.segments = 16;
+        let exact = composite(&camera(), DVec3::ZERO, &[], &[c], 1.0);
+        let background = DVec3::new(0.2, 0.1, 0.0);
+        let error = |n: usize| {
+            let image = through_view(&particles, &field, n, 16, DVec3::ZERO);
+            let worst = (0..W * H)
+                .map(|i| (image[i as usize][0] - exact[i as usize][0]).abs())
+                .fold(0.0f32, f32::max);
+            worst / exact.iter().map(|p| p[0]).fold(0.0, f32::max)
+        };
+        let (coarse, fine) = (error(32), error(128));
+        assert!(fine < 0.02 && fine < coarse, "{coarse} -> {fine}");
+        // The background is dimmed by exactly the particle's own transmittance.
+        let dark = |_: DVec3| DVec3::ZERO;
+        let image = through_view(&particles, &dark, 32, 4, background);
+        let w = camera().pixel_ray(W / 2, H / 2);
+        let c = particles[0].position.as_dvec3();
+        let tau = particle_optical_depth(1.5, 1.2, 1.0, (c - w * c.dot(w)).length());
+        assert!(close(
+            pixel(&image, W / 2, H / 2),
+            background * (-tau).exp()
+        ));
+    }
+
+    #[test]
+    fn view_transmittance_shares_light_between_interpenetrating_particles() {
+        // Two thick particles at the same place: a constant S must show as S (1 - T) of their
+        // summed optical depth, whatever the order, as the medium itself would.
+        let a = particle(DVec3::new(0.0, 0.0, -4.0), 0.8, 2.0);
+        let b = particle(DVec3::new(0.05, 0.0, -4.02), 0.8, 2.0);
+        let image = through_view(&[a, b], WHITE, 128, 8, DVec3::ZERO);
+        assert_eq!(image, through_view(&[b, a], WHITE, 128, 8, DVec3::ZERO));
+        let w = camera().pixel_ray(W / 2, H / 2);
+        let tau: f64 = [a, b]
+            .iter()
+            .map(|p| {
+                let c = p.position.as_dvec3();
+                let impact = (c - w * c.dot(w)).length();
+                particle_optical_depth(1.5, 2.0, 0.8, impact)
+            })
+            .sum();
+        let expected = 1.0 - (-tau).exp();
+        let got = pixel(&image, W / 2, H / 2).x;
+        assert!(
+            (got - expected).abs() < 0.02 * expected,
+            "{got} vs {expected}"
+        );
     }
 }

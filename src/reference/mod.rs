@@ -13,3 +13,4 @@ pub mod geometry;
 pub mod illumination;
 pub mod metrics;
 pub mod path_tracer;
+pub mod view_volume;

@@ -1,6 +1,8 @@
 //! The billboard draw in the `Transparent3d` phase (the paper's Algorithm 3): one phase item per
-//! cloud and view, one instanced draw of six vertices per particle, depth test on (reverse Z),
-//! depth writes off, premultiplied-alpha blending.
+//! cloud and view, instanced draws of six vertices per particle, depth test on (reverse Z), depth
+//! writes off. `Compositing::Sorted`: one draw in the sorted order, premultiplied-alpha blending.
+//! `Compositing::ViewTransmittance`: two order-independent draws, one multiplying what is behind
+//! by each particle's transmittance, one adding each particle's light.
 
 use bevy::{
     core_pipeline::core_3d::{CORE_3D_DEPTH_FORMAT, Transparent3d, TransparentSortingInfo3d},
@@ -17,14 +19,16 @@ use bevy::{
         diagnostic::{DiagnosticsRecorder, RecordDiagnostics},
         render_asset::RenderAssets,
         render_phase::{
-            DrawFunctions, PhaseItem, PhaseItemExtraIndex, RenderCommand, RenderCommandResult,
-            SetItemPipeline, TrackedRenderPass, ViewSortedRenderPhases,
+            CachedRenderPipelinePhaseItem, DrawFunctions, PhaseItem, PhaseItemExtraIndex,
+            RenderCommand, RenderCommandResult, SetItemPipeline, TrackedRenderPass,
+            ViewSortedRenderPhases,
         },
         render_resource::{
             BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries,
-            BlendState, Buffer, BufferInitDescriptor, BufferUsages, ColorTargetState, ColorWrites,
-            CompareFunction, DepthBiasState, DepthStencilState, FragmentState, MultisampleState,
-            PipelineCache, PrimitiveState, RenderPipelineDescriptor, ShaderStages, ShaderType,
+            BlendComponent, BlendFactor, BlendOperation, BlendState, Buffer, BufferInitDescriptor,
+            BufferUsages, CachedRenderPipelineId, ColorTargetState, ColorWrites, CompareFunction,
+            DepthBiasState, DepthStencilState, FragmentState, MultisampleState, PipelineCache,
+            PrimitiveState, RenderPipelineDescriptor, ShaderStages, ShaderType,
             SpecializedRenderPipeline, SpecializedRenderPipelines, StencilState, TextureFormat,
             VertexState,
             binding_types::{storage_buffer_read_only_sized, uniform_buffer, uniform_buffer_sized},
@@ -38,12 +42,15 @@ use bevy::{
     },
 };
 
+use bevy::shader::ShaderDefVal;
+
 use super::{
     extract::ExtractedCloud, key_of, particles::GpuParticles, shaders::CloudShaders,
-    sort::CloudSorts, volumes::CloudVolumes, volumes::uniform_bytes,
+    sort::CloudSorts, view_volume::CloudViewVolumes, volumes::CloudVolumes, volumes::uniform_bytes,
 };
 use crate::{
     cloud::ParticleCloud,
+    settings::Compositing,
     stats::{CloudPass, CloudPassCounters},
 };
 
@@ -69,10 +76,22 @@ pub struct DrawParams {
 pub struct BillboardPipeline {
     /// Group 0: the view uniform.
     pub view_layout: BindGroupLayoutDescriptor,
-    /// Group 1: draw uniform, cloud uniform, particles, sorted order, lights, optical depths,
-    /// multiple scattering.
-    pub cloud_layout: BindGroupLayoutDescriptor,
+    /// Group 1 when sorted: draw uniform, cloud uniform, particles, sorted order, lights,
+    /// optical depths, multiple scattering.
+    pub sorted_layout: BindGroupLayoutDescriptor,
+    /// Group 1 through the view transmittance: the same with the view volume's uniform in place
+    /// of the order, and its optical depths last.
+    pub view_transmittance_layout: BindGroupLayoutDescriptor,
     shader: Handle<Shader>,
+}
+
+impl BillboardPipeline {
+    fn cloud_layout(&self, compositing: Compositing) -> &BindGroupLayoutDescriptor {
+        match compositing {
+            Compositing::Sorted => &self.sorted_layout,
+            Compositing::ViewTransmittance => &self.view_transmittance_layout,
+        }
+    }
 }
 
 pub(crate) fn init_billboard_pipeline(mut commands: Commands, shaders: Res<CloudShaders>) {
@@ -84,14 +103,23 @@ pub(crate) fn init_billboard_pipeline(mut commands: Commands, shaders: Res<Cloud
         ),
     );
     let read = || storage_buffer_read_only_sized(false, None);
-    let cloud_layout = BindGroupLayoutDescriptor::new(
-        "particle_clouds_billboard_layout",
+    let uniform = || uniform_buffer_sized(false, None);
+    let sorted_layout = BindGroupLayoutDescriptor::new(
+        "particle_clouds_billboard_sorted_layout",
+        &BindGroupLayoutEntries::sequential(
+            ShaderStages::VERTEX_FRAGMENT,
+            (uniform(), uniform(), read(), read(), read(), read(), read()),
+        ),
+    );
+    let view_transmittance_layout = BindGroupLayoutDescriptor::new(
+        "particle_clouds_billboard_view_transmittance_layout",
         &BindGroupLayoutEntries::sequential(
             ShaderStages::VERTEX_FRAGMENT,
             (
-                uniform_buffer_sized(false, None),
-                uniform_buffer_sized(false, None),
+                uniform(),
+                uniform(),
                 read(),
+                uniform(),
                 read(),
                 read(),
                 read(),
@@ -101,40 +129,98 @@ pub(crate) fn init_billboard_pipeline(mut commands: Commands, shaders: Res<Cloud
     );
     commands.insert_resource(BillboardPipeline {
         view_layout,
-        cloud_layout,
+        sorted_layout,
+        view_transmittance_layout,
         shader: shaders.billboard.clone(),
     });
 }
 
-/// What a billboard pipeline depends on: the view's target.
+/// What one billboard draw does to the colour target.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+pub enum BillboardBlend {
+    /// `Compositing::Sorted`: premultiplied colour and alpha over what is behind.
+    Sorted,
+    /// `Compositing::ViewTransmittance`, first draw: what is behind times `1 - alpha`.
+    Attenuate,
+    /// `Compositing::ViewTransmittance`, second draw: plus each particle's light.
+    Emit,
+}
+
+impl BillboardBlend {
+    fn compositing(self) -> Compositing {
+        match self {
+            Self::Sorted => Compositing::Sorted,
+            Self::Attenuate | Self::Emit => Compositing::ViewTransmittance,
+        }
+    }
+
+    fn entry_point(self) -> &'static str {
+        match self {
+            Self::Sorted => "fragment",
+            Self::Attenuate => "attenuate",
+            Self::Emit => "emit",
+        }
+    }
+
+    fn state(self) -> BlendState {
+        let component = |src_factor, dst_factor| BlendComponent {
+            src_factor,
+            dst_factor,
+            operation: BlendOperation::Add,
+        };
+        match self {
+            Self::Sorted => BlendState::PREMULTIPLIED_ALPHA_BLENDING,
+            Self::Attenuate => BlendState {
+                color: component(BlendFactor::Zero, BlendFactor::OneMinusSrcAlpha),
+                alpha: component(BlendFactor::One, BlendFactor::OneMinusSrcAlpha),
+            },
+            Self::Emit => BlendState {
+                color: component(BlendFactor::One, BlendFactor::One),
+                alpha: component(BlendFactor::Zero, BlendFactor::One),
+            },
+        }
+    }
+}
+
+/// What a billboard pipeline depends on: the view's target and the draw's blend.
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
 pub struct BillboardPipelineKey {
     /// The view's colour target format (HDR or not).
     pub target_format: TextureFormat,
     /// MSAA sample count of the view.
     pub samples: u32,
+    /// Which of the compositing's draws.
+    pub blend: BillboardBlend,
 }
 
 impl SpecializedRenderPipeline for BillboardPipeline {
     type Key = BillboardPipelineKey;
 
     fn specialize(&self, key: Self::Key) -> RenderPipelineDescriptor {
+        let compositing = key.blend.compositing();
+        let shader_defs: Vec<ShaderDefVal> = match compositing {
+            Compositing::ViewTransmittance => vec!["VIEW_TRANSMITTANCE".into()],
+            Compositing::Sorted => vec![],
+        };
         RenderPipelineDescriptor {
             label: Some("particle_clouds_billboards".into()),
-            layout: vec![self.view_layout.clone(), self.cloud_layout.clone()],
+            layout: vec![
+                self.view_layout.clone(),
+                self.cloud_layout(compositing).clone(),
+            ],
             vertex: VertexState {
                 shader: self.shader.clone(),
                 entry_point: Some("vertex".into()),
-                shader_defs: vec![],
+                shader_defs: shader_defs.clone(),
                 buffers: vec![],
             },
             fragment: Some(FragmentState {
                 shader: self.shader.clone(),
-                entry_point: Some("fragment".into()),
-                shader_defs: vec![],
+                entry_point: Some(key.blend.entry_point().into()),
+                shader_defs,
                 targets: vec![Some(ColorTargetState {
                     format: key.target_format,
-                    blend: Some(BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+                    blend: Some(key.blend.state()),
                     write_mask: ColorWrites::ALL,
                 })],
             }),
@@ -160,8 +246,8 @@ impl SpecializedRenderPipeline for BillboardPipeline {
     }
 }
 
-/// Per cloud: the draw uniform and one bind group per view (each view has its own sort order).
-/// Rebuilt only when one of their inputs changes.
+/// Per cloud: the draw uniform and one bind group per view (each view has its own sort order or
+/// view volume). Rebuilt only when one of their inputs changes.
 #[derive(Component)]
 pub struct CloudDrawBindGroups {
     key: u64,
@@ -174,6 +260,30 @@ pub struct CloudDrawBindGroups {
 #[derive(Resource)]
 pub struct BillboardViewBindGroup(BindGroup);
 
+/// Per view, the buffer that makes a cloud's group 1 differ between views: the sorted order, or
+/// the view volume's uniform and optical depths.
+fn per_view_buffers<'a>(
+    sorts: Option<&'a CloudSorts>,
+    view_volumes: Option<&'a CloudViewVolumes>,
+    compositing: Compositing,
+) -> Vec<(RetainedViewEntity, [&'a Buffer; 2])> {
+    match compositing {
+        Compositing::Sorted => sorts
+            .into_iter()
+            .flat_map(|s| &s.0)
+            .map(|(view, sort)| {
+                let order = sort.buffers.sorted_values();
+                (*view, [order, order])
+            })
+            .collect(),
+        Compositing::ViewTransmittance => view_volumes
+            .into_iter()
+            .flat_map(|v| &v.0)
+            .map(|(view, volume)| (*view, [&volume.params, &volume.optical_depth]))
+            .collect(),
+    }
+}
+
 pub(crate) fn prepare_billboard_bind_groups(
     mut commands: Commands,
     pipeline: Option<Res<BillboardPipeline>>,
@@ -184,7 +294,8 @@ pub(crate) fn prepare_billboard_bind_groups(
         Entity,
         &ExtractedCloud,
         &CloudVolumes,
-        &CloudSorts,
+        Option<&CloudSorts>,
+        Option<&CloudViewVolumes>,
         Option<&CloudDrawBindGroups>,
     )>,
     particles: Res<RenderAssets<GpuParticles>>,
@@ -198,11 +309,12 @@ pub(crate) fn prepare_billboard_bind_groups(
         &pipeline_cache.get_bind_group_layout(&pipeline.view_layout),
         &BindGroupEntries::single(view_binding),
     )));
-    let layout = pipeline_cache.get_bind_group_layout(&pipeline.cloud_layout);
-    for (entity, cloud, volumes, sorts, existing) in &clouds {
+    for (entity, cloud, volumes, sorts, view_volumes, existing) in &clouds {
         let Some(gpu) = particles.get(cloud.particles) else {
             continue;
         };
+        let compositing = cloud.settings.compositing;
+        let layout = pipeline_cache.get_bind_group_layout(pipeline.cloud_layout(compositing));
         let world_from_local = Mat4::from(cloud.world_from_local);
         let params = DrawParams {
             world_from_local,
@@ -212,11 +324,11 @@ pub(crate) fn prepare_billboard_bind_groups(
             segments: cloud.settings.chord_segments,
             _padding: 0,
         };
+        let per_view = per_view_buffers(sorts, view_volumes, compositing);
         // Order-independent over the views (a hash map's order is arbitrary).
-        let views = sorts
-            .0
+        let views = per_view
             .iter()
-            .map(|(view, sort)| key_of((view, sort.buffers.sorted_values().id())))
+            .map(|(view, [a, b])| key_of((view, a.id(), b.id())))
             .fold(0, |a, h| a ^ h);
         let key = key_of((
             params.world_from_local.to_cols_array().map(f32::to_bits),
@@ -231,6 +343,7 @@ pub(crate) fn prepare_billboard_bind_groups(
             ]
             .map(|b| b.id()),
             views,
+            compositing,
         ));
         if existing.is_some_and(|e| e.key == key) {
             continue;
@@ -240,24 +353,43 @@ pub(crate) fn prepare_billboard_bind_groups(
             contents: &uniform_bytes(&params),
             usage: BufferUsages::UNIFORM,
         });
-        let groups = sorts
-            .0
-            .iter()
-            .map(|(view, sort)| {
-                let group = device.create_bind_group(
-                    "particle_clouds_billboard_bind_group",
-                    &layout,
-                    &BindGroupEntries::sequential((
-                        params.as_entire_binding(),
-                        volumes.params_buffer.as_entire_binding(),
-                        gpu.buffer.as_entire_binding(),
-                        sort.buffers.sorted_values().as_entire_binding(),
-                        volumes.light_array.as_entire_binding(),
-                        volumes.optical_depth.as_entire_binding(),
-                        volumes.multiple.as_entire_binding(),
-                    )),
+        let groups = per_view
+            .into_iter()
+            .map(|(view, [a, b])| {
+                let shared = (
+                    params.as_entire_binding(),
+                    volumes.params_buffer.as_entire_binding(),
+                    gpu.buffer.as_entire_binding(),
+                    a.as_entire_binding(),
+                    volumes.light_array.as_entire_binding(),
+                    volumes.optical_depth.as_entire_binding(),
+                    volumes.multiple.as_entire_binding(),
                 );
-                (*view, group)
+                let group = match compositing {
+                    Compositing::Sorted => device.create_bind_group(
+                        "particle_clouds_billboard_bind_group",
+                        &layout,
+                        &BindGroupEntries::sequential(shared),
+                    ),
+                    Compositing::ViewTransmittance => {
+                        let (p, c, g, a, l, o, m) = shared;
+                        device.create_bind_group(
+                            "particle_clouds_billboard_bind_group",
+                            &layout,
+                            &BindGroupEntries::sequential((
+                                p,
+                                c,
+                                g,
+                                a,
+                                l,
+                                o,
+                                m,
+                                b.as_entire_binding(),
+                            )),
+                        )
+                    }
+                };
+                (view, group)
             })
             .collect();
         commands.entity(entity).insert(CloudDrawBindGroups {
@@ -268,15 +400,27 @@ pub(crate) fn prepare_billboard_bind_groups(
     }
 }
 
+/// The `Emit` pipeline drawn after each `Attenuate` pipeline (a view-transmittance cloud's
+/// phase item carries the first; its draw function adds the second).
+#[derive(Resource, Default)]
+pub struct BillboardEmitPipelines(HashMap<CachedRenderPipelineId, CachedRenderPipelineId>);
+
 /// Adds one `Transparent3d` item per visible, drawable cloud to every view's phase.
 pub(crate) fn queue_cloud_billboards(
     draw_functions: Res<DrawFunctions<Transparent3d>>,
     pipeline: Option<Res<BillboardPipeline>>,
     mut pipelines: ResMut<SpecializedRenderPipelines<BillboardPipeline>>,
+    mut emit_pipelines: ResMut<BillboardEmitPipelines>,
     pipeline_cache: Res<PipelineCache>,
     mut phases: ResMut<ViewSortedRenderPhases<Transparent3d>>,
     views: Query<(&ExtractedView, &Msaa, &RenderVisibleEntities)>,
-    clouds: Query<(&ExtractedCloud, &CloudVolumes, &CloudSorts, &MainEntity)>,
+    clouds: Query<(
+        &ExtractedCloud,
+        &CloudVolumes,
+        Option<&CloudSorts>,
+        Option<&CloudViewVolumes>,
+        &MainEntity,
+    )>,
     particles: Res<RenderAssets<GpuParticles>>,
 ) {
     let Some(pipeline) = pipeline else { return };
@@ -288,25 +432,40 @@ pub(crate) fn queue_cloud_billboards(
         let Some(class) = visible.get::<ParticleCloud>() else {
             continue;
         };
-        let key = BillboardPipelineKey {
-            target_format: view.target_format,
-            samples: msaa.samples(),
+        let mut specialize = |blend| {
+            let key = BillboardPipelineKey {
+                target_format: view.target_format,
+                samples: msaa.samples(),
+                blend,
+            };
+            pipelines.specialize(&pipeline_cache, &pipeline, key)
         };
-        let pipeline_id = pipelines.specialize(&pipeline_cache, &pipeline, key);
+        let sorted = specialize(BillboardBlend::Sorted);
+        let attenuate = specialize(BillboardBlend::Attenuate);
+        let emit = specialize(BillboardBlend::Emit);
+        emit_pipelines.0.insert(attenuate, emit);
+        let here = &view.retained_view_entity;
         for &(render_entity, _) in &class.entities_cpu_culling {
-            let Ok((cloud, volumes, sorts, main_entity)) = clouds.get(render_entity) else {
+            let Ok((cloud, volumes, sorts, view_volumes, main_entity)) = clouds.get(render_entity)
+            else {
                 continue;
             };
-            let drawable = volumes.ready
-                && cloud.extinction > 0.0
-                && sorts
-                    .0
-                    .get(&view.retained_view_entity)
-                    .is_some_and(|s| s.ready);
+            let (ready, pipeline_id) = match cloud.settings.compositing {
+                Compositing::Sorted => (
+                    sorts.and_then(|s| s.0.get(here)).is_some_and(|s| s.ready),
+                    sorted,
+                ),
+                Compositing::ViewTransmittance => (
+                    view_volumes
+                        .and_then(|v| v.0.get(here))
+                        .is_some_and(|v| v.ready),
+                    attenuate,
+                ),
+            };
             let Some(gpu) = particles.get(cloud.particles) else {
                 continue;
             };
-            if !drawable || gpu.count == 0 {
+            if !(ready && volumes.ready && cloud.extinction > 0.0) || gpu.count == 0 {
                 continue;
             }
             let centre = cloud
@@ -356,23 +515,26 @@ impl<P: PhaseItem, const I: usize> RenderCommand<P> for SetBillboardViewBindGrou
     }
 }
 
-/// Binds the cloud's group for this view and draws six vertices per particle.
+/// Binds the cloud's group for this view and draws six vertices per particle; through the view
+/// transmittance, a second time with the `Emit` pipeline.
 pub struct DrawBillboards<const I: usize>;
 
-impl<P: PhaseItem, const I: usize> RenderCommand<P> for DrawBillboards<I> {
+impl<P: CachedRenderPipelinePhaseItem, const I: usize> RenderCommand<P> for DrawBillboards<I> {
     type Param = (
         SRes<RenderAssets<GpuParticles>>,
         SRes<CloudPassCounters>,
         Option<SRes<DiagnosticsRecorder>>,
+        SRes<PipelineCache>,
+        SRes<BillboardEmitPipelines>,
     );
     type ViewQuery = Read<ExtractedView>;
     type ItemQuery = (Read<ExtractedCloud>, Read<CloudDrawBindGroups>);
 
     fn render<'w>(
-        _: &P,
+        item: &P,
         view: ROQueryItem<'w, '_, Self::ViewQuery>,
         cloud: Option<ROQueryItem<'w, '_, Self::ItemQuery>>,
-        (particles, counters, recorder): SystemParamItem<'w, '_, Self::Param>,
+        (particles, counters, recorder, cache, emit): SystemParamItem<'w, '_, Self::Param>,
         pass: &mut TrackedRenderPass<'w>,
     ) -> RenderCommandResult {
         let Some((cloud, groups)) = cloud else {
@@ -390,6 +552,11 @@ impl<P: PhaseItem, const I: usize> RenderCommand<P> for DrawBillboards<I> {
         let recorder = recorder.map(|r| r.into_inner());
         let span = recorder.time_span(pass.wgpu_pass(), CloudPass::Draw.span_name());
         pass.draw(0..6, 0..gpu.count);
+        let emit = emit.into_inner().0.get(&item.cached_pipeline());
+        if let Some(emit) = emit.and_then(|id| cache.into_inner().get_render_pipeline(*id)) {
+            pass.set_render_pipeline(emit);
+            pass.draw(0..6, 0..gpu.count);
+        }
         span.end(pass.wgpu_pass());
         counters.add(CloudPass::Draw, 1);
         RenderCommandResult::Success

@@ -7,7 +7,8 @@
 //! | `volumes.rs` | per-cloud volumes and the per-frame work plan (what changed) |
 //! | `pipelines.rs` | compute pipelines of the illumination passes |
 //! | `illumination.rs` | voxelize, shade, gather, scatter, colour (the `RenderGraph` schedule) |
-//! | `sort.rs` | per-view GPU radix sort of the particles |
+//! | `sort.rs` | per-view GPU radix sort of the particles (`Compositing::Sorted`) |
+//! | `view_volume.rs` | per-view optical depth from the camera (`Compositing::ViewTransmittance`) |
 //! | `draw.rs` | the billboard draw in `Transparent3d` |
 
 pub mod draw;
@@ -17,6 +18,7 @@ pub mod particles;
 pub mod pipelines;
 pub mod shaders;
 pub mod sort;
+pub mod view_volume;
 pub mod volumes;
 
 use bevy::{
@@ -42,6 +44,7 @@ impl SyncComponent for ParticleCloud {
         ExtractedCloud,
         volumes::CloudVolumes,
         sort::CloudSorts,
+        view_volume::CloudViewVolumes,
         draw::CloudDrawBindGroups,
     );
 }
@@ -115,12 +118,14 @@ pub(crate) fn finish(app: &mut App) {
     render_app
         .init_resource::<extract::ExtractedCloudLights>()
         .init_resource::<SpecializedRenderPipelines<draw::BillboardPipeline>>()
+        .init_resource::<draw::BillboardEmitPipelines>()
         .add_render_command::<Transparent3d, draw::DrawCloudBillboards>()
         .add_systems(
             RenderStartup,
             (
                 pipelines::init_illumination_pipelines,
                 sort::init_sort_pipelines,
+                view_volume::init_view_volume_pipeline,
                 draw::init_billboard_pipeline,
             ),
         )
@@ -131,7 +136,11 @@ pub(crate) fn finish(app: &mut App) {
         .add_systems(
             Render,
             (
-                (volumes::prepare_cloud_volumes, sort::prepare_cloud_sorts)
+                (
+                    volumes::prepare_cloud_volumes,
+                    (sort::prepare_cloud_sorts, view_volume::prepare_view_volumes),
+                )
+                    .chain()
                     .in_set(RenderSystems::PrepareResources),
                 draw::prepare_billboard_bind_groups.in_set(RenderSystems::PrepareBindGroups),
                 draw::queue_cloud_billboards.in_set(RenderSystems::Queue),
@@ -139,7 +148,11 @@ pub(crate) fn finish(app: &mut App) {
         )
         .add_systems(
             RenderGraph,
-            (illumination::illuminate_clouds, sort::sort_cloud_particles)
+            (
+                illumination::illuminate_clouds,
+                sort::sort_cloud_particles,
+                view_volume::march_view_volumes,
+            )
                 .chain()
                 .in_set(RenderGraphSystems::Render)
                 .before(camera_driver),

@@ -9,6 +9,8 @@ pub struct CloudShaders {
     pub types: Handle<Shader>,
     /// `voxelize.wgsl`.
     pub voxelize: Handle<Shader>,
+    /// `bevy_particle_clouds::density`, imported by shade and view_volume.
+    pub density: Handle<Shader>,
     /// `shade.wgsl`.
     pub shade: Handle<Shader>,
     /// `gather.wgsl`.
@@ -19,6 +21,8 @@ pub struct CloudShaders {
     pub closure: Handle<Shader>,
     /// `sort.wgsl`.
     pub sort: Handle<Shader>,
+    /// `view_volume.wgsl`.
+    pub view_volume: Handle<Shader>,
     /// `billboard.wgsl`.
     pub billboard: Handle<Shader>,
 }
@@ -37,11 +41,13 @@ impl CloudShaders {
         Self {
             types: shader!(shaders, "types.wgsl"),
             voxelize: shader!(shaders, "voxelize.wgsl"),
+            density: shader!(shaders, "density.wgsl"),
             shade: shader!(shaders, "shade.wgsl"),
             gather: shader!(shaders, "gather.wgsl"),
             scatter: shader!(shaders, "scatter.wgsl"),
             closure: shader!(shaders, "closure.wgsl"),
             sort: shader!(shaders, "sort.wgsl"),
+            view_volume: shader!(shaders, "view_volume.wgsl"),
             billboard: shader!(shaders, "billboard.wgsl"),
         }
     }

@@ -31,6 +31,7 @@ use super::{
 };
 use crate::{
     cloud::ParticleCloud,
+    settings::Compositing,
     stats::{CloudPass, CloudPassCounters},
 };
 
@@ -296,6 +297,9 @@ pub(crate) fn prepare_cloud_sorts(
         let Some(gpu) = particles.get(cloud.particles) else {
             continue;
         };
+        if cloud.settings.compositing != Compositing::Sorted {
+            continue;
+        }
         let mut fresh = CloudSorts::default();
         let is_fresh = sorts.is_none();
         let sorts = match sorts {

@@ -232,6 +232,11 @@ pub fn storage_bytes<T: ShaderType + encase::internal::WriteInto + encase::Shade
 }
 
 impl CloudVolumes {
+    /// The key of the density's inputs: it changes whenever the fine density is voxelized anew.
+    pub fn density_key(&self) -> u64 {
+        self.density_key
+    }
+
     fn new(device: &RenderDevice, n: u32, m: u32, particle_count: u32) -> Self {
         let voxels = (n as u64).pow(3);
         Self {

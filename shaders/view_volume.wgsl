@@ -1,0 +1,33 @@
+// View transmittance: a cloud's optical depth from the camera, marched through its fine density
+// grid along n x n view rays and stored at n view depths (docs/illumination.md §5). One
+// invocation per ray; tau_k = tau_{k-1} + K (rho_{k-1} + rho_k) / 2 * dz sqrt(1 + u^2 + v^2).
+// The billboards read it to see each piece of a particle through every particle in front of it.
+#import bevy_particle_clouds::types::{ViewVolumeParams, voxel_index}
+#import bevy_particle_clouds::density::density_at
+
+@group(0) @binding(1) var<uniform> volume: ViewVolumeParams;
+@group(0) @binding(3) var<storage, read_write> view_optical_depth: array<f32>;
+
+@compute @workgroup_size(8, 8, 1)
+fn march(@builtin(global_invocation_id) id: vec3<u32>) {
+    let n = volume.n;
+    if id.x >= n || id.y >= n {
+        return;
+    }
+    let node = vec2<f32>(id.xy) / f32(n - 1u);
+    let uv = mix(volume.rect.xz, volume.rect.yw, node);
+    let dz = (volume.depth.y - volume.depth.x) / f32(n - 1u);
+    let step = 0.5 * volume.extinction * dz * sqrt(1.0 + dot(uv, uv));
+    var before = 0.0;
+    var tau = 0.0;
+    for (var k = 0u; k < n; k++) {
+        let z = volume.depth.x + dz * f32(k);
+        let local = (volume.local_from_view * vec4(uv * z, -z, 1.0)).xyz;
+        let here = density_at(local);
+        if k > 0u {
+            tau += (before + here) * step;
+        }
+        view_optical_depth[voxel_index(vec3(id.xy, k), n)] = tau;
+        before = here;
+    }
+}
