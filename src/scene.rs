@@ -678,7 +678,7 @@ mod tests {
         // a sphere object and the non-default stencil parse too
         let text = MINIMAL.replace(
             "\n)",
-            "objects: [(shape: Sphere(0.5), color: (1, 2, 3))], settings: (scatter_stencil: Paper, forward_scattering: 0.5))",
+            "objects: [(shape: Sphere(0.5), color: (1, 2, 3))], settings: (scatter_stencil: Paper, forward_scattering: 0.5, compositing: ViewTransmittance))",
         );
         let s = Scene::from_ron_str(&text, here()).unwrap();
         assert_eq!(
@@ -691,6 +691,10 @@ mod tests {
         );
         assert_eq!(s.settings.scatter_stencil, ScatterStencil::Paper);
         assert_eq!(s.settings.forward_scattering, 0.5);
+        assert_eq!(
+            s.settings.compositing,
+            crate::settings::Compositing::ViewTransmittance
+        );
         assert_eq!(
             s.settings.volume_resolution,
             CloudQualitySettings::default().volume_resolution
