@@ -23,6 +23,7 @@ pub mod volumes;
 
 use bevy::{
     core_pipeline::{core_3d::Transparent3d, schedule::camera_driver},
+    platform::collections::HashMap,
     prelude::*,
     render::{
         ExtractSchedule, Render, RenderApp, RenderStartup, RenderSystems,
@@ -33,6 +34,7 @@ use bevy::{
         renderer::{RenderAdapter, RenderDevice},
         renderer::{RenderGraph, RenderGraphSystems},
         sync_component::{SyncComponent, SyncComponentPlugin},
+        view::{ExtractedView, RenderVisibleEntities},
     },
 };
 
@@ -61,6 +63,21 @@ impl bevy::render::extract_resource::ExtractResource for ShadingMethod {
     fn extract_resource(source: &Self::Source) -> Self {
         *source
     }
+}
+
+/// Every view each visible cloud is seen in (the per-view passes: sort, view volume).
+pub(crate) fn views_by_cloud<'a>(
+    views: impl IntoIterator<Item = (&'a ExtractedView, &'a RenderVisibleEntities)>,
+) -> HashMap<Entity, Vec<&'a ExtractedView>> {
+    let mut by_cloud: HashMap<Entity, Vec<&ExtractedView>> = HashMap::default();
+    for (view, visible) in views {
+        if let Some(class) = visible.get::<ParticleCloud>() {
+            for (entity, _) in &class.entities_cpu_culling {
+                by_cloud.entry(*entity).or_default().push(view);
+            }
+        }
+    }
+    by_cloud
 }
 
 /// A cache key of a stage's inputs: a stage reruns only when its key changes.

@@ -27,10 +27,10 @@ use super::{
     key_of,
     particles::GpuParticles,
     shaders::CloudShaders,
+    views_by_cloud,
     volumes::{storage, uniform_bytes},
 };
 use crate::{
-    cloud::ParticleCloud,
     settings::Compositing,
     stats::{CloudPass, CloudPassCounters},
 };
@@ -281,16 +281,7 @@ pub(crate) fn prepare_cloud_sorts(
     device: Res<RenderDevice>,
     queue: Res<RenderQueue>,
 ) {
-    let mut visible_in: HashMap<Entity, Vec<&ExtractedView>> = HashMap::default();
-    for (view, visible) in &views {
-        let Some(class) = visible.get::<ParticleCloud>() else {
-            continue;
-        };
-        for (entity, _) in &class.entities_cpu_culling {
-            visible_in.entry(*entity).or_default().push(view);
-        }
-    }
-    for (entity, views) in visible_in {
+    for (entity, views) in views_by_cloud(views.iter()) {
         let Ok((cloud, sorts)) = clouds.get_mut(entity) else {
             continue;
         };

@@ -26,10 +26,10 @@ use super::{
     illumination::record_stage,
     key_of,
     shaders::CloudShaders,
+    views_by_cloud,
     volumes::{CloudVolumes, storage, uniform_bytes},
 };
 use crate::{
-    cloud::ParticleCloud,
     settings::Compositing,
     stats::{CloudPass, CloudPassCounters},
 };
@@ -135,7 +135,7 @@ fn view_bounds(
         .map(|c| -c.z)
         .fold(f32::NEG_INFINITY, f32::max);
     let z0 = nearest.max(near);
-    if !(farthest > z0) {
+    if farthest <= z0 || farthest.is_nan() {
         return None;
     }
     let mut rect = frustum;
@@ -167,15 +167,7 @@ pub(crate) fn prepare_view_volumes(
     device: Res<RenderDevice>,
     queue: Res<RenderQueue>,
 ) {
-    let mut visible_in: HashMap<Entity, Vec<&ExtractedView>> = HashMap::default();
-    for (view, visible) in &views {
-        if let Some(class) = visible.get::<ParticleCloud>() {
-            for (entity, _) in &class.entities_cpu_culling {
-                visible_in.entry(*entity).or_default().push(view);
-            }
-        }
-    }
-    for (entity, views) in visible_in {
+    for (entity, views) in views_by_cloud(views.iter()) {
         let Ok((cloud, volumes, existing)) = clouds.get_mut(entity) else {
             continue;
         };
