@@ -202,6 +202,23 @@ fn chord(camera: &PinholeCamera, w: DVec3, bb: &Billboard) -> Option<Chord> {
     })
 }
 
+/// The `K` equal segments `(a, b, tau)` of a particle's visible chord, front to back: their ends
+/// along the ray (from the closest point) and their optical depth.
+fn segments<'a>(
+    bb: &'a Billboard,
+    chord: &'a Chord,
+    cloud: &BillboardCloud,
+) -> impl Iterator<Item = (f64, f64, f64)> + 'a {
+    let sigma = cloud.medium.extinction as f64 * bb.density;
+    let k = cloud.segments.max(1);
+    let ds = (chord.s1 - chord.s0) / k as f64;
+    (0..k).map(move |i| {
+        let (a, b) = (chord.s0 + ds * i as f64, chord.s0 + ds * (i + 1) as f64);
+        let depth = |s| chord_antiderivative(chord.q, bb.radius, s);
+        (a, b, (sigma * (depth(b) - depth(a))).max(0.0))
+    })
+}
+
 /// Premultiplied radiance and alpha of one particle along pixel ray `w`: `K` equal segments of the
 /// chord, front to back, each `(1 - exp(-tau_k))` times the transmittance in front of it times the
 /// scattered light at its midpoint.
@@ -212,17 +229,8 @@ fn particle_radiance(
     chord: &Chord,
     cloud: &BillboardCloud,
 ) -> (DVec3, f64) {
-    let sigma = cloud.medium.extinction as f64 * bb.density;
-    let k = cloud.segments.max(1);
-    let ds = (chord.s1 - chord.s0) / k as f64;
     let (mut colour, mut transmittance) = (DVec3::ZERO, 1.0);
-    for i in 0..k {
-        let a = chord.s0 + ds * i as f64;
-        let b = a + ds;
-        let tau = (sigma
-            * (chord_antiderivative(chord.q, bb.radius, b)
-                - chord_antiderivative(chord.q, bb.radius, a)))
-        .max(0.0);
+    for (a, b, tau) in segments(bb, chord, cloud) {
         let x = camera.position + w * (chord.t_c + 0.5 * (a + b));
         let opacity = -(-tau).exp_m1();
         colour +=
@@ -277,20 +285,12 @@ fn particle_light_through_view(
     cloud: &BillboardCloud,
     view: &ViewVolume,
 ) -> (DVec3, f64) {
-    let sigma = cloud.medium.extinction as f64 * bb.density;
-    let k = cloud.segments.max(1);
-    let ds = (chord.s1 - chord.s0) / k as f64;
     let at = |s: f64| camera.position + w * (chord.t_c + s);
     let scattered = |s: f64| (cloud.scattered)(cloud.world_from_local.local_point(at(s)));
     let (mut light, mut own) = (DVec3::ZERO, 0.0);
     let (mut view_before, mut s_before) =
         (view.optical_depth_at(at(chord.s0)), scattered(chord.s0));
-    for i in 0..k {
-        let (a, b) = (chord.s0 + ds * i as f64, chord.s0 + ds * (i + 1) as f64);
-        let tau = (sigma
-            * (chord_antiderivative(chord.q, bb.radius, b)
-                - chord_antiderivative(chord.q, bb.radius, a)))
-        .max(0.0);
+    for (_, b, tau) in segments(bb, chord, cloud) {
         let view_after = view.optical_depth_at(at(b));
         let s_after = scattered(b);
         let all = (view_after - view_before).max(tau);
