@@ -301,6 +301,24 @@ fn several_cameras(compositing: Compositing, view_pass: CloudPass) {
     );
 }
 
+/// Edits the particles of `cloud`'s asset in place (an asset change, as a game makes one).
+fn edit_particles(app: &mut App, cloud: Entity, edit: impl FnOnce(&mut Vec<Particle>)) {
+    let handle = app
+        .world()
+        .get::<ParticleCloud>(cloud)
+        .unwrap()
+        .particles
+        .clone();
+    edit(
+        &mut app
+            .world_mut()
+            .resource_mut::<Assets<Particles>>()
+            .get_mut(&handle)
+            .unwrap()
+            .particles,
+    );
+}
+
 /// Renders the small cloud on black at the given camera `ev100`.
 fn cloud_at_exposure(ev100: f32) -> bevy_particle_clouds::image_io::LinearImage {
     let (mut app, mut target) = setup(
@@ -359,19 +377,7 @@ fn changing_the_particles_revoxelizes_and_reruns_the_view_pass() {
         target.drawable_clouds = 1;
         let mut recorder = FrameRecorder::default();
         headless::render_until_steady(&mut app, &mut recorder, &target, 20);
-        let handle = app
-            .world()
-            .get::<ParticleCloud>(cloud)
-            .unwrap()
-            .particles
-            .clone();
-        app.world_mut()
-            .resource_mut::<Assets<Particles>>()
-            .get_mut(&handle)
-            .unwrap()
-            .particles[0]
-            .position
-            .x += 0.1;
+        edit_particles(&mut app, cloud, |p| p[0].position.x += 0.1);
         let mut runs = [0; 2];
         for _ in 0..3 {
             let frame = recorder.frame(&mut app);
@@ -446,18 +452,7 @@ fn particles_made_invalid_later_are_refused_on_change() {
     target.drawable_clouds = 1;
     let mut recorder = FrameRecorder::default();
     headless::render_until_steady(&mut app, &mut recorder, &target, 20);
-    let handle = app
-        .world()
-        .get::<ParticleCloud>(cloud)
-        .unwrap()
-        .particles
-        .clone();
-    app.world_mut()
-        .resource_mut::<Assets<Particles>>()
-        .get_mut(&handle)
-        .unwrap()
-        .particles[3]
-        .radius = -1.0;
+    edit_particles(&mut app, cloud, |p| p[3].radius = -1.0);
     for _ in 0..2 {
         assert_eq!(
             recorder.frame(&mut app).runs(CloudPass::Draw),
@@ -465,12 +460,7 @@ fn particles_made_invalid_later_are_refused_on_change() {
             "the now invalid cloud is not drawn"
         );
     }
-    app.world_mut()
-        .resource_mut::<Assets<Particles>>()
-        .get_mut(&handle)
-        .unwrap()
-        .particles[3]
-        .radius = 0.3;
+    edit_particles(&mut app, cloud, |p| p[3].radius = 0.3);
     let mut draws = 0;
     for _ in 0..3 {
         draws = recorder.frame(&mut app).runs(CloudPass::Draw);

@@ -182,75 +182,69 @@ pub(crate) fn prepare_view_volumes(
         };
         let retained: Vec<_> = views.iter().map(|v| v.retained_view_entity).collect();
         all.0.retain(|k, _| retained.contains(k));
-        let fine = &volumes.fine_params;
-        let n = fine.n.max(2);
-        // An unlit cloud scatters nothing, so it needs no optical depth towards the camera (and
-        // has no density grid): a zero volume, never marched.
-        if volumes.params.light_count == 0 {
-            for view in views {
-                let volume = all
-                    .0
-                    .entry(view.retained_view_entity)
-                    .or_insert_with(|| new_volume(&device, 2));
-                if volume.key != UNLIT {
-                    *volume = new_volume(&device, 2);
-                    volume.key = UNLIT;
-                    volume.ready = true;
-                    let params = ViewVolumeParams {
-                        rect: Vec4::new(0.0, 1.0, 0.0, 1.0),
-                        depth: Vec2::new(0.0, 1.0),
-                        n: 2,
-                        ..default()
-                    };
-                    queue.write_buffer(&volume.params, 0, &uniform_bytes(&params));
-                }
-            }
-            if is_fresh {
-                commands.entity(entity).insert(fresh);
-            }
-            continue;
-        }
         for view in views {
-            let view_from_local =
-                view.world_from_view.to_matrix().inverse() * Mat4::from(cloud.world_from_local);
-            let side = fine.h * fine.n as f32;
-            let Some((rect, depth)) =
-                view_bounds(view_from_local, view.clip_from_view, fine.grid_centre, side)
-            else {
+            let Some((params, key)) = view_params(cloud, volumes, view) else {
                 all.0.remove(&view.retained_view_entity);
                 continue;
-            };
-            let params = ViewVolumeParams {
-                local_from_view: view_from_local.inverse(),
-                rect,
-                depth,
-                extinction: cloud.extinction,
-                n,
             };
             let volume = all
                 .0
                 .entry(view.retained_view_entity)
-                .or_insert_with(|| new_volume(&device, n));
-            if volume.n != n {
-                *volume = new_volume(&device, n);
+                .or_insert_with(|| new_volume(&device, params.n));
+            if volume.n != params.n {
+                *volume = new_volume(&device, params.n);
             }
-            let key = key_of((
-                params.local_from_view.to_cols_array().map(f32::to_bits),
-                params.rect.to_array().map(f32::to_bits),
-                params.depth.to_array().map(f32::to_bits),
-                params.extinction.to_bits(),
-                volumes.density_key(),
-            ));
             if key != volume.key {
                 volume.key = key;
-                volume.pending = true;
                 queue.write_buffer(&volume.params, 0, &uniform_bytes(&params));
+                // An unlit volume stays zero: nothing is scattered to be seen through it.
+                volume.pending = key != UNLIT;
+                volume.ready |= key == UNLIT;
             }
         }
         if is_fresh {
             commands.entity(entity).insert(fresh);
         }
     }
+}
+
+/// The uniform of one view's volume of `cloud` and the key of its inputs, or `None` when the cloud
+/// is not in front of the view. An unlit cloud scatters nothing, so it needs no optical depth
+/// towards the camera (and has no density grid): a zero volume of 2³ nodes, keyed `UNLIT`.
+fn view_params(
+    cloud: &ExtractedCloud,
+    volumes: &CloudVolumes,
+    view: &ExtractedView,
+) -> Option<(ViewVolumeParams, u64)> {
+    if volumes.params.light_count == 0 {
+        let params = ViewVolumeParams {
+            rect: Vec4::new(0.0, 1.0, 0.0, 1.0),
+            depth: Vec2::new(0.0, 1.0),
+            n: 2,
+            ..default()
+        };
+        return Some((params, UNLIT));
+    }
+    let fine = &volumes.fine_params;
+    let view_from_local =
+        view.world_from_view.to_matrix().inverse() * Mat4::from(cloud.world_from_local);
+    let side = fine.h * fine.n as f32;
+    let (rect, depth) = view_bounds(view_from_local, view.clip_from_view, fine.grid_centre, side)?;
+    let params = ViewVolumeParams {
+        local_from_view: view_from_local.inverse(),
+        rect,
+        depth,
+        extinction: cloud.extinction,
+        n: fine.n.max(2),
+    };
+    let key = key_of((
+        params.local_from_view.to_cols_array().map(f32::to_bits),
+        params.rect.to_array().map(f32::to_bits),
+        params.depth.to_array().map(f32::to_bits),
+        params.extinction.to_bits(),
+        volumes.density_key(),
+    ));
+    Some((params, key))
 }
 
 fn new_volume(device: &RenderDevice, n: u32) -> ViewVolume {
