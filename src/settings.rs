@@ -32,17 +32,19 @@ pub enum Compositing {
     /// The paper's compositing: particles sorted back to front by centre depth (on the GPU, once
     /// per view change) and blended whole over each other, each with its exact alpha. Exact for
     /// particles that do not overlap along a ray; optically thick particles that interpenetrate
-    /// hide each other's light as whole discs. The default: the most accurate on the benchmark's
-    /// clouds of many small particles.
-    #[default]
+    /// hide each other's light as whole discs, so it errs where they do (0.069 on the
+    /// benchmark's `albedo_one` cloud, growing with the resolution), but it draws each particle
+    /// once and shades fewer points.
     Sorted,
     /// Every piece of a particle's chord is seen through the whole cloud's optical depth towards
     /// the camera, read from a per-view volume marched through the fine density grid once per view
     /// change. Each particle's light is added and the background is multiplied by every particle's
     /// transmittance, so no order is needed and interpenetrating particles hide each other's light
     /// only where they overlap. The volume blurs the other particles' shadows by about a fine
-    /// voxel: better than `Sorted` where few, optically thick particles interpenetrate, worse on
-    /// clouds of many small particles at the default resolution (README, "Accuracy").
+    /// voxel, so it wants a fine grid (`light_supersampling` 3) and 8 chord segments. The
+    /// default: with those it is within the accuracy goals on every benchmark scene, where
+    /// `Sorted` is not (README, "Accuracy").
+    #[default]
     ViewTransmittance,
 }
 
@@ -53,12 +55,14 @@ pub enum Compositing {
 pub struct CloudQualitySettings {
     /// Voxels per side `N` of the cloud's density and multiple-scattering volumes. Allowed:
     /// `MIN_VOLUME_RESOLUTION..=MAX_VOLUME_RESOLUTION`. Default 48, chosen from the time–error
-    /// benchmark (README, "Performance and accuracy"): with 16 iterations, the cheapest setting
-    /// from which raising either knob only lowers the error.
+    /// benchmark (README, "Performance and accuracy"): the cheapest resolution at which every
+    /// benchmark scene is within its accuracy goal.
     pub volume_resolution: u32,
     /// Multiple-scattering iterations `M` (scattering orders computed beyond the first); the
     /// orders past `M` are estimated from the last two (a geometric series). 0 = single
-    /// scattering only. Allowed: `0..=MAX_SCATTER_ITERATIONS`. Default 16.
+    /// scattering only. Allowed: `0..=MAX_SCATTER_ITERATIONS`. Default 32: optically thick clouds of
+    /// albedo near 1 keep 20 % of their light in orders past 16, and the geometric estimate of
+    /// those takes the shape of the last order, which is still too close to the lit side.
     pub scatter_iterations: u32,
     /// Fraction `f` in `[0, 1]` of scattered light treated as continuing forward in the shading
     /// pass (the paper's forward scattering): light attenuates with `sigma_t * (1 - f * albedo)`.
@@ -70,13 +74,13 @@ pub struct CloudQualitySettings {
     /// `volume_resolution * light_supersampling` voxels per side (the factor lowered until that is
     /// at most `MAX_VOLUME_RESOLUTION`; see [`Self::light_resolution`]). Single scattering, which
     /// the billboards evaluate straight from these volumes, is then sharper than the
-    /// multiple-scattering grid. Allowed: `1..=MAX_LIGHT_SUPERSAMPLING`. Default 2.
+    /// multiple-scattering grid. Allowed: `1..=MAX_LIGHT_SUPERSAMPLING`. Default 3.
     pub light_supersampling: u32,
     /// Segments `K` of each pixel's chord through a particle at which the billboard evaluates the
     /// illumination (a big particle shows its lit and its dark side). Alpha is exact whatever
-    /// `K`. Allowed: `1..=MAX_CHORD_SEGMENTS`. Default 4.
+    /// `K`. Allowed: `1..=MAX_CHORD_SEGMENTS`. Default 8.
     pub chord_segments: u32,
-    /// How the billboards are composited. Default [`Compositing::Sorted`].
+    /// How the billboards are composited. Default [`Compositing::ViewTransmittance`].
     pub compositing: Compositing,
 }
 
@@ -96,12 +100,12 @@ impl Default for CloudQualitySettings {
     fn default() -> Self {
         Self {
             volume_resolution: 48,
-            scatter_iterations: 16,
+            scatter_iterations: 32,
             forward_scattering: 0.0,
             scatter_stencil: ScatterStencil::DiscreteOrdinates,
-            light_supersampling: 2,
-            chord_segments: 4,
-            compositing: Compositing::Sorted,
+            light_supersampling: 3,
+            chord_segments: 8,
+            compositing: Compositing::ViewTransmittance,
         }
     }
 }

@@ -5,6 +5,7 @@
 //!
 //! ```text
 //! cargo run --example benchmark -- [--quick] [--out DIR] [--scenes a,b] [--frames K] [--font TTF]
+//! cargo run --example benchmark -- --settings '(volume_resolution: 64)' [--settings …] [--scenes a,b]
 //! cargo run --example benchmark -- --illumination [--out DIR]
 //! cargo run --example benchmark -- --decompose [--scenes a,b] [--spp N] [--out DIR]
 //! ```
@@ -53,7 +54,7 @@ use bevy_particle_clouds::{
 use headless::{FrameRecorder, FrameStats};
 
 const USAGE: &str = "usage: benchmark [--quick | --decompose] [--out DIR] [--scenes NAME,NAME] [--frames K] [--spp N] \
-[--font TTF] [--illumination] [--replot]";
+[--font TTF] [--illumination] [--replot] [--settings RON]...";
 
 /// Where Debian's `fonts-dejavu-core` puts the font of the plot's labels.
 const DEFAULT_FONT: &str = "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf";
@@ -74,6 +75,8 @@ struct Args {
     replot: bool,
     /// Split the default settings' error by scattering order (CPU only).
     decompose: bool,
+    /// Measure only these settings instead of the sweep (`--settings RON`, repeatable).
+    settings: Vec<CloudQualitySettings>,
 }
 
 fn parse_args() -> Result<Args, String> {
@@ -87,6 +90,7 @@ fn parse_args() -> Result<Args, String> {
         spp: None,
         replot: false,
         decompose: false,
+        settings: Vec::new(),
     };
     let mut it = std::env::args().skip(1);
     while let Some(arg) = it.next() {
@@ -116,6 +120,12 @@ fn parse_args() -> Result<Args, String> {
                         .ok()
                         .filter(|&n| n >= 1)
                         .ok_or(format!("--spp is {v}; it must be an integer >= 1"))?,
+                );
+            }
+            "--settings" => {
+                let v = value("--settings")?;
+                args.settings.push(
+                    ron::from_str(&v).map_err(|e| format!("--settings {v}: {e}"))?,
                 );
             }
             "-h" | "--help" => return Err(USAGE.into()),
@@ -526,6 +536,18 @@ fn downsample(image: &LinearImage, factor: u32) -> LinearImage {
 // Real-time measurements
 // ---------------------------------------------------------------------------------------------
 
+/// The default settings before the view transmittance became the default: sorted compositing,
+/// 16 iterations, light supersampling 2, 4 chord segments.
+const PREVIOUS_DEFAULT: CloudQualitySettings = CloudQualitySettings {
+    volume_resolution: 48,
+    scatter_iterations: 16,
+    forward_scattering: 0.0,
+    scatter_stencil: ScatterStencil::DiscreteOrdinates,
+    light_supersampling: 2,
+    chord_segments: 4,
+    compositing: Compositing::Sorted,
+};
+
 /// The quality settings of a sweep: the defaults, then each knob varied on its own around them
 /// (so every knob's cost and error are measured), plus the paper's stencil.
 fn sweep(quick: bool) -> Vec<CloudQualitySettings> {
@@ -536,7 +558,7 @@ fn sweep(quick: bool) -> Vec<CloudQualitySettings> {
         } else {
             (
                 &[16, 24, 32, 48, 64, 96, 128],
-                &[0, 1, 2, 4, 8, 16, 32],
+                &[0, 1, 2, 4, 8, 16, 32, 64],
                 &[1, 2, 4, 8],
                 &[1, 2, 3],
             )
@@ -583,7 +605,8 @@ fn sweep(quick: bool) -> Vec<CloudQualitySettings> {
             }
         }
     }
-    // The paper's compositing, sorted particles, at the default and the finest grid.
+    // The paper's compositing, sorted particles, at the default and the finest grid, and the
+    // defaults of 0.1 (sorted, 16 iterations, supersampling 2, 4 chord segments).
     let sorted: &[u32] = if quick { &[48] } else { &[48, 128] };
     for &volume_resolution in sorted {
         add(CloudQualitySettings {
@@ -592,6 +615,7 @@ fn sweep(quick: bool) -> Vec<CloudQualitySettings> {
             ..base
         });
     }
+    add(PREVIOUS_DEFAULT);
     let paper: &[u32] = if quick { &[48] } else { &[32, 48, 128] };
     for &volume_resolution in paper {
         add(CloudQualitySettings {
@@ -1293,7 +1317,7 @@ fn main() -> ExitCode {
 
 /// `--decompose`: every chosen scene's error at the default settings, part by part.
 fn decomposition(args: &Args, chosen: &[&BenchScene]) -> Result<(), String> {
-    let settings = CloudQualitySettings::default();
+    let settings = args.settings.first().copied().unwrap_or_default();
     let mut md = String::from(
         "The default settings' error split by scattering order (`cargo run --example benchmark -- \
          --decompose`), computed with the f64 CPU references of the real-time passes (which the GPU \
@@ -1346,7 +1370,11 @@ fn run() -> Result<(), String> {
     if args.decompose {
         return decomposition(&args, &chosen);
     }
-    let settings = sweep(args.quick);
+    let settings = if args.settings.is_empty() {
+        sweep(args.quick)
+    } else {
+        args.settings.clone()
+    };
     let mut rows = Vec::new();
     let mut adapter = String::new();
     for bench in &chosen {

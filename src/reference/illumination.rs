@@ -1344,6 +1344,7 @@ mod tests {
         ];
         let settings = CloudQualitySettings {
             volume_resolution: 8,
+            light_supersampling: 2,
             ..Default::default()
         };
         let ill = illuminate(&particles, &medium, 2.0, &lights, &settings).unwrap();
