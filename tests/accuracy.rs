@@ -145,6 +145,20 @@ fn in_scattered_light(scene: &Scene, points: &[DVec3], samples: u32) -> (Vec<DVe
     (values.into_iter().map(|(s, _)| s).collect(), noise)
 }
 
+/// `error` at the default settings with `volume_resolution` 32, 64 and 128: `(resolution, error)`.
+fn by_resolution(error: impl Fn(&CloudQualitySettings) -> f64) -> Vec<(u32, f64)> {
+    [32, 64, 128]
+        .into_iter()
+        .map(|volume_resolution| {
+            let settings = CloudQualitySettings {
+                volume_resolution,
+                ..default()
+            };
+            (volume_resolution, error(&settings))
+        })
+        .collect()
+}
+
 #[test]
 fn in_scattered_light_converges_with_resolution() {
     // What `volume_resolution` controls: S = S_1 + S_m at the particles' centres, against the
@@ -158,22 +172,15 @@ fn in_scattered_light_converges_with_resolution() {
         .collect();
     let (truth, noise) = in_scattered_light(&scene, &points, 16_000);
     let norm: f64 = truth.iter().map(|s| s.length_squared()).sum();
-    let errors: Vec<(u32, f64)> = [32, 64, 128]
-        .into_iter()
-        .map(|volume_resolution| {
-            let settings = CloudQualitySettings {
-                volume_resolution,
-                ..default()
-            };
-            let ill = illuminate_scene_cloud(&scene, 0, &settings).expect("a cloud with density");
-            let squared: f64 = points
-                .iter()
-                .zip(&truth)
-                .map(|(&x, s)| (ill.scattered_at(x) / ill.albedo - *s).length_squared())
-                .sum();
-            (volume_resolution, (squared / norm).sqrt())
-        })
-        .collect();
+    let errors = by_resolution(|settings| {
+        let ill = illuminate_scene_cloud(&scene, 0, settings).expect("a cloud with density");
+        let squared: f64 = points
+            .iter()
+            .zip(&truth)
+            .map(|(&x, s)| (ill.scattered_at(x) / ill.albedo - *s).length_squared())
+            .sum();
+        (squared / norm).sqrt()
+    });
     eprintln!("path-traced S: noise {noise:.4}; relative RMSE of S by resolution: {errors:?}");
     assert!(
         noise < 0.01,
@@ -200,21 +207,15 @@ fn images_are_within_the_goal_and_no_worse_at_finer_resolutions() {
         noise < 0.015,
         "the reference is too noisy to compare: {noise}"
     );
-    let errors: Vec<(u32, f64)> = [32, 64, 128]
-        .into_iter()
-        .map(|volume_resolution| {
-            let settings = CloudQualitySettings {
-                volume_resolution,
-                ..default()
-            };
-            let error = relative_rmse(&real_time(&scene, &settings), &reference);
-            let denoised = (error * error - noise * noise).max(0.0).sqrt();
-            eprintln!(
-                "{volume_resolution}³: relative RMSE {error:.4}, {denoised:.4} without the reference's noise {noise:.4}"
-            );
-            (volume_resolution, denoised)
-        })
-        .collect();
+    let errors = by_resolution(|settings| {
+        let error = relative_rmse(&real_time(&scene, settings), &reference);
+        let denoised = (error * error - noise * noise).max(0.0).sqrt();
+        eprintln!(
+            "{}³: relative RMSE {error:.4}, {denoised:.4} without the reference's noise {noise:.4}",
+            settings.volume_resolution
+        );
+        denoised
+    });
     let at_32 = errors[0].1;
     for &(n, error) in &errors {
         assert!(error < 0.05, "{n}³ errs by {error}");

@@ -124,9 +124,8 @@ fn parse_args() -> Result<Args, String> {
             }
             "--settings" => {
                 let v = value("--settings")?;
-                args.settings.push(
-                    ron::from_str(&v).map_err(|e| format!("--settings {v}: {e}"))?,
-                );
+                args.settings
+                    .push(ron::from_str(&v).map_err(|e| format!("--settings {v}: {e}"))?);
             }
             "-h" | "--help" => return Err(USAGE.into()),
             other => return Err(format!("unknown argument {other}\n{USAGE}")),
