@@ -66,6 +66,18 @@ fn small_cloud(app: &mut App, albedo: f32, translation: Vec3) -> Entity {
         .id()
 }
 
+/// [`small_cloud`] composited with `compositing`.
+fn small_cloud_compositing(app: &mut App, albedo: f32, compositing: Compositing) -> Entity {
+    let cloud = small_cloud(app, albedo, Vec3::ZERO);
+    app.world_mut()
+        .entity_mut(cloud)
+        .insert(CloudQualitySettings {
+            compositing,
+            ..headless::quality(16, 4)
+        });
+    cloud
+}
+
 #[test]
 fn without_clouds_the_plain_scene_renders_and_no_pass_runs() {
     let background = Vec3::new(0.25, 0.5, 1.0);
@@ -239,13 +251,7 @@ fn several_cameras_hdr_and_not_msaa_on_and_off() {
 fn several_cameras(compositing: Compositing, view_pass: CloudPass) {
     let mut app = headless::headless_app();
     headless::spawn_light(&mut app, Vec3::new(-1.0, -1.0, -1.0), Vec3::splat(3.0));
-    let cloud = small_cloud(&mut app, 0.95, Vec3::ZERO);
-    app.world_mut()
-        .entity_mut(cloud)
-        .insert(CloudQualitySettings {
-            compositing,
-            ..headless::quality(16, 4)
-        });
+    small_cloud_compositing(&mut app, 0.95, compositing);
     // An HDR camera with 4x MSAA and an 8-bit sRGB one without: both must draw the cloud.
     let hdr = headless::float_target(&mut app, W, H);
     let camera = headless::spawn_linear_camera(
@@ -371,13 +377,7 @@ fn changing_the_particles_revoxelizes_and_reruns_the_view_pass() {
             Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
         );
         headless::spawn_light(&mut app, Vec3::NEG_Y, Vec3::ONE);
-        let cloud = small_cloud(&mut app, 0.9, Vec3::ZERO);
-        app.world_mut()
-            .entity_mut(cloud)
-            .insert(CloudQualitySettings {
-                compositing,
-                ..headless::quality(16, 4)
-            });
+        let cloud = small_cloud_compositing(&mut app, 0.9, compositing);
         target.drawable_clouds = 1;
         let mut recorder = FrameRecorder::default();
         headless::render_until_steady(&mut app, &mut recorder, &target, 20);
