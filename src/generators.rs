@@ -16,42 +16,8 @@ use bevy::{
 };
 use rayon::prelude::*;
 
+pub use crate::math::SplitMix64;
 use crate::{Particles, particle::Particle};
-
-/// A small deterministic generator (SplitMix64), so shapes are reproducible without a `rand` dependency.
-#[derive(Clone, Debug)]
-pub struct SplitMix64(u64);
-
-impl SplitMix64 {
-    /// A generator whose sequence is fixed by `seed` (any value, 0 included).
-    pub fn new(seed: u64) -> Self {
-        Self(seed)
-    }
-
-    /// The next uniformly distributed 64-bit value.
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in `[0, 1)`.
-    pub fn next_f32(&mut self) -> f32 {
-        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
-    }
-
-    /// Uniform in the unit ball.
-    pub fn in_unit_ball(&mut self) -> Vec3 {
-        loop {
-            let p = Vec3::new(self.next_f32(), self.next_f32(), self.next_f32()) * 2.0 - 1.0;
-            if p.length_squared() <= 1.0 {
-                return p;
-            }
-        }
-    }
-}
 
 /// `count` particles of radius `particle_radius` filling a ball of radius `radius` (metres),
 /// density 1.

@@ -35,6 +35,7 @@ pub mod cloud;
 pub mod generators;
 pub mod image_io;
 pub mod loader;
+pub mod math;
 pub mod particle;
 pub mod particle_files;
 pub mod reference;

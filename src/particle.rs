@@ -4,6 +4,8 @@
 //! the f64 reference implementations. Units and meaning follow `PHYSICS.md`.
 
 use bevy::math::Vec3;
+
+use crate::math::KERNEL_VOLUME;
 use serde::{Deserialize, Serialize};
 
 /// One particle of a participating medium.
@@ -104,31 +106,6 @@ impl Particle {
     pub fn mass(&self) -> f64 {
         KERNEL_VOLUME * self.density as f64 * (self.radius as f64).powi(3)
     }
-}
-
-/// Integral of the kernel `k(|x|)` over the unit ball: `4π ∫ (1-u²)² u² du = 32π/105`.
-pub const KERNEL_VOLUME: f64 = 32.0 * std::f64::consts::PI / 105.0;
-
-/// The density kernel `k(u) = (1 - u²)²` for `u < 1`, `0` otherwise, of the squared argument `u²`.
-#[inline]
-pub fn kernel_u2(u2: f64) -> f64 {
-    if u2 < 1.0 {
-        let a = 1.0 - u2;
-        a * a
-    } else {
-        0.0
-    }
-}
-
-/// Optical depth of one particle along a line passing at distance `b` from its centre
-/// (PHYSICS.md): `K * eta * r * 16/15 * (1 - b²/r²)^(5/2)` for `b < r`.
-#[inline]
-pub fn particle_optical_depth(extinction: f64, density: f64, radius: f64, b: f64) -> f64 {
-    let q = 1.0 - (b * b) / (radius * radius);
-    if q <= 0.0 {
-        return 0.0;
-    }
-    extinction * density * radius * (16.0 / 15.0) * q * q * q.sqrt()
 }
 
 impl Medium {

@@ -16,8 +16,8 @@ use bevy_particle_clouds::{
         illumination::illuminate_scene_cloud,
         metrics::relative_rmse,
         path_tracer::{
-            self, Lighting, MAX_SCATTER_EVENTS, ParticleMedia, PathTracerSettings,
-            SplitMix64 as PathRng, noise_level, radiance,
+            self, Lighting, MAX_SCATTER_EVENTS, ParticleMedia, PathTracerSettings, noise_level,
+            radiance,
         },
     },
     scene::{ResolvedCloud, Scene, SceneCamera},
@@ -128,7 +128,7 @@ fn in_scattered_light(scene: &Scene, points: &[DVec3], samples: u32) -> (Vec<DVe
         .map(|(i, &x)| {
             let (mut sum, mut squares) = (DVec3::ZERO, DVec3::ZERO);
             for s in 0..samples {
-                let mut rng = PathRng::for_sample(7, i as u64, s as u64);
+                let mut rng = SplitMix64::for_sample(7, i as u64, s as u64);
                 let dir = rng.unit_sphere();
                 let l = radiance(&media, &lighting, x, dir, MAX_SCATTER_EVENTS, &mut rng);
                 sum += l;

@@ -43,6 +43,7 @@ use bevy_particle_clouds::{
     CloudPass, CloudQualitySettings, Compositing, PASSES, Particle, ParticleCloud, Particles,
     ScatterStencil,
     image_io::{LinearImage, read_exr, write_exr, write_png},
+    math::SplitMix64,
     particle_files::{write_csv, write_ply_binary},
     reference::{
         metrics::{mean_absolute_error, rel_mse, relative_rmse},
@@ -241,31 +242,9 @@ const SCENES: &[BenchScene] = &[
     },
 ];
 
-/// SplitMix64: the benchmark's own generator, so its particle sets never change with the crate's.
-struct Rng(u64);
-
-impl Rng {
-    fn next_f32(&mut self) -> f32 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
-    }
-
-    fn in_unit_ball(&mut self) -> Vec3 {
-        loop {
-            let p = Vec3::new(self.next_f32(), self.next_f32(), self.next_f32()) * 2.0 - 1.0;
-            if p.length_squared() <= 1.0 {
-                return p;
-            }
-        }
-    }
-}
-
 /// A rising, widening and thinning plume of smoke, 2 m tall.
 fn thin_smoke() -> Vec<Particle> {
-    let mut rng = Rng(11);
+    let mut rng = SplitMix64::new(11);
     (0..800)
         .map(|_| {
             let t = rng.next_f32();
@@ -286,7 +265,7 @@ fn thin_smoke() -> Vec<Particle> {
 
 /// A cumulus of `count` puffs about `size` metres across: lobes around a core, a flat base.
 fn cumulus(size: f32, count: usize, puff: f32, seed: u64) -> Vec<Particle> {
-    let mut rng = Rng(seed);
+    let mut rng = SplitMix64::new(seed);
     let lobes: Vec<(Vec3, f32)> = (0..7)
         .map(|i| {
             let a = i as f32 / 7.0 * std::f32::consts::TAU + rng.next_f32();
@@ -328,7 +307,7 @@ fn paper_38k() -> Vec<Particle> {
 
 /// A round cloud 2.4 m across (the paper's Figure 2 lights it from two sides).
 fn round_cloud() -> Vec<Particle> {
-    let mut rng = Rng(2);
+    let mut rng = SplitMix64::new(2);
     (0..600)
         .map(|_| {
             let p = rng.in_unit_ball();

@@ -428,7 +428,7 @@ pub fn composite_scene_cloud(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::particle::particle_optical_depth;
+    use crate::math::particle_optical_depth;
     use crate::scene::ObjectShape;
     use bevy::math::Vec3;
 

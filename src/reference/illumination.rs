@@ -14,7 +14,8 @@ use std::ops::{Add, Mul};
 use bevy::math::{DQuat, DVec3};
 use rayon::prelude::*;
 
-use crate::particle::{LightSample, Medium, Particle, kernel_u2};
+use crate::math::{kernel_u2, light_basis};
+use crate::particle::{LightSample, Medium, Particle};
 use crate::settings::{CloudQualitySettings, ScatterStencil};
 
 // ---------------------------------------------------------------------------------------------
@@ -306,17 +307,6 @@ fn deposit_trilinear(grid: &mut DensityGrid, c: DVec3, m: f64) {
 // ---------------------------------------------------------------------------------------------
 // 2. Shade: the light-aligned volume
 // ---------------------------------------------------------------------------------------------
-
-/// Orthonormal basis `[u, v, w]` with `w` the given unit vector (Duff et al. 2017, branchless, with
-/// `sign(0) = +1` so that `w.z = ±0` is handled like the contract and the WGSL `select`).
-pub fn light_basis(w: DVec3) -> [DVec3; 3] {
-    let sg = if w.z >= 0.0 { 1.0 } else { -1.0 };
-    let a = -1.0 / (sg + w.z);
-    let b = w.x * w.y * a;
-    let u = DVec3::new(1.0 + sg * w.x * w.x * a, sg * b, -sg * w.x);
-    let v = DVec3::new(b, sg + w.y * w.y * a, -w.y);
-    [u, v, w]
-}
 
 /// One light's optical depth sampled on its light-aligned box (contract section 2).
 #[derive(Clone, Debug, PartialEq)]
@@ -925,40 +915,6 @@ mod tests {
         values.iter().map(|v| v.max_element()).fold(0.0, f64::max)
     }
 
-    #[test]
-    fn light_basis_is_orthonormal_for_axes_and_random_directions() {
-        let mut dirs = vec![
-            DVec3::X,
-            DVec3::NEG_X,
-            DVec3::Y,
-            DVec3::NEG_Y,
-            DVec3::Z,
-            DVec3::NEG_Z,
-            DVec3::new(0.0, -1.0, 0.0),
-            DVec3::new(0.0, 0.0, -1.0),
-            DVec3::new(1e-9, -1e-9, -1.0).normalize(),
-        ];
-        let mut seed = 7;
-        for _ in 0..100 {
-            let v = DVec3::new(rng(&mut seed), rng(&mut seed), rng(&mut seed)) * 2.0 - 1.0;
-            dirs.push(v.normalize());
-        }
-        for w in dirs {
-            let [u, v, w2] = light_basis(w);
-            assert_eq!(w2, w);
-            for (a, b) in [(u, v), (u, w), (v, w)] {
-                assert!(a.dot(b).abs() < 1e-12, "{w}: not orthogonal");
-            }
-            for a in [u, v] {
-                assert!((a.length() - 1.0).abs() < 1e-12, "{w}: not unit");
-            }
-            assert!((u.cross(v) - w).length() < 1e-12, "{w}: not right-handed");
-        }
-        // The contract's formula for straight down (w.z = 0, sign(0) = +1): u = +X, v = +Z.
-        let [u, v, _] = light_basis(DVec3::NEG_Y);
-        assert_eq!((u, v), (DVec3::X, DVec3::Z));
-    }
-
     fn inputs(k_local: f64, albedo: f64, forward: f64, resolution: usize) -> ShadeInputs {
         ShadeInputs {
             k_local,
@@ -1072,7 +1028,7 @@ mod tests {
             let column: f64 = (0..steps)
                 .map(|i| grid.sample(c + axis * (-1.0 + (i as f64 + 0.5) * ds)) * ds)
                 .sum();
-            let expected = crate::particle::particle_optical_depth(k, 2.0, 1.0, 0.0);
+            let expected = crate::math::particle_optical_depth(k, 2.0, 1.0, 0.0);
             assert!((expected - k * 2.0 * 16.0 / 15.0).abs() < 1e-12);
             let rel = (k * column - expected).abs() / expected;
             assert!(rel < 0.005, "axis {axis}: relative error {rel}");

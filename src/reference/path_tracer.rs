@@ -42,7 +42,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use bevy::math::DVec3;
 use rayon::prelude::*;
 
-use crate::particle::kernel_u2;
+use crate::math::{SplitMix64, kernel_u2};
 use crate::reference::camera::PinholeCamera;
 use crate::reference::geometry::{box_interval, nearest_object};
 use crate::reference::metrics::relative_rmse;
@@ -76,70 +76,6 @@ impl Default for PathTracerSettings {
             seed: 0,
             progress: false,
         }
-    }
-}
-
-// ---------------------------------------------------------------------------------------------
-// Random numbers
-// ---------------------------------------------------------------------------------------------
-
-/// SplitMix64 (Steele, Lea & Flood 2014): a tiny, fast generator with a 64-bit state, good enough
-/// for Monte Carlo, and trivially seeded per pixel sample, which makes renders independent of the
-/// thread schedule.
-#[derive(Clone, Debug)]
-pub struct SplitMix64 {
-    state: u64,
-}
-
-/// The SplitMix64 output function: a bijective 64-bit mixer.
-#[inline]
-fn mix64(mut z: u64) -> u64 {
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
-
-impl SplitMix64 {
-    const GAMMA: u64 = 0x9E37_79B9_7F4A_7C15;
-
-    /// A generator with this seed.
-    pub fn new(seed: u64) -> Self {
-        Self { state: mix64(seed) }
-    }
-
-    /// The generator of sample `sample` of pixel `pixel` in a render seeded with `seed`.
-    /// Nested mixing (rather than e.g. `seed + pixel`) keeps nearby streams uncorrelated.
-    pub fn for_sample(seed: u64, pixel: u64, sample: u64) -> Self {
-        Self::new(
-            mix64(mix64(seed ^ 0x5851_F42D_4C95_7F2D).wrapping_add(pixel)).wrapping_add(sample),
-        )
-    }
-
-    /// Next 64 random bits.
-    #[inline]
-    pub fn next_u64(&mut self) -> u64 {
-        self.state = self.state.wrapping_add(Self::GAMMA);
-        mix64(self.state)
-    }
-
-    /// Uniform in `[0, 1)` with 53 random bits.
-    #[inline]
-    pub fn next_f64(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
-    }
-
-    /// Exponential with rate 1 (mean 1): `-ln(1 - u)`, finite since `1 - u > 0`.
-    #[inline]
-    pub fn exponential(&mut self) -> f64 {
-        -(1.0 - self.next_f64()).ln()
-    }
-
-    /// Uniform direction on the unit sphere (pdf `1/4π` per steradian).
-    pub fn unit_sphere(&mut self) -> DVec3 {
-        let z = 1.0 - 2.0 * self.next_f64();
-        let phi = std::f64::consts::TAU * self.next_f64();
-        let s = (1.0 - z * z).max(0.0).sqrt();
-        DVec3::new(s * phi.cos(), s * phi.sin(), z)
     }
 }
 
@@ -878,7 +814,8 @@ mod tests {
     //! tracer fails them with negligible probability, and the seeds are fixed anyway.
 
     use super::*;
-    use crate::particle::{LightSample, Medium, Particle, particle_optical_depth};
+    use crate::math::particle_optical_depth;
+    use crate::particle::{LightSample, Medium, Particle};
     use crate::scene::{ObjectShape, SceneCamera};
     use crate::settings::CloudQualitySettings;
     use bevy::math::Vec3;
@@ -906,7 +843,7 @@ mod tests {
 
     /// `n` particles in `[-1, 1]³`, radii 0.2–0.5, densities 0.2–1.5.
     fn random_particles(n: usize, seed: u64) -> Vec<Particle> {
-        let mut rng = SplitMix64::new(seed);
+        let mut rng = SplitMix64::mixed(seed);
         let mut u = |a: f64, b: f64| (a + (b - a) * rng.next_f64()) as f32;
         (0..n)
             .map(|_| particle(u(-1., 1.), u(-1., 1.), u(-1., 1.), u(0.2, 0.5), u(0.2, 1.5)))
@@ -1035,26 +972,6 @@ mod tests {
         }
     }
 
-    #[test]
-    fn rng_is_uniform_and_streams_differ() {
-        let mut rng = SplitMix64::for_sample(1, 2, 3);
-        let n = 100_000;
-        let mean = (0..n).map(|_| rng.next_f64()).sum::<f64>() / n as f64;
-        assert!(
-            (mean - 0.5).abs() < 5.0 * (1.0 / 12.0f64 / n as f64).sqrt(),
-            "mean {mean}"
-        );
-        let dir_mean = (0..n).map(|_| rng.unit_sphere()).sum::<DVec3>() / n as f64;
-        assert!(
-            dir_mean.length() < 0.02,
-            "directions not isotropic: {dir_mean}"
-        );
-        let a = SplitMix64::for_sample(1, 2, 3).next_u64();
-        assert_ne!(a, SplitMix64::for_sample(1, 2, 4).next_u64());
-        assert_ne!(a, SplitMix64::for_sample(1, 3, 3).next_u64());
-        assert_ne!(a, SplitMix64::for_sample(2, 2, 3).next_u64());
-    }
-
     /// The grid gives exactly the brute-force coefficients (two overlapping, translated clouds
     /// with different albedos) and its majorant bounds `σ_t` everywhere.
     #[test]
@@ -1065,7 +982,7 @@ mod tests {
         ];
         let media = ParticleMedia::new(&clouds);
         assert_eq!(media.particle_count(), 80);
-        let mut rng = SplitMix64::new(3);
+        let mut rng = SplitMix64::mixed(3);
         for _ in 0..5000 {
             let x = DVec3::new(rng.next_f64(), rng.next_f64(), rng.next_f64()) * 3.4 - 1.7;
             let grid = media.coefficients_at(x);
@@ -1091,7 +1008,7 @@ mod tests {
             cloud(Vec3::new(0.5, -0.3, 0.2), 5.0, 0.5, random_particles(20, 5)),
         ];
         let media = ParticleMedia::new(&clouds);
-        let mut rng = SplitMix64::new(6);
+        let mut rng = SplitMix64::mixed(6);
         for i in 0..40 {
             let origin = if i % 2 == 0 {
                 DVec3::new(rng.next_f64(), rng.next_f64(), rng.next_f64()) * 2.0 - 1.0
@@ -1145,7 +1062,7 @@ mod tests {
                 "b {b}: τ {tau} vs {expected_tau}"
             );
             let t = (-expected_tau).exp();
-            let mut rng = SplitMix64::new(10 + j as u64);
+            let mut rng = SplitMix64::mixed(10 + j as u64);
             let ratio: Vec<DVec3> = (0..n)
                 .map(|_| DVec3::splat(transmittance(&media, origin, dir, f64::INFINITY, &mut rng)))
                 .collect();
@@ -1182,7 +1099,7 @@ mod tests {
             albedo: 0.5,
             majorant_factor: 2.5,
         };
-        let mut rng = SplitMix64::new(20);
+        let mut rng = SplitMix64::mixed(20);
         let n = 40_000;
         // Transmittances 0.18, 0.15 and 0.004 (deep into ratio tracking's roulette).
         for dir in [
@@ -1283,7 +1200,7 @@ mod tests {
             let t_total = (-particle_optical_depth(k, eta, r, b2.sqrt())).exp();
             let expected =
                 background.as_dvec3() * t_total + lighting.lights[0].irradiance * scattered;
-            let mut rng = SplitMix64::new(30 + j as u64);
+            let mut rng = SplitMix64::mixed(30 + j as u64);
             let samples: Vec<DVec3> = (0..40_000)
                 .map(|_| radiance(&media, &lighting, eye, dir, 1, &mut rng))
                 .collect();
@@ -1313,7 +1230,7 @@ mod tests {
         let media = ParticleMedia::from_scene(&s);
         let lighting = Lighting::from_scene(&s);
         let eye = DVec3::new(0.0, 0.3, 6.0);
-        let mut rng = SplitMix64::new(41);
+        let mut rng = SplitMix64::mixed(41);
         let n = 20_000;
         for j in 0..5 {
             let target = DVec3::new(rng.next_f64() - 0.5, rng.next_f64() - 0.5, 0.0);
@@ -1441,7 +1358,7 @@ mod tests {
             let dir = (DVec3::new(b, 0.0, 0.0) - eye).normalize();
             let b_line = eye.cross(dir).length();
             let t_direct = (-particle_optical_depth(k, 1.0, r, b_line)).exp();
-            let mut rng = SplitMix64::new(60 + j as u64);
+            let mut rng = SplitMix64::mixed(60 + j as u64);
             let env_samples: Vec<DVec3> = (0..n)
                 .map(|_| {
                     radiance(
@@ -1494,7 +1411,7 @@ mod tests {
         let shaded = scene(clouds.clone(), vec![light], Vec3::ZERO, vec![shade], (1, 1));
         let open = scene(clouds, vec![light], Vec3::ZERO, vec![], (1, 1));
         let media = ParticleMedia::from_scene(&open);
-        let mut rng = SplitMix64::new(70);
+        let mut rng = SplitMix64::mixed(70);
         let lighting = Lighting::from_scene(&shaded);
         let total: DVec3 = (0..2000)
             .map(|_| radiance(&media, &lighting, eye, dir, MAX_SCATTER_EVENTS, &mut rng))

@@ -174,7 +174,8 @@ impl ViewVolume {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::particle::{Particle, particle_optical_depth};
+    use crate::math::particle_optical_depth;
+    use crate::particle::Particle;
     use crate::reference::illumination::voxelize;
     use bevy::math::{DQuat, Vec3};
 

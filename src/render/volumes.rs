@@ -19,7 +19,7 @@ use super::{
     key_of,
     particles::{CloudBounds, GpuParticles},
 };
-use crate::{reference::illumination::light_basis, settings::ScatterStencil};
+use crate::{math::light_basis, settings::ScatterStencil};
 
 /// Mirror of `CloudParams` in `shaders/types.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]

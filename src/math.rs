@@ -1,0 +1,205 @@
+//! The math that the real-time renderer, the CPU reference and the path tracer share: the density
+//! kernel and its chord integral (`docs/physics.md`), the light-aligned basis, and one small random
+//! number generator. It depends on nothing else in the crate, so `render/` never imports its oracle.
+
+use bevy::math::{DVec3, Vec3};
+
+/// Integral of the kernel `k(|x|)` over the unit ball: `4π ∫ (1-u²)² u² du = 32π/105`.
+pub const KERNEL_VOLUME: f64 = 32.0 * std::f64::consts::PI / 105.0;
+
+/// The density kernel `k(u) = (1 - u²)²` for `u < 1`, `0` otherwise, of the squared argument `u²`.
+#[inline]
+pub fn kernel_u2(u2: f64) -> f64 {
+    if u2 < 1.0 {
+        let a = 1.0 - u2;
+        a * a
+    } else {
+        0.0
+    }
+}
+
+/// Optical depth of one particle along a line passing at distance `b` (metres) from its centre:
+/// the chord integral `K * eta * r * 16/15 * (1 - b²/r²)^(5/2)` for `b < r`, `0` outside.
+#[inline]
+pub fn particle_optical_depth(extinction: f64, density: f64, radius: f64, b: f64) -> f64 {
+    let q = 1.0 - (b * b) / (radius * radius);
+    if q <= 0.0 {
+        return 0.0;
+    }
+    extinction * density * radius * (16.0 / 15.0) * q * q * q.sqrt()
+}
+
+/// Orthonormal basis `[u, v, w]` with `w` the given unit vector (Duff et al. 2017, branchless, with
+/// `sign(0) = +1` so that `w.z = ±0` is handled like the WGSL `select`). The light-aligned volumes
+/// of the renderer and of the reference are laid out along it.
+pub fn light_basis(w: DVec3) -> [DVec3; 3] {
+    let sg = if w.z >= 0.0 { 1.0 } else { -1.0 };
+    let a = -1.0 / (sg + w.z);
+    let b = w.x * w.y * a;
+    let u = DVec3::new(1.0 + sg * w.x * w.x * a, sg * b, -sg * w.x);
+    let v = DVec3::new(b, sg + w.y * w.y * a, -w.y);
+    [u, v, w]
+}
+
+/// The SplitMix64 output function (Steele, Lea & Flood 2014): a bijective 64-bit mixer.
+#[inline]
+pub fn mix64(mut z: u64) -> u64 {
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// SplitMix64: a tiny, fast generator with a 64-bit state, good enough for Monte Carlo and for
+/// shapes, reproducible without a `rand` dependency, and trivially seeded per pixel sample (which
+/// makes renders independent of the thread schedule).
+#[derive(Clone, Debug)]
+pub struct SplitMix64 {
+    state: u64,
+}
+
+impl SplitMix64 {
+    const GAMMA: u64 = 0x9E37_79B9_7F4A_7C15;
+
+    /// A generator whose sequence is fixed by `seed` (any value, 0 included), used as the state.
+    pub fn new(seed: u64) -> Self {
+        Self { state: seed }
+    }
+
+    /// A generator whose state is `seed` mixed first, so that nearby seeds give unrelated streams.
+    pub fn mixed(seed: u64) -> Self {
+        Self::new(mix64(seed))
+    }
+
+    /// The generator of sample `sample` of pixel `pixel` in a render seeded with `seed`.
+    /// Nested mixing (rather than e.g. `seed + pixel`) keeps nearby streams uncorrelated.
+    pub fn for_sample(seed: u64, pixel: u64, sample: u64) -> Self {
+        Self::mixed(
+            mix64(mix64(seed ^ 0x5851_F42D_4C95_7F2D).wrapping_add(pixel)).wrapping_add(sample),
+        )
+    }
+
+    /// The next uniformly distributed 64-bit value.
+    #[inline]
+    pub fn next_u64(&mut self) -> u64 {
+        self.state = self.state.wrapping_add(Self::GAMMA);
+        mix64(self.state)
+    }
+
+    /// Uniform in `[0, 1)` with 24 random bits.
+    #[inline]
+    pub fn next_f32(&mut self) -> f32 {
+        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
+    }
+
+    /// Uniform in `[0, 1)` with 53 random bits.
+    #[inline]
+    pub fn next_f64(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+    }
+
+    /// Exponential with rate 1 (mean 1): `-ln(1 - u)`, finite since `1 - u > 0`.
+    #[inline]
+    pub fn exponential(&mut self) -> f64 {
+        -(1.0 - self.next_f64()).ln()
+    }
+
+    /// Uniform direction on the unit sphere (pdf `1/4π` per steradian).
+    pub fn unit_sphere(&mut self) -> DVec3 {
+        let z = 1.0 - 2.0 * self.next_f64();
+        let phi = std::f64::consts::TAU * self.next_f64();
+        let s = (1.0 - z * z).max(0.0).sqrt();
+        DVec3::new(s * phi.cos(), s * phi.sin(), z)
+    }
+
+    /// Uniform in the unit ball (rejection from the cube).
+    pub fn in_unit_ball(&mut self) -> Vec3 {
+        loop {
+            let p = Vec3::new(self.next_f32(), self.next_f32(), self.next_f32()) * 2.0 - 1.0;
+            if p.length_squared() <= 1.0 {
+                return p;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn light_basis_is_orthonormal_for_axes_and_random_directions() {
+        let mut dirs = vec![
+            DVec3::X,
+            DVec3::NEG_X,
+            DVec3::Y,
+            DVec3::NEG_Y,
+            DVec3::Z,
+            DVec3::NEG_Z,
+            DVec3::new(1e-9, -1e-9, -1.0).normalize(),
+        ];
+        let mut rng = SplitMix64::new(7);
+        for _ in 0..100 {
+            dirs.push(rng.unit_sphere());
+        }
+        for w in dirs {
+            let [u, v, w2] = light_basis(w);
+            assert_eq!(w2, w);
+            for (a, b) in [(u, v), (u, w), (v, w)] {
+                assert!(a.dot(b).abs() < 1e-12, "{w}: not orthogonal");
+            }
+            for a in [u, v] {
+                assert!((a.length() - 1.0).abs() < 1e-12, "{w}: not unit");
+            }
+            assert!((u.cross(v) - w).length() < 1e-12, "{w}: not right-handed");
+        }
+        // Straight down (w.z = 0, sign(0) = +1): u = +X, v = +Z, as in the WGSL.
+        let [u, v, _] = light_basis(DVec3::NEG_Y);
+        assert_eq!((u, v), (DVec3::X, DVec3::Z));
+    }
+
+    #[test]
+    fn chord_integral_matches_numerical_integration_of_the_kernel() {
+        let (k, eta, r): (f64, f64, f64) = (1.7, 0.6, 0.9);
+        for b in [0.0, 0.3, 0.6, 0.85, 0.95] {
+            let n = 20_000;
+            let half = (r * r - b * b).max(0.0).sqrt();
+            let dt = 2.0 * half / n as f64;
+            let numeric: f64 = (0..n)
+                .map(|i| {
+                    let t = -half + (i as f64 + 0.5) * dt;
+                    k * eta * kernel_u2((t * t + b * b) / (r * r)) * dt
+                })
+                .sum();
+            let exact = particle_optical_depth(k, eta, r, b);
+            assert!(
+                (numeric - exact).abs() < 1e-6 * exact.max(1e-3),
+                "b {b}: {numeric} vs {exact}"
+            );
+        }
+        assert_eq!(particle_optical_depth(k, eta, r, r), 0.0);
+    }
+
+    #[test]
+    fn the_generators_streams_are_uniform_and_reproducible() {
+        let mut a = SplitMix64::new(42);
+        let mut b = SplitMix64::new(42);
+        let n = 100_000;
+        let mean: f64 = (0..n).map(|_| a.next_f64()).sum::<f64>() / n as f64;
+        assert!((mean - 0.5).abs() < 0.005, "mean {mean}");
+        let dir_mean = (0..n).map(|_| a.unit_sphere()).sum::<DVec3>() / n as f64;
+        assert!(
+            dir_mean.length() < 0.02,
+            "directions not isotropic: {dir_mean}"
+        );
+        let mut c = SplitMix64::new(42);
+        assert_eq!(b.next_u64(), c.next_u64());
+        assert_ne!(
+            SplitMix64::mixed(42).next_u64(),
+            SplitMix64::new(42).next_u64()
+        );
+        let a = SplitMix64::for_sample(1, 2, 3).next_u64();
+        assert_ne!(a, SplitMix64::for_sample(1, 2, 4).next_u64());
+        assert_ne!(a, SplitMix64::for_sample(1, 3, 3).next_u64());
+        assert_ne!(a, SplitMix64::for_sample(2, 2, 3).next_u64());
+    }
+}
