@@ -3,100 +3,88 @@
 //!
 //! ```text
 //! cargo run --example render -- SCENE.ron --out IMAGE.(exr|png) [--stats STATS.json] [--frames N]
+//!                                [--size WxH] [--set FIELD=VALUE]...
 //! cargo run --example render -- SCENE.ron --reference [--spp N] [--seed S] --out ref.exr
 //! cargo run --example render                      # built-in cumulus → clouds.png
+//! cargo run --example render -- --help            # every flag
 //! ```
 //!
-//! `.exr` holds linear radiance at exposure 1 (PHYSICS.md units); `.png` the same, tonemapped.
-//! `--reference` renders with the CPU ground-truth path tracer instead of the GPU.
-
-#[path = "../tests/common/headless.rs"]
-mod headless;
+//! `.exr` holds linear radiance at exposure 1 (docs/physics.md units) and the render's metadata
+//! (software, adapter, settings, samples and seed, render time, camera); `.png` the same image,
+//! tonemapped. `--reference` renders with the CPU ground-truth path tracer instead of the GPU.
 
 use std::{path::PathBuf, process::ExitCode, time::Instant};
 
 use bevy::{
-    math::Vec3,
+    math::{UVec2, Vec3},
     render::{RenderApp, renderer::RenderDevice},
 };
 use bevy_particle_clouds::{
     CloudPass, CloudQualitySettings, generators,
-    image_io::{LinearImage, write_image},
+    headless::{self, FrameRecorder, FrameStats},
+    image_io::{ImageMetadata, LinearImage, write_exr_with_metadata, write_image},
     particle::{LightSample, Medium},
-    reference::path_tracer::{self, PathTracerSettings},
+    reference::path_tracer::{self, PathTracerSettings, Progress},
     render::volumes::largest_binding,
-    scene::{ResolvedCloud, Scene, SceneCamera},
+    scene::{MAX_IMAGE_SIZE, ResolvedCloud, Scene, SceneCamera, apply_setting},
 };
-use headless::{FrameRecorder, FrameStats};
+use clap::Parser;
+use indicatif::{ProgressBar, ProgressStyle};
 
-const USAGE: &str = "usage: render [SCENE.ron --out IMAGE.(exr|png)] [--stats STATS.json] [--frames N] \
-[--reference [--spp N] [--seed S]]";
-
+/// Renders a scene file on the GPU (or with the CPU path tracer) into an EXR or PNG image.
+#[derive(Parser, Debug)]
+#[command(
+    version,
+    about,
+    after_help = "Without SCENE, renders a built-in cumulus into clouds.png."
+)]
 struct Args {
+    /// The scene file (RON, docs/scene-format.md).
+    #[arg(requires = "out")]
     scene: Option<PathBuf>,
-    out: PathBuf,
+    /// The image to write: .exr (linear radiance, with metadata) or .png (tonemapped).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Write per-frame pass runs and GPU times to this JSON file.
+    #[arg(long, value_name = "STATS.json")]
     stats: Option<PathBuf>,
-    frames: usize,
+    /// Frames to render and time once the illumination is finished.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
+    frames: u32,
+    /// Render with the CPU path tracer (the ground truth) instead of the GPU.
+    #[arg(long)]
     reference: bool,
-    spp: u32,
-    seed: u64,
+    /// Path-traced samples per pixel.
+    #[arg(long, requires = "reference", value_parser = clap::value_parser!(u32).range(1..))]
+    spp: Option<u32>,
+    /// Seed of the path tracer's random numbers.
+    #[arg(long, requires = "reference")]
+    seed: Option<u64>,
+    /// Image size in pixels, replacing the scene camera's.
+    #[arg(long, value_name = "WxH", value_parser = parse_size)]
+    size: Option<UVec2>,
+    /// Override a quality setting as in a scene file's `settings`, e.g. volume_resolution=64.
+    /// Repeatable.
+    #[arg(long = "set", value_name = "FIELD=VALUE")]
+    settings: Vec<String>,
 }
 
-fn parse_args() -> Result<Args, String> {
-    let mut args = Args {
-        scene: None,
-        out: PathBuf::from("clouds.png"),
-        stats: None,
-        frames: 1,
-        reference: false,
-        spp: 256,
-        seed: 1,
-    };
-    let mut out_given = false;
-    let mut it = std::env::args().skip(1);
-    while let Some(arg) = it.next() {
-        let mut value = |name: &str| it.next().ok_or(format!("{name} needs a value\n{USAGE}"));
-        match arg.as_str() {
-            "--out" => {
-                args.out = value("--out")?.into();
-                out_given = true;
-            }
-            "--stats" => args.stats = Some(value("--stats")?.into()),
-            "--frames" => {
-                let v = value("--frames")?;
-                args.frames = v
-                    .parse()
-                    .ok()
-                    .filter(|&n| n >= 1)
-                    .ok_or(format!("--frames is {v}; it must be an integer >= 1"))?;
-            }
-            "--spp" => {
-                let v = value("--spp")?;
-                args.spp = v
-                    .parse()
-                    .ok()
-                    .filter(|&n| n >= 1)
-                    .ok_or(format!("--spp is {v}; it must be an integer >= 1"))?;
-            }
-            "--seed" => {
-                let v = value("--seed")?;
-                args.seed = v
-                    .parse()
-                    .map_err(|_| format!("--seed is {v}; it must be an unsigned integer"))?;
-            }
-            "--reference" => args.reference = true,
-            "-h" | "--help" => return Err(USAGE.into()),
-            flag if flag.starts_with("--") => {
-                return Err(format!("unknown option {flag}\n{USAGE}"));
-            }
-            path if args.scene.is_none() => args.scene = Some(path.into()),
-            extra => return Err(format!("unexpected argument {extra}\n{USAGE}")),
-        }
+/// `WxH`, each in `1..=MAX_IMAGE_SIZE`.
+fn parse_size(text: &str) -> Result<UVec2, String> {
+    let allowed = format!("it must be WxH with each in 1..={MAX_IMAGE_SIZE}, e.g. 640x480");
+    let (w, h) = text
+        .split_once(['x', 'X'])
+        .ok_or(format!("--size is {text}; {allowed}"))?;
+    let size = UVec2::new(
+        w.parse()
+            .map_err(|_| format!("--size is {text}; {allowed}"))?,
+        h.parse()
+            .map_err(|_| format!("--size is {text}; {allowed}"))?,
+    );
+    if size.min_element() == 0 || size.max_element() > MAX_IMAGE_SIZE {
+        return Err(format!("--size is {text}; {allowed}"));
     }
-    if args.scene.is_some() && !out_given {
-        return Err(format!("--out is required with a scene file\n{USAGE}"));
-    }
-    Ok(args)
+    Ok(size)
 }
 
 /// The built-in scene: a cumulus lit by a low, warm sun against a blue sky.
@@ -133,7 +121,8 @@ fn default_scene() -> Scene {
 }
 
 fn main() -> ExitCode {
-    match run() {
+    let args = Args::parse();
+    match run(&args) {
         Ok(()) => ExitCode::SUCCESS,
         Err(message) => {
             eprintln!("error: {message}");
@@ -142,19 +131,26 @@ fn main() -> ExitCode {
     }
 }
 
-fn run() -> Result<(), String> {
-    let args = parse_args()?;
+fn run(args: &Args) -> Result<(), String> {
     let start = Instant::now();
-    let scene = match &args.scene {
+    let mut scene = match &args.scene {
         Some(path) => Scene::load(path).map_err(|e| e.to_string())?,
         None => default_scene(),
     };
+    for assignment in &args.settings {
+        apply_setting(&mut scene.settings, assignment).map_err(|e| e.to_string())?;
+    }
+    if let Some(size) = args.size {
+        (scene.camera.width, scene.camera.height) = (size.x, size.y);
+    }
+    let out = args.out.clone().unwrap_or_else(|| "clouds.png".into());
     let particles: usize = scene.clouds.iter().map(|c| c.particles.len()).sum();
+    let scene_name = args
+        .scene
+        .as_ref()
+        .map_or("<built-in cumulus>".into(), |p| p.display().to_string());
     eprintln!(
-        "render: scene {} ({} clouds, {particles} particles, {} lights, {}x{}) loaded in {:.0} ms",
-        args.scene
-            .as_ref()
-            .map_or("<built-in cumulus>".into(), |p| p.display().to_string()),
+        "render: scene {scene_name} ({} clouds, {particles} particles, {} lights, {}x{}) loaded in {:.0} ms",
         scene.clouds.len(),
         scene.lights.len(),
         scene.camera.width,
@@ -162,50 +158,125 @@ fn run() -> Result<(), String> {
         start.elapsed().as_secs_f64() * 1e3
     );
     // Refuse before rendering anything: the output must be writable as asked.
-    bevy_particle_clouds::image_io::check_output_path(&args.out).map_err(|e| e.to_string())?;
-    let image = if args.reference {
-        reference(&scene, &args)
+    bevy_particle_clouds::image_io::check_output_path(&out).map_err(|e| e.to_string())?;
+    let metadata = ImageMetadata::software()
+        .with("scene", &scene_name)
+        .with("camera", format!("{:?}", scene.camera));
+    let (image, metadata) = if args.reference {
+        reference(&scene, args, metadata)
     } else {
-        real_time(&scene, &args)?
+        real_time(&scene, args, metadata)?
     };
-    write_image(&image, &args.out).map_err(|e| e.to_string())?;
+    let metadata = metadata.with(
+        "render_time_s",
+        format!("{:.3}", start.elapsed().as_secs_f64()),
+    );
+    let exr = out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("exr"));
+    if exr {
+        write_exr_with_metadata(&image, &out, &metadata)
+    } else {
+        write_image(&image, &out)
+    }
+    .map_err(|e| e.to_string())?;
     eprintln!(
         "render: wrote {} in {:.1} s total",
-        args.out.display(),
+        out.display(),
         start.elapsed().as_secs_f64()
     );
     Ok(())
 }
 
-fn reference(scene: &Scene, args: &Args) -> LinearImage {
+fn reference(scene: &Scene, args: &Args, metadata: ImageMetadata) -> (LinearImage, ImageMetadata) {
     let start = Instant::now();
-    eprintln!(
-        "render: path tracing at {} samples per pixel (seed {})",
-        args.spp, args.seed
+    let (spp, seed) = (args.spp.unwrap_or(256), args.seed.unwrap_or(1));
+    eprintln!("render: path tracer at {spp} samples per pixel (seed {seed})");
+    let bar = ProgressBar::new(scene.camera.height as u64).with_style(
+        ProgressStyle::with_template("path tracer {bar:40} {pos}/{len} rows, {eta} left")
+            .expect("progress template"),
     );
+    let rows = bar.clone();
     let pixels = path_tracer::render(
         scene,
         &PathTracerSettings {
-            samples_per_pixel: args.spp,
-            seed: args.seed,
-            progress: true,
+            samples_per_pixel: spp,
+            seed,
+            progress: Some(Progress::new(move |done, _| rows.set_position(done as u64))),
         },
     );
+    bar.finish_and_clear();
     eprintln!(
         "render: path traced in {:.1} s",
         start.elapsed().as_secs_f64()
     );
-    LinearImage {
+    let image = LinearImage {
         width: scene.camera.width,
         height: scene.camera.height,
         pixels,
-    }
+    };
+    let metadata = metadata
+        .with("renderer", "path tracer")
+        .with("spp", spp)
+        .with("seed", seed);
+    (image, metadata)
 }
 
-fn real_time(scene: &Scene, args: &Args) -> Result<LinearImage, String> {
+fn real_time(
+    scene: &Scene,
+    args: &Args,
+    metadata: ImageMetadata,
+) -> Result<(LinearImage, ImageMetadata), String> {
     let start = Instant::now();
-    let mut app = headless::headless_app();
+    // The dev build enables winit, whose event loop needs a display: leave it out.
+    let mut app = headless::app_with(headless::plugins().disable::<bevy::winit::WinitPlugin>());
     let adapter = headless::adapter_name(&mut app);
+    check_volume_fits(&mut app, scene, &adapter)?;
+    eprintln!(
+        "render: adapter {adapter}, started in {:.0} ms",
+        start.elapsed().as_secs_f64() * 1e3
+    );
+    let target = headless::spawn_scene(&mut app, scene);
+    let mut recorder = FrameRecorder::default();
+    let warmup =
+        headless::render_until_steady(&mut app, &mut recorder, target.drawable_clouds, 100)
+            .map_err(|e| e.to_string())?;
+    eprintln!(
+        "render: illumination finished and drawn after {warmup} frames ({:.0} ms)",
+        start.elapsed().as_secs_f64() * 1e3
+    );
+    for i in 1..args.frames {
+        let frame = recorder.frame(&mut app).map_err(|e| e.to_string())?;
+        eprintln!(
+            "render: frame {}/{}: {:.1} ms",
+            i, args.frames, frame.wall_ms
+        );
+    }
+    let image =
+        headless::capture(&mut app, &mut recorder, &target.image).map_err(|e| e.to_string())?;
+    for _ in 0..3 {
+        recorder.drain(&mut app).map_err(|e| e.to_string())?; // late GPU timestamps
+    }
+    if let Some(path) = &args.stats {
+        write_stats(path, &adapter, &recorder.frames)?;
+        eprintln!(
+            "render: wrote statistics of {} frames to {}",
+            recorder.frames.len(),
+            path.display()
+        );
+    }
+    if image.pixels.iter().flatten().any(|v| !v.is_finite()) {
+        return Err("the rendered image has non-finite pixels".into());
+    }
+    let metadata = metadata
+        .with("renderer", "real-time")
+        .with("adapter", &adapter)
+        .with("settings", format!("{:?}", scene.settings));
+    Ok((image, metadata))
+}
+
+/// Refuses a `volume_resolution` whose volumes the adapter cannot bind, naming the largest that fits.
+fn check_volume_fits(app: &mut bevy::app::App, scene: &Scene, adapter: &str) -> Result<(), String> {
     let limit = app
         .sub_app(RenderApp)
         .world()
@@ -232,40 +303,7 @@ fn real_time(scene: &Scene, args: &Args) -> Result<LinearImage, String> {
                 .unwrap_or(0)
         ));
     }
-    eprintln!(
-        "render: adapter {adapter}, started in {:.0} ms",
-        start.elapsed().as_secs_f64() * 1e3
-    );
-    let target = headless::spawn_scene(&mut app, scene);
-    let mut recorder = FrameRecorder::default();
-    let warmup = headless::render_until_steady(&mut app, &mut recorder, &target, 100);
-    eprintln!(
-        "render: illumination finished and drawn after {warmup} frames ({:.0} ms)",
-        start.elapsed().as_secs_f64() * 1e3
-    );
-    for i in 1..args.frames {
-        let frame = recorder.frame(&mut app);
-        eprintln!(
-            "render: frame {}/{}: {:.1} ms",
-            i, args.frames, frame.wall_ms
-        );
-    }
-    let image = headless::capture(&mut app, &mut recorder, &target);
-    for _ in 0..3 {
-        recorder.drain(&mut app); // late GPU timestamps
-    }
-    if let Some(path) = &args.stats {
-        write_stats(path, &adapter, &recorder.frames)?;
-        eprintln!(
-            "render: wrote statistics of {} frames to {}",
-            recorder.frames.len(),
-            path.display()
-        );
-    }
-    if image.pixels.iter().flatten().any(|v| !v.is_finite()) {
-        return Err("the rendered image has non-finite pixels".into());
-    }
-    Ok(image)
+    Ok(())
 }
 
 /// The `--stats` file (schema in the README).

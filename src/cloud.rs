@@ -9,14 +9,16 @@ use bevy::{
     prelude::*,
 };
 
-use bevy::platform::collections::HashMap;
+use bevy::{math::Affine3A, platform::collections::HashMap};
 
 use crate::particle::{InvalidMedium, Medium, Particle};
+use crate::settings::InvalidSettings;
 
 /// A set of particles: the shape and density of a cloud, in cloud-local metres.
 ///
 /// Shared between clouds through its handle; uploaded to the GPU once per change.
-#[derive(Asset, TypePath, Clone, Debug, Default, PartialEq)]
+#[derive(Asset, Reflect, Clone, Debug, Default, PartialEq)]
+#[reflect(Default, Debug, PartialEq)]
 pub struct Particles {
     /// The particles (positions and radii in cloud-local metres). Default: none.
     pub particles: Vec<Particle>,
@@ -38,7 +40,7 @@ impl Particles {
             .reduce(|(lo, hi), (a, b)| (lo.min(a), hi.max(b)))
     }
 
-    /// Checks every particle (PHYSICS.md ranges).
+    /// Checks every particle (docs/physics.md ranges).
     pub fn validate(&self) -> Result<(), InvalidMedium> {
         self.particles
             .iter()
@@ -106,11 +108,33 @@ impl ParticleCloud {
 #[reflect(Component, Default, Debug)]
 pub struct NotCloudLight;
 
-/// The validation result of every loaded [`Particles`] asset (`None`: valid), refreshed only when
-/// an asset is added or modified, so that extraction does not re-check millions of particles each
-/// frame.
+/// The validation result of every loaded [`Particles`] asset, refreshed only when an asset is
+/// added or modified, so that extraction does not re-check millions of particles each frame.
 #[derive(Resource, Default, Debug)]
-pub struct ParticlesValidity(pub HashMap<AssetId<Particles>, Option<String>>);
+pub struct ParticlesValidity(pub HashMap<AssetId<Particles>, Result<(), InvalidMedium>>);
+
+/// Why a cloud is not drawn (it is skipped with a warning; every other cloud still renders).
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum InvalidCloud {
+    /// Its medium or one of its particles is out of range.
+    #[error(transparent)]
+    Medium(#[from] InvalidMedium),
+    /// Its `CloudQualitySettings` (or the `DefaultCloudQuality`) is out of range.
+    #[error("CloudQualitySettings: {0}")]
+    Settings(#[from] InvalidSettings),
+    /// Its `GlobalTransform` is not finite or not invertible.
+    #[error("`GlobalTransform` is {0:?}; it must be finite and invertible")]
+    Transform(Affine3A),
+}
+
+/// The plugin's systems in the main world, to order your own systems against.
+#[derive(SystemSet, Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum CloudSystems {
+    /// Validates the `Particles` assets added or changed this frame (after Bevy's asset events).
+    ValidateParticles,
+    /// Sets each cloud's `Aabb` from its particles (in `VisibilitySystems::CalculateBounds`).
+    CalculateBounds,
+}
 
 /// Validates the particle assets that changed this frame (after Bevy wrote the asset events).
 pub(crate) fn validate_changed_particles(
@@ -122,9 +146,7 @@ pub(crate) fn validate_changed_particles(
         match *event {
             AssetEvent::Added { id } | AssetEvent::Modified { id } => {
                 if let Some(particles) = assets.get(id) {
-                    validity
-                        .0
-                        .insert(id, particles.validate().err().map(|e| e.to_string()));
+                    validity.0.insert(id, particles.validate());
                 }
             }
             AssetEvent::Removed { id } | AssetEvent::Unused { id } => {

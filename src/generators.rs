@@ -14,6 +14,7 @@ use bevy::{
     math::Vec3,
     mesh::{Mesh, MeshTrianglesError},
 };
+#[cfg(feature = "parallel")]
 use rayon::prelude::*;
 
 pub use crate::math::SplitMix64;
@@ -87,7 +88,7 @@ pub fn cumulus(size: f32, count: usize, seed: u64) -> Particles {
 }
 
 /// Particles generated per independently seeded chunk by the rejection samplers: the result does
-/// not depend on how many threads rayon uses.
+/// not depend on whether (feature `parallel`) or how many threads rayon uses.
 const CHUNK: usize = 4096;
 
 /// Candidates tried per requested particle before a rejection sampler gives up (a shape filling
@@ -110,8 +111,11 @@ fn rejection_sample(
     );
     let (lo, hi) = (bounds_min.min(bounds_max), bounds_min.max(bounds_max));
     let chunks = count.div_ceil(CHUNK);
-    let particles: Vec<Vec<Particle>> = (0..chunks)
-        .into_par_iter()
+    #[cfg(feature = "parallel")]
+    let chunks = (0..chunks).into_par_iter();
+    #[cfg(not(feature = "parallel"))]
+    let chunks = 0..chunks;
+    let particles: Vec<Vec<Particle>> = chunks
         .map(|chunk| {
             let n = CHUNK.min(count - chunk * CHUNK);
             let mut rng =
@@ -140,7 +144,7 @@ fn rejection_sample(
 /// uniformly distributed over the inside (`sdf(p) < 0`) of a signed-distance function, within the
 /// box `bounds_min..bounds_max` (metres; the box must contain the shape, or the shape is clipped).
 ///
-/// Rejection sampling, in parallel: the cost is about `count` × box volume / shape volume
+/// Rejection sampling, in parallel with the `parallel` feature: the cost is about `count` × box volume / shape volume
 /// evaluations of `sdf`. Only the sign of `sdf` matters, so a bound (such as the usual ellipsoid
 /// approximation) works as well as an exact distance. Returns fewer than `count` particles only
 /// when the shape fills less than about 0.1 % of the box (an empty shape gives none).

@@ -1,79 +1,91 @@
-//! Image output of the render example and the reference renderers.
+//! Image output of the render example and the reference renderers (feature `image`).
 //!
-//! * [`write_exr`] / [`read_exr`]: linear radiance (PHYSICS.md, "Output units") as 32-bit float
-//!   RGBA OpenEXR, values preserved bit for bit. This is what error metrics are computed on.
+//! * [`write_exr`] / [`read_exr`]: linear radiance (docs/physics.md, "Output units") as 32-bit float
+//!   RGBA OpenEXR, values preserved bit for bit, with [`ImageMetadata`] in the header (software,
+//!   adapter, settings, samples, camera). This is what error metrics are computed on.
 //! * [`tonemap_to_srgb8`] / [`write_png`]: an 8-bit sRGB picture for looking at, through a fixed
 //!   display transform (see [`tonemap_to_srgb8`]). Never compute errors on PNGs.
 //! * [`write_image`]: picks one of the two by the file extension.
 
 use std::path::{Path, PathBuf};
 
-use image::{DynamicImage, ImageFormat, Rgba, Rgba32FImage, RgbaImage};
+use exr::prelude::{
+    AttributeValue, Encoding, Image, Layer, LayerAttributes, ReadChannels, ReadLayers,
+    SpecificChannels, Text, Vec2, WritableImage,
+};
+use image::{ImageFormat, Rgba, RgbaImage};
 
-/// A linear image: RGB radiance (units of the lights' irradiance, exposure 1) and alpha,
-/// row-major, row 0 at the top.
-#[derive(Clone, Debug, PartialEq)]
-pub struct LinearImage {
-    /// Pixels per row.
-    pub width: u32,
-    /// Rows.
-    pub height: u32,
-    /// `width * height` pixels `[r, g, b, a]`, pixel `(x, y)` at `y * width + x`.
-    pub pixels: Vec<[f32; 4]>,
+pub use crate::linear_image::LinearImage;
+
+/// Text attributes stored in an EXR file's header beside the pixels (for example `software`,
+/// `adapter`, `settings`, `spp`, `seed`, `render_time_s`, `camera`): what made the image.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ImageMetadata(pub Vec<(String, String)>);
+
+impl ImageMetadata {
+    /// Metadata naming this crate and its version as the `software`.
+    pub fn software() -> Self {
+        Self(vec![(
+            "software".into(),
+            concat!("bevy_particle_clouds ", env!("CARGO_PKG_VERSION")).into(),
+        )])
+    }
+
+    /// Adds (or replaces) one attribute.
+    pub fn with(mut self, key: &str, value: impl ToString) -> Self {
+        self.0.retain(|(k, _)| k != key);
+        self.0.push((key.to_owned(), value.to_string()));
+        self
+    }
+
+    /// The value of `key`, if present.
+    pub fn get(&self, key: &str) -> Option<&str> {
+        self.0
+            .iter()
+            .find(|(k, _)| k == key)
+            .map(|(_, v)| v.as_str())
+    }
 }
 
-impl LinearImage {
-    /// A `width` × `height` image with every pixel `[0, 0, 0, 0]`.
-    pub fn new(width: u32, height: u32) -> Self {
-        Self {
-            width,
-            height,
-            pixels: vec![[0.0; 4]; width as usize * height as usize],
-        }
+fn check_size(img: &LinearImage, path: &Path) -> Result<(), ImageIoError> {
+    let expected = img.width as u64 * img.height as u64;
+    if img.width == 0 || img.height == 0 || img.pixels.len() as u64 != expected {
+        return Err(ImageIoError::Size {
+            path: path.to_path_buf(),
+            width: img.width,
+            height: img.height,
+            pixels: img.pixels.len(),
+        });
     }
-
-    /// The pixel at column `x`, row `y` (row 0 at the top).
-    pub fn pixel(&self, x: u32, y: u32) -> [f32; 4] {
-        self.pixels[y as usize * self.width as usize + x as usize]
-    }
-
-    /// Mutable access to the pixel at column `x`, row `y`.
-    pub fn pixel_mut(&mut self, x: u32, y: u32) -> &mut [f32; 4] {
-        &mut self.pixels[y as usize * self.width as usize + x as usize]
-    }
-
-    fn check_size(&self, path: &Path) -> Result<(), ImageIoError> {
-        let expected = self.width as u64 * self.height as u64;
-        if self.width == 0 || self.height == 0 || self.pixels.len() as u64 != expected {
-            return Err(ImageIoError::Size {
-                path: path.to_path_buf(),
-                width: self.width,
-                height: self.height,
-                pixels: self.pixels.len(),
-            });
-        }
-        Ok(())
-    }
+    Ok(())
 }
 
 /// Why an image could not be written or read. Every message names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum ImageIoError {
     #[error("cannot write '{}': {error}", path.display())]
-    /// Encoding or writing failed.
-    Write {
+    /// Encoding or writing a PNG failed.
+    Png {
         /// The file.
         path: PathBuf,
         /// The `image` crate's error.
         error: image::ImageError,
     },
-    #[error("cannot read '{}': {error}", path.display())]
-    /// Reading or decoding failed.
-    Read {
+    #[error("cannot write '{}': {error}", path.display())]
+    /// Encoding or writing an EXR failed.
+    WriteExr {
         /// The file.
         path: PathBuf,
-        /// The `image` crate's error.
-        error: image::ImageError,
+        /// The `exr` crate's error.
+        error: exr::error::Error,
+    },
+    #[error("cannot read '{}': {error}", path.display())]
+    /// Reading or decoding an EXR failed.
+    ReadExr {
+        /// The file.
+        path: PathBuf,
+        /// The `exr` crate's error.
+        error: exr::error::Error,
     },
     #[error(
         "cannot write '{}': the image is {width}x{height} with {pixels} pixels; \
@@ -99,36 +111,89 @@ pub enum ImageIoError {
     },
 }
 
-/// Writes a 32-bit float RGBA OpenEXR file holding exactly the image's values.
+/// Writes a 32-bit float RGBA OpenEXR file holding exactly the image's values (lossless ZIP
+/// compression) and the crate's name and version as its `software` attribute.
 pub fn write_exr(img: &LinearImage, path: &Path) -> Result<(), ImageIoError> {
-    img.check_size(path)?;
-    let data: Vec<f32> = img.pixels.iter().flatten().copied().collect();
-    let buffer = Rgba32FImage::from_raw(img.width, img.height, data).expect("size checked above");
-    DynamicImage::ImageRgba32F(buffer)
-        .save_with_format(path, ImageFormat::OpenExr)
-        .map_err(|error| ImageIoError::Write {
+    write_exr_with_metadata(img, path, &ImageMetadata::software())
+}
+
+/// [`write_exr`] with `metadata` as text attributes of the file's header.
+pub fn write_exr_with_metadata(
+    img: &LinearImage,
+    path: &Path,
+    metadata: &ImageMetadata,
+) -> Result<(), ImageIoError> {
+    check_size(img, path)?;
+    let width = img.width as usize;
+    let channels = SpecificChannels::rgba(|Vec2(x, y): Vec2<usize>| {
+        let [r, g, b, a] = img.pixels[y * width + x];
+        (r, g, b, a)
+    });
+    let size = (width, img.height as usize);
+    // `software` is a standard EXR attribute; the others are custom text attributes.
+    let attributes = LayerAttributes {
+        software_name: metadata.get("software").map(Text::from),
+        ..LayerAttributes::default()
+    };
+    let layer = Layer::new(size, attributes, Encoding::FAST_LOSSLESS, channels);
+    let mut image = Image::from_layer(layer);
+    for (key, value) in metadata.0.iter().filter(|(key, _)| key != "software") {
+        image.attributes.other.insert(
+            Text::from(key.as_str()),
+            AttributeValue::Text(Text::from(value.as_str())),
+        );
+    }
+    image
+        .write()
+        .to_file(path)
+        .map_err(|error| ImageIoError::WriteExr {
             path: path.to_path_buf(),
             error,
         })
 }
 
-/// Reads an OpenEXR file (any channel layout the `image` crate understands; missing alpha reads as 1).
+/// Reads the first RGBA layer of an OpenEXR file (missing alpha reads as 1) and its text
+/// attributes.
+pub fn read_exr_with_metadata(path: &Path) -> Result<(LinearImage, ImageMetadata), ImageIoError> {
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .rgba_channels(
+            |size, _| LinearImage::new(size.width() as u32, size.height() as u32),
+            |img: &mut LinearImage, Vec2(x, y), (r, g, b, a): (f32, f32, f32, f32)| {
+                *img.pixel_mut(x as u32, y as u32) = [r, g, b, a];
+            },
+        )
+        .first_valid_layer()
+        .all_attributes()
+        .from_file(path)
+        .map_err(|error| ImageIoError::ReadExr {
+            path: path.to_path_buf(),
+            error,
+        })?;
+    let software = image.layer_data.attributes.software_name.as_ref();
+    // A single-part file has one header: custom attributes may come back on the image or the layer.
+    let other = image.attributes.other.iter();
+    let custom = other
+        .chain(&image.layer_data.attributes.other)
+        .filter_map(|(key, value)| match value {
+            AttributeValue::Text(text) => Some((key.to_string(), text.to_string())),
+            _ => None,
+        });
+    let metadata = software
+        .map(|name| ("software".to_owned(), name.to_string()))
+        .into_iter()
+        .chain(custom)
+        .collect();
+    Ok((
+        image.layer_data.channel_data.pixels,
+        ImageMetadata(metadata),
+    ))
+}
+
+/// Reads the first RGBA layer of an OpenEXR file (missing alpha reads as 1).
 pub fn read_exr(path: &Path) -> Result<LinearImage, ImageIoError> {
-    let read_err = |error| ImageIoError::Read {
-        path: path.to_path_buf(),
-        error,
-    };
-    let mut reader =
-        image::ImageReader::open(path).map_err(|e| read_err(image::ImageError::IoError(e)))?;
-    reader.set_format(ImageFormat::OpenExr);
-    let buffer = reader.decode().map_err(read_err)?.into_rgba32f();
-    let (width, height) = buffer.dimensions();
-    let pixels = buffer.pixels().map(|p| p.0).collect();
-    Ok(LinearImage {
-        width,
-        height,
-        pixels,
-    })
+    read_exr_with_metadata(path).map(|(image, _)| image)
 }
 
 /// The display curve of [`tonemap_to_srgb8`] for one linear channel value, result in `[0, 1]`
@@ -176,10 +241,10 @@ pub fn tonemap_to_srgb8(img: &LinearImage) -> RgbaImage {
 
 /// Writes the image through [`tonemap_to_srgb8`] as an 8-bit sRGB RGBA PNG.
 pub fn write_png(img: &LinearImage, path: &Path) -> Result<(), ImageIoError> {
-    img.check_size(path)?;
+    check_size(img, path)?;
     tonemap_to_srgb8(img)
         .save_with_format(path, ImageFormat::Png)
-        .map_err(|error| ImageIoError::Write {
+        .map_err(|error| ImageIoError::Png {
             path: path.to_path_buf(),
             error,
         })
@@ -257,6 +322,24 @@ mod tests {
         }
         // row 0 is the top row: the pixel order survives
         assert_eq!(back.pixel(0, 1), img.pixels[3]);
+    }
+
+    #[test]
+    fn exr_metadata_round_trips() {
+        let dir = tmp_dir("meta");
+        let path = dir.join("m.exr");
+        let metadata = ImageMetadata::software()
+            .with("adapter", "llvmpipe")
+            .with("spp", 64);
+        write_exr_with_metadata(&sample(), &path, &metadata).unwrap();
+        let (back, read) = read_exr_with_metadata(&path).unwrap();
+        assert_eq!(back, sample());
+        assert_eq!(read.get("adapter"), Some("llvmpipe"));
+        assert_eq!(read.get("spp"), Some("64"));
+        assert_eq!(
+            read.get("software"),
+            Some(concat!("bevy_particle_clouds ", env!("CARGO_PKG_VERSION")))
+        );
     }
 
     #[test]

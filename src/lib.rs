@@ -28,25 +28,45 @@
 //!     .run();
 //! ```
 //!
-//! Units and the physical model: `PHYSICS.md`; the discretization: `docs/illumination.md`.
+//! Units and the physical model: `docs/physics.md`; the discretization: `docs/illumination.md`;
+//! scene files: `docs/scene-format.md`.
+//!
+//! # Features
+//!
+//! The default is what a game needs: the plugin, the components, the [`Particles`] asset and its
+//! PLY/CSV loader. Opt in to the rest:
+//!
+//! | feature | enables |
+//! |---|---|
+//! | `parallel` | multi-threaded particle generators (rayon); identical results |
+//! | `scene` | RON scene files ([`scene`]) |
+//! | `image` | EXR (with metadata) and PNG output (`image_io`) |
+//! | `reference` | the f64 CPU reference of every pass and the ground-truth path tracer (`reference`); implies `scene`, `parallel` |
+//! | `headless` | rendering without a window (`headless`): spawn a scene, render until finished, capture; implies `scene` |
 
 #![warn(missing_docs)]
 pub mod cloud;
 pub mod generators;
+#[cfg(feature = "headless")]
+pub mod headless;
+#[cfg(feature = "image")]
 pub mod image_io;
+pub mod linear_image;
 pub mod loader;
 pub mod math;
 pub mod particle;
 pub mod particle_files;
+#[cfg(feature = "reference")]
 pub mod reference;
 pub mod render;
+#[cfg(feature = "scene")]
 pub mod scene;
 pub mod settings;
 pub mod stats;
 
 use bevy::prelude::*;
 
-pub use cloud::{NotCloudLight, ParticleCloud, Particles};
+pub use cloud::{CloudSystems, InvalidCloud, NotCloudLight, ParticleCloud, Particles};
 pub use particle::{LightSample, Medium, Particle};
 pub use settings::{CloudQualitySettings, Compositing, DefaultCloudQuality, ScatterStencil};
 pub use stats::{CloudPass, CloudPassCounters, PASSES};
@@ -54,8 +74,9 @@ pub use stats::{CloudPass, CloudPassCounters, PASSES};
 /// Everything a Bevy user needs.
 pub mod prelude {
     pub use crate::{
-        CloudQualitySettings, Compositing, DefaultCloudQuality, Medium, NotCloudLight, Particle,
-        ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil, generators,
+        CloudQualitySettings, CloudSystems, Compositing, DefaultCloudQuality, Medium,
+        NotCloudLight, Particle, ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil,
+        generators,
     };
 }
 
@@ -70,6 +91,7 @@ impl Plugin for ParticleCloudsPlugin {
         app.init_asset::<Particles>()
             .init_asset_loader::<loader::ParticlesLoader>()
             .register_type::<ParticleCloud>()
+            .register_type::<Particles>()
             .register_type::<NotCloudLight>()
             .register_type::<CloudQualitySettings>()
             .register_type::<DefaultCloudQuality>()
@@ -80,8 +102,11 @@ impl Plugin for ParticleCloudsPlugin {
                 PostUpdate,
                 (
                     cloud::update_cloud_aabbs
-                        .before(bevy::camera::visibility::VisibilitySystems::CheckVisibility),
-                    cloud::validate_changed_particles.after(bevy::asset::AssetEventSystems),
+                        .in_set(CloudSystems::CalculateBounds)
+                        .in_set(bevy::camera::visibility::VisibilitySystems::CalculateBounds),
+                    cloud::validate_changed_particles
+                        .in_set(CloudSystems::ValidateParticles)
+                        .after(bevy::asset::AssetEventSystems),
                 ),
             );
         render::build(app);

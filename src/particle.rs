@@ -1,9 +1,12 @@
 //! Plain particle data shared by the renderer, the CPU reference, the path tracer and scene files.
 //!
 //! Nothing here depends on the engine: the same types feed the GPU buffers (they are `Pod`) and
-//! the f64 reference implementations. Units and meaning follow `PHYSICS.md`.
+//! the f64 reference implementations. Units and meaning follow `docs/physics.md`.
 
-use bevy::math::Vec3;
+use bevy::{
+    math::Vec3,
+    reflect::{Reflect, std_traits::ReflectDefault},
+};
 
 use crate::math::KERNEL_VOLUME;
 use serde::{Deserialize, Serialize};
@@ -11,8 +14,9 @@ use serde::{Deserialize, Serialize};
 /// One particle of a participating medium.
 ///
 /// Its density field is `density * k(|x - position| / radius)` with the kernel
-/// `k(u) = (1 - u²)²` for `u < 1` and `0` beyond (PHYSICS.md).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+/// `k(u) = (1 - u²)²` for `u < 1` and `0` beyond (docs/physics.md).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Reflect, Serialize, Deserialize)]
+#[reflect(Default, Debug, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct Particle {
     /// Centre in cloud-local space, metres.
@@ -23,8 +27,9 @@ pub struct Particle {
     pub density: f32,
 }
 
-/// The optical properties of a cloud's medium (PHYSICS.md, "Medium").
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+/// The optical properties of a cloud's medium (docs/physics.md, "Medium").
+#[derive(Clone, Copy, Debug, PartialEq, Reflect, Serialize, Deserialize)]
+#[reflect(Default, Debug, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct Medium {
     /// Extinction per world metre at density 1 (`K`, 1/m); finite and `>= 0`.
@@ -79,7 +84,7 @@ pub enum InvalidMedium {
 }
 
 impl Particle {
-    /// Checks the particle against PHYSICS.md; `index` is only used in the error message.
+    /// Checks the particle against docs/physics.md; `index` is only used in the error message.
     pub fn validate(&self, index: usize) -> Result<(), InvalidMedium> {
         if !self.position.is_finite() {
             return Err(InvalidMedium::Position {
@@ -109,7 +114,7 @@ impl Particle {
 }
 
 impl Medium {
-    /// Checks the medium against PHYSICS.md.
+    /// Checks the medium against docs/physics.md.
     pub fn validate(&self) -> Result<(), InvalidMedium> {
         if !(self.extinction.is_finite() && self.extinction >= 0.0) {
             return Err(InvalidMedium::Extinction(self.extinction));
@@ -130,7 +135,7 @@ pub fn validate_cloud(medium: &Medium, particles: &[Particle]) -> Result<(), Inv
         .try_for_each(|(i, p)| p.validate(i))
 }
 
-/// A directional light as the physics sees it (PHYSICS.md, "Lights").
+/// A directional light as the physics sees it (docs/physics.md, "Lights").
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct LightSample {
     /// Direction in which the light travels, world space; need not be unit length, must not be zero.

@@ -1,4 +1,4 @@
-//! Particle files referenced by scene files (`SCENE_FORMAT.md`): PLY and CSV.
+//! Particle files referenced by scene files (`docs/scene-format.md`): PLY and CSV.
 //!
 //! * **PLY** — `format ascii 1.0`, `format binary_little_endian 1.0` (and, as a courtesy,
 //!   `binary_big_endian`). The `vertex` element must have the scalar properties `x y z radius
@@ -815,17 +815,17 @@ pub fn parse_csv(path: &Path, text: &str) -> Result<Vec<Particle>, ParticleFileE
 
 /// Writes particles as CSV with the header `x,y,z,radius,density` (values round-trip exactly).
 pub fn write_csv(path: &Path, particles: &[Particle]) -> Result<(), ParticleFileError> {
-    let mut out = String::with_capacity(24 + particles.len() * 40);
-    out.push_str("x,y,z,radius,density\n");
+    let csv_error = |e: csv::Error| ParticleFileError::io(path, e.into());
+    let mut writer = csv::Writer::from_path(path).map_err(csv_error)?;
+    writer.write_record(COLUMNS).map_err(csv_error)?;
     for p in particles {
-        writeln!(
-            out,
-            "{},{},{},{},{}",
-            p.position.x, p.position.y, p.position.z, p.radius, p.density
-        )
-        .unwrap();
+        // Rust's float formatting is the shortest that round-trips.
+        let [x, y, z] = p.position.to_array();
+        writer
+            .write_record([x, y, z, p.radius, p.density].map(|v| v.to_string()))
+            .map_err(csv_error)?;
     }
-    std::fs::write(path, out).map_err(|e| ParticleFileError::io(path, e))
+    writer.flush().map_err(|e| ParticleFileError::io(path, e))
 }
 
 #[cfg(test)]

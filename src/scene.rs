@@ -1,4 +1,4 @@
-//! Scene files (`SCENE_FORMAT.md`): one still image of particle clouds, lights and opaque objects.
+//! Scene files (`docs/scene-format.md`): one still image of particle clouds, lights and opaque objects.
 //!
 //! [`SceneFile`] mirrors the RON text exactly (unknown fields are refused); [`Scene::load`] reads
 //! a file, resolves particle files relative to it, validates every value and returns a [`Scene`]
@@ -79,7 +79,7 @@ pub struct SceneObject {
     pub color: Vec3,
 }
 
-/// A scene file as written (SCENE_FORMAT.md).
+/// A scene file as written (docs/scene-format.md).
 #[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SceneFile {
@@ -197,14 +197,9 @@ pub enum SceneError {
         /// What is allowed.
         allowed: String,
     },
-    /// A `settings` knob is out of range (message built from [`InvalidSettings`]).
-    #[error("{message}")]
-    Settings {
-        /// The message naming `settings.<field>`.
-        message: String,
-        /// The underlying error.
-        error: InvalidSettings,
-    },
+    /// A `settings` knob is out of range.
+    #[error("settings.{} is {}; {}", .0.field(), .0.value(), .0.allowed())]
+    Settings(InvalidSettings),
     /// A particle file could not be read or parsed.
     #[error("{field}: cannot read '{written}' (resolved to {}): {}", resolved.display(), error.detail())]
     ParticleFile {
@@ -291,15 +286,35 @@ fn medium_error(cloud: usize, error: InvalidMedium, note: &str) -> SceneError {
     }
 }
 
-/// Turns "`knob` is 5; allowed ..." into "settings.knob is 5; allowed ...".
-fn settings_error(error: InvalidSettings) -> SceneError {
-    let text = error.to_string();
-    let message = text
-        .strip_prefix('`')
-        .and_then(|rest| rest.split_once('`'))
-        .map(|(name, rest)| format!("settings.{name}{rest}"))
-        .unwrap_or_else(|| format!("settings: {text}"));
-    SceneError::Settings { message, error }
+/// Sets one field of `settings` from a `field=value` assignment written as in a scene file's
+/// `settings` (for example `volume_resolution=64` or `compositing=Sorted`), as the tools' `--set`
+/// does, then checks every knob's range.
+pub fn apply_setting(
+    settings: &mut CloudQualitySettings,
+    assignment: &str,
+) -> Result<(), SceneError> {
+    use bevy::reflect::GetPath;
+    let Some((field, value)) = assignment.split_once('=') else {
+        return Err(invalid(
+            "--set",
+            assignment,
+            "it must be field=value, e.g. volume_resolution=64",
+        ));
+    };
+    let field = field.trim();
+    // RON checks the field's name and the value's type, with the scene file's messages.
+    let parsed: CloudQualitySettings = ron::from_str(&format!("({field}: {})", value.trim()))
+        .map_err(|error| SceneError::Parse {
+            origin: format!("--set {assignment}"),
+            error: Box::new(error),
+        })?;
+    let unknown = || invalid("--set", assignment, "the field is not a settings field");
+    let source = parsed.reflect_path(field).map_err(|_| unknown())?;
+    settings
+        .reflect_path_mut(field)
+        .map_err(|_| unknown())?
+        .apply(source);
+    settings.validate().map_err(SceneError::Settings)
 }
 
 fn validate_camera(c: &SceneCamera) -> Result<(), SceneError> {
@@ -399,7 +414,7 @@ fn validate_globals(
     for (i, o) in objects.iter().enumerate() {
         validate_object(i, o)?;
     }
-    settings.validate().map_err(settings_error)
+    settings.validate().map_err(SceneError::Settings)
 }
 
 /// A cloud's translation and medium.
@@ -548,7 +563,7 @@ mod tests {
     use crate::particle_files::{write_csv, write_ply_ascii, write_ply_binary};
     use crate::settings::ScatterStencil;
 
-    /// The example of SCENE_FORMAT.md, verbatim. It must keep working unchanged.
+    /// The example of docs/scene-format.md, verbatim. It must keep working unchanged.
     const EXAMPLE: &str = r#"(
     camera: (
         position: (0.0, 0.6, 6.0),
@@ -598,6 +613,33 @@ mod tests {
 
     fn example_file() -> SceneFile {
         ron::from_str(EXAMPLE).unwrap()
+    }
+
+    #[test]
+    fn settings_are_set_from_assignments_and_checked() {
+        let mut settings = CloudQualitySettings::default();
+        apply_setting(&mut settings, "volume_resolution=64").unwrap();
+        apply_setting(&mut settings, "compositing = Sorted").unwrap();
+        assert_eq!(settings.volume_resolution, 64);
+        assert_eq!(settings.compositing, crate::Compositing::Sorted);
+        let e = apply_setting(&mut settings, "chord_segments=99").unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "settings.chord_segments is 99; allowed is 1..=16"
+        );
+        let e = apply_setting(&mut settings, "resolution=64")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("--set resolution=64") && e.contains("resolution"),
+            "{e}"
+        );
+        let e = apply_setting(&mut settings, "volume_resolution")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("field=value"), "{e}");
+        let e = apply_setting(&mut settings, "volume_resolution=abc").unwrap_err();
+        assert!(matches!(e, SceneError::Parse { .. }), "{e}");
     }
 
     #[test]

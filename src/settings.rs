@@ -66,7 +66,7 @@ pub struct CloudQualitySettings {
     pub scatter_iterations: u32,
     /// Fraction `f` in `[0, 1]` of scattered light treated as continuing forward in the shading
     /// pass (the paper's forward scattering): light attenuates with `sigma_t * (1 - f * albedo)`.
-    /// Default 0, which is exactly the isotropic model of PHYSICS.md.
+    /// Default 0, which is exactly the isotropic model of docs/physics.md.
     pub forward_scattering: f32,
     /// The multiple-scattering stencil. Default [`ScatterStencil::DiscreteOrdinates`].
     pub scatter_stencil: ScatterStencil,
@@ -127,24 +127,55 @@ impl CloudQualitySettings {
 
 /// Why a settings value is refused; each variant names the field, its value and what is allowed.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error("`{}` is {}; {}", self.field(), self.value(), self.allowed())]
 pub enum InvalidSettings {
-    #[error(
-        "`volume_resolution` is {0}; allowed is {MIN_VOLUME_RESOLUTION}..={MAX_VOLUME_RESOLUTION}"
-    )]
     /// `volume_resolution` outside `MIN_VOLUME_RESOLUTION..=MAX_VOLUME_RESOLUTION`.
     VolumeResolution(u32),
-    #[error("`scatter_iterations` is {0}; allowed is 0..={MAX_SCATTER_ITERATIONS}")]
     /// `scatter_iterations` above `MAX_SCATTER_ITERATIONS`.
     ScatterIterations(u32),
-    #[error("`forward_scattering` is {0}; it must lie in [0, 1]")]
     /// `forward_scattering` outside `[0, 1]` (or NaN).
     ForwardScattering(f32),
-    #[error("`light_supersampling` is {0}; allowed is 1..={MAX_LIGHT_SUPERSAMPLING}")]
     /// `light_supersampling` outside `1..=MAX_LIGHT_SUPERSAMPLING`.
     LightSupersampling(u32),
-    #[error("`chord_segments` is {0}; allowed is 1..={MAX_CHORD_SEGMENTS}")]
     /// `chord_segments` outside `1..=MAX_CHORD_SEGMENTS`.
     ChordSegments(u32),
+}
+
+impl InvalidSettings {
+    /// The refused field's name, as in [`CloudQualitySettings`] and scene files.
+    pub fn field(&self) -> &'static str {
+        match self {
+            Self::VolumeResolution(_) => "volume_resolution",
+            Self::ScatterIterations(_) => "scatter_iterations",
+            Self::ForwardScattering(_) => "forward_scattering",
+            Self::LightSupersampling(_) => "light_supersampling",
+            Self::ChordSegments(_) => "chord_segments",
+        }
+    }
+
+    /// The refused value, as written.
+    pub fn value(&self) -> String {
+        match self {
+            Self::VolumeResolution(v)
+            | Self::ScatterIterations(v)
+            | Self::LightSupersampling(v)
+            | Self::ChordSegments(v) => v.to_string(),
+            Self::ForwardScattering(v) => v.to_string(),
+        }
+    }
+
+    /// What is allowed.
+    pub fn allowed(&self) -> String {
+        match self {
+            Self::VolumeResolution(_) => {
+                format!("allowed is {MIN_VOLUME_RESOLUTION}..={MAX_VOLUME_RESOLUTION}")
+            }
+            Self::ScatterIterations(_) => format!("allowed is 0..={MAX_SCATTER_ITERATIONS}"),
+            Self::ForwardScattering(_) => "it must lie in [0, 1]".into(),
+            Self::LightSupersampling(_) => format!("allowed is 1..={MAX_LIGHT_SUPERSAMPLING}"),
+            Self::ChordSegments(_) => format!("allowed is 1..={MAX_CHORD_SEGMENTS}"),
+        }
+    }
 }
 
 impl CloudQualitySettings {

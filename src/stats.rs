@@ -1,8 +1,9 @@
 //! How often each pass ran: the proof that work a scene does not need is skipped.
 //!
 //! The render world counts every dispatch of each pass into [`CloudPassCounters`], a resource
-//! shared (behind an `Arc`) by the main and render worlds. Readers take the counts with
-//! [`CloudPassCounters::take`]. GPU times come from Bevy's render diagnostics
+//! shared (behind an `Arc`) by the main and render worlds. The counts only grow, so any number of
+//! readers can each keep their own snapshot and ask for the runs since it
+//! ([`CloudPassCounters::since`]). GPU times come from Bevy's render diagnostics
 //! (`RenderDiagnosticsPlugin`), under the paths [`CloudPass::diagnostic_path`].
 
 use std::sync::{
@@ -98,8 +99,14 @@ impl CloudPassCounters {
         self.0[pass as usize].fetch_add(n, Ordering::Relaxed);
     }
 
-    /// The counts since the last `take`, resetting them to zero.
-    pub fn take(&self) -> [(CloudPass, u32); PASSES] {
-        CloudPass::ALL.map(|p| (p, self.0[p as usize].swap(0, Ordering::Relaxed)))
+    /// The runs of each pass since the reader's `snapshot`, which is then moved to now. Start
+    /// from `[0; PASSES]` to count from the app's start.
+    pub fn since(&self, snapshot: &mut [u32; PASSES]) -> [(CloudPass, u32); PASSES] {
+        CloudPass::ALL.map(|p| {
+            let now = self.0[p as usize].load(Ordering::Relaxed);
+            let runs = now.wrapping_sub(snapshot[p as usize]);
+            snapshot[p as usize] = now;
+            (p, runs)
+        })
     }
 }

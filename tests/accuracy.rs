@@ -102,7 +102,7 @@ fn reference(scene: &Scene, spp: u32) -> (Vec<[f32; 4]>, f64) {
             &PathTracerSettings {
                 samples_per_pixel: spp,
                 seed,
-                progress: false,
+                progress: None,
             },
         )
     };
@@ -116,7 +116,7 @@ fn reference(scene: &Scene, spp: u32) -> (Vec<[f32; 4]>, f64) {
     (mean, noise)
 }
 
-/// The in-scattered light `S(x)` (PHYSICS.md) at `points`, by the path tracer: the direct light
+/// The in-scattered light `S(x)` (docs/physics.md) at `points`, by the path tracer: the direct light
 /// with exact transmittance, plus the radiance arriving from `samples` uniform directions (all
 /// orders). Returns the values and their noise (relative standard error over all points).
 fn in_scattered_light(scene: &Scene, points: &[DVec3], samples: u32) -> (Vec<DVec3>, f64) {

@@ -6,7 +6,7 @@ use std::{
     process::{Command, Output},
 };
 
-use bevy_particle_clouds::image_io::read_exr;
+use bevy_particle_clouds::image_io::{read_exr, read_exr_with_metadata};
 
 /// The example's binary, built by `cargo test` beside this test's binary.
 fn render_binary() -> PathBuf {
@@ -42,7 +42,7 @@ fn run(args: &[&str]) -> Output {
         .expect("run the render example")
 }
 
-/// The example of SCENE_FORMAT.md, unchanged.
+/// The example of docs/scene-format.md, unchanged.
 const SCENE_FORMAT_EXAMPLE: &str = r#"(
     camera: (
         position: (0.0, 0.6, 6.0),
@@ -257,4 +257,86 @@ fn the_reference_path_tracer_renders_a_scene_file() {
     // The occluder covers pixels with exactly its radiance; the cloud scatters light somewhere.
     assert!(image.pixels.iter().any(|p| (p[0] - 0.05).abs() < 1e-6));
     assert!(image.pixels.iter().any(|p| p[0] > 0.02));
+}
+
+#[test]
+fn the_command_line_is_checked_and_documented() {
+    let help = run(&["--help"]);
+    assert_eq!(help.status.code(), Some(0));
+    let text = String::from_utf8_lossy(&help.stdout);
+    for flag in [
+        "--out",
+        "--stats",
+        "--frames",
+        "--reference",
+        "--spp",
+        "--seed",
+        "--size",
+        "--set",
+    ] {
+        assert!(text.contains(flag), "--help lists {flag}: {text}");
+    }
+    let refused = [
+        (vec!["--bogus"], "--bogus"),
+        (vec!["--spp", "4", "--out", "x.exr"], "--reference"),
+        (vec!["--seed", "4", "--out", "x.exr"], "--reference"),
+        (vec!["--size", "0x10", "--out", "x.exr"], "--size is 0x10"),
+        (
+            vec!["--set", "chord_segments=99", "--out", "x.png"],
+            "settings.chord_segments is 99",
+        ),
+        (vec!["--set", "bogus=1", "--out", "x.png"], "bogus"),
+    ];
+    for (args, expected) in refused {
+        let out = run(&args);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?} must fail: {stderr}");
+        assert!(
+            stderr.contains(expected),
+            "{args:?}: expected {expected:?} in {stderr}"
+        );
+    }
+}
+
+#[test]
+fn size_and_settings_overrides_reach_the_image_and_its_metadata() {
+    let dir = scratch_dir("overrides");
+    let scene = dir.join("scene.ron");
+    std::fs::write(&scene, SCENE_FORMAT_EXAMPLE).unwrap();
+    let exr = dir.join("small.exr");
+    let out = run(&[
+        scene.to_str().unwrap(),
+        "--out",
+        exr.to_str().unwrap(),
+        "--size",
+        "48x32",
+        "--set",
+        "volume_resolution=16",
+        "--set",
+        "compositing=Sorted",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let (image, metadata) = read_exr_with_metadata(&exr).unwrap();
+    assert_eq!((image.width, image.height), (48, 32));
+    let settings = metadata.get("settings").expect("settings in the metadata");
+    assert!(
+        settings.contains("volume_resolution: 16") && settings.contains("Sorted"),
+        "{settings}"
+    );
+    assert!(metadata.get("adapter").is_some_and(|a| !a.is_empty()));
+    assert!(
+        metadata
+            .get("software")
+            .is_some_and(|s| s.starts_with("bevy_particle_clouds"))
+    );
+    assert!(
+        metadata
+            .get("camera")
+            .is_some_and(|c| c.contains("width: 48"))
+    );
+    assert!(metadata.get("render_time_s").is_some());
 }

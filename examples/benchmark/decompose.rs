@@ -143,23 +143,27 @@ fn parts(scene: &Scene, settings: &CloudQualitySettings, factor: u32, spp: u32) 
     small.camera.height /= factor;
     let orders = real_time.len() + 1; // index 0: the background
     let half = |seed| -> Vec<LinearImage> {
-        render_orders(
+        let (bar, progress) =
+            crate::path_tracing_progress(&format!("orders, seed {seed}"), small.camera.height);
+        let images = render_orders(
             &small,
             &PathTracerSettings {
                 samples_per_pixel: spp,
                 seed,
-                progress: true,
+                progress: Some(progress),
             },
             orders,
-        )
-        .into_iter()
-        .skip(1)
-        .map(|pixels| LinearImage {
-            width: small.camera.width,
-            height: small.camera.height,
-            pixels,
-        })
-        .collect()
+        );
+        bar.finish_and_clear();
+        images
+            .into_iter()
+            .skip(1)
+            .map(|pixels| LinearImage {
+                width: small.camera.width,
+                height: small.camera.height,
+                pixels,
+            })
+            .collect()
     };
     let halves = [half(1), half(2)];
     let truth = halves[0]

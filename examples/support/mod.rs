@@ -13,16 +13,7 @@
 
 #![allow(dead_code)]
 
-#[path = "../../tests/common/headless.rs"]
-pub mod headless;
-
-use std::{
-    path::PathBuf,
-    process::ExitCode,
-    str::FromStr,
-    sync::{Arc, Mutex},
-    time::Instant,
-};
+use std::{path::PathBuf, process::ExitCode, str::FromStr, time::Instant};
 
 use bevy::{
     camera::{Exposure, Hdr, RenderTarget},
@@ -36,7 +27,9 @@ use bevy::{
     },
 };
 use bevy_particle_clouds::{
-    CloudPass, CloudPassCounters, PASSES, ParticleCloud, ParticleCloudsPlugin, Particles, image_io,
+    CloudPass, CloudPassCounters, PASSES, ParticleCloud, ParticleCloudsPlugin, Particles,
+    headless::{self, FrameRecorder},
+    image_io,
 };
 
 /// The options every example accepts (see the module documentation).
@@ -313,8 +306,9 @@ struct ExampleInfo {
 pub fn run(example: Example, options: Options, build: impl FnOnce(&mut App)) -> ExitCode {
     let headless = options.screenshot.is_some();
     let mut app = if headless {
-        // Already finished: plugins are added, only systems and resources may follow.
-        headless::headless_app()
+        // Already finished: plugins are added, only systems and resources may follow. The dev
+        // build enables winit, whose event loop needs a display: leave it out.
+        headless::app_with(headless::plugins().disable::<bevy::winit::WinitPlugin>())
     } else {
         let size = options.size.unwrap_or(UVec2::new(1280, 720));
         let mut app = App::new();
@@ -428,59 +422,38 @@ fn run_headless(
     let min_frames = options
         .frames
         .unwrap_or(if example.steady { 2 } else { 10 });
-    let max_frames = min_frames + 300;
-    let mut frame = 0;
-    loop {
-        headless::update(&mut app);
-        frame += 1;
-        let counts = app.world().resource::<PassCounts>().clone();
+    let mut recorder = FrameRecorder::default();
+    for _ in 0..min_frames {
+        recorder.frame(&mut app).map_err(|e| e.to_string())?;
+    }
+    if example.steady {
         let clouds = drawable_clouds(app.world_mut());
-        let work: u32 = CloudPass::ALL
-            .iter()
-            .filter(|&&p| p != CloudPass::Draw)
-            .map(|&p| counts.last(p))
-            .sum();
-        let finished =
-            !example.steady || (clouds > 0 && counts.last(CloudPass::Draw) >= clouds && work == 0);
-        if frame >= min_frames && finished {
-            break;
+        if clouds == 0 {
+            return Err("the example has no drawable cloud".into());
         }
-        if frame >= max_frames {
-            return Err(format!("the clouds were not finished after {frame} frames"));
-        }
+        headless::render_until_steady(&mut app, &mut recorder, clouds, 300)
+            .map_err(|e| e.to_string())?;
     }
     eprintln!(
-        "{}: {frame} frames in {:.1} s",
+        "{}: {} frames in {:.1} s",
         example.title,
+        recorder.frames.len(),
         start.elapsed().as_secs_f64()
     );
-    let shot: Arc<Mutex<Option<Image>>> = Arc::default();
-    let sink = shot.clone();
-    app.world_mut().spawn(Screenshot::image(target)).observe(
-        move |captured: On<ScreenshotCaptured>| {
-            *sink.lock().unwrap() = Some(captured.image.clone())
-        },
-    );
-    for _ in 0..12 {
-        headless::update(&mut app);
-        if let Some(image) = shot.lock().unwrap().take() {
-            let picture = headless::decode_rgba16f(&image);
-            if picture.pixels.iter().flatten().any(|v| !v.is_finite()) {
-                return Err("the rendered picture has non-finite pixels".into());
-            }
-            image_io::write_image(&picture, path).map_err(|e| e.to_string())?;
-            eprintln!(
-                "{}: wrote {} ({}x{}) in {:.1} s",
-                example.title,
-                path.display(),
-                size.x,
-                size.y,
-                start.elapsed().as_secs_f64()
-            );
-            return Ok(());
-        }
+    let picture = headless::capture(&mut app, &mut recorder, &target).map_err(|e| e.to_string())?;
+    if picture.pixels.iter().flatten().any(|v| !v.is_finite()) {
+        return Err("the rendered picture has non-finite pixels".into());
     }
-    Err("the screenshot did not arrive".into())
+    image_io::write_image(&picture, path).map_err(|e| e.to_string())?;
+    eprintln!(
+        "{}: wrote {} ({}x{}) in {:.1} s",
+        example.title,
+        path.display(),
+        size.x,
+        size.y,
+        start.elapsed().as_secs_f64()
+    );
+    Ok(())
 }
 
 /// Clouds whose particles are loaded and carry density.
@@ -498,8 +471,12 @@ fn drawable_clouds(world: &mut World) -> u32 {
         .count() as u32
 }
 
-fn count_passes(counters: Res<CloudPassCounters>, mut counts: ResMut<PassCounts>) {
-    let taken = counters.take();
+fn count_passes(
+    counters: Res<CloudPassCounters>,
+    mut counts: ResMut<PassCounts>,
+    mut snapshot: Local<[u32; PASSES]>,
+) {
+    let taken = counters.since(&mut snapshot);
     for (pass, n) in taken {
         counts.last[pass as usize] = n;
         counts.total[pass as usize] += n as u64;

@@ -1,4 +1,4 @@
-//! CPU reference of the final billboard render (`docs/illumination.md`, "Draw"; PHYSICS.md, "The
+//! CPU reference of the final billboard render (`docs/illumination.md`, "Draw"; docs/physics.md, "The
 //! particle approximation").
 //!
 //! Every particle is a camera-facing disc whose opacity along a pixel ray is `1 - exp(-tau)`, `tau`

@@ -1,10 +1,10 @@
-//! Image error metrics of PHYSICS.md ("Error metrics").
+//! Image error metrics of docs/physics.md ("Error metrics").
 //!
 //! Images are linear RGB radiance, RGBA `f32` per pixel, row-major; the alpha channel is ignored.
 //! All sums are taken in `f64` so large images do not lose precision.
 
 /// Relative RMSE of `x` against the reference `r`: `sqrt( Σ (x - r)² / Σ r² )` over all pixels and
-/// the three colour channels (PHYSICS.md's headline figure). Dimensionless.
+/// the three colour channels (docs/physics.md's headline figure). Dimensionless.
 ///
 /// Returns `0` when both images are identical (even all black) and `inf` when the reference is
 /// black but `x` is not.

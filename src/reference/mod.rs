@@ -3,9 +3,9 @@
 //!
 //! - [`illumination`] and [`composite`]: the real-time renderer's exact discretization in f64
 //!   (`docs/illumination.md`); the GPU passes are tested voxel by voxel against it.
-//! - [`path_tracer`]: ground truth of the physical model itself (PHYSICS.md), with no voxels and
+//! - [`path_tracer`]: ground truth of the physical model itself (docs/physics.md), with no voxels and
 //!   no billboards; the time–error benchmark measures the real-time renderer against it.
-//! - [`metrics`]: the error metrics of PHYSICS.md.
+//! - [`metrics`]: the error metrics of docs/physics.md.
 
 pub mod camera;
 pub mod composite;

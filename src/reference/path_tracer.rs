@@ -1,4 +1,4 @@
-//! CPU ground-truth volumetric path tracer for exactly the model of PHYSICS.md.
+//! CPU ground-truth volumetric path tracer for exactly the model of docs/physics.md.
 //!
 //! What it computes, per camera ray `x_t = o + t w`:
 //!
@@ -34,10 +34,13 @@
 //! Transport is grey (the albedo is a scalar per cloud), so paths carry a scalar weight and colour
 //! only enters through `E_l`, `L_background` and the objects' `color`.
 //!
-//! Camera rays start at the eye (`t = 0`, as in PHYSICS.md), not at Bevy's near plane.
+//! Camera rays start at the eye (`t = 0`, as in docs/physics.md), not at Bevy's near plane.
 
 use std::ops::ControlFlow;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{
+    Arc,
+    atomic::{AtomicUsize, Ordering},
+};
 
 use bevy::math::DVec3;
 use rayon::prelude::*;
@@ -57,16 +60,33 @@ const INV_4PI: f64 = 0.25 * std::f64::consts::FRAC_1_PI;
 /// `τ²` events in a medium of optical radius `τ`, so the cap only matters for `τ ≳ 300`.
 pub const MAX_SCATTER_EVENTS: u32 = 100_000;
 
+/// Called as rows of the image are finished, with `(rows done, rows in all)`, from any thread.
+#[derive(Clone)]
+pub struct Progress(pub Arc<dyn Fn(usize, usize) + Send + Sync>);
+
+impl Progress {
+    /// A callback from a closure.
+    pub fn new(report: impl Fn(usize, usize) + Send + Sync + 'static) -> Self {
+        Self(Arc::new(report))
+    }
+}
+
+impl std::fmt::Debug for Progress {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Progress(..)")
+    }
+}
+
 /// Settings of [`render`].
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug)]
 pub struct PathTracerSettings {
     /// Paths per pixel, each through a uniformly jittered point of the pixel (0 is taken as 1).
     pub samples_per_pixel: u32,
     /// Seed of all random numbers; the image is a deterministic function of the scene and this
     /// seed, whatever the number of threads.
     pub seed: u64,
-    /// Print progress on stderr (a line per ~10% of rows).
-    pub progress: bool,
+    /// Told how many rows are finished, as they finish.
+    pub progress: Option<Progress>,
 }
 
 impl Default for PathTracerSettings {
@@ -74,7 +94,7 @@ impl Default for PathTracerSettings {
         Self {
             samples_per_pixel: 256,
             seed: 0,
-            progress: false,
+            progress: None,
         }
     }
 }
@@ -153,7 +173,7 @@ impl TracedParticle {
     ///
     /// With `s = t - t_c` measured from the closest approach and `a = 1 - b²/r²`, the kernel is
     /// `(a - s²/r²)²`, whose antiderivative in `u = s/r` is `r (a² u - 2a u³/3 + u⁵/5)`; over the
-    /// whole chord this gives PHYSICS.md's `K η r 16/15 a^(5/2)`. Measuring from the closest approach
+    /// whole chord this gives docs/physics.md's `K η r 16/15 a^(5/2)`. Measuring from the closest approach
     /// keeps the polynomial well conditioned.
     fn optical_depth(&self, origin: DVec3, dir: DVec3, t0: f64, t1: f64) -> f64 {
         let v = self.centre - origin;
@@ -619,7 +639,7 @@ impl Lighting {
 }
 
 /// One-sample estimate of the radiance (linear RGB) arriving at `origin` from direction `-dir`
-/// (`dir` unit), i.e. PHYSICS.md's `L` for the ray `origin + t dir`.
+/// (`dir` unit), i.e. docs/physics.md's `L` for the ray `origin + t dir`.
 ///
 /// `max_scatter_events` cuts paths after that many real scattering events (1 gives single
 /// scattering exactly; [`MAX_SCATTER_EVENTS`] for the full solution).
@@ -745,8 +765,8 @@ pub fn render_media_orders<M: Media>(
                     pixel_radiance(media, lighting, camera, settings, pixel, px, py, out);
                 }
                 let done = rows_done.fetch_add(1, Ordering::Relaxed) + 1;
-                if settings.progress {
-                    report_progress(done, height);
+                if let Some(Progress(report)) = &settings.progress {
+                    report(done, height);
                 }
             });
     }
@@ -792,15 +812,7 @@ fn pixel_radiance<M: Media>(
     orders.iter_mut().for_each(|o| *o /= spp as f64);
 }
 
-/// Prints a line each time another tenth of the rows is finished.
-fn report_progress(done: usize, total: usize) {
-    let tenth = |n: usize| n * 10 / total;
-    if done == total || tenth(done) > tenth(done - 1) {
-        eprintln!("path tracer: {}% ({done}/{total} rows)", done * 100 / total);
-    }
-}
-
-/// Noise level of a path-traced image (PHYSICS.md): the relative RMSE between two independent
+/// Noise level of a path-traced image (docs/physics.md): the relative RMSE between two independent
 /// renders (different seeds, same sample count) divided by `√2`, which estimates the relative RMSE
 /// of one render against the noise-free image. Dimensionless.
 pub fn noise_level(a: &[[f32; 4]], b: &[[f32; 4]]) -> f64 {
@@ -1274,7 +1286,7 @@ mod tests {
         let settings = PathTracerSettings {
             samples_per_pixel: 4,
             seed: 1,
-            progress: false,
+            progress: None,
         };
         let image = render(&s, &settings);
         for px in &image {
@@ -1479,7 +1491,7 @@ mod tests {
         let settings = PathTracerSettings {
             samples_per_pixel: 4,
             seed: 7,
-            progress: false,
+            progress: None,
         };
         let pool = |n| {
             rayon::ThreadPoolBuilder::new()
@@ -1517,7 +1529,7 @@ mod tests {
                 &PathTracerSettings {
                     samples_per_pixel: spp,
                     seed: 1,
-                    progress: false,
+                    progress: None,
                 },
             );
             let elapsed = start.elapsed();
@@ -1526,7 +1538,7 @@ mod tests {
                 &PathTracerSettings {
                     samples_per_pixel: spp,
                     seed: 2,
-                    progress: false,
+                    progress: None,
                 },
             );
             let noise = noise_level(&a, &b);

@@ -10,7 +10,7 @@ use bevy::{
 };
 
 use crate::{
-    cloud::{NotCloudLight, ParticleCloud, Particles, ParticlesValidity},
+    cloud::{InvalidCloud, NotCloudLight, ParticleCloud, Particles, ParticlesValidity},
     settings::{CloudQualitySettings, DefaultCloudQuality},
 };
 
@@ -65,7 +65,7 @@ pub struct ExtractedCloudLights(pub Vec<CloudLight>);
 
 /// Remembers which clouds were refused and why, so each problem is reported once.
 #[derive(Default)]
-pub(crate) struct RefusedClouds(HashMap<Entity, String>);
+pub(crate) struct RefusedClouds(HashMap<Entity, InvalidCloud>);
 
 pub(crate) fn extract_clouds(
     mut commands: Commands,
@@ -89,16 +89,15 @@ pub(crate) fn extract_clouds(
         let settings = settings.copied().unwrap_or(default_quality.0);
         // Particles are validated once per asset change; an asset without a verdict yet (added
         // this frame before the events were written) is checked here.
-        let particles_problem = match validity.0.get(&cloud.particles.id()) {
+        let particles = match validity.0.get(&cloud.particles.id()) {
             Some(verdict) => verdict.clone(),
             None => assets
                 .get(&cloud.particles)
-                .and_then(|p| p.validate().err())
-                .map(|e| e.to_string()),
+                .map_or(Ok(()), Particles::validate),
         };
-        let problem = validate(cloud, transform, &settings).or(particles_problem);
+        let verdict = validate(cloud, transform, &settings).and(particles.map_err(Into::into));
         let mut target = commands.entity(render_entity);
-        match problem {
+        match verdict.err() {
             Some(problem) => {
                 if refused.0.get(&entity) != Some(&problem) {
                     let label =
@@ -123,25 +122,19 @@ pub(crate) fn extract_clouds(
     }
 }
 
-/// Why a cloud cannot be rendered, naming the field and its value; `None` when it can.
+/// Why a cloud cannot be rendered, naming the field and its value.
 fn validate(
     cloud: &ParticleCloud,
     transform: &GlobalTransform,
     settings: &CloudQualitySettings,
-) -> Option<String> {
-    if let Err(e) = cloud.medium().validate() {
-        return Some(e.to_string());
-    }
-    if let Err(e) = settings.validate() {
-        return Some(format!("CloudQualitySettings: {e}"));
-    }
+) -> Result<(), InvalidCloud> {
+    cloud.medium().validate()?;
+    settings.validate()?;
     let affine = transform.affine();
     if !affine.is_finite() || affine.matrix3.determinant() == 0.0 {
-        return Some(format!(
-            "`GlobalTransform` is {affine:?}; it must be finite and invertible"
-        ));
+        return Err(InvalidCloud::Transform(affine));
     }
-    None
+    Ok(())
 }
 
 pub(crate) fn extract_cloud_lights(

@@ -1,8 +1,6 @@
 //! The particle draw: the GPU sort, compositing order, occlusion, and whole images against the
 //! CPU reference (illumination + billboard compositor of docs/illumination.md).
 
-mod common;
-
 use bevy::{
     math::{DQuat, DVec3},
     prelude::*,
@@ -14,6 +12,7 @@ use bevy::{
         renderer::{RenderDevice, RenderQueue},
     },
 };
+use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
     CloudPass, CloudQualitySettings, Compositing, LightSample, Medium, Particle, ParticleCloud,
     Particles,
@@ -28,11 +27,12 @@ use bevy_particle_clouds::{
     render::sort::{SortBuffers, SortPipelines, record_sort},
     scene::{ObjectShape, SceneObject},
 };
-use common::headless::{self, FrameRecorder, SceneTarget};
+
+use crate::common;
 
 /// Sorts `keys` (with their indices as values) on the GPU; returns (keys, values).
 fn gpu_sort(app: &mut App, keys: &[u32]) -> (Vec<u32>, Vec<u32>) {
-    let (sorted_keys, sorted_values) = headless::with_render_world(app, |world| {
+    let (sorted_keys, sorted_values) = common::with_render_world(app, |world| {
         let device = world.resource::<RenderDevice>().clone();
         let queue = world.resource::<RenderQueue>().clone();
         let cache = world.resource::<PipelineCache>();
@@ -69,15 +69,15 @@ fn gpu_sort(app: &mut App, keys: &[u32]) -> (Vec<u32>, Vec<u32>) {
         )
     });
     let read = |app: &mut App, b| -> Vec<u32> {
-        bytemuck::cast_slice(&headless::read_buffer(app, b)[..keys.len() * 4]).to_vec()
+        bytemuck::cast_slice(&headless::read_buffer(app, b).unwrap()[..keys.len() * 4]).to_vec()
     };
     (read(app, &sorted_keys), read(app, &sorted_values))
 }
 
 #[test]
 fn gpu_sort_equals_a_stable_cpu_sort() {
-    let mut app = headless::headless_app();
-    headless::update(&mut app);
+    let mut app = common::headless_app();
+    headless::update(&mut app).unwrap();
     let mut rng = SplitMix64::new(5);
     for size in [1usize, 2, 1000, (1 << 20) + 7] {
         // Few distinct values in part of the range (ties), the extremes, and random keys.
@@ -126,7 +126,7 @@ struct Setup {
 }
 
 fn render(setup: &Setup) -> (App, SceneTarget, Render) {
-    let mut app = headless::headless_app();
+    let mut app = common::headless_app();
     let image = headless::float_target(&mut app, W, H);
     let camera =
         headless::spawn_linear_camera(&mut app, image.clone(), setup.camera, FOV, setup.background);
@@ -153,8 +153,8 @@ fn render(setup: &Setup) -> (App, SceneTarget, Render) {
         drawable_clouds: 1,
     };
     let mut frames = FrameRecorder::default();
-    headless::render_until_steady(&mut app, &mut frames, &target, 20);
-    let image = headless::capture(&mut app, &mut frames, &target);
+    headless::render_until_steady(&mut app, &mut frames, target.drawable_clouds, 20).unwrap();
+    let image = headless::capture(&mut app, &mut frames, &target.image).unwrap();
     (app, target, Render { image, frames })
 }
 
@@ -234,7 +234,7 @@ fn cloud_setup(seed: u64, camera: Transform) -> Setup {
         objects: vec![],
         camera,
         background: Vec3::new(0.05, 0.1, 0.2),
-        settings: headless::quality(16, 4),
+        settings: common::quality(16, 4),
     }
 }
 
@@ -315,7 +315,7 @@ fn two_overlapping_particles_composite_alike_from_either_side_in_either_order() 
                 objects: vec![],
                 camera: Transform::from_translation(eye).looking_at(Vec3::ZERO, Vec3::Y),
                 background: Vec3::ZERO,
-                settings: headless::quality(16, 2),
+                settings: common::quality(16, 2),
             };
             setup.settings.compositing = compositing;
             let (_, _, gpu) = render(&setup);
@@ -402,13 +402,13 @@ fn a_static_camera_reruns_no_view_pass_and_a_moving_one_reruns_only_its_own() {
         setup.settings.compositing = compositing;
         let (mut app, target, mut gpu) = render(&setup);
         for _ in 0..2 {
-            let frame = gpu.frames.frame(&mut app).clone();
+            let frame = gpu.frames.frame(&mut app).unwrap().clone();
             assert_eq!(frame.runs(pass) + frame.runs(other), 0, "static camera");
         }
         app.world_mut()
             .entity_mut(target.camera)
             .insert(Transform::from_xyz(1.0, 0.5, 4.0).looking_at(Vec3::ZERO, Vec3::Y));
-        let frame = gpu.frames.frame(&mut app).clone();
+        let frame = gpu.frames.frame(&mut app).unwrap().clone();
         assert_eq!(
             frame.runs(pass),
             1,

@@ -4,16 +4,16 @@
 //! Bound: compositing is a convex blend, so every pixel lies between the background and the
 //! brightest particle colour, `albedo * max A <= albedo * sum(E) / (4 pi) * (M + 1)`.
 
-mod common;
-
 use std::f32::consts::PI;
 
 use bevy::prelude::*;
+use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
     CloudPass, CloudQualitySettings, LightSample, Medium, Particle, ParticleCloud, Particles,
     generators, image_io::LinearImage,
 };
-use common::headless::{self, FrameRecorder, SceneTarget};
+
+use crate::common;
 
 struct Case {
     particles: Vec<Particle>,
@@ -36,7 +36,7 @@ impl Case {
                 direction: Vec3::new(-0.4, -1.0, -0.3),
                 irradiance: Vec3::ONE,
             }],
-            settings: headless::quality(16, 4),
+            settings: common::quality(16, 4),
             eye: Vec3::new(0.0, 0.3, 5.0),
             look_at: Vec3::ZERO,
         }
@@ -51,7 +51,7 @@ fn ball() -> Vec<Particle> {
 
 /// Renders the case; returns the image and whether the cloud was drawn in the final frame.
 fn render(case: &Case) -> (LinearImage, u32) {
-    let mut app = headless::headless_app();
+    let mut app = common::headless_app();
     let image = headless::float_target(&mut app, 32, 24);
     let camera = headless::spawn_linear_camera(
         &mut app,
@@ -80,9 +80,9 @@ fn render(case: &Case) -> (LinearImage, u32) {
     };
     let mut frames = FrameRecorder::default();
     for _ in 0..4 {
-        frames.frame(&mut app);
+        frames.frame(&mut app).unwrap();
     }
-    let image = headless::capture(&mut app, &mut frames, &target);
+    let image = headless::capture(&mut app, &mut frames, &target.image).unwrap();
     let drawn = frames.frames.last().unwrap().runs(CloudPass::Draw);
     (image, drawn)
 }
@@ -120,7 +120,7 @@ fn albedo_one_with_a_thousand_iterations_stays_bounded() {
         extinction: 20.0,
         albedo: 1.0,
     };
-    case.settings = headless::quality(16, 1000);
+    case.settings = common::quality(16, 1000);
     let (image, drawn) = assert_bounded(&case, "albedo 1");
     assert_eq!(drawn, 1);
     assert!(differs_from_background(&image));
@@ -295,7 +295,7 @@ fn camera_inside_the_cloud() {
 
 #[test]
 fn invalid_values_through_the_api_are_refused_and_others_render() {
-    let mut app = headless::headless_app();
+    let mut app = common::headless_app();
     let image = headless::float_target(&mut app, 16, 16);
     headless::spawn_linear_camera(
         &mut app,
@@ -367,7 +367,7 @@ fn invalid_values_through_the_api_are_refused_and_others_render() {
     );
     let mut frames = FrameRecorder::default();
     for _ in 0..5 {
-        frames.frame(&mut app);
+        frames.frame(&mut app).unwrap();
     }
     assert_eq!(
         frames.frames.last().unwrap().runs(CloudPass::Draw),

@@ -6,16 +6,16 @@
 //! atomics in arbitrary order and multiplies `n` slice attenuations, so its error relative to the
 //! volume's maximum stays within ~`n * 2^-23`; the tests allow 2e-4 of the maximum.
 
-mod common;
-
 use bevy::{math::DQuat, prelude::*};
+use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
     CloudQualitySettings, LightSample, Medium, Particle, ParticleCloud, Particles, ScatterStencil,
     generators::SplitMix64,
     reference::illumination::{LocalLight, illuminate},
     render::volumes::CloudVolumes,
 };
-use common::headless::{self, FrameRecorder, SceneTarget};
+
+use crate::common;
 
 const TOLERANCE: f64 = 2e-4;
 
@@ -62,7 +62,7 @@ fn rgb(bytes: &[u8]) -> Vec<f64> {
 }
 
 fn check(case: Case) {
-    let mut app = headless::headless_app();
+    let mut app = common::headless_app();
     let image = headless::float_target(&mut app, 16, 16);
     let camera = headless::spawn_linear_camera(
         &mut app,
@@ -91,10 +91,16 @@ fn check(case: Case) {
         camera,
         drawable_clouds: 1,
     };
-    headless::render_until_steady(&mut app, &mut FrameRecorder::default(), &target, 20);
+    headless::render_until_steady(
+        &mut app,
+        &mut FrameRecorder::default(),
+        target.drawable_clouds,
+        20,
+    )
+    .unwrap();
 
     let (fine_density, density, depths, source, ratio, multiple) =
-        headless::with_render_world(&mut app, |world| {
+        common::with_render_world(&mut app, |world| {
             let volumes = world
                 .query::<&CloudVolumes>()
                 .single(world)
@@ -109,7 +115,7 @@ fn check(case: Case) {
             )
         });
     let read_f64 = |app: &mut App, buffer| -> Vec<f64> {
-        headless::floats(&headless::read_buffer(app, buffer))
+        headless::floats(&headless::read_buffer(app, buffer).unwrap())
             .into_iter()
             .map(f64::from)
             .collect()
@@ -117,9 +123,9 @@ fn check(case: Case) {
     let gpu_fine_density = read_f64(&mut app, &fine_density);
     let gpu_density = read_f64(&mut app, &density);
     let gpu_depths = read_f64(&mut app, &depths);
-    let gpu_source = rgb(&headless::read_buffer(&mut app, &source));
-    let gpu_ratio = rgb(&headless::read_buffer(&mut app, &ratio));
-    let gpu_multiple = rgb(&headless::read_buffer(&mut app, &multiple));
+    let gpu_source = rgb(&headless::read_buffer(&mut app, &source).unwrap());
+    let gpu_ratio = rgb(&headless::read_buffer(&mut app, &ratio).unwrap());
+    let gpu_multiple = rgb(&headless::read_buffer(&mut app, &multiple).unwrap());
 
     let rotation = DQuat::from(case.transform.rotation.as_dquat());
     let lights: Vec<LocalLight> = case
@@ -195,7 +201,7 @@ fn one_light_straight_down() {
             irradiance: Vec3::new(1.0, 0.9, 0.8),
         }],
         transform: Transform::IDENTITY,
-        settings: headless::quality(16, 4),
+        settings: common::quality(16, 4),
     });
 }
 
@@ -225,7 +231,7 @@ fn three_lights_along_axes_on_a_rotated_scaled_cloud() {
         transform: Transform::from_xyz(0.5, -0.2, 0.3)
             .with_rotation(Quat::from_euler(EulerRot::YXZ, 0.7, -0.3, 0.2))
             .with_scale(Vec3::splat(1.5)),
-        settings: headless::quality(24, 6),
+        settings: common::quality(24, 6),
     });
 }
 
@@ -247,7 +253,7 @@ fn eight_random_lights_with_the_paper_stencil() {
         transform: Transform::IDENTITY,
         settings: CloudQualitySettings {
             scatter_stencil: ScatterStencil::Paper,
-            ..headless::quality(8, 3)
+            ..common::quality(8, 3)
         },
     });
 }
@@ -268,7 +274,7 @@ fn forward_scattering_supersampling_3_and_a_light_along_the_view() {
         settings: CloudQualitySettings {
             forward_scattering: 0.5,
             light_supersampling: 3,
-            ..headless::quality(20, 2)
+            ..common::quality(20, 2)
         },
     });
 }
@@ -289,7 +295,7 @@ fn thick_cloud_at_albedo_one_with_many_iterations_and_no_supersampling() {
             .with_scale(Vec3::splat(0.7)),
         settings: CloudQualitySettings {
             light_supersampling: 1,
-            ..headless::quality(20, 24)
+            ..common::quality(20, 24)
         },
     });
 }
@@ -314,6 +320,6 @@ fn one_particle_filling_a_fine_grid_of_256_cubed() {
             irradiance: Vec3::new(1.0, 0.9, 0.8),
         }],
         transform: Transform::IDENTITY,
-        settings: headless::quality(128, 2),
+        settings: common::quality(128, 2),
     });
 }

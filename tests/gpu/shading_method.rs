@@ -2,14 +2,14 @@
 //! pass (each slice is the previous one times one step): the same trapezoid sums, so the light
 //! volumes and everything computed from them agree up to f32 rounding.
 
-mod common;
-
 use bevy::prelude::*;
+use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
     CloudPass, CloudQualitySettings, LightSample, Medium, Particle, ParticleCloud, Particles,
     generators::SplitMix64, render::volumes::CloudVolumes, settings::ShadingMethod,
 };
-use common::headless::{self, FrameRecorder, SceneTarget};
+
+use crate::common;
 
 /// Largest allowed difference, relative to the volume's largest value.
 const TOLERANCE: f64 = 1e-5;
@@ -38,7 +38,7 @@ fn render(
     settings: CloudQualitySettings,
     lights: &[LightSample],
 ) -> Volumes {
-    let mut app = headless::headless_app();
+    let mut app = common::headless_app();
     app.insert_resource(method);
     let image = headless::float_target(&mut app, 16, 16);
     let camera = headless::spawn_linear_camera(
@@ -71,13 +71,13 @@ fn render(
         drawable_clouds: 1,
     };
     let mut recorder = FrameRecorder::default();
-    headless::render_until_steady(&mut app, &mut recorder, &target, 20);
+    headless::render_until_steady(&mut app, &mut recorder, target.drawable_clouds, 20).unwrap();
     let shade_runs = recorder
         .frames
         .iter()
         .map(|f| f.runs(CloudPass::Shade))
         .sum();
-    let (depths, multiple) = headless::with_render_world(&mut app, |world| {
+    let (depths, multiple) = common::with_render_world(&mut app, |world| {
         let volumes = world
             .query::<&CloudVolumes>()
             .single(world)
@@ -87,7 +87,7 @@ fn render(
     let n3 = (settings.volume_resolution as usize).pow(3);
     let m3 = (settings.light_resolution() as usize).pow(3);
     let read = |app: &mut App, buffer| -> Vec<f64> {
-        headless::floats(&headless::read_buffer(app, buffer))
+        headless::floats(&headless::read_buffer(app, buffer).unwrap())
             .into_iter()
             .map(f64::from)
             .collect()

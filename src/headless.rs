@@ -1,9 +1,20 @@
-//! Headless rendering of scenes with Bevy's renderer: the harness shared by the tests and the
-//! `render` example (which includes this file). No window, no display server; any adapter,
-//! Mesa's lavapipe included. Pipelines compile synchronously and any wgpu validation error
-//! panics, so a broken pass fails loudly instead of rendering garbage.
-
-#![allow(dead_code)]
+//! Rendering without a window (feature `headless`): make the app, spawn a [`Scene`] as entities,
+//! render until the illumination is finished, capture the image as linear radiance and record
+//! what each frame did. No window, no display server; any adapter, Mesa's lavapipe included.
+//! Pipelines compile synchronously, so the first frames are deterministic.
+//!
+//! ```no_run
+//! # use bevy_particle_clouds::{headless, scene::Scene};
+//! let scene = Scene::load(std::path::Path::new("scene.ron")).unwrap();
+//! let mut app = headless::app();
+//! let target = headless::spawn_scene(&mut app, &scene.scene);
+//! let mut recorder = headless::FrameRecorder::default();
+//! headless::render_until_steady(&mut app, &mut recorder, &target, 100).unwrap();
+//! let image = headless::capture(&mut app, &mut recorder, &target).unwrap();
+//! ```
+//!
+//! A build that enables Bevy's `bevy_winit` feature must leave `WinitPlugin` out, since its event
+//! loop needs a display: `headless::app_with(headless::plugins().disable::<WinitPlugin>())`.
 
 use std::{
     collections::{HashMap, VecDeque},
@@ -11,6 +22,7 @@ use std::{
     time::Instant,
 };
 
+use bevy::app::PluginGroupBuilder;
 use bevy::{
     camera::{Exposure, Hdr, RenderTarget},
     core_pipeline::tonemapping::{DebandDither, Tonemapping},
@@ -20,7 +32,6 @@ use bevy::{
     render::{
         RenderApp, RenderPlugin,
         diagnostic::RenderDiagnosticsPlugin,
-        error_handler::RenderErrorHandler,
         pipelined_rendering::PipelinedRenderingPlugin,
         render_resource::{PollType, TextureFormat, TextureUsages},
         renderer::{RenderAdapterInfo, RenderDevice},
@@ -29,69 +40,54 @@ use bevy::{
     },
     window::ExitCondition,
 };
-use bevy_particle_clouds::{
-    CloudPass, CloudPassCounters, CloudQualitySettings, ParticleCloud, ParticleCloudsPlugin,
-    Particles,
-    image_io::LinearImage,
+
+use crate::{
+    CloudPass, CloudPassCounters, PASSES, ParticleCloud, ParticleCloudsPlugin, Particles,
+    linear_image::LinearImage,
     scene::{ObjectShape, Scene},
 };
 
-/// What to do when no adapter exists: say how to get one (tests fail, never skip).
-pub const NO_ADAPTER: &str = "no Vulkan adapter found: install Mesa's software driver with \
-`apt-get update && apt-get install -y mesa-vulkan-drivers` (lavapipe), or a GPU driver";
-
 /// `ev100` for which Bevy's exposure factor `1 / (1.2 * 2^ev100)` is exactly 1: images hold
-/// radiance in the units of the lights' irradiance (PHYSICS.md, "Output units").
+/// radiance in the units of the lights' irradiance (docs/physics.md, "Output units").
 pub const UNIT_EXPOSURE_EV100: f32 = -0.263_034_4;
 
-/// Panics with [`NO_ADAPTER`] unless wgpu finds a Vulkan adapter.
-pub fn assert_adapter() {
-    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
-    desc.backends = Backends::VULKAN;
-    desc.flags = wgpu::InstanceFlags::default().with_env();
-    let instance = wgpu::Instance::new(desc);
-    let adapter = bevy::tasks::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
-        power_preference: wgpu::PowerPreference::HighPerformance,
-        force_fallback_adapter: false,
-        compatible_surface: None,
-    }));
-    assert!(adapter.is_ok(), "{NO_ADAPTER}");
+/// Bevy's default plugins set up for rendering without a window: no primary window, warnings
+/// only in the log, Vulkan, synchronous pipeline compilation, no pipelined rendering.
+pub fn plugins() -> PluginGroupBuilder {
+    DefaultPlugins
+        .set(WindowPlugin {
+            primary_window: None,
+            exit_condition: ExitCondition::DontExit,
+            ..default()
+        })
+        // Warnings (refused clouds, wgpu problems) matter; per-app info lines are noise.
+        .set(LogPlugin {
+            level: Level::WARN,
+            ..default()
+        })
+        .set(RenderPlugin {
+            render_creation: RenderCreation::Automatic(Box::new(WgpuSettings {
+                backends: Some(Backends::VULKAN),
+                ..default()
+            })),
+            synchronous_pipeline_compilation: true,
+            ..default()
+        })
+        .disable::<PipelinedRenderingPlugin>()
 }
 
-/// A Bevy app that renders headlessly inside `app.update()`, with the plugin added.
-pub fn headless_app() -> App {
-    assert_adapter();
+/// An app built from [`plugins`] with the cloud plugin and GPU timing added, ready to render
+/// inside `app.update()`.
+pub fn app() -> App {
+    app_with(plugins())
+}
+
+/// An app built from `plugins` (normally [`plugins`], adjusted) with the cloud plugin and GPU
+/// timing added, finished and cleaned up, ready to render inside `app.update()`.
+pub fn app_with(plugins: impl PluginGroup) -> App {
     let mut app = App::new();
-    app.add_plugins(
-        DefaultPlugins
-            .set(WindowPlugin {
-                primary_window: None,
-                exit_condition: ExitCondition::DontExit,
-                ..default()
-            })
-            // Warnings (refused clouds, wgpu problems) matter; per-app info lines are noise.
-            .set(LogPlugin {
-                level: Level::WARN,
-                ..default()
-            })
-            .set(RenderPlugin {
-                render_creation: RenderCreation::Automatic(Box::new(WgpuSettings {
-                    backends: Some(Backends::VULKAN),
-                    ..default()
-                })),
-                synchronous_pipeline_compilation: true,
-                ..default()
-            })
-            .disable::<PipelinedRenderingPlugin>()
-            // The dev build enables winit for the windowed examples; its event loop needs a
-            // display and can be created once per process, so headless apps leave it out.
-            .disable::<bevy::winit::WinitPlugin>(),
-    )
-    .add_plugins((RenderDiagnosticsPlugin, ParticleCloudsPlugin));
-    // The default handler only logs and stops rendering; a test must fail instead.
-    app.insert_resource(RenderErrorHandler(|error, _, _| {
-        panic!("render error {:?}: {}", error.ty, error.description)
-    }));
+    app.add_plugins(plugins)
+        .add_plugins((RenderDiagnosticsPlugin, ParticleCloudsPlugin));
     app.finish();
     app.cleanup();
     app
@@ -109,9 +105,13 @@ pub fn adapter_name(app: &mut App) -> String {
 /// The render target of a spawned scene.
 #[derive(Clone, Debug)]
 pub struct SceneTarget {
+    /// The HDR float image the camera renders into.
     pub image: Handle<Image>,
+    /// Its width, pixels.
     pub width: u32,
+    /// Its height, pixels.
     pub height: u32,
+    /// The camera entity.
     pub camera: Entity,
     /// Clouds expected to be drawn (valid, non-empty, with extinction).
     pub drawable_clouds: u32,
@@ -252,6 +252,7 @@ pub fn spawn_object(app: &mut App, shape: ObjectShape, translation: Vec3, color:
 /// What one frame did.
 #[derive(Clone, Debug, Default)]
 pub struct FrameStats {
+    /// Wall-clock time of the frame's `app.update()` and GPU poll, milliseconds.
     pub wall_ms: f64,
     /// Runs of each pass this frame.
     pub passes: Vec<(CloudPass, u32)>,
@@ -260,6 +261,7 @@ pub struct FrameStats {
 }
 
 impl FrameStats {
+    /// Runs of `pass` this frame.
     pub fn runs(&self, pass: CloudPass) -> u32 {
         self.passes
             .iter()
@@ -281,18 +283,24 @@ impl FrameStats {
 /// passes produced them.
 #[derive(Default)]
 pub struct FrameRecorder {
+    /// Every recorded frame, in order.
     pub frames: Vec<FrameStats>,
+    counted: [u32; PASSES],
     last_seen: HashMap<CloudPass, Instant>,
     waiting: HashMap<CloudPass, VecDeque<usize>>,
 }
 
 impl FrameRecorder {
     /// Renders one frame and records it.
-    pub fn frame(&mut self, app: &mut App) -> &FrameStats {
+    pub fn frame(&mut self, app: &mut App) -> Result<&FrameStats, HeadlessError> {
         let start = Instant::now();
-        update(app);
+        update(app)?;
         let wall_ms = start.elapsed().as_secs_f64() * 1e3;
-        let passes = app.world().resource::<CloudPassCounters>().take().to_vec();
+        let passes = app
+            .world()
+            .resource::<CloudPassCounters>()
+            .since(&mut self.counted)
+            .to_vec();
         let index = self.frames.len();
         for &(pass, runs) in &passes {
             if runs > 0 {
@@ -305,7 +313,7 @@ impl FrameRecorder {
             gpu_ms: HashMap::new(),
         });
         self.collect_gpu_times(app);
-        &self.frames[index]
+        Ok(&self.frames[index])
     }
 
     /// Runs of `pass` over every recorded frame.
@@ -314,10 +322,13 @@ impl FrameRecorder {
     }
 
     /// Updates without recording (to let late GPU times and screenshots arrive).
-    pub fn drain(&mut self, app: &mut App) {
-        update(app);
-        app.world().resource::<CloudPassCounters>().take();
+    pub fn drain(&mut self, app: &mut App) -> Result<(), HeadlessError> {
+        update(app)?;
+        app.world()
+            .resource::<CloudPassCounters>()
+            .since(&mut self.counted);
         self.collect_gpu_times(app);
+        Ok(())
     }
 
     fn collect_gpu_times(&mut self, app: &App) {
@@ -348,8 +359,37 @@ impl FrameRecorder {
     }
 }
 
+/// Why headless rendering could not go on.
+#[derive(Debug, thiserror::Error)]
+pub enum HeadlessError {
+    /// Waiting for the GPU failed (a lost device, for example).
+    #[error("waiting for the GPU failed: {0}")]
+    Poll(String),
+    /// The app asked to exit (Bevy's render error handler does after a GPU error).
+    #[error("the renderer asked to exit: {0:?}")]
+    Exited(AppExit),
+    /// The illumination was still being computed after the given number of frames.
+    #[error("the scene did not reach a finished image within {max_frames} frames")]
+    NotSteady {
+        /// The frames rendered.
+        max_frames: usize,
+    },
+    /// The screenshot did not come back from the GPU.
+    #[error("the screenshot did not arrive within {frames} frames")]
+    NoScreenshot {
+        /// The frames waited.
+        frames: usize,
+    },
+    /// A captured image is not in the format [`decode_rgba16f`] reads.
+    #[error("expected an Rgba16Float image with data, got {format:?}")]
+    Format {
+        /// The image's format.
+        format: TextureFormat,
+    },
+}
+
 /// One `app.update()` plus a blocking GPU poll, so readbacks and timings arrive deterministically.
-pub fn update(app: &mut App) {
+pub fn update(app: &mut App) -> Result<(), HeadlessError> {
     app.update();
     if let Some(device) = app
         .sub_app(RenderApp)
@@ -358,70 +398,78 @@ pub fn update(app: &mut App) {
     {
         device
             .poll(PollType::wait_indefinitely())
-            .expect("GPU poll failed");
+            .map_err(|e| HeadlessError::Poll(e.to_string()))?;
     }
-    assert!(app.should_exit().is_none(), "the renderer asked to exit");
+    match app.should_exit() {
+        Some(exit) => Err(HeadlessError::Exited(exit)),
+        None => Ok(()),
+    }
 }
 
 /// Renders until the clouds are drawn with finished illumination: a frame that does no
-/// illumination or sort work and draws every drawable cloud, or, when some cloud is out of view,
-/// the second frame in a row without work. Returns the frames it took; panics past `max_frames`.
+/// illumination or sort work and draws all `drawable_clouds` (for a scene,
+/// [`SceneTarget::drawable_clouds`]), or, when some cloud is out of view, the second frame in a
+/// row without work. Returns the frames it took.
 pub fn render_until_steady(
     app: &mut App,
     recorder: &mut FrameRecorder,
-    target: &SceneTarget,
+    drawable_clouds: u32,
     max_frames: usize,
-) -> usize {
+) -> Result<usize, HeadlessError> {
     let mut idle_before = false;
     for n in 1..=max_frames {
-        let stats = recorder.frame(app);
+        let stats = recorder.frame(app)?;
         let idle = stats.work() == 0;
-        if n > 1 && idle && (stats.runs(CloudPass::Draw) >= target.drawable_clouds || idle_before) {
-            return n;
+        if n > 1 && idle && (stats.runs(CloudPass::Draw) >= drawable_clouds || idle_before) {
+            return Ok(n);
         }
         idle_before = idle && n > 1;
     }
-    panic!("the scene did not reach a finished image within {max_frames} frames");
+    Err(HeadlessError::NotSteady { max_frames })
 }
 
-/// Captures the next rendered frame of `target` as linear RGBA floats.
-pub fn capture(app: &mut App, recorder: &mut FrameRecorder, target: &SceneTarget) -> LinearImage {
+/// Captures the next rendered frame of the `Rgba16Float` render target `image` (for a scene,
+/// [`SceneTarget::image`]) as linear RGBA floats.
+pub fn capture(
+    app: &mut App,
+    recorder: &mut FrameRecorder,
+    image: &Handle<Image>,
+) -> Result<LinearImage, HeadlessError> {
     let shot: Arc<Mutex<Option<Image>>> = Arc::default();
     let sink = shot.clone();
     app.world_mut()
-        .spawn(Screenshot::image(target.image.clone()))
+        .spawn(Screenshot::image(image.clone()))
         .observe(move |captured: On<ScreenshotCaptured>| {
             *sink.lock().unwrap() = Some(captured.image.clone())
         });
-    recorder.frame(app);
-    for _ in 0..10 {
+    recorder.frame(app)?;
+    const FRAMES: usize = 10;
+    for _ in 0..FRAMES {
         if let Some(image) = shot.lock().unwrap().take() {
             return decode_rgba16f(&image);
         }
-        recorder.drain(app);
+        recorder.drain(app)?;
     }
-    panic!("the screenshot did not arrive");
+    Err(HeadlessError::NoScreenshot { frames: FRAMES })
 }
 
 /// Converts an `Rgba16Float` image into linear floats.
-pub fn decode_rgba16f(image: &Image) -> LinearImage {
-    assert_eq!(
-        image.texture_descriptor.format,
-        TextureFormat::Rgba16Float,
-        "expected an Rgba16Float target"
-    );
-    let data = image.data.as_ref().expect("screenshot has data");
+pub fn decode_rgba16f(image: &Image) -> Result<LinearImage, HeadlessError> {
+    let format = image.texture_descriptor.format;
+    let (TextureFormat::Rgba16Float, Some(data)) = (format, image.data.as_ref()) else {
+        return Err(HeadlessError::Format { format });
+    };
     let pixels = data
         .chunks_exact(8)
         .map(|px| {
             std::array::from_fn(|c| f16_to_f32(u16::from_le_bytes([px[2 * c], px[2 * c + 1]])))
         })
         .collect();
-    LinearImage {
+    Ok(LinearImage {
         width: image.width(),
         height: image.height(),
         pixels,
-    }
+    })
 }
 
 /// IEEE 754 half to single precision.
@@ -437,17 +485,12 @@ pub fn f16_to_f32(bits: u16) -> f32 {
     }
 }
 
-/// Quality settings helper for tests.
-pub fn quality(volume_resolution: u32, scatter_iterations: u32) -> CloudQualitySettings {
-    CloudQualitySettings {
-        volume_resolution,
-        scatter_iterations,
-        ..default()
-    }
-}
-
-/// Copies a GPU buffer back to the CPU (blocking).
-pub fn read_buffer(app: &mut App, buffer: &bevy::render::render_resource::Buffer) -> Vec<u8> {
+/// Copies a GPU buffer back to the CPU (blocking): for comparing what a pass wrote with the CPU
+/// reference.
+pub fn read_buffer(
+    app: &mut App,
+    buffer: &bevy::render::render_resource::Buffer,
+) -> Result<Vec<u8>, HeadlessError> {
     use bevy::render::{
         render_resource::{BufferDescriptor, BufferUsages, CommandEncoderDescriptor, MapMode},
         renderer::RenderQueue,
@@ -456,7 +499,7 @@ pub fn read_buffer(app: &mut App, buffer: &bevy::render::render_resource::Buffer
     let device = world.resource::<RenderDevice>();
     let queue = world.resource::<RenderQueue>();
     let staging = device.create_buffer(&BufferDescriptor {
-        label: Some("test_readback"),
+        label: Some("headless_readback"),
         size: buffer.size(),
         usage: BufferUsages::MAP_READ | BufferUsages::COPY_DST,
         mapped_at_creation: false,
@@ -465,15 +508,20 @@ pub fn read_buffer(app: &mut App, buffer: &bevy::render::render_resource::Buffer
     encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, buffer.size());
     queue.submit([encoder.finish()]);
     let slice = staging.slice(..);
-    slice.map_async(MapMode::Read, |result| {
-        result.expect("map the readback buffer")
+    let mapped: Arc<Mutex<Option<String>>> = Arc::default();
+    let sink = mapped.clone();
+    slice.map_async(MapMode::Read, move |result| {
+        *sink.lock().unwrap() = result.err().map(|e| e.to_string());
     });
     device
         .poll(PollType::wait_indefinitely())
-        .expect("GPU poll failed");
+        .map_err(|e| HeadlessError::Poll(e.to_string()))?;
+    if let Some(error) = mapped.lock().unwrap().take() {
+        return Err(HeadlessError::Poll(error));
+    }
     let data = slice.get_mapped_range().to_vec();
     staging.unmap();
-    data
+    Ok(data)
 }
 
 /// Little-endian f32s of a byte buffer.
@@ -482,9 +530,4 @@ pub fn floats(bytes: &[u8]) -> Vec<f32> {
         .chunks_exact(4)
         .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
         .collect()
-}
-
-/// Runs a closure on the render world.
-pub fn with_render_world<R>(app: &mut App, f: impl FnOnce(&mut World) -> R) -> R {
-    f(app.sub_app_mut(RenderApp).world_mut())
 }

@@ -4,9 +4,7 @@
 //!
 //! Also checks that `assets/bunny.ply` (the `snow_bunny` example's small bunny) is exactly what
 //! [`bunny_ply_particles`] generates. To regenerate it after changing `generators::bunny_sdf`:
-//! `WRITE_BUNNY_PLY=1 cargo test --test loader bunny_ply`.
-
-mod common;
+//! `WRITE_BUNNY_PLY=1 cargo test --test gpu loader::bunny_ply`.
 
 use std::{path::Path, time::Duration};
 
@@ -14,8 +12,10 @@ use bevy::{
     asset::{AssetLoadFailedEvent, LoadState},
     prelude::*,
 };
+use bevy_particle_clouds::headless;
 use bevy_particle_clouds::{Particle, Particles, generators, particle_files};
-use common::headless;
+
+use crate::common;
 
 /// The small bunny shipped as `assets/bunny.ply`: 3 000 particles of radius 0.1 m over
 /// `generators::bunny_sdf`, seed 5 (binary PLY, 60 KB).
@@ -28,7 +28,7 @@ fn bunny_ply_particles() -> Particles {
 fn load(app: &mut App, path: &str) -> (Handle<Particles>, LoadState) {
     let handle: Handle<Particles> = app.world().resource::<AssetServer>().load(path.to_string());
     for _ in 0..1000 {
-        headless::update(app);
+        headless::update(app).unwrap();
         let state = app.world().resource::<AssetServer>().load_state(&handle);
         if matches!(state, LoadState::Loaded | LoadState::Failed(_)) {
             return (handle, state);
@@ -55,7 +55,7 @@ fn collect_failures(
 }
 
 fn app() -> App {
-    let mut app = headless::headless_app();
+    let mut app = common::headless_app();
     app.init_resource::<Failures>()
         .add_systems(Update, collect_failures);
     app
@@ -139,7 +139,7 @@ fn bunny_ply_is_the_generated_bunny() {
     assert_eq!(shipped.len(), 3000);
     assert!(
         shipped == expected.particles,
-        "assets/bunny.ply differs from the generator: run `WRITE_BUNNY_PLY=1 cargo test --test loader bunny_ply`"
+        "assets/bunny.ply differs from the generator: run `WRITE_BUNNY_PLY=1 cargo test --test gpu loader::bunny_ply`"
     );
     let bytes = std::fs::metadata(&path).unwrap().len();
     assert_eq!(

@@ -1,0 +1,225 @@
+//! `--illumination`: every illumination pass's GPU time, incremental against brute-force shading.
+
+use super::*;
+
+/// What a measured frame changes, and so which passes rerun.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) enum Change {
+    /// Nothing: the draw only.
+    Nothing,
+    /// The cloud's albedo (by one part in 10⁶): scatter and the particle colours.
+    Albedo,
+    /// The first light's illuminance (by one part in 10⁶): gather, scatter, colours.
+    Irradiance,
+    /// Every light's direction (by ~10⁻⁴ rad): shade (every light), gather, scatter, colours.
+    Direction,
+    /// The camera (by 10⁻⁴ m): the sort.
+    Camera,
+    /// The particles (touched): everything (upload, voxelize, shade, gather, scatter, sort).
+    Particles,
+}
+
+impl Bench {
+    /// Applies `change` for frame number `i` (alternating up and down, so nothing drifts).
+    pub(crate) fn change(&mut self, change: Change, i: usize) {
+        let sign = if i % 2 == 0 { 1.0 } else { -1.0 };
+        let world = self.app.world_mut();
+        match change {
+            Change::Nothing => {}
+            Change::Albedo => {
+                for mut cloud in world.query::<&mut ParticleCloud>().iter_mut(world) {
+                    cloud.albedo *= 1.0 - sign * 1e-6;
+                }
+            }
+            Change::Irradiance => {
+                if let Some(mut light) = world
+                    .query::<&mut DirectionalLight>()
+                    .iter_mut(world)
+                    .next()
+                {
+                    light.illuminance *= 1.0 + sign * 1e-6;
+                }
+            }
+            Change::Direction => {
+                for mut t in world
+                    .query_filtered::<&mut Transform, With<DirectionalLight>>()
+                    .iter_mut(world)
+                {
+                    t.rotate_y(sign * 1e-4);
+                }
+            }
+            Change::Camera => {
+                for mut t in world
+                    .query_filtered::<&mut Transform, With<Camera3d>>()
+                    .iter_mut(world)
+                {
+                    t.translation.x += sign * 1e-4;
+                }
+            }
+            Change::Particles => self.touch_particles(),
+        }
+    }
+
+    /// Median wall time of `frames` frames that each apply `change`, and the frames.
+    pub(crate) fn wall_of(&mut self, change: Change, frames: usize) -> (f64, Vec<FrameStats>) {
+        self.frame(); // settle
+        let mut ids = Vec::new();
+        for i in 0..frames {
+            self.change(change, i);
+            ids.push(self.frame());
+        }
+        if frames % 2 == 1 {
+            self.change(change, frames); // undo the odd change
+            self.frame();
+        }
+        for _ in 0..4 {
+            self.recorder
+                .drain(&mut self.app)
+                .expect("the benchmark scene renders");
+        }
+        let stats: Vec<FrameStats> = ids
+            .iter()
+            .map(|&i| self.recorder.frames[i].clone())
+            .collect();
+        (median(stats.iter().map(|f| f.wall_ms).collect()), stats)
+    }
+}
+
+/// Per-pass cost from wall-time differences of frames that rerun nested sets of passes (reliable
+/// on every adapter, and the only per-pass figure that means something on llvmpipe).
+#[derive(Clone, Debug, Default)]
+pub(crate) struct WallPasses {
+    /// voxelize (with the particles' upload), shade, gather, scatter (with colours), sort, draw
+    /// (static frame, with Bevy's per-frame overhead).
+    pub(crate) pass_ms: [f64; PASSES],
+}
+
+pub(crate) fn wall_passes(b: &mut Bench, frames: usize) -> (WallPasses, Timing) {
+    let (_, timing) = b.measure(frames);
+    let (w0, _) = b.wall_of(Change::Nothing, frames);
+    let (wa, _) = b.wall_of(Change::Albedo, frames);
+    let (wi, _) = b.wall_of(Change::Irradiance, frames);
+    let (wd, _) = b.wall_of(Change::Direction, frames);
+    let (wc, _) = b.wall_of(Change::Camera, frames);
+    let (wp, _) = b.wall_of(Change::Particles, frames);
+    // The camera's move reruns the view pass: the sort or the view volume, whichever runs.
+    let view = wc - w0;
+    let pass_ms = [wp - wd - view, wd - wi, wi - wa, wa - w0, view, 0.0, w0];
+    (WallPasses { pass_ms }, timing)
+}
+
+pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
+    let mut csv = String::from(
+        "adapter,scene,lights,volume_resolution,shading,gpu_ms_voxelize,gpu_ms_shade,gpu_ms_gather,gpu_ms_scatter,\
+         gpu_ms_view,gpu_ms_draw,gpu_ms_total,wall_ms,wall_ms_voxelize,wall_ms_shade,wall_ms_gather,wall_ms_scatter,\
+         wall_ms_view,wall_ms_static\n",
+    );
+    let mut adapter = String::new();
+    let mut lines: Vec<(usize, u32, String, Timing, WallPasses)> = Vec::new();
+    let mut ratios = Vec::new();
+    for name in ["paper_38k_1light", "paper_38k_5lights"] {
+        let bench = SCENES.iter().find(|s| s.name == name).expect("scene");
+        let scene = load_scene(bench)?;
+        let mut b = Bench::new(&scene);
+        adapter = b.adapter.clone();
+        // Light volumes of 64³ and 128³ (light_supersampling 2).
+        for n in [32u32, 64] {
+            let mut shade = HashMap::new();
+            for method in [ShadingMethod::Incremental, ShadingMethod::BruteForce] {
+                b.app.insert_resource(method);
+                b.set_quality(CloudQualitySettings {
+                    volume_resolution: n,
+                    ..default()
+                });
+                let (w, t) = wall_passes(&mut b, args.frames());
+                let method_name = format!("{method:?}");
+                eprintln!(
+                    "benchmark: {name} {n}³ {method_name}: shade GPU {:.2} ms, wall {:.1} ms; GPU total {:.2} ms, wall {:.1} ms",
+                    t.pass_ms[1], w.pass_ms[1], t.gpu_ms_total, t.wall_ms
+                );
+                let p = &t.pass_ms;
+                let q = &w.pass_ms;
+                let _ = writeln!(
+                    csv,
+                    "\"{adapter}\",{name},{},{n},{method_name},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3}",
+                    scene.lights.len(),
+                    p[0],
+                    p[1],
+                    p[2],
+                    p[3],
+                    p[4] + p[5],
+                    p[6],
+                    t.gpu_ms_total,
+                    t.wall_ms,
+                    q[0],
+                    q[1],
+                    q[2],
+                    q[3],
+                    q[4] + q[5],
+                    q[6]
+                );
+                shade.insert(method, (t.pass_ms[1], w.pass_ms[1]));
+                lines.push((scene.lights.len(), n, method_name, t, w));
+            }
+            let (gi, wi) = shade[&ShadingMethod::Incremental];
+            let (gb, wb) = shade[&ShadingMethod::BruteForce];
+            ratios.push((scene.lights.len(), n, gb / gi, wb / wi));
+        }
+        b.app.insert_resource(ShadingMethod::Incremental);
+    }
+    let mut table = format!(
+        "Adapter: `{adapter}`. The 38,000-particle cloud (benchmarks/scenes/paper_38k_*.ron, 640×480), \
+         8 scattering iterations, the default stencil and knobs. GPU: per-pass timestamps, median of {} frames in which \
+         every pass reruns. Wall: per-pass cost from wall-time differences of frames that rerun nested sets of \
+         passes (scatter: albedo changed; + gather: irradiance changed; + shade: light directions changed; \
+         + voxelize: particles changed, including their upload; sort: camera moved; static: nothing changed, \
+         the draw plus Bevy's per-frame work).\n\n",
+        args.frames()
+    );
+    table.push_str("| lights | volume | shading | GPU: voxelize | shade | gather | scatter | sort | draw | total | wall: voxelize | shade | gather | scatter | sort | static frame | all passes |\n");
+    table.push_str(
+        "|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+    );
+    for (lights, n, method, t, w) in &lines {
+        let p = &t.pass_ms;
+        let q = &w.pass_ms;
+        let _ = writeln!(
+            table,
+            "| {lights} | {n}³ | {method} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} |",
+            p[0],
+            p[1],
+            p[2],
+            p[3],
+            p[4] + p[5],
+            p[6],
+            t.gpu_ms_total,
+            q[0],
+            q[1],
+            q[2],
+            q[3],
+            q[4] + q[5],
+            q[6],
+            t.wall_ms
+        );
+    }
+    table.push_str("\nShade cost of the brute-force march (every voxel marching to the light) over the incremental pass:\n\n");
+    table.push_str(
+        "| lights | volume | ratio (GPU timestamps) | ratio (wall time) |\n|---:|---:|---:|---:|\n",
+    );
+    for (lights, n, g, w) in &ratios {
+        let _ = writeln!(table, "| {lights} | {n}³ | {g:.1}× | {w:.1}× |");
+    }
+    let csv_path = args.out.join("illumination.csv");
+    std::fs::write(&csv_path, csv)
+        .map_err(|e| format!("cannot write {}: {e}", csv_path.display()))?;
+    let md_path = args.out.join("illumination.md");
+    std::fs::write(&md_path, &table)
+        .map_err(|e| format!("cannot write {}: {e}", md_path.display()))?;
+    println!("{table}");
+    eprintln!(
+        "benchmark: wrote {} and {}",
+        csv_path.display(),
+        md_path.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,296 @@
+//! The settings swept, and the real-time measurements: GPU and wall time per frame, images.
+
+use super::*;
+
+/// The default settings before the view transmittance became the default: sorted compositing,
+/// 16 iterations, light supersampling 2, 4 chord segments.
+pub(crate) const PREVIOUS_DEFAULT: CloudQualitySettings = CloudQualitySettings {
+    volume_resolution: 48,
+    scatter_iterations: 16,
+    forward_scattering: 0.0,
+    scatter_stencil: ScatterStencil::DiscreteOrdinates,
+    light_supersampling: 2,
+    chord_segments: 4,
+    compositing: Compositing::Sorted,
+};
+
+/// The quality settings of a sweep: the defaults, then each knob varied on its own around them
+/// (so every knob's cost and error are measured), plus the paper's stencil.
+pub(crate) fn sweep(quick: bool) -> Vec<CloudQualitySettings> {
+    let base = CloudQualitySettings::default();
+    let (resolutions, iterations, segments, supersampling): (&[u32], &[u32], &[u32], &[u32]) =
+        if quick {
+            (&[32, 48, 64], &[0, 16], &[1, 4], &[1, 2])
+        } else {
+            (
+                &[16, 24, 32, 48, 64, 96, 128],
+                &[0, 1, 2, 4, 8, 16, 32, 64],
+                &[1, 2, 4, 8],
+                &[1, 2, 3],
+            )
+        };
+    let mut settings = vec![base];
+    let mut add = |s: CloudQualitySettings| {
+        if !settings.contains(&s) {
+            settings.push(s);
+        }
+    };
+    for &volume_resolution in resolutions {
+        add(CloudQualitySettings {
+            volume_resolution,
+            ..base
+        });
+    }
+    for &scatter_iterations in iterations {
+        add(CloudQualitySettings {
+            scatter_iterations,
+            ..base
+        });
+    }
+    for &chord_segments in segments {
+        add(CloudQualitySettings {
+            chord_segments,
+            ..base
+        });
+    }
+    for &light_supersampling in supersampling {
+        add(CloudQualitySettings {
+            light_supersampling,
+            ..base
+        });
+    }
+    // Resolution and iterations together, where the front is expected.
+    if !quick {
+        for volume_resolution in [32, 48, 64] {
+            for scatter_iterations in [4, 8, 16, 32] {
+                add(CloudQualitySettings {
+                    volume_resolution,
+                    scatter_iterations,
+                    ..base
+                });
+            }
+        }
+    }
+    // The paper's compositing, sorted particles, at the default and the finest grid, and the
+    // defaults of 0.1 (sorted, 16 iterations, supersampling 2, 4 chord segments).
+    let sorted: &[u32] = if quick { &[48] } else { &[48, 128] };
+    for &volume_resolution in sorted {
+        add(CloudQualitySettings {
+            volume_resolution,
+            compositing: Compositing::Sorted,
+            ..base
+        });
+    }
+    add(PREVIOUS_DEFAULT);
+    let paper: &[u32] = if quick { &[48] } else { &[32, 48, 128] };
+    for &volume_resolution in paper {
+        add(CloudQualitySettings {
+            volume_resolution,
+            scatter_stencil: ScatterStencil::Paper,
+            ..base
+        });
+    }
+    settings
+}
+
+pub(crate) fn median(mut values: Vec<f64>) -> f64 {
+    values.retain(|v| v.is_finite());
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    values.sort_by(f64::total_cmp);
+    let n = values.len();
+    if n % 2 == 1 {
+        values[n / 2]
+    } else {
+        0.5 * (values[n / 2 - 1] + values[n / 2])
+    }
+}
+
+/// Median timings of a setting.
+#[derive(Clone, Debug, Default)]
+pub(crate) struct Timing {
+    /// Per pass (CloudPass::ALL order, draw from the transparent pass), frames where all rerun.
+    pub(crate) pass_ms: [f64; PASSES],
+    /// GPU time of a frame where every pass runs: median of the per-frame sums.
+    pub(crate) gpu_ms_total: f64,
+    /// GPU time of a static frame (the draw only).
+    pub(crate) gpu_ms_static: f64,
+    pub(crate) wall_ms: f64,
+    pub(crate) wall_ms_static: f64,
+}
+
+/// A running app with one scene, for measuring many settings.
+pub(crate) struct Bench {
+    pub(crate) app: App,
+    pub(crate) target: headless::SceneTarget,
+    pub(crate) recorder: FrameRecorder,
+    pub(crate) clouds: Vec<(Entity, Handle<Particles>)>,
+    pub(crate) draw_seen: Option<bevy::platform::time::Instant>,
+    pub(crate) adapter: String,
+}
+
+impl Bench {
+    pub(crate) fn new(scene: &Scene) -> Bench {
+        let mut app = headless::app_with(headless::plugins().disable::<bevy::winit::WinitPlugin>());
+        let adapter = headless::adapter_name(&mut app);
+        let target = headless::spawn_scene(&mut app, scene);
+        let clouds = app
+            .world_mut()
+            .query::<(Entity, &ParticleCloud)>()
+            .iter(app.world())
+            .map(|(e, c)| (e, c.particles.clone()))
+            .collect();
+        Bench {
+            app,
+            target,
+            recorder: FrameRecorder::default(),
+            clouds,
+            draw_seen: None,
+            adapter,
+        }
+    }
+
+    pub(crate) fn set_quality(&mut self, settings: CloudQualitySettings) {
+        for &(entity, _) in &self.clouds {
+            self.app.world_mut().entity_mut(entity).insert(settings);
+        }
+    }
+
+    /// Marks every cloud's particles changed: the next frame reruns every pass.
+    pub(crate) fn touch_particles(&mut self) {
+        for (_, handle) in &self.clouds {
+            let mut assets = self.app.world_mut().resource_mut::<Assets<Particles>>();
+            assets.get_mut(handle).expect("particles").into_inner();
+        }
+    }
+
+    /// The transparent pass's GPU time measured since the last call, if a new one arrived.
+    pub(crate) fn new_draw_time(&mut self) -> Option<f64> {
+        let store = self.app.world().get_resource::<DiagnosticsStore>()?;
+        let m = store
+            .get(&bevy::diagnostic::DiagnosticPath::const_new(
+                DRAW_DIAGNOSTIC,
+            ))?
+            .measurement()?;
+        if self.draw_seen == Some(m.time) {
+            return None;
+        }
+        self.draw_seen = Some(m.time);
+        Some(m.value)
+    }
+
+    pub(crate) fn frame(&mut self) -> usize {
+        self.recorder
+            .frame(&mut self.app)
+            .expect("the benchmark scene renders");
+        self.recorder.frames.len() - 1
+    }
+
+    /// Renders the finished image of the current settings and measures it.
+    pub(crate) fn measure(&mut self, frames: usize) -> (LinearImage, Timing) {
+        headless::render_until_steady(
+            &mut self.app,
+            &mut self.recorder,
+            self.target.drawable_clouds,
+            200,
+        )
+        .expect("the benchmark scene renders");
+        let image = headless::capture(&mut self.app, &mut self.recorder, &self.target.image)
+            .expect("the benchmark scene renders");
+        // Static frames: nothing changed, only the draw runs.
+        for _ in 0..2 {
+            self.frame();
+            self.new_draw_time();
+        }
+        let mut draw = Vec::new();
+        let mut static_frames = Vec::new();
+        for _ in 0..frames {
+            static_frames.push(self.frame());
+            draw.extend(self.new_draw_time());
+        }
+        // Frames where everything reruns.
+        let mut dynamic = Vec::new();
+        for _ in 0..frames {
+            self.touch_particles();
+            dynamic.push(self.frame());
+        }
+        for _ in 0..4 {
+            self.recorder
+                .drain(&mut self.app)
+                .expect("the benchmark scene renders"); // late GPU timestamps
+        }
+        let frames_of = |ids: &[usize]| -> Vec<FrameStats> {
+            ids.iter()
+                .map(|&i| self.recorder.frames[i].clone())
+                .collect()
+        };
+        let statics = frames_of(&static_frames);
+        // Every illumination pass and the view pass (the sort or the view volume).
+        let reran = |f: &FrameStats| {
+            [CloudPass::Voxelize, CloudPass::Shade, CloudPass::Gather]
+                .iter()
+                .all(|&p| f.runs(p) > 0)
+                && f.runs(CloudPass::Sort) + f.runs(CloudPass::ViewVolume) > 0
+        };
+        let dynamics: Vec<FrameStats> = frames_of(&dynamic).into_iter().filter(reran).collect();
+        if std::env::var_os("BENCHMARK_DEBUG").is_some() {
+            for f in frames_of(&dynamic) {
+                eprintln!(
+                    "  frame: wall {:.1} ms, runs {:?}, gpu {:?}",
+                    f.wall_ms, f.passes, f.gpu_ms
+                );
+            }
+        }
+        assert!(
+            !dynamics.is_empty(),
+            "none of the {frames} measured frames reran every pass"
+        );
+        let draw_ms = median(draw);
+        let mut pass_ms = [0.0; PASSES];
+        for (i, pass) in CloudPass::ALL.iter().enumerate() {
+            pass_ms[i] = if *pass == CloudPass::Draw {
+                draw_ms
+            } else {
+                median(
+                    dynamics
+                        .iter()
+                        .map(|f| {
+                            f.gpu_ms
+                                .get(pass)
+                                .copied()
+                                .unwrap_or(if f.runs(*pass) == 0 { 0.0 } else { f64::NAN })
+                        })
+                        .collect(),
+                )
+            };
+        }
+        let gpu_ms_total = median(
+            dynamics
+                .iter()
+                .map(|f| {
+                    CloudPass::ALL
+                        .iter()
+                        .filter(|&&p| p != CloudPass::Draw)
+                        .map(|p| {
+                            f.gpu_ms.get(p).copied().unwrap_or(if f.runs(*p) == 0 {
+                                0.0
+                            } else {
+                                f64::NAN
+                            })
+                        })
+                        .sum::<f64>()
+                        + draw_ms
+                })
+                .collect(),
+        );
+        let timing = Timing {
+            pass_ms,
+            gpu_ms_total,
+            gpu_ms_static: draw_ms,
+            wall_ms: median(dynamics.iter().map(|f| f.wall_ms).collect()),
+            wall_ms_static: median(statics.iter().map(|f| f.wall_ms).collect()),
+        };
+        (image, timing)
+    }
+}

@@ -1,0 +1,10 @@
+//! The tests that render on the GPU (lavapipe on CI), linked as one binary. Each module compares
+//! what the GPU computed with a CPU reference, or counts the passes a scene runs.
+
+mod common;
+mod draw;
+mod illumination;
+mod loader;
+mod plugin;
+mod shading_method;
+mod stress;
