@@ -7,10 +7,10 @@
 //! # use bevy_particle_clouds::{headless, scene::Scene};
 //! let scene = Scene::load(std::path::Path::new("scene.ron")).unwrap();
 //! let mut app = headless::app();
-//! let target = headless::spawn_scene(&mut app, &scene.scene);
+//! let target = headless::spawn_scene(&mut app, &scene);
 //! let mut recorder = headless::FrameRecorder::default();
-//! headless::render_until_steady(&mut app, &mut recorder, &target, 100).unwrap();
-//! let image = headless::capture(&mut app, &mut recorder, &target).unwrap();
+//! headless::render_until_steady(&mut app, &mut recorder, target.drawable_clouds, 100).unwrap();
+//! let image = headless::capture(&mut app, &mut recorder, &target.image).unwrap();
 //! ```
 //!
 //! A build that enables Bevy's `bevy_winit` feature must leave `WinitPlugin` out, since its event
