@@ -9,11 +9,26 @@ use bevy::{
 
 use crate::{
     cloud::Particles,
-    particle_files::{ParticleFileError, parse_csv, parse_ply},
+    particle_files::{ParticleAttributes, ParticleFileError, parse_csv, parse_ply},
 };
 
 /// The asset loader of particle files (PLY with vertex properties `x y z radius density`,
-/// ascii or binary; CSV with header `x,y,z,radius,density`). Every particle is validated.
+/// ascii or binary; CSV with header `x,y,z,radius,density`). Every particle is validated. Its
+/// settings, [`ParticleAttributes`], map other attribute names, give defaults and a scale:
+///
+/// ```no_run
+/// # use bevy::prelude::*;
+/// # use bevy_particle_clouds::{Particles, particle_files::ParticleAttributes};
+/// # fn load(asset_server: Res<AssetServer>) {
+/// let smoke: Handle<Particles> = asset_server
+///     .load_builder()
+///     .with_settings(|a: &mut ParticleAttributes| {
+///         a.radius = "pscale".into();
+///         a.default_density = Some(1.0);
+///     })
+///     .load("smoke.csv");
+/// # }
+/// ```
 #[derive(Default, TypePath)]
 pub struct ParticlesLoader;
 
@@ -39,13 +54,13 @@ pub enum ParticlesLoadError {
 
 impl AssetLoader for ParticlesLoader {
     type Asset = Particles;
-    type Settings = ();
+    type Settings = ParticleAttributes;
     type Error = ParticlesLoadError;
 
     async fn load(
         &self,
         reader: &mut dyn Reader,
-        _settings: &(),
+        attributes: &ParticleAttributes,
         load_context: &mut LoadContext<'_>,
     ) -> Result<Particles, ParticlesLoadError> {
         let mut bytes = Vec::new();
@@ -55,9 +70,9 @@ impl AssetLoader for ParticlesLoader {
             .extension()
             .is_some_and(|e| e.eq_ignore_ascii_case("csv"));
         let particles = if is_csv {
-            parse_csv(&path, &String::from_utf8_lossy(&bytes))?
+            parse_csv(&path, &bytes, attributes)?
         } else {
-            parse_ply(&path, &bytes)?
+            parse_ply(&path, &bytes, attributes)?
         };
         let particles = Particles::new(particles);
         particles

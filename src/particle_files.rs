@@ -4,8 +4,12 @@
 //!   `binary_big_endian`). The `vertex` element must have the scalar properties `x y z radius
 //!   density` in any order, of any PLY numeric type; every other property (scalar or list) and
 //!   every other element, before or after `vertex`, is skipped.
-//! * **CSV** — a header naming exactly the columns `x,y,z,radius,density` (any order, whitespace
-//!   around names ignored), then one particle per line; blank lines are ignored.
+//! * **CSV** — a header naming the columns `x,y,z,radius,density` in any order (whitespace
+//!   around names ignored; other columns are skipped), then one particle per line; blank lines are
+//!   ignored. Read and written with the `csv` crate (quoted fields work).
+//!
+//! Other attribute names (Houdini's `pscale` for the radius, say), defaults for a missing radius or
+//! density, and a scale come from [`ParticleAttributes`], the loader's settings.
 //!
 //! Readers do not validate values (a negative radius is read as written); [`crate::scene`]
 //! validates every particle and names it in its error. Errors here name the file and, for text,
@@ -15,7 +19,11 @@ use std::fmt::Write as _;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
-use bevy::math::Vec3;
+use bevy::{
+    math::Vec3,
+    reflect::{Reflect, std_traits::ReflectDefault},
+};
+use serde::{Deserialize, Serialize};
 
 use crate::particle::Particle;
 
@@ -71,14 +79,138 @@ impl ParticleFileError {
     }
 }
 
-/// The five values of a particle, in file order `x y z radius density`.
-const COLUMNS: [&str; 5] = ["x", "y", "z", "radius", "density"];
+/// How a particle file's attributes become particles: which CSV column or PLY vertex property holds
+/// each value, values for attributes the file lacks, and a scale. These are the settings of the
+/// `AssetServer` loader (`load_with_settings`, or a `.meta` file); the default reads the names
+/// `x y z radius density` in metres.
+///
+/// ```
+/// # use bevy_particle_clouds::particle_files::ParticleAttributes;
+/// // Houdini's point attributes, in centimetres, without a density attribute.
+/// let houdini = ParticleAttributes {
+///     radius: "pscale".into(),
+///     default_density: Some(1.0),
+///     scale: 0.01,
+///     ..Default::default()
+/// };
+/// # assert_eq!(houdini.names()[3], "pscale");
+/// ```
+#[derive(Clone, Debug, PartialEq, Reflect, Serialize, Deserialize)]
+#[reflect(Default, Debug, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct ParticleAttributes {
+    /// Names of the attributes holding the centre's x, y and z (file units). Default `x`, `y`, `z`.
+    pub position: [String; 3],
+    /// Name of the attribute holding the radius (file units), e.g. Houdini's `pscale`.
+    /// Default `radius`.
+    pub radius: String,
+    /// Name of the attribute holding the dimensionless density. Default `density`.
+    pub density: String,
+    /// The radius (file units) of every particle when the file has no radius attribute; `None`
+    /// (the default) requires the attribute.
+    pub default_radius: Option<f32>,
+    /// The density of every particle when the file has no density attribute; `None` (the
+    /// default) requires the attribute.
+    pub default_density: Option<f32>,
+    /// Metres per file unit: multiplies positions and radii (0.01 for a file in centimetres).
+    /// Finite and `> 0`. Default 1.
+    pub scale: f32,
+}
 
-fn particle_from(v: [f64; 5]) -> Particle {
-    Particle {
-        position: Vec3::new(v[0] as f32, v[1] as f32, v[2] as f32),
-        radius: v[3] as f32,
-        density: v[4] as f32,
+impl Default for ParticleAttributes {
+    fn default() -> Self {
+        Self {
+            position: ["x".into(), "y".into(), "z".into()],
+            radius: "radius".into(),
+            density: "density".into(),
+            default_radius: None,
+            default_density: None,
+            scale: 1.0,
+        }
+    }
+}
+
+impl ParticleAttributes {
+    /// The attribute names of `x y z radius density`, in that order.
+    pub fn names(&self) -> [&str; 5] {
+        let [x, y, z] = &self.position;
+        [x, y, z, &self.radius, &self.density]
+    }
+
+    /// The value each of `x y z radius density` takes when the file lacks it (`None`: required).
+    fn defaults(&self) -> [Option<f64>; 5] {
+        let d = |v: Option<f32>| v.map(f64::from);
+        [
+            None,
+            None,
+            None,
+            d(self.default_radius),
+            d(self.default_density),
+        ]
+    }
+
+    /// The values a particle starts from before its columns are read: the defaults, else 0.
+    fn initial_values(&self) -> [f64; 5] {
+        self.defaults().map(|d| d.unwrap_or(0.0))
+    }
+
+    /// The particle of the values of `x y z radius density`, scaled to metres.
+    fn particle(&self, v: [f64; 5]) -> Particle {
+        let s = self.scale as f64;
+        Particle {
+            position: Vec3::new((v[0] * s) as f32, (v[1] * s) as f32, (v[2] * s) as f32),
+            radius: (v[3] * s) as f32,
+            density: v[4] as f32,
+        }
+    }
+
+    /// Refuses a scale that is not finite and positive.
+    fn check(&self, path: &Path) -> Result<(), ParticleFileError> {
+        if self.scale.is_finite() && self.scale > 0.0 {
+            return Ok(());
+        }
+        Err(ParticleFileError::format(
+            path,
+            "settings",
+            format!(
+                "ParticleAttributes::scale is {}; it must be finite and > 0",
+                self.scale
+            ),
+        ))
+    }
+
+    /// Which of `names` (a CSV header or the vertex properties) holds each of
+    /// `x y z radius density` (`usize::MAX` where a default stands in). Names that map to nothing
+    /// are ignored. `what` names the file's attributes in messages (`column`, `vertex property`).
+    fn columns<'a>(
+        &self,
+        names: impl IntoIterator<Item = &'a str>,
+        what: &str,
+    ) -> Result<[usize; 5], String> {
+        let wanted = self.names();
+        let mut columns = [usize::MAX; 5];
+        for (i, name) in names.into_iter().enumerate() {
+            for c in (0..5).filter(|&c| wanted[c] == name) {
+                if columns[c] != usize::MAX {
+                    return Err(format!("{what} `{name}` appears twice"));
+                }
+                columns[c] = i;
+            }
+        }
+        let missing: Vec<&str> = (0..5)
+            .filter(|&c| columns[c] == usize::MAX && self.defaults()[c].is_none())
+            .map(|c| wanted[c])
+            .collect();
+        if missing.is_empty() {
+            return Ok(columns);
+        }
+        Err(format!(
+            "missing {what}{} `{}`; the particles need `{}` (other names or defaults for the radius \
+             and density are set with the loader's `ParticleAttributes`)",
+            if missing.len() == 1 { "" } else { "s" },
+            missing.join("`, `"),
+            wanted.join(" ")
+        ))
     }
 }
 
@@ -366,47 +498,27 @@ fn short(s: &str) -> String {
 }
 
 /// For the vertex element: which property holds each of `x y z radius density`.
-fn vertex_columns(path: &Path, vertex: &PlyElement) -> Result<[usize; 5], ParticleFileError> {
-    let at = "header";
-    let mut columns = [usize::MAX; 5];
-    for (i, p) in vertex.properties.iter().enumerate() {
-        if let Some(c) = COLUMNS.iter().position(|&n| n == p.name) {
-            if columns[c] != usize::MAX {
-                return Err(ParticleFileError::format(
-                    path,
-                    at,
-                    format!("element `vertex` has property `{}` twice", p.name),
-                ));
-            }
-            if matches!(p.kind, PropertyKind::List { .. }) {
-                return Err(ParticleFileError::format(
-                    path,
-                    at,
-                    format!(
-                        "vertex property `{}` is a list; it must be a number",
-                        p.name
-                    ),
-                ));
-            }
-            columns[c] = i;
+fn vertex_columns(
+    path: &Path,
+    vertex: &PlyElement,
+    attributes: &ParticleAttributes,
+) -> Result<[usize; 5], ParticleFileError> {
+    let names = vertex.properties.iter().map(|p| p.name.as_str());
+    let columns = attributes
+        .columns(names, "vertex property")
+        .map_err(|message| ParticleFileError::format(path, "header", message))?;
+    for &c in columns.iter().filter(|&&c| c != usize::MAX) {
+        let property = &vertex.properties[c];
+        if matches!(property.kind, PropertyKind::List { .. }) {
+            return Err(ParticleFileError::format(
+                path,
+                "header",
+                format!(
+                    "vertex property `{}` is a list; it must be a number",
+                    property.name
+                ),
+            ));
         }
-    }
-    let missing: Vec<&str> = COLUMNS
-        .iter()
-        .zip(columns)
-        .filter(|(_, c)| *c == usize::MAX)
-        .map(|(n, _)| *n)
-        .collect();
-    if !missing.is_empty() {
-        return Err(ParticleFileError::format(
-            path,
-            at,
-            format!(
-                "element `vertex` lacks the propert{} `{}`; it needs `x y z radius density`",
-                if missing.len() == 1 { "y" } else { "ies" },
-                missing.join("`, `")
-            ),
-        ));
     }
     Ok(columns)
 }
@@ -414,11 +526,16 @@ fn vertex_columns(path: &Path, vertex: &PlyElement) -> Result<[usize; 5], Partic
 /// Reads the particles of a PLY file (see the module documentation).
 pub fn read_ply(path: &Path) -> Result<Vec<Particle>, ParticleFileError> {
     let bytes = std::fs::read(path).map_err(|e| ParticleFileError::io(path, e))?;
-    parse_ply(path, &bytes)
+    parse_ply(path, &bytes, &ParticleAttributes::default())
 }
 
-/// Parses PLY bytes; `path` is only used in error messages.
-pub fn parse_ply(path: &Path, bytes: &[u8]) -> Result<Vec<Particle>, ParticleFileError> {
+/// Parses PLY bytes into particles through `attributes`; `path` is only used in error messages.
+pub fn parse_ply(
+    path: &Path,
+    bytes: &[u8],
+    attributes: &ParticleAttributes,
+) -> Result<Vec<Particle>, ParticleFileError> {
+    attributes.check(path)?;
     let header = parse_ply_header(path, bytes)?;
     let Some(vertex_index) = header.elements.iter().position(|e| e.name == "vertex") else {
         return Err(ParticleFileError::format(
@@ -428,26 +545,42 @@ pub fn parse_ply(path: &Path, bytes: &[u8]) -> Result<Vec<Particle>, ParticleFil
         ));
     };
     let vertex = &header.elements[vertex_index];
-    let columns = vertex_columns(path, vertex)?;
+    let columns = vertex_columns(path, vertex, attributes)?;
     let body = &bytes[header.body_start..];
+    let vertices = Vertices {
+        header: &header,
+        index: vertex_index,
+        columns,
+        attributes,
+    };
     match header.format {
-        PlyFormat::Ascii => read_ply_ascii_body(path, &header, vertex_index, columns, body),
-        PlyFormat::BinaryLittleEndian => {
-            read_ply_binary_body(path, &header, vertex_index, columns, body, true)
-        }
-        PlyFormat::BinaryBigEndian => {
-            read_ply_binary_body(path, &header, vertex_index, columns, body, false)
-        }
+        PlyFormat::Ascii => read_ply_ascii_body(path, &vertices, body),
+        PlyFormat::BinaryLittleEndian => read_ply_binary_body(path, &vertices, body, true),
+        PlyFormat::BinaryBigEndian => read_ply_binary_body(path, &vertices, body, false),
     }
+}
+
+/// What the body readers need to know about the vertices.
+struct Vertices<'a> {
+    header: &'a PlyHeader,
+    /// Index of the `vertex` element.
+    index: usize,
+    /// Which property holds each of `x y z radius density` (`usize::MAX`: a default).
+    columns: [usize; 5],
+    attributes: &'a ParticleAttributes,
 }
 
 fn read_ply_ascii_body(
     path: &Path,
-    header: &PlyHeader,
-    vertex_index: usize,
-    columns: [usize; 5],
+    vertices: &Vertices,
     body: &[u8],
 ) -> Result<Vec<Particle>, ParticleFileError> {
+    let Vertices {
+        header,
+        index: vertex_index,
+        columns,
+        attributes,
+    } = *vertices;
     let text = std::str::from_utf8(body).map_err(|e| {
         ParticleFileError::format(path, "body", format!("an ascii PLY body must be text: {e}"))
     })?;
@@ -487,7 +620,7 @@ fn read_ply_ascii_body(
         };
         let at = format!("line {line_no}");
         let mut tokens = line.split_whitespace();
-        let mut values = [0.0f64; 5];
+        let mut values = attributes.initial_values();
         for (pi, property) in vertex.properties.iter().enumerate() {
             let mut next = |what: &str| -> Result<f64, ParticleFileError> {
                 let token = tokens.next().ok_or_else(|| {
@@ -541,19 +674,23 @@ fn read_ply_ascii_body(
                 ),
             ));
         }
-        particles.push(particle_from(values));
+        particles.push(attributes.particle(values));
     }
     Ok(particles)
 }
 
 fn read_ply_binary_body(
     path: &Path,
-    header: &PlyHeader,
-    vertex_index: usize,
-    columns: [usize; 5],
+    vertices: &Vertices,
     body: &[u8],
     little: bool,
 ) -> Result<Vec<Particle>, ParticleFileError> {
+    let Vertices {
+        header,
+        index: vertex_index,
+        columns,
+        attributes,
+    } = *vertices;
     let body_offset = header.body_start;
     let mut pos = 0usize;
     // Reads one scalar at `pos`, or explains where the file ended.
@@ -631,7 +768,7 @@ fn read_ply_binary_body(
     let mut particles = Vec::with_capacity(vertex.count.min(body.len() / 5 + 1));
     for k in 0..vertex.count {
         let what = || format!("vertex {k}");
-        let mut values = [0.0f64; 5];
+        let mut values = attributes.initial_values();
         for (pi, property) in vertex.properties.iter().enumerate() {
             match property.kind {
                 PropertyKind::Scalar(t) => {
@@ -657,7 +794,7 @@ fn read_ply_binary_body(
                 }
             }
         }
-        particles.push(particle_from(values));
+        particles.push(attributes.particle(values));
     }
     // Elements after the vertices are ignored.
     Ok(particles)
@@ -718,97 +855,89 @@ pub fn write_ply_ascii(path: &Path, particles: &[Particle]) -> Result<(), Partic
 /// Reads the particles of a CSV file (see the module documentation).
 pub fn read_csv(path: &Path) -> Result<Vec<Particle>, ParticleFileError> {
     let bytes = std::fs::read(path).map_err(|e| ParticleFileError::io(path, e))?;
-    let text = std::str::from_utf8(&bytes).map_err(|e| {
-        ParticleFileError::format(path, "file", format!("not valid UTF-8 text: {e}"))
-    })?;
-    parse_csv(path, text)
+    parse_csv(path, &bytes, &ParticleAttributes::default())
 }
 
-/// Parses CSV text; `path` is only used in error messages.
-pub fn parse_csv(path: &Path, text: &str) -> Result<Vec<Particle>, ParticleFileError> {
-    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
-    let mut lines = text
-        .lines()
-        .enumerate()
-        .map(|(i, l)| (i + 1, l))
-        .filter(|(_, l)| !l.trim().is_empty());
-    let Some((header_line, header)) = lines.next() else {
+/// Parses CSV bytes into particles through `attributes`; `path` is only used in error messages.
+pub fn parse_csv(
+    path: &Path,
+    bytes: &[u8],
+    attributes: &ParticleAttributes,
+) -> Result<Vec<Particle>, ParticleFileError> {
+    attributes.check(path)?;
+    let bytes = bytes.strip_prefix("\u{feff}".as_bytes()).unwrap_or(bytes);
+    let mut reader = csv::ReaderBuilder::new()
+        .has_headers(false)
+        .flexible(true)
+        .trim(csv::Trim::All)
+        .from_reader(bytes);
+    // The 1-based line where a record starts. The csv crate's own line count skips blank lines,
+    // and its byte offset may point at the blank lines before the record.
+    let line_of = |p: &csv::Position| {
+        let mut start = (p.byte() as usize).min(bytes.len());
+        while bytes.get(start).is_some_and(|b| matches!(b, b'\n' | b'\r')) {
+            start += 1;
+        }
+        1 + bytes[..start].iter().filter(|&&b| b == b'\n').count()
+    };
+    // Records with their line, blank (or whitespace-only) lines skipped.
+    let mut records = reader.records().filter_map(|record| match record {
+        Ok(r) if r.iter().all(str::is_empty) => None,
+        Ok(r) => Some(Ok((r.position().map_or(0, line_of), r))),
+        Err(e) => Some(Err(e)),
+    });
+    let csv_error = |e: csv::Error| {
+        let at = e
+            .position()
+            .map_or("file".to_owned(), |p| format!("line {}", line_of(p)));
+        ParticleFileError::format(path, at, e.to_string())
+    };
+    let Some(header) = records.next().transpose().map_err(csv_error)? else {
         return Err(ParticleFileError::format(
             path,
             "line 1",
-            "the file is empty; it needs the header `x,y,z,radius,density`",
-        ));
-    };
-    let at = format!("line {header_line}");
-    let names: Vec<&str> = header.split(',').map(str::trim).collect();
-    // columns[c] = index in the row of COLUMNS[c]
-    let mut columns = [usize::MAX; 5];
-    for (i, name) in names.iter().enumerate() {
-        match COLUMNS.iter().position(|n| n == name) {
-            Some(c) if columns[c] == usize::MAX => columns[c] = i,
-            Some(_) => {
-                return Err(ParticleFileError::format(
-                    path,
-                    &at,
-                    format!("header: column `{name}` appears twice"),
-                ));
-            }
-            None => {
-                return Err(ParticleFileError::format(
-                    path,
-                    &at,
-                    format!(
-                        "header: unknown column `{}`; the header must name exactly the columns x,y,z,radius,density",
-                        short(name)
-                    ),
-                ));
-            }
-        }
-    }
-    let missing: Vec<&str> = COLUMNS
-        .iter()
-        .zip(columns)
-        .filter(|(_, c)| *c == usize::MAX)
-        .map(|(n, _)| *n)
-        .collect();
-    if !missing.is_empty() {
-        return Err(ParticleFileError::format(
-            path,
-            &at,
             format!(
-                "header: missing column{} `{}`; the header must name exactly the columns x,y,z,radius,density",
-                if missing.len() == 1 { "" } else { "s" },
-                missing.join("`, `")
+                "the file is empty; it needs a header naming the columns `{}`",
+                attributes.names().join(",")
             ),
         ));
-    }
+    };
+    let (header_line, header) = header;
+    let columns = attributes
+        .columns(header.iter(), "column")
+        .map_err(|m| ParticleFileError::format(path, format!("line {header_line}"), m))?;
+    let names = attributes.names();
     let mut particles = Vec::new();
-    for (line_no, line) in lines {
-        let at = format!("line {line_no}");
-        let fields: Vec<&str> = line.split(',').map(str::trim).collect();
-        if fields.len() != 5 {
+    for record in records {
+        let (line, record) = record.map_err(csv_error)?;
+        let at = format!("line {line}");
+        if record.len() != header.len() {
             return Err(ParticleFileError::format(
                 path,
                 &at,
-                format!("expected 5 comma-separated values, found {}", fields.len()),
+                format!(
+                    "expected {} comma-separated values (the header's columns), found {}",
+                    header.len(),
+                    record.len()
+                ),
             ));
         }
-        let mut values = [0.0f64; 5];
-        for (c, &i) in columns.iter().enumerate() {
-            let field = fields[i];
-            values[c] = field.parse::<f64>().map_err(|_| {
-                ParticleFileError::format(
-                    path,
-                    &at,
-                    format!(
-                        "column `{}` is `{}`, which is not a number",
-                        COLUMNS[c],
-                        short(field)
-                    ),
-                )
+        let mut values = attributes.initial_values();
+        for (c, &i) in columns
+            .iter()
+            .enumerate()
+            .filter(|(_, i)| **i != usize::MAX)
+        {
+            values[c] = record[i].parse::<f64>().map_err(|_| {
+                let message = format!(
+                    "column `{}` is `{}`, which is not a number",
+                    names[c],
+                    short(&record[i])
+                );
+                ParticleFileError::format(path, &at, message)
             })?;
         }
-        particles.push(particle_from(values));
+        particles.push(attributes.particle(values));
     }
     Ok(particles)
 }
@@ -817,7 +946,8 @@ pub fn parse_csv(path: &Path, text: &str) -> Result<Vec<Particle>, ParticleFileE
 pub fn write_csv(path: &Path, particles: &[Particle]) -> Result<(), ParticleFileError> {
     let csv_error = |e: csv::Error| ParticleFileError::io(path, e.into());
     let mut writer = csv::Writer::from_path(path).map_err(csv_error)?;
-    writer.write_record(COLUMNS).map_err(csv_error)?;
+    let header = ParticleAttributes::default();
+    writer.write_record(header.names()).map_err(csv_error)?;
     for p in particles {
         // Rust's float formatting is the shortest that round-trips.
         let [x, y, z] = p.position.to_array();
@@ -893,7 +1023,12 @@ mod tests {
                     property list uchar int idx\r\nproperty float y\r\nproperty float z\r\nproperty float radius\r\n\
                     element face 1\r\nproperty list uchar int vertex_indices\r\nend_header\r\n\
                     45\r\n0.5 255 1 3 7 8 9 2 3 0.25\r\n\r\n1 0 -2 0 0.5 0.5 1\r\n3 0 1 1\r\n";
-        let p = parse_ply(Path::new("t.ply"), text.as_bytes()).unwrap();
+        let p = parse_ply(
+            Path::new("t.ply"),
+            text.as_bytes(),
+            &ParticleAttributes::default(),
+        )
+        .unwrap();
         assert_eq!(
             p,
             vec![
@@ -942,7 +1077,7 @@ mod tests {
             b.extend_from_slice(&d.to_le_bytes());
         }
         b.extend_from_slice(&[3, 0, 0, 0, 0]); // truncated face: ignored
-        let p = parse_ply(Path::new("t.ply"), &b).unwrap();
+        let p = parse_ply(Path::new("t.ply"), &b, &ParticleAttributes::default()).unwrap();
         assert_eq!(
             p,
             vec![
@@ -961,9 +1096,13 @@ mod tests {
     }
 
     fn err(text: &str) -> String {
-        parse_ply(Path::new("c.ply"), text.as_bytes())
-            .unwrap_err()
-            .to_string()
+        parse_ply(
+            Path::new("c.ply"),
+            text.as_bytes(),
+            &ParticleAttributes::default(),
+        )
+        .unwrap_err()
+        .to_string()
     }
 
     #[test]
@@ -1015,7 +1154,12 @@ mod tests {
     #[test]
     fn csv_any_column_order_whitespace_blank_lines() {
         let text = "\n density , radius,x,y , z\n\n1, 0.5, 1, 2, 3\n  \n0,2,-1,-2,-3\n";
-        let p = parse_csv(Path::new("t.csv"), text).unwrap();
+        let p = parse_csv(
+            Path::new("t.csv"),
+            text.as_bytes(),
+            &ParticleAttributes::default(),
+        )
+        .unwrap();
         assert_eq!(
             p,
             vec![
@@ -1032,14 +1176,27 @@ mod tests {
             ]
         );
         assert_eq!(
-            parse_csv(Path::new("t.csv"), "x,y,z,radius,density\n").unwrap(),
+            parse_csv(
+                Path::new("t.csv"),
+                "x,y,z,radius,density\n".as_bytes(),
+                &ParticleAttributes::default()
+            )
+            .unwrap(),
             vec![]
         );
     }
 
     #[test]
     fn csv_errors_name_file_line_and_column() {
-        let e = |t: &str| parse_csv(Path::new("c.csv"), t).unwrap_err().to_string();
+        let e = |t: &str| {
+            parse_csv(
+                Path::new("c.csv"),
+                t.as_bytes(),
+                &ParticleAttributes::default(),
+            )
+            .unwrap_err()
+            .to_string()
+        };
         let m = e("x,y,z,radius,density\n1,2,3,4,5\n\n1,2,3,abc,5\n");
         assert!(
             m.contains("c.csv: line 4") && m.contains("column `radius`") && m.contains("abc"),
@@ -1052,7 +1209,7 @@ mod tests {
         );
         let m = e("x,y,z,radius,dens\n");
         assert!(
-            m.contains("line 1") && m.contains("unknown column `dens`"),
+            m.contains("line 1") && m.contains("missing column `density`"),
             "{m}"
         );
         let m = e("x,y,z,radius\n");
@@ -1075,5 +1232,77 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("nope.csv"), "{e}");
+    }
+
+    #[test]
+    fn csv_skips_extra_columns_and_reads_quoted_fields() {
+        let text = "id,x,y,z,radius,density,name\n7,1,2,3,0.5,1,\"puff, big\"\n";
+        let p = parse_csv(
+            Path::new("e.csv"),
+            text.as_bytes(),
+            &ParticleAttributes::default(),
+        );
+        assert_eq!(
+            p.unwrap(),
+            vec![Particle {
+                position: Vec3::new(1.0, 2.0, 3.0),
+                radius: 0.5,
+                density: 1.0
+            }]
+        );
+    }
+
+    #[test]
+    fn attributes_map_names_fill_defaults_and_scale() {
+        let houdini = ParticleAttributes {
+            radius: "pscale".into(),
+            default_density: Some(0.5),
+            scale: 0.01,
+            ..Default::default()
+        };
+        let expected = vec![Particle {
+            position: Vec3::new(0.01, 0.02, 0.03),
+            radius: 0.2,
+            density: 0.5,
+        }];
+        let csv = "x,y,z,pscale\n1,2,3,20\n";
+        let close = |got: Vec<Particle>| {
+            got.len() == 1
+                && (got[0].position - expected[0].position).length() < 1e-6
+                && (got[0].radius - expected[0].radius).abs() < 1e-6
+                && got[0].density == expected[0].density
+        };
+        assert!(close(
+            parse_csv(Path::new("h.csv"), csv.as_bytes(), &houdini).unwrap()
+        ));
+        let ply = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n\
+                   property float z\nproperty float pscale\nend_header\n1 2 3 20\n";
+        assert!(close(
+            parse_ply(Path::new("h.ply"), ply.as_bytes(), &houdini).unwrap()
+        ));
+        // Without the default, the density is required, and the message says how to map it.
+        let strict = ParticleAttributes {
+            default_density: None,
+            ..houdini.clone()
+        };
+        let e = parse_csv(Path::new("h.csv"), csv.as_bytes(), &strict)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("missing column `density`") && e.contains("ParticleAttributes"),
+            "{e}"
+        );
+        let e = parse_ply(Path::new("h.ply"), ply.as_bytes(), &strict)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("missing vertex property `density`"), "{e}");
+        let bad = ParticleAttributes {
+            scale: 0.0,
+            ..houdini
+        };
+        let e = parse_csv(Path::new("h.csv"), csv.as_bytes(), &bad)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("scale is 0") && e.contains("> 0"), "{e}");
     }
 }

@@ -351,14 +351,13 @@ fn run() -> Result<(), String> {
 /// Redraws `DIR/pareto.png` from `DIR/results.csv` (e.g. after changing the plot).
 fn replot(args: &Args) -> Result<(), String> {
     let path = args.out.join("results.csv");
-    let text = std::fs::read_to_string(&path)
-        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
+    let cannot_read = |e: csv::Error| format!("cannot read {}: {e}", path.display());
+    let mut reader = csv::Reader::from_path(&path).map_err(cannot_read)?;
+    let header = reader.headers().map_err(cannot_read)?.clone();
     let column = |name: &str| {
         header
             .iter()
-            .position(|h| *h == name)
+            .position(|h| h == name)
             .ok_or(format!("{}: no column {name}", path.display()))
     };
     let [
@@ -414,14 +413,9 @@ fn replot(args: &Args) -> Result<(), String> {
     let mut rows = Vec::new();
     let mut order: Vec<&'static str> = Vec::new();
     let mut adapter_name = String::new();
-    for line in lines.filter(|l| !l.is_empty()) {
-        // The adapter is the only quoted field (it has no commas inside in practice, but may).
-        let (quoted, rest) = line
-            .strip_prefix('"')
-            .and_then(|l| l.split_once("\","))
-            .ok_or(format!("bad line {line}"))?;
-        let fields: Vec<&str> = std::iter::once(quoted).chain(rest.split(',')).collect();
-        let f = |i: usize| fields.get(i).copied().unwrap_or_default();
+    for record in reader.records() {
+        let record = record.map_err(cannot_read)?;
+        let f = |i: usize| record.get(i).unwrap_or_default();
         let num = |i: usize| f(i).parse::<f64>().unwrap_or(f64::NAN);
         adapter_name = f(adapter).to_string();
         let _ = WALL_AXIS.set(f(axis) == "wall_ms");

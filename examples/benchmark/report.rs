@@ -100,61 +100,105 @@ pub(crate) fn dominating<'a>(rows: &'a [Row]) -> Vec<&'a Row> {
         .collect()
 }
 
-pub(crate) fn write_csv_results(path: &Path, adapter: &str, rows: &[Row]) -> std::io::Result<()> {
-    let mut s = String::from(
-        "adapter,scene,particles,lights,width,height,error_width,error_height,volume_resolution,scatter_iterations,\
-         stencil,forward_scattering,chord_segments,light_supersampling,compositing,is_default,gpu_ms_total,gpu_ms_voxelize,gpu_ms_shade,gpu_ms_gather,gpu_ms_scatter,\
-         gpu_ms_view,gpu_ms_draw,gpu_ms_static,wall_ms,wall_ms_static,rel_rmse,rel_mse,mae,reference_spp,reference_noise,pareto,pareto_time_axis,\
-         rel_rmse_denoised,rel_rmse_box4,reference_noise_box4,rel_rmse_box4_denoised\n",
-    );
-    for r in rows {
-        let t = &r.timing;
-        let _ = writeln!(
-            s,
-            "\"{adapter}\",{},{},{},{},{},{},{},{},{},{},{},{},{},{:?},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.3},{:.3},{:.6},{:.6},{:.6},{},{:.6},{},{},{:.6},{:.6},{:.6},{:.6}",
-            r.scene,
-            r.particles,
-            r.lights,
-            r.size.0,
-            r.size.1,
-            r.error_size.0,
-            r.error_size.1,
-            r.settings.volume_resolution,
-            r.settings.scatter_iterations,
-            stencil_name(r.settings.scatter_stencil),
-            r.settings.forward_scattering,
-            r.settings.chord_segments,
-            r.settings.light_supersampling,
-            r.settings.compositing,
-            r.settings == CloudQualitySettings::default(),
-            t.gpu_ms_total,
-            t.pass_ms[0],
-            t.pass_ms[1],
-            t.pass_ms[2],
-            t.pass_ms[3],
-            t.pass_ms[4] + t.pass_ms[5],
-            t.pass_ms[6],
-            t.gpu_ms_static,
-            t.wall_ms,
-            t.wall_ms_static,
-            r.rel_rmse,
-            r.rel_mse,
-            r.mae,
-            r.reference_spp,
-            r.reference_noise,
-            r.pareto,
-            if wall_axis() {
+/// One line of `results.csv`; the field names are the header.
+#[derive(serde::Serialize)]
+struct CsvRow<'a> {
+    adapter: &'a str,
+    scene: &'a str,
+    particles: usize,
+    lights: usize,
+    width: u32,
+    height: u32,
+    error_width: u32,
+    error_height: u32,
+    volume_resolution: u32,
+    scatter_iterations: u32,
+    stencil: &'static str,
+    forward_scattering: f32,
+    chord_segments: u32,
+    light_supersampling: u32,
+    compositing: String,
+    is_default: bool,
+    gpu_ms_total: f64,
+    gpu_ms_voxelize: f64,
+    gpu_ms_shade: f64,
+    gpu_ms_gather: f64,
+    gpu_ms_scatter: f64,
+    gpu_ms_view: f64,
+    gpu_ms_draw: f64,
+    gpu_ms_static: f64,
+    wall_ms: f64,
+    wall_ms_static: f64,
+    rel_rmse: f64,
+    rel_mse: f64,
+    mae: f64,
+    reference_spp: u32,
+    reference_noise: f64,
+    pareto: bool,
+    pareto_time_axis: &'static str,
+    rel_rmse_denoised: f64,
+    rel_rmse_box4: f64,
+    reference_noise_box4: f64,
+    rel_rmse_box4_denoised: f64,
+}
+
+impl<'a> CsvRow<'a> {
+    fn new(adapter: &'a str, r: &'a Row) -> Self {
+        let (t, s) = (&r.timing, &r.settings);
+        CsvRow {
+            adapter,
+            scene: r.scene,
+            particles: r.particles,
+            lights: r.lights,
+            width: r.size.0,
+            height: r.size.1,
+            error_width: r.error_size.0,
+            error_height: r.error_size.1,
+            volume_resolution: s.volume_resolution,
+            scatter_iterations: s.scatter_iterations,
+            stencil: stencil_name(s.scatter_stencil),
+            forward_scattering: s.forward_scattering,
+            chord_segments: s.chord_segments,
+            light_supersampling: s.light_supersampling,
+            compositing: format!("{:?}", s.compositing),
+            is_default: *s == CloudQualitySettings::default(),
+            gpu_ms_total: t.gpu_ms_total,
+            gpu_ms_voxelize: t.pass_ms[0],
+            gpu_ms_shade: t.pass_ms[1],
+            gpu_ms_gather: t.pass_ms[2],
+            gpu_ms_scatter: t.pass_ms[3],
+            gpu_ms_view: t.pass_ms[4] + t.pass_ms[5],
+            gpu_ms_draw: t.pass_ms[6],
+            gpu_ms_static: t.gpu_ms_static,
+            wall_ms: t.wall_ms,
+            wall_ms_static: t.wall_ms_static,
+            rel_rmse: r.rel_rmse,
+            rel_mse: r.rel_mse,
+            mae: r.mae,
+            reference_spp: r.reference_spp,
+            reference_noise: r.reference_noise,
+            pareto: r.pareto,
+            pareto_time_axis: if wall_axis() {
                 "wall_ms"
             } else {
                 "gpu_ms_total"
             },
-            denoised(r.rel_rmse, r.reference_noise),
-            r.rel_rmse_box4,
-            r.reference_noise_box4,
-            denoised(r.rel_rmse_box4, r.reference_noise_box4),
-        );
+            rel_rmse_denoised: denoised(r.rel_rmse, r.reference_noise),
+            rel_rmse_box4: r.rel_rmse_box4,
+            reference_noise_box4: r.reference_noise_box4,
+            rel_rmse_box4_denoised: denoised(r.rel_rmse_box4, r.reference_noise_box4),
+        }
     }
-    std::fs::write(path, s)
+}
+
+/// Writes `results.csv`: one row per scene and setting (the `csv` crate quotes what needs it).
+pub(crate) fn write_csv_results(path: &Path, adapter: &str, rows: &[Row]) -> csv::Result<()> {
+    let mut writer = csv::Writer::from_path(path)?;
+    for r in rows {
+        writer.serialize(CsvRow::new(adapter, r))?;
+    }
+    writer.flush()?;
+    Ok(())
 }
 
 pub(crate) fn markdown(adapter: &str, rows: &[Row], scene_order: &[&'static str]) -> String {

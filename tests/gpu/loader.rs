@@ -13,7 +13,10 @@ use bevy::{
     prelude::*,
 };
 use bevy_particle_clouds::headless;
-use bevy_particle_clouds::{Particle, Particles, generators, particle_files};
+use bevy_particle_clouds::{
+    Particle, Particles, generators,
+    particle_files::{self, ParticleAttributes},
+};
 
 use crate::common;
 
@@ -27,6 +30,29 @@ fn bunny_ply_particles() -> Particles {
 /// Loads `path` (under `assets/`) and updates until it has loaded or failed (at most ~10 s).
 fn load(app: &mut App, path: &str) -> (Handle<Particles>, LoadState) {
     let handle: Handle<Particles> = app.world().resource::<AssetServer>().load(path.to_string());
+    for _ in 0..1000 {
+        headless::update(app).unwrap();
+        let state = app.world().resource::<AssetServer>().load_state(&handle);
+        if matches!(state, LoadState::Loaded | LoadState::Failed(_)) {
+            return (handle, state);
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    panic!("{path} neither loaded nor failed within 1000 updates");
+}
+
+/// Loads `path` with the loader settings `attributes` (the `AssetServer`'s load builder).
+fn load_with(
+    app: &mut App,
+    path: &'static str,
+    attributes: ParticleAttributes,
+) -> (Handle<Particles>, LoadState) {
+    let handle: Handle<Particles> = app
+        .world()
+        .resource::<AssetServer>()
+        .load_builder()
+        .with_settings(move |a: &mut ParticleAttributes| *a = attributes.clone())
+        .load(path);
     for _ in 0..1000 {
         headless::update(app).unwrap();
         let state = app.world().resource::<AssetServer>().load_state(&handle);
@@ -187,4 +213,34 @@ fn malformed_files_fail_with_the_line() {
         invalid.contains("particle 1: `radius` is -0.5; it must be finite and > 0"),
         "{invalid}"
     );
+}
+
+/// Houdini-style points (centimetres, `pscale`, no density, extra columns with quoted commas)
+/// load through the loader's settings.
+#[test]
+fn loader_settings_map_attributes_and_scale() {
+    let mut app = app();
+    let houdini = ParticleAttributes {
+        radius: "pscale".into(),
+        default_density: Some(0.8),
+        scale: 0.01,
+        ..default()
+    };
+    let (handle, state) = load_with(&mut app, "test_files/houdini_points.csv", houdini);
+    assert!(matches!(state, LoadState::Loaded), "{state:?}");
+    let assets = app.world().resource::<Assets<Particles>>();
+    let particle = |x: f32, y: f32, radius: f32| Particle {
+        position: Vec3::new(x, y, 0.0),
+        radius,
+        density: 0.8,
+    };
+    let got = &assets.get(&handle).unwrap().particles;
+    assert_eq!(got.len(), 2);
+    for (a, b) in got
+        .iter()
+        .zip([particle(0.1, 0.0, 0.5), particle(-0.1, 0.2, 0.25)])
+    {
+        assert!((a.position - b.position).length() < 1e-6 && (a.radius - b.radius).abs() < 1e-6);
+        assert_eq!(a.density, b.density);
+    }
 }
