@@ -35,7 +35,6 @@ use indicatif::{ProgressBar, ProgressStyle};
 #[derive(Parser, Debug)]
 #[command(
     version,
-    about,
     after_help = "Without SCENE, renders a built-in cumulus into clouds.png."
 )]
 struct Args {

@@ -75,7 +75,7 @@ const DRAW_DIAGNOSTIC: &str = "render/main_transparent_pass_3d/elapsed_gpu";
 
 /// The time–error benchmark of the real-time renderer against the path tracer.
 #[derive(Parser, Debug)]
-#[command(about, long_about = None)]
+#[command(long_about = None)]
 pub(crate) struct Args {
     /// A short sweep (fewer settings and scenes) for a quick look.
     #[arg(long, conflicts_with_all = ["decompose", "illumination", "replot"])]
