@@ -54,7 +54,7 @@ use crate::{
     stats::{CloudPass, CloudPassCounters},
 };
 
-/// Mirror of `DrawParams` in `shaders/billboard.wgsl`.
+/// Mirror of `DrawParams` in `billboard.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default)]
 pub struct DrawParams {
     /// World from cloud-local.

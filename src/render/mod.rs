@@ -87,7 +87,7 @@ pub(crate) fn key_of(value: impl std::hash::Hash) -> u64 {
 }
 
 pub(crate) fn build(app: &mut App) {
-    let shaders = CloudShaders::load(&mut app.world_mut().resource_mut::<Assets<Shader>>());
+    let shaders = CloudShaders::load(app);
     app.init_resource::<ShadingMethod>()
         .register_type::<ShadingMethod>();
     app.insert_resource(shaders.clone()).add_plugins((

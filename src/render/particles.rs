@@ -15,7 +15,7 @@ use bytemuck::{Pod, Zeroable};
 
 use crate::cloud::Particles;
 
-/// One particle as the shaders read it (`shaders/types.wgsl`, `Particle`).
+/// One particle as the shaders read it (`types.wgsl`, `Particle`).
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 #[repr(C)]
 pub struct GpuParticle {

@@ -49,7 +49,7 @@ impl ComputeStage {
     }
 }
 
-/// Mirror of `SweepDirection` in `shaders/scatter.wgsl`: one direction pair `(o, -o)` of the
+/// Mirror of `SweepDirection` in `scatter.wgsl`: one direction pair `(o, -o)` of the
 /// discrete-ordinates sweep.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
 pub struct SweepDirection {

@@ -1,8 +1,15 @@
-//! The crate's WGSL, compiled into the binary from `shaders/` and registered as shader assets.
+//! The crate's WGSL, beside the Rust of each pass in `src/render/`, embedded into the binary as
+//! `embedded://bevy_particle_clouds/render/<file>.wgsl` assets (with Bevy's `embedded_watcher`
+//! feature they hot-reload from the source tree while developing).
 
-use bevy::{prelude::*, shader::Shader};
+use bevy::{
+    asset::{embedded_asset, load_embedded_asset},
+    prelude::*,
+    shader::Shader,
+};
 
-/// Handles of every shader of the crate (strong: they keep the shaders loaded).
+/// Handles of every shader of the crate (strong: they keep the shaders loaded, which the `#import`s
+/// of the shared modules need).
 #[derive(Resource, Clone)]
 pub struct CloudShaders {
     /// `bevy_particle_clouds::types`, imported by the others.
@@ -27,28 +34,30 @@ pub struct CloudShaders {
     pub billboard: Handle<Shader>,
 }
 
-macro_rules! shader {
-    ($shaders:expr, $file:literal) => {
-        $shaders.add(Shader::from_wgsl(
-            include_str!(concat!("../../shaders/", $file)),
-            concat!("bevy_particle_clouds/shaders/", $file),
-        ))
-    };
-}
-
 impl CloudShaders {
-    pub(crate) fn load(shaders: &mut Assets<Shader>) -> Self {
+    /// Embeds every shader into the app's asset sources and loads it.
+    pub(crate) fn load(app: &mut App) -> Self {
+        embedded_asset!(app, "types.wgsl");
+        embedded_asset!(app, "voxelize.wgsl");
+        embedded_asset!(app, "density.wgsl");
+        embedded_asset!(app, "shade.wgsl");
+        embedded_asset!(app, "gather.wgsl");
+        embedded_asset!(app, "scatter.wgsl");
+        embedded_asset!(app, "closure.wgsl");
+        embedded_asset!(app, "sort.wgsl");
+        embedded_asset!(app, "view_volume.wgsl");
+        embedded_asset!(app, "billboard.wgsl");
         Self {
-            types: shader!(shaders, "types.wgsl"),
-            voxelize: shader!(shaders, "voxelize.wgsl"),
-            density: shader!(shaders, "density.wgsl"),
-            shade: shader!(shaders, "shade.wgsl"),
-            gather: shader!(shaders, "gather.wgsl"),
-            scatter: shader!(shaders, "scatter.wgsl"),
-            closure: shader!(shaders, "closure.wgsl"),
-            sort: shader!(shaders, "sort.wgsl"),
-            view_volume: shader!(shaders, "view_volume.wgsl"),
-            billboard: shader!(shaders, "billboard.wgsl"),
+            types: load_embedded_asset!(&*app, "types.wgsl"),
+            voxelize: load_embedded_asset!(&*app, "voxelize.wgsl"),
+            density: load_embedded_asset!(&*app, "density.wgsl"),
+            shade: load_embedded_asset!(&*app, "shade.wgsl"),
+            gather: load_embedded_asset!(&*app, "gather.wgsl"),
+            scatter: load_embedded_asset!(&*app, "scatter.wgsl"),
+            closure: load_embedded_asset!(&*app, "closure.wgsl"),
+            sort: load_embedded_asset!(&*app, "sort.wgsl"),
+            view_volume: load_embedded_asset!(&*app, "view_volume.wgsl"),
+            billboard: load_embedded_asset!(&*app, "billboard.wgsl"),
         }
     }
 }

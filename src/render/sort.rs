@@ -1,5 +1,5 @@
 //! The per-view back-to-front sort of each cloud's particles on the GPU (the paper's named future
-//! work): a 32-bit LSD radix sort of view-depth keys (`shaders/sort.wgsl`). It runs only when the
+//! work): a 32-bit LSD radix sort of view-depth keys (`sort.wgsl`). It runs only when the
 //! view, the cloud's transform or its particles changed.
 
 use bevy::{
@@ -35,10 +35,10 @@ use crate::{
     stats::{CloudPass, CloudPassCounters},
 };
 
-/// Elements per tile of the radix sort (`TILE` in `shaders/sort.wgsl`).
+/// Elements per tile of the radix sort (`TILE` in `sort.wgsl`).
 pub const SORT_TILE: u32 = 256;
 
-/// Mirror of `SortParams` in `shaders/sort.wgsl`.
+/// Mirror of `SortParams` in `sort.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default)]
 pub struct SortParams {
     /// Row of view-from-local giving view-space z.

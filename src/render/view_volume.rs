@@ -1,6 +1,6 @@
 //! The per-view transmittance volume of each cloud composited with
 //! [`Compositing::ViewTransmittance`]: its optical depth from the camera, marched through the fine
-//! density grid along `m × m` view rays into `m` depth slices (`shaders/view_volume.wgsl`,
+//! density grid along `m × m` view rays into `m` depth slices (`view_volume.wgsl`,
 //! docs/illumination.md §5). It runs only when the view, the cloud's transform or its density
 //! changed. The CPU reference is `reference::view_volume`.
 
@@ -34,7 +34,7 @@ use crate::{
     stats::{CloudPass, CloudPassCounters},
 };
 
-/// Mirror of `ViewVolumeParams` in `shaders/types.wgsl`.
+/// Mirror of `ViewVolumeParams` in `types.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
 pub struct ViewVolumeParams {
     /// Cloud-local from view space.

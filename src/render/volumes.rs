@@ -21,7 +21,7 @@ use super::{
 };
 use crate::{math::light_basis, settings::ScatterStencil};
 
-/// Mirror of `CloudParams` in `shaders/types.wgsl`.
+/// Mirror of `CloudParams` in `types.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
 pub struct CloudParams {
     /// Voxels per side `N` of the density and scattering volumes.
@@ -51,7 +51,7 @@ pub struct CloudParams {
     pub rows: u32,
 }
 
-/// Mirror of `LightParams` in `shaders/types.wgsl`.
+/// Mirror of `LightParams` in `types.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
 pub struct LightParams {
     /// First axis across the light, cloud-local.

@@ -74,10 +74,25 @@ fn gpu_sort(app: &mut App, keys: &[u32]) -> (Vec<u32>, Vec<u32>) {
     (read(app, &sorted_keys), read(app, &sorted_values))
 }
 
+/// Updates until the sort pipelines are compiled (shaders load as assets, a few frames).
+fn wait_for_sort_pipelines(app: &mut App) {
+    for _ in 0..50 {
+        headless::update(app).unwrap();
+        let ready = common::with_render_world(app, |world| {
+            let cache = world.resource::<PipelineCache>();
+            world.resource::<SortPipelines>().ready(cache).is_some()
+        });
+        if ready {
+            return;
+        }
+    }
+    panic!("the sort pipelines did not compile within 50 frames");
+}
+
 #[test]
 fn gpu_sort_equals_a_stable_cpu_sort() {
     let mut app = common::headless_app();
-    headless::update(&mut app).unwrap();
+    wait_for_sort_pipelines(&mut app);
     let mut rng = SplitMix64::new(5);
     for size in [1usize, 2, 1000, (1 << 20) + 7] {
         // Few distinct values in part of the range (ties), the extremes, and random keys.
