@@ -52,7 +52,7 @@ fn order_ratio(@builtin(local_invocation_index) i: u32) {
     }
 }
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn extrapolate(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let v = flat_invocation(id, groups);
     if v >= cloud.n * cloud.n * cloud.n {

@@ -42,8 +42,6 @@ use bevy::{
     },
 };
 
-use bevy::shader::ShaderDefVal;
-
 use super::{
     extract::ExtractedCloud, key_of, particles::GpuParticles, shaders::CloudShaders,
     sort::CloudSorts, view_volume::CloudViewVolumes, volumes::CloudVolumes, volumes::uniform_bytes,
@@ -198,10 +196,11 @@ impl SpecializedRenderPipeline for BillboardPipeline {
 
     fn specialize(&self, key: Self::Key) -> RenderPipelineDescriptor {
         let compositing = key.blend.compositing();
-        let shader_defs: Vec<ShaderDefVal> = match compositing {
-            Compositing::ViewTransmittance => vec!["VIEW_TRANSMITTANCE".into()],
-            Compositing::Sorted => vec![],
-        };
+        // The shared `types` module uses the workgroup defs too.
+        let mut shader_defs = super::workgroups::shader_defs();
+        if compositing == Compositing::ViewTransmittance {
+            shader_defs.push("VIEW_TRANSMITTANCE".into());
+        }
         RenderPipelineDescriptor {
             label: Some("particle_clouds_billboards".into()),
             layout: vec![

@@ -27,7 +27,7 @@ fn single_scattering_at(p: vec3<f32>) -> vec3<f32> {
     return sum / (4.0 * PI);
 }
 
-@compute @workgroup_size(4, 4, 4)
+@compute @workgroup_size(#{VOXEL_WORKGROUP}, #{VOXEL_WORKGROUP}, #{VOXEL_WORKGROUP})
 fn gather(@builtin(global_invocation_id) id: vec3<u32>) {
     let n = cloud.n;
     if any(id >= vec3(n)) {

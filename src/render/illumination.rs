@@ -23,25 +23,12 @@ use super::{
         SweepDirection, sweep_directions, sweep_lines,
     },
     volumes::CloudVolumes,
+    workgroups::{self, dispatch_columns, dispatch_linear, dispatch_volume},
 };
 use crate::{
     settings::{ScatterStencil, ShadingMethod},
     stats::{CloudPass, CloudPassCounters},
 };
-
-/// Workgroups for `count` invocations of a 64-wide 1D kernel, spread over x and y so that no
-/// dimension exceeds the 65535 limit (the shaders use `flat_invocation`).
-pub fn dispatch_1d(pass: &mut ComputePass, count: u32) {
-    let groups = count.div_ceil(64).max(1);
-    let x = groups.min(65535);
-    pass.dispatch_workgroups(x, groups.div_ceil(x), 1);
-}
-
-/// Workgroups for an `n³` volume with 4×4×4 workgroups.
-fn dispatch_volume(pass: &mut ComputePass, n: u32) {
-    let g = n.div_ceil(4);
-    pass.dispatch_workgroups(g, g, g);
-}
 
 /// Records one stage: a GPU time span around one compute pass, and the pass counter.
 pub(crate) fn record_stage(
@@ -134,7 +121,10 @@ pub(crate) fn illuminate_clouds(
                             )),
                         );
                         let rows = v.fine_params.rows;
-                        (group, [gpu.count.div_ceil(64).max(1), rows, rows])
+                        (
+                            group,
+                            [gpu.count.div_ceil(workgroups::LINEAR).max(1), rows, rows],
+                        )
                     })
                     .collect();
                 for pipeline in [ready.kernel_sums, ready.voxelize] {
@@ -176,8 +166,7 @@ pub(crate) fn illuminate_clouds(
                         if brute_force {
                             dispatch_volume(pass, m);
                         } else {
-                            let g = m.div_ceil(8);
-                            pass.dispatch_workgroups(g, g, 1);
+                            dispatch_columns(pass, m);
                         }
                         runs += 1;
                     }
@@ -300,7 +289,7 @@ fn scatter_cloud(
             // One dispatch per direction pair: the lines of one direction partition the grid.
             for (i, o) in sweep_directions().enumerate() {
                 pass.set_bind_group(0, &group, &[i as u32 * SWEEP_DIRECTION_STRIDE]);
-                dispatch_1d(pass, sweep_lines(o, n));
+                dispatch_linear(pass, sweep_lines(o, n));
             }
         } else {
             pass.set_bind_group(0, &group, &[0]);
@@ -325,5 +314,5 @@ fn scatter_cloud(
     pass.set_pipeline(ready.order_ratio);
     pass.dispatch_workgroups(1, 1, 1);
     pass.set_pipeline(ready.extrapolate);
-    dispatch_1d(pass, n.pow(3));
+    dispatch_linear(pass, n.pow(3));
 }

@@ -10,6 +10,8 @@
 //! | `sort.rs` | per-view GPU radix sort of the particles (`Compositing::Sorted`) |
 //! | `view_volume.rs` | per-view optical depth from the camera (`Compositing::ViewTransmittance`) |
 //! | `draw.rs` | the billboard draw in `Transparent3d` |
+//! | `workgroups.rs` | workgroup sizes and dispatches, shared with the WGSL as shader defs |
+//! | `shaders.rs` | the WGSL beside each stage (`*.wgsl`), embedded |
 
 pub mod draw;
 pub mod extract;
@@ -20,6 +22,7 @@ pub mod shaders;
 pub mod sort;
 pub mod view_volume;
 pub mod volumes;
+pub mod workgroups;
 
 use bevy::{
     core_pipeline::{core_3d::Transparent3d, schedule::camera_driver},

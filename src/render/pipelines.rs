@@ -37,6 +37,7 @@ impl ComputeStage {
             label: Some(format!("particle_clouds_{entry_point}").into()),
             layout: vec![layout.clone()],
             shader,
+            shader_defs: super::workgroups::shader_defs(),
             entry_point: Some(entry_point.into()),
             ..default()
         });

@@ -61,7 +61,7 @@ fn deposit(i: u32, radiance: vec3<f32>, overwrite: bool) {
 // One invocation per lattice line of direction o: marches it against o (radiance arriving from
 // the +o side), then along o (from the -o side). The lines partition the grid, so each voxel is
 // written by one invocation of this dispatch.
-@compute @workgroup_size(64)
+@compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let n = i32(cloud.n);
     let o = direction.o;
@@ -125,7 +125,7 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
 }
 
 // The paper's Algorithm 2: every neighbour inside the grid weighted by the voxel's own opacity.
-@compute @workgroup_size(4, 4, 4)
+@compute @workgroup_size(#{VOXEL_WORKGROUP}, #{VOXEL_WORKGROUP}, #{VOXEL_WORKGROUP})
 fn scatter_paper(@builtin(global_invocation_id) id: vec3<u32>) {
     let n = cloud.n;
     if any(id >= vec3(n)) {

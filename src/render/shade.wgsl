@@ -19,7 +19,7 @@ fn sigma_at(v: vec3<u32>) -> f32 {
     return light.sigma_scale * density_at(light_voxel_centre(v));
 }
 
-@compute @workgroup_size(8, 8, 1)
+@compute @workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)
 fn shade(@builtin(global_invocation_id) id: vec3<u32>) {
     let m = cloud.light_n;
     if id.x >= m || id.y >= m {
@@ -38,7 +38,7 @@ fn shade(@builtin(global_invocation_id) id: vec3<u32>) {
 
 // The same optical depth with every voxel marching to the light on its own: the brute force
 // the incremental pass replaces (benchmarks only).
-@compute @workgroup_size(4, 4, 4)
+@compute @workgroup_size(#{VOXEL_WORKGROUP}, #{VOXEL_WORKGROUP}, #{VOXEL_WORKGROUP})
 fn shade_brute_force(@builtin(global_invocation_id) id: vec3<u32>) {
     let m = cloud.light_n;
     if any(id >= vec3(m)) {

@@ -23,20 +23,18 @@ use bevy::{
 
 use super::{
     extract::ExtractedCloud,
-    illumination::{dispatch_1d, record_stage},
+    illumination::record_stage,
     key_of,
     particles::GpuParticles,
     shaders::CloudShaders,
     views_by_cloud,
     volumes::{storage, uniform_bytes},
+    workgroups::{self, SORT_TILE, dispatch_linear},
 };
 use crate::{
     settings::Compositing,
     stats::{CloudPass, CloudPassCounters},
 };
-
-/// Elements per tile of the radix sort (`TILE` in `sort.wgsl`).
-pub const SORT_TILE: u32 = 256;
 
 /// Mirror of `SortParams` in `sort.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default)]
@@ -118,6 +116,7 @@ pub(crate) fn init_sort_pipelines(
             label: Some(format!("particle_clouds_sort_{entry_point}").into()),
             layout: vec![layout.clone()],
             shader: shaders.sort.clone(),
+            shader_defs: workgroups::shader_defs(),
             entry_point: Some(entry_point.into()),
             ..default()
         })
@@ -242,17 +241,17 @@ pub fn record_sort(
     if depth_keys {
         pass.set_pipeline(pipelines.depth_keys);
         pass.set_bind_group(0, &groups[0], &[]);
-        dispatch_1d(pass, count);
+        dispatch_linear(pass, count);
     }
     let tiles = count.div_ceil(SORT_TILE);
     for group in groups {
         pass.set_bind_group(0, group, &[]);
         pass.set_pipeline(pipelines.count_digits);
-        dispatch_1d(pass, tiles);
+        dispatch_linear(pass, tiles);
         pass.set_pipeline(pipelines.scan_digits);
         pass.dispatch_workgroups(1, 1, 1);
         pass.set_pipeline(pipelines.scatter_digits);
-        dispatch_1d(pass, tiles);
+        dispatch_linear(pass, tiles);
     }
 }
 

@@ -4,7 +4,7 @@
 // the scatter stable without workgroup-level ranking.
 #import bevy_particle_clouds::types::{Particle, flat_invocation}
 
-const TILE: u32 = 256u;
+const TILE: u32 = #{SORT_TILE}u;
 const RADIX: u32 = 256u;
 
 struct SortParams {
@@ -35,7 +35,7 @@ fn sortable(z: f32) -> u32 {
 }
 
 // View-space z grows towards the camera, so ascending z is back to front.
-@compute @workgroup_size(64)
+@compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn depth_keys(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = flat_invocation(id, groups);
     if i >= params.count {
@@ -46,7 +46,7 @@ fn depth_keys(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgro
     values_in[i] = i;
 }
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn count_digits(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let tile = flat_invocation(id, groups);
     if tile >= params.tiles {
@@ -96,7 +96,7 @@ fn scan_digits(@builtin(local_invocation_index) lane: u32) {
     }
 }
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn scatter_digits(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let tile = flat_invocation(id, groups);
     if tile >= params.tiles {

@@ -69,7 +69,7 @@ fn kernel(u2: f32) -> f32 {
 // Index of a 1D invocation dispatched as a 2D grid of 64-wide workgroups
 // (more than 65535 workgroups do not fit in one dimension).
 fn flat_invocation(id: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return id.x + id.y * groups.x * 64u;
+    return id.x + id.y * groups.x * #{LINEAR_WORKGROUP}u;
 }
 
 // A trilinear lookup: the base voxel and the fractions towards the next one per axis.

@@ -28,6 +28,7 @@ use super::{
     shaders::CloudShaders,
     views_by_cloud,
     volumes::{CloudVolumes, storage, uniform_bytes},
+    workgroups,
 };
 use crate::{
     settings::Compositing,
@@ -79,6 +80,7 @@ pub(crate) fn init_view_volume_pipeline(
         label: Some("particle_clouds_view_volume".into()),
         layout: vec![layout.clone()],
         shader: shaders.view_volume.clone(),
+        shader_defs: workgroups::shader_defs(),
         entry_point: Some("march".into()),
         ..default()
     });
@@ -312,8 +314,7 @@ pub(crate) fn march_view_volumes(
                         )),
                     );
                     pass.set_bind_group(0, &group, &[]);
-                    let groups = volume.n.div_ceil(8);
-                    pass.dispatch_workgroups(groups, groups, 1);
+                    workgroups::dispatch_columns(pass, volume.n);
                     volume.pending = false;
                     volume.ready = true;
                     runs += 1;

@@ -8,7 +8,7 @@
 @group(0) @binding(1) var<uniform> volume: ViewVolumeParams;
 @group(0) @binding(3) var<storage, read_write> view_optical_depth: array<f32>;
 
-@compute @workgroup_size(8, 8, 1)
+@compute @workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)
 fn march(@builtin(global_invocation_id) id: vec3<u32>) {
     let n = volume.n;
     if id.x >= n || id.y >= n {

@@ -87,7 +87,7 @@ fn row_weight(f: Footprint, x: i32, yz: vec2<i32>) -> f32 {
 
 // Pass 1: every row adds its kernel sum to its particle's total W (the normalisation that makes
 // the deposit mass-exact).
-@compute @workgroup_size(64)
+@compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn kernel_sums(@builtin(global_invocation_id) id: vec3<u32>) {
     let index = id.x;
     if index >= cloud.particle_count {
@@ -110,7 +110,7 @@ fn kernel_sums(@builtin(global_invocation_id) id: vec3<u32>) {
 
 // Pass 2: every row deposits its share of the particle's mass; a sub-voxel particle (or one whose
 // support holds no voxel centre) is splatted by its first row.
-@compute @workgroup_size(64)
+@compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn deposit(@builtin(global_invocation_id) id: vec3<u32>) {
     let index = id.x;
     if index >= cloud.particle_count {

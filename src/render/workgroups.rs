@@ -1,0 +1,96 @@
+//! Workgroup sizes and the sort's tile: defined once here, handed to every shader as shader defs
+//! (`#{LINEAR_WORKGROUP}` …), so that a dispatch and the `@workgroup_size` it assumes cannot
+//! disagree.
+
+use bevy::{render::render_resource::ComputePass, shader::ShaderDefVal};
+
+/// Invocations per workgroup of the one-dimensional kernels (per particle, per lattice line, per
+/// tile); the shaders flatten `(x, y)` workgroups with `flat_invocation`.
+pub const LINEAR: u32 = 64;
+/// Edge of the cubic workgroups of the per-voxel kernels (gather, paper scatter, brute-force shade).
+pub const VOXEL: u32 = 4;
+/// Edge of the square workgroups of the kernels that march one column per invocation (shade, view
+/// volume).
+pub const SLICE: u32 = 8;
+/// Elements per tile of the radix sort, each walked in order by one invocation.
+pub const SORT_TILE: u32 = 256;
+
+/// The shader defs of every pipeline of the crate.
+pub fn shader_defs() -> Vec<ShaderDefVal> {
+    vec![
+        ShaderDefVal::UInt("LINEAR_WORKGROUP".into(), LINEAR),
+        ShaderDefVal::UInt("VOXEL_WORKGROUP".into(), VOXEL),
+        ShaderDefVal::UInt("SLICE_WORKGROUP".into(), SLICE),
+        ShaderDefVal::UInt("SORT_TILE".into(), SORT_TILE),
+    ]
+}
+
+/// Workgroups for `count` invocations of a [`LINEAR`] kernel, spread over x and y so that no
+/// dimension exceeds the 65535 limit.
+pub fn linear_groups(count: u32) -> [u32; 3] {
+    let groups = count.div_ceil(LINEAR).max(1);
+    let x = groups.min(65535);
+    [x, groups.div_ceil(x), 1]
+}
+
+/// Dispatches `count` invocations of a [`LINEAR`] kernel.
+pub fn dispatch_linear(pass: &mut ComputePass, count: u32) {
+    let [x, y, z] = linear_groups(count);
+    pass.dispatch_workgroups(x, y, z);
+}
+
+/// Dispatches one invocation per voxel of an `n³` volume ([`VOXEL`]³ workgroups).
+pub fn dispatch_volume(pass: &mut ComputePass, n: u32) {
+    let g = n.div_ceil(VOXEL);
+    pass.dispatch_workgroups(g, g, g);
+}
+
+/// Dispatches one invocation per column of an `n × n` slice ([`SLICE`]² workgroups).
+pub fn dispatch_columns(pass: &mut ComputePass, n: u32) {
+    let g = n.div_ceil(SLICE);
+    pass.dispatch_workgroups(g, g, 1);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every `@workgroup_size` of the shaders is one of the defs, never a number.
+    #[test]
+    fn shaders_take_their_workgroup_sizes_from_the_defs() {
+        let sources = [
+            include_str!("voxelize.wgsl"),
+            include_str!("shade.wgsl"),
+            include_str!("gather.wgsl"),
+            include_str!("scatter.wgsl"),
+            include_str!("closure.wgsl"),
+            include_str!("sort.wgsl"),
+            include_str!("view_volume.wgsl"),
+        ];
+        let allowed = [
+            "@workgroup_size(#{LINEAR_WORKGROUP})",
+            "@workgroup_size(#{VOXEL_WORKGROUP}, #{VOXEL_WORKGROUP}, #{VOXEL_WORKGROUP})",
+            "@workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)",
+            // Single-workgroup reductions, dispatched as (1, 1, 1): their size is their own.
+            "@workgroup_size(256)",
+        ];
+        let mut sizes = 0;
+        for line in sources.iter().flat_map(|s| s.lines()) {
+            if let Some(at) = line.find("@workgroup_size") {
+                let size = &line[at..=at + line[at..].find(')').unwrap()];
+                assert!(allowed.contains(&size), "{line}");
+                sizes += 1;
+            }
+        }
+        assert!(sizes >= 14, "found {sizes} entry points");
+    }
+
+    #[test]
+    fn linear_groups_cover_the_count_within_the_dimension_limit() {
+        for count in [0, 1, 64, 65, 65535 * 64, 65535 * 64 + 1, 10_000_000] {
+            let [x, y, z] = linear_groups(count);
+            assert!(x <= 65535 && y <= 65535 && z == 1);
+            assert!(x * y * LINEAR >= count.max(1), "{count}");
+        }
+    }
+}
