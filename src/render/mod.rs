@@ -24,6 +24,9 @@ pub mod view_volume;
 pub mod volumes;
 pub mod workgroups;
 
+#[cfg(test)]
+mod layout_tests;
+
 use bevy::{
     core_pipeline::{core_3d::Transparent3d, schedule::camera_driver},
     platform::collections::HashMap,

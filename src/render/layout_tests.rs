@@ -1,0 +1,94 @@
+//! The Rust mirrors of the WGSL uniform and storage structs have the WGSL layout: the same fields
+//! in the same order, and the same size (naga computes the WGSL side).
+
+use bevy::render::render_resource::ShaderType;
+
+use super::{
+    draw::DrawParams, particles::GpuParticle, pipelines::SweepDirection, sort::SortParams,
+    view_volume::ViewVolumeParams, volumes::CloudParams, volumes::LightParams,
+};
+
+const WGSL: [&str; 4] = [
+    include_str!("types.wgsl"),
+    include_str!("billboard.wgsl"),
+    include_str!("sort.wgsl"),
+    include_str!("scatter.wgsl"),
+];
+const RUST: [&str; 6] = [
+    include_str!("volumes.rs"),
+    include_str!("draw.rs"),
+    include_str!("sort.rs"),
+    include_str!("view_volume.rs"),
+    include_str!("pipelines.rs"),
+    include_str!("particles.rs"),
+];
+
+/// The text of `struct <name> { … }` (from `start`, e.g. `struct ` or `pub struct `) up to the
+/// closing brace at the start of a line.
+fn block<'a>(sources: &[&'a str], start: &str, name: &str) -> &'a str {
+    let head = format!("{start}{name} {{");
+    sources
+        .iter()
+        .find_map(|s| {
+            let at = s.find(&head)?;
+            let end = at + s[at..].find("\n}")?;
+            Some(&s[at..end + 2])
+        })
+        .unwrap_or_else(|| panic!("no `{head}`"))
+}
+
+/// Field names of a struct block, in order (comments skipped).
+fn field_names(block: &str, prefix: &str) -> Vec<String> {
+    block
+        .lines()
+        .skip(1)
+        .map(str::trim)
+        .filter(|l| !l.starts_with("//") && l.contains(':'))
+        .filter_map(|l| l.strip_prefix(prefix))
+        .map(|l| l.split(':').next().unwrap().trim().to_owned())
+        .collect()
+}
+
+/// Size (bytes) and member names of a WGSL struct, as naga lays it out.
+fn wgsl_layout(name: &str) -> (u32, Vec<String>) {
+    let source = block(&WGSL, "struct ", name);
+    let module = naga::front::wgsl::parse_str(source).expect("the struct parses alone");
+    let (_, ty) = module
+        .types
+        .iter()
+        .find(|(_, t)| t.name.as_deref() == Some(name))
+        .unwrap();
+    let naga::TypeInner::Struct { members, span } = &ty.inner else {
+        panic!("{name} is not a struct");
+    };
+    let names = members.iter().map(|m| m.name.clone().unwrap()).collect();
+    (*span, names)
+}
+
+fn check(wgsl: &str, rust: &str, rust_size: u64) {
+    let (size, wgsl_fields) = wgsl_layout(wgsl);
+    let rust_fields = field_names(block(&RUST, "pub struct ", rust), "pub ");
+    assert_eq!(rust_fields, wgsl_fields, "{rust} and WGSL {wgsl}: fields");
+    assert_eq!(rust_size, size as u64, "{rust} and WGSL {wgsl}: size");
+}
+
+#[test]
+fn rust_mirrors_have_the_wgsl_layout() {
+    check("CloudParams", "CloudParams", CloudParams::min_size().get());
+    check("LightParams", "LightParams", LightParams::min_size().get());
+    check("DrawParams", "DrawParams", DrawParams::min_size().get());
+    check("SortParams", "SortParams", SortParams::min_size().get());
+    check(
+        "ViewVolumeParams",
+        "ViewVolumeParams",
+        ViewVolumeParams::min_size().get(),
+    );
+    check(
+        "SweepDirection",
+        "SweepDirection",
+        SweepDirection::min_size().get(),
+    );
+    // The particle buffer is plain bytes (bytemuck), laid out as `Particle`.
+    let (size, _) = wgsl_layout("Particle");
+    assert_eq!(std::mem::size_of::<GpuParticle>() as u32, size);
+}
