@@ -43,8 +43,9 @@ use bevy::{
 };
 
 use super::{
-    extract::ExtractedCloud, key_of, particles::GpuParticles, shaders::CloudShaders,
-    sort::CloudSorts, view_volume::CloudViewVolumes, volumes::CloudVolumes, volumes::uniform_bytes,
+    extract::ExtractedCloud, key_of, particles::GpuParticles, plan::CloudIllumination,
+    shaders::CloudShaders, sort::CloudSorts, view_volume::CloudViewVolumes, volumes::CloudVolumes,
+    volumes::uniform_bytes,
 };
 use crate::{
     cloud::ParticleCloud,
@@ -415,7 +416,7 @@ pub(crate) fn queue_cloud_billboards(
     views: Query<(&ExtractedView, &Msaa, &RenderVisibleEntities)>,
     clouds: Query<(
         &ExtractedCloud,
-        &CloudVolumes,
+        &CloudIllumination,
         Option<&CloudSorts>,
         Option<&CloudViewVolumes>,
         &MainEntity,
@@ -445,7 +446,8 @@ pub(crate) fn queue_cloud_billboards(
         emit_pipelines.0.insert(attenuate, emit);
         let here = &view.retained_view_entity;
         for &(render_entity, _) in &class.entities_cpu_culling {
-            let Ok((cloud, volumes, sorts, view_volumes, main_entity)) = clouds.get(render_entity)
+            let Ok((cloud, illumination, sorts, view_volumes, main_entity)) =
+                clouds.get(render_entity)
             else {
                 continue;
             };
@@ -464,7 +466,7 @@ pub(crate) fn queue_cloud_billboards(
             let Some(gpu) = particles.get(cloud.particles) else {
                 continue;
             };
-            if !(ready && volumes.ready && cloud.extinction > 0.0) || gpu.count == 0 {
+            if !(ready && illumination.ready && cloud.extinction > 0.0) || gpu.count == 0 {
                 continue;
             }
             let centre = cloud

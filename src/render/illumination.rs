@@ -22,6 +22,7 @@ use super::{
         ComputeStage, IlluminationPipelines, ReadyPipelines, SWEEP_DIRECTION_STRIDE,
         SweepDirection, sweep_directions, sweep_lines,
     },
+    plan::CloudIllumination,
     volumes::CloudVolumes,
     workgroups::{self, dispatch_columns, dispatch_linear, dispatch_volume},
 };
@@ -54,7 +55,7 @@ pub(crate) fn record_stage(
 /// Records every planned illumination stage of every cloud.
 pub(crate) fn illuminate_clouds(
     mut ctx: RenderContext,
-    mut clouds: Query<(&ExtractedCloud, &mut CloudVolumes)>,
+    mut clouds: Query<(&ExtractedCloud, &CloudVolumes, &mut CloudIllumination)>,
     particles: Res<RenderAssets<GpuParticles>>,
     pipelines: Option<Res<IlluminationPipelines>>,
     pipeline_cache: Res<PipelineCache>,
@@ -62,7 +63,7 @@ pub(crate) fn illuminate_clouds(
     shading: Option<Res<ShadingMethod>>,
 ) {
     let Some(pipelines) = pipelines else { return };
-    if clouds.iter().all(|(_, v)| v.plan.is_empty()) {
+    if clouds.iter().all(|(_, _, s)| s.plan.is_empty()) {
         return;
     }
     let brute_force = shading.is_some_and(|s| *s == ShadingMethod::BruteForce);
@@ -76,7 +77,7 @@ pub(crate) fn illuminate_clouds(
         shade_stage.get(&pipeline_cache),
     ) else {
         // Not compiled yet: forget the plan so that the next frame does all of it.
-        clouds.iter_mut().for_each(|(_, mut v)| v.invalidate());
+        clouds.iter_mut().for_each(|(_, _, mut s)| s.invalidate());
         return;
     };
     let device = ctx.render_device().clone();
@@ -90,15 +91,15 @@ pub(crate) fn illuminate_clouds(
     };
     let clouds: Vec<_> = clouds
         .iter_mut()
-        .filter(|(_, v)| !v.plan.is_empty())
-        .filter_map(|(cloud, v)| Some((particles.get(cloud.particles)?, v)))
+        .filter(|(_, _, s)| !s.plan.is_empty())
+        .filter_map(|(cloud, v, s)| Some((particles.get(cloud.particles)?, v, s)))
         .collect();
 
     // Voxelize (docs/illumination.md §1): clear, then every particle deposits its mass into the
     // fine grid, one row of its support per invocation: the kernel's sums, then the deposit.
-    let voxelizing: Vec<_> = clouds.iter().filter(|(_, v)| v.plan.voxelize).collect();
+    let voxelizing: Vec<_> = clouds.iter().filter(|(_, _, s)| s.plan.voxelize).collect();
     if !voxelizing.is_empty() {
-        for (_, v) in &voxelizing {
+        for (_, v, _) in &voxelizing {
             ctx.command_encoder().clear_buffer(&v.fine_density, 0, None);
             ctx.command_encoder().clear_buffer(&v.kernel_sums, 0, None);
         }
@@ -110,7 +111,7 @@ pub(crate) fn illuminate_clouds(
             |pass| {
                 let groups: Vec<_> = voxelizing
                     .iter()
-                    .map(|(gpu, v)| {
+                    .map(|(gpu, v, _)| {
                         let group = bind(
                             &pipelines.voxelize,
                             &BindGroupEntries::sequential((
@@ -141,7 +142,7 @@ pub(crate) fn illuminate_clouds(
 
     // Shade (§2): one column per invocation, marching slice by slice away from the light (or, with
     // `ShadingMethod::BruteForce`, one voxel per invocation marching all the way to the light).
-    if clouds.iter().any(|(_, v)| !v.plan.shade.is_empty()) {
+    if clouds.iter().any(|(_, _, s)| !s.plan.shade.is_empty()) {
         record_stage(
             &mut ctx,
             recorder.as_deref(),
@@ -150,9 +151,9 @@ pub(crate) fn illuminate_clouds(
             |pass| {
                 pass.set_pipeline(shade);
                 let mut runs = 0;
-                for (_, v) in &clouds {
+                for (_, v, s) in &clouds {
                     let m = v.params.light_n;
-                    for &i in &v.plan.shade {
+                    for &i in &s.plan.shade {
                         let group = bind(
                             shade_stage,
                             &BindGroupEntries::sequential((
@@ -178,7 +179,7 @@ pub(crate) fn illuminate_clouds(
 
     // Gather (§1, §3): the scattering grid's density, and every light's single scattering into
     // its source S_0.
-    if clouds.iter().any(|(_, v)| v.plan.gather) {
+    if clouds.iter().any(|(_, _, s)| s.plan.gather) {
         record_stage(
             &mut ctx,
             recorder.as_deref(),
@@ -187,7 +188,7 @@ pub(crate) fn illuminate_clouds(
             |pass| {
                 pass.set_pipeline(ready.gather);
                 let mut runs = 0;
-                for (_, v) in clouds.iter().filter(|(_, v)| v.plan.gather) {
+                for (_, v, _) in clouds.iter().filter(|(_, _, s)| s.plan.gather) {
                     let group = bind(
                         &pipelines.gather,
                         &BindGroupEntries::sequential((
@@ -211,11 +212,11 @@ pub(crate) fn illuminate_clouds(
     // Multiple scattering (§4): the iterations, then the series' closure.
     let scattering: Vec<_> = clouds
         .iter()
-        .filter(|(_, v)| v.plan.scatter.is_some())
+        .filter(|(_, _, s)| s.plan.scatter.is_some())
         .collect();
-    for (_, v) in clouds
+    for (_, v, _) in clouds
         .iter()
-        .filter(|(_, v)| v.plan.scatter.is_some() || v.plan.unlit)
+        .filter(|(_, _, s)| s.plan.scatter.is_some() || s.plan.unlit)
     {
         ctx.command_encoder().clear_buffer(&v.multiple, 0, None);
     }
@@ -227,9 +228,10 @@ pub(crate) fn illuminate_clouds(
             CloudPass::Scatter,
             |pass| {
                 let mut runs = 0;
-                for (_, v) in &scattering {
-                    let iterations = v.plan.scatter.unwrap_or(0);
-                    scatter_cloud(pass, &pipelines, &ready, &bind, v, iterations);
+                for (_, v, s) in &scattering {
+                    let iterations = s.plan.scatter.unwrap_or(0);
+                    let sweep = s.plan.stencil == ScatterStencil::DiscreteOrdinates;
+                    scatter_cloud(pass, &pipelines, &ready, &bind, v, iterations, sweep);
                     runs += iterations;
                 }
                 runs
@@ -238,9 +240,9 @@ pub(crate) fn illuminate_clouds(
     }
     drop(scattering);
 
-    for (_, mut v) in clouds {
-        v.ready |= v.plan.scatter.is_some() || v.plan.unlit;
-        v.plan = default();
+    for (_, _, mut s) in clouds {
+        s.ready |= s.plan.scatter.is_some() || s.plan.unlit;
+        s.plan = default();
     }
 }
 
@@ -253,7 +255,8 @@ fn order(v: &CloudVolumes, k: u32) -> &Buffer {
     }
 }
 
-/// Records one cloud's scattering iterations and the closure (§4).
+/// Records one cloud's scattering iterations (the discrete-ordinates `sweep`, else the paper's
+/// stencil) and the closure (§4).
 fn scatter_cloud(
     pass: &mut ComputePass,
     pipelines: &IlluminationPipelines,
@@ -261,9 +264,9 @@ fn scatter_cloud(
     bind: &impl Fn(&ComputeStage, &[BindGroupEntry]) -> BindGroup,
     v: &CloudVolumes,
     iterations: u32,
+    sweep: bool,
 ) {
     let n = v.params.n;
-    let sweep = v.plan.stencil == ScatterStencil::DiscreteOrdinates;
     pass.set_pipeline(if sweep {
         ready.sweep
     } else {

@@ -4,7 +4,8 @@
 //! |---|---|
 //! | `extract.rs` | clouds and lights into the render world |
 //! | `particles.rs` | the `Particles` asset on the GPU |
-//! | `volumes.rs` | per-cloud volumes and the per-frame work plan (what changed) |
+//! | `volumes.rs` | per-cloud GPU volumes, sized and filled with uniforms in a prepare system |
+//! | `plan.rs` | which stages rerun this frame: cache keys per stage, a pure planning function |
 //! | `pipelines.rs` | compute pipelines of the illumination passes |
 //! | `illumination.rs` | voxelize, shade, gather, scatter, colour (the `RenderGraph` schedule) |
 //! | `sort.rs` | per-view GPU radix sort of the particles (`Compositing::Sorted`) |
@@ -18,6 +19,7 @@ pub mod extract;
 pub mod illumination;
 pub mod particles;
 pub mod pipelines;
+pub mod plan;
 pub mod shaders;
 pub mod sort;
 pub mod view_volume;
@@ -51,6 +53,7 @@ impl SyncComponent for ParticleCloud {
     type Target = (
         ExtractedCloud,
         volumes::CloudVolumes,
+        plan::CloudIllumination,
         sort::CloudSorts,
         view_volume::CloudViewVolumes,
         draw::CloudDrawBindGroups,

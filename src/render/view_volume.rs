@@ -25,6 +25,7 @@ use super::{
     extract::ExtractedCloud,
     illumination::record_stage,
     key_of,
+    plan::CloudIllumination,
     shaders::CloudShaders,
     views_by_cloud,
     volumes::{CloudVolumes, storage, uniform_bytes},
@@ -164,13 +165,14 @@ pub(crate) fn prepare_view_volumes(
     mut clouds: Query<(
         &ExtractedCloud,
         &CloudVolumes,
+        &CloudIllumination,
         Option<&mut CloudViewVolumes>,
     )>,
     device: Res<RenderDevice>,
     queue: Res<RenderQueue>,
 ) {
     for (entity, views) in views_by_cloud(views.iter()) {
-        let Ok((cloud, volumes, existing)) = clouds.get_mut(entity) else {
+        let Ok((cloud, volumes, illumination, existing)) = clouds.get_mut(entity) else {
             continue;
         };
         if cloud.settings.compositing != Compositing::ViewTransmittance {
@@ -185,7 +187,8 @@ pub(crate) fn prepare_view_volumes(
         let retained: Vec<_> = views.iter().map(|v| v.retained_view_entity).collect();
         all.0.retain(|k, _| retained.contains(k));
         for view in views {
-            let Some((params, key)) = view_params(cloud, volumes, view) else {
+            let density_key = illumination.keys.density;
+            let Some((params, key)) = view_params(cloud, volumes, density_key, view) else {
                 all.0.remove(&view.retained_view_entity);
                 continue;
             };
@@ -216,6 +219,7 @@ pub(crate) fn prepare_view_volumes(
 fn view_params(
     cloud: &ExtractedCloud,
     volumes: &CloudVolumes,
+    density_key: u64,
     view: &ExtractedView,
 ) -> Option<(ViewVolumeParams, u64)> {
     if volumes.params.light_count == 0 {
@@ -244,7 +248,7 @@ fn view_params(
         params.rect.to_array().map(f32::to_bits),
         params.depth.to_array().map(f32::to_bits),
         params.extinction.to_bits(),
-        volumes.density_key(),
+        density_key,
     ));
     Some((params, key))
 }
@@ -273,15 +277,16 @@ fn new_volume(device: &RenderDevice, n: u32) -> ViewVolume {
 /// illumination, before the cameras draw).
 pub(crate) fn march_view_volumes(
     mut ctx: RenderContext,
-    mut clouds: Query<(&CloudVolumes, &mut CloudViewVolumes)>,
+    mut clouds: Query<(&CloudVolumes, &CloudIllumination, &mut CloudViewVolumes)>,
     pipeline: Option<Res<ViewVolumePipeline>>,
     pipeline_cache: Res<PipelineCache>,
     counters: Res<CloudPassCounters>,
 ) {
     let Some(pipeline) = pipeline else { return };
-    let pending =
-        |v: &CloudVolumes, all: &CloudViewVolumes| v.ready && all.0.values().any(|s| s.pending);
-    if !clouds.iter().any(|(v, all)| pending(v, all)) {
+    let pending = |illumination: &CloudIllumination, all: &CloudViewVolumes| {
+        illumination.ready && all.0.values().any(|s| s.pending)
+    };
+    if !clouds.iter().any(|(_, i, all)| pending(i, all)) {
         return;
     }
     let Some(march) = pipeline_cache.get_compute_pipeline(pipeline.march) else {
@@ -298,8 +303,8 @@ pub(crate) fn march_view_volumes(
         |pass| {
             pass.set_pipeline(march);
             let mut runs = 0;
-            for (volumes, mut all) in &mut clouds {
-                if !volumes.ready {
+            for (volumes, illumination, mut all) in &mut clouds {
+                if !illumination.ready {
                     continue;
                 }
                 for volume in all.0.values_mut().filter(|s| s.pending) {

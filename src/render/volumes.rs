@@ -1,9 +1,7 @@
-//! Per-cloud GPU volumes and the decision of which illumination stages must run this frame.
-//!
-//! Every stage's output is cached with a key of its inputs; a stage runs only when its key
-//! changes (docs/illumination.md; the `--stats` counters show it). The density grid lives in
-//! cloud-local space, so moving or rotating a cloud never re-voxelizes it: rotation only
-//! re-shades (the lights' local directions change) and scale only changes the extinction.
+//! Per-cloud GPU volumes, and the prepare system that sizes them, writes their uniforms and plans
+//! the frame's stages ([`plan`](super::plan)). The density grid lives in cloud-local space, so
+//! moving or rotating a cloud never re-voxelizes it: rotation only re-shades (the lights' local
+//! directions change) and scale only changes the extinction.
 
 use bevy::{
     prelude::*,
@@ -16,10 +14,10 @@ use bevy::{
 
 use super::{
     extract::{ExtractedCloud, ExtractedCloudLights},
-    key_of,
     particles::{CloudBounds, GpuParticles},
+    plan::{CloudIllumination, StageKeys},
 };
-use crate::{math::light_basis, settings::ScatterStencil};
+use crate::math::light_basis;
 
 /// Mirror of `CloudParams` in `types.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
@@ -104,36 +102,10 @@ impl LightParams {
     }
 }
 
-/// One light of a cloud: its uniform (for the shade pass) and the key of its shaded volume.
+/// One light of a cloud: its uniform (for the shade pass).
 pub struct LightVolume {
     /// Its `LightParams` uniform.
     pub params: Buffer,
-    /// Key of (density, light direction, extinction) the volume was shaded with.
-    pub key: u64,
-}
-
-/// What the illumination system must do for one cloud this frame.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct WorkPlan {
-    /// Rebuild the density grid.
-    pub voxelize: bool,
-    /// Indices into `CloudVolumes::lights` to shade.
-    pub shade: Vec<usize>,
-    /// Gather every light into the scattering source `S_0`.
-    pub gather: bool,
-    /// Restart the multiple scattering from `S_0`: this many iterations, then the closure.
-    pub scatter: Option<u32>,
-    /// The stencil of those iterations.
-    pub stencil: ScatterStencil,
-    /// No light reaches the cloud: its multiple scattering is zeroed instead of computed.
-    pub unlit: bool,
-}
-
-impl WorkPlan {
-    /// Nothing to do.
-    pub fn is_empty(&self) -> bool {
-        *self == Self::default()
-    }
 }
 
 /// The GPU volumes of one cloud (render world component).
@@ -169,17 +141,6 @@ pub struct CloudVolumes {
     pub optical_depth: Buffer,
     /// One entry per light, in the order of `ExtractedCloudLights`.
     pub lights: Vec<LightVolume>,
-    density_key: u64,
-    gather_key: u64,
-    scatter_key: u64,
-    /// This frame's work, consumed by `illuminate_clouds`.
-    pub plan: WorkPlan,
-    /// Colours hold a finished illumination: the cloud may be drawn.
-    pub ready: bool,
-}
-
-fn bits(v: Vec3) -> [u32; 3] {
-    v.to_array().map(f32::to_bits)
 }
 
 /// A storage buffer of at least 16 bytes (bindings may not be empty) that can be cleared, copied and read back.
@@ -232,11 +193,6 @@ pub fn storage_bytes<T: ShaderType + encase::internal::WriteInto + encase::Shade
 }
 
 impl CloudVolumes {
-    /// The key of the density's inputs: it changes whenever the fine density is voxelized anew.
-    pub fn density_key(&self) -> u64 {
-        self.density_key
-    }
-
     fn new(device: &RenderDevice, n: u32, m: u32, particle_count: u32) -> Self {
         let voxels = (n as u64).pow(3);
         Self {
@@ -278,22 +234,7 @@ impl CloudVolumes {
             light_array: light_array(device, 0),
             optical_depth: storage(device, "particle_clouds_optical_depth", 0),
             lights: Vec::new(),
-            density_key: 0,
-            gather_key: 0,
-            scatter_key: 0,
-            plan: WorkPlan::default(),
-            ready: false,
         }
-    }
-
-    /// Forgets every cached stage, so that the next frame redoes all of them (used when the work
-    /// of a frame could not be recorded, e.g. while pipelines compile).
-    pub fn invalidate(&mut self) {
-        self.density_key = 0;
-        self.gather_key = 0;
-        self.scatter_key = 0;
-        self.lights.iter_mut().for_each(|l| l.key = 0);
-        self.plan = WorkPlan::default();
     }
 
     fn fits(&self, n: u32, m: u32, particle_count: u32) -> bool {
@@ -307,9 +248,6 @@ impl CloudVolumes {
 /// workgroup along x, where at most 65535 fit.
 pub const MAX_PARTICLES: u32 = 65535 * 64;
 
-/// The gather key of a cloud that no light reaches.
-const UNLIT: u64 = 1;
-
 /// Bytes of the largest buffer of one cloud (for the adapter-limit check): an RGBA volume of
 /// `n³`, or the optical depths of `lights` light volumes of `m³` (at least the fine density's `m³`).
 pub fn largest_binding(n: u32, m: u32, lights: usize) -> u64 {
@@ -319,19 +257,26 @@ pub fn largest_binding(n: u32, m: u32, lights: usize) -> u64 {
 /// Decides each visible cloud's work for this frame and writes the uniforms it needs.
 pub(crate) fn prepare_cloud_volumes(
     mut commands: Commands,
-    mut clouds: Query<(Entity, &ExtractedCloud, Option<&mut CloudVolumes>)>,
+    mut clouds: Query<(
+        Entity,
+        &ExtractedCloud,
+        Option<&mut CloudVolumes>,
+        Option<&mut CloudIllumination>,
+    )>,
     lights: Res<ExtractedCloudLights>,
     particles: Res<RenderAssets<GpuParticles>>,
     device: Res<RenderDevice>,
     queue: Res<RenderQueue>,
 ) {
     let max_binding = device.limits().max_storage_buffer_binding_size as u64;
-    for (entity, cloud, volumes) in &mut clouds {
+    for (entity, cloud, volumes, state) in &mut clouds {
         let Some(gpu) = particles.get(cloud.particles) else {
             continue;
         };
         let Some(bounds) = gpu.bounds else {
-            commands.entity(entity).remove::<CloudVolumes>();
+            commands
+                .entity(entity)
+                .remove::<(CloudVolumes, CloudIllumination)>();
             continue;
         };
         let n = cloud.settings.volume_resolution;
@@ -351,22 +296,27 @@ pub(crate) fn prepare_cloud_volumes(
         if !cloud.visible || cloud.extinction <= 0.0 {
             continue; // cached volumes stay; no work for clouds nobody sees or that are transparent
         }
-        match volumes {
-            Some(mut v) if v.fits(n, m, gpu.count) => {
-                plan_cloud(&mut v, cloud, gpu, bounds, &lights, &device, &queue)
-            }
+        match (volumes, state) {
+            (Some(mut v), Some(mut state)) if v.fits(n, m, gpu.count) => plan_cloud(
+                &mut v, &mut state, cloud, gpu, bounds, &lights, &device, &queue,
+            ),
             _ => {
                 let mut v = CloudVolumes::new(&device, n, m, gpu.count);
-                plan_cloud(&mut v, cloud, gpu, bounds, &lights, &device, &queue);
-                commands.entity(entity).insert(v);
+                let mut state = CloudIllumination::default();
+                plan_cloud(
+                    &mut v, &mut state, cloud, gpu, bounds, &lights, &device, &queue,
+                );
+                commands.entity(entity).insert((v, state));
             }
         }
     }
 }
 
-/// Compares every stage's key with the cached one and records the stages to run.
+/// Sizes the light buffers, plans the cloud's stages and writes the uniforms they read.
+#[allow(clippy::too_many_arguments)]
 fn plan_cloud(
     volumes: &mut CloudVolumes,
+    state: &mut CloudIllumination,
     cloud: &ExtractedCloud,
     gpu: &GpuParticles,
     bounds: CloudBounds,
@@ -375,26 +325,18 @@ fn plan_cloud(
     queue: &RenderQueue,
 ) {
     let params = cloud_params(cloud, gpu, bounds, lights.0.len());
-    let n = params.n;
-    let mut plan = WorkPlan::default();
     if lights.0.is_empty() {
         // Nothing lights the cloud: it only absorbs. Zero its multiple scattering and tell the
         // billboards there are no lights, once; no pass runs.
-        if volumes.gather_key != UNLIT {
-            volumes.gather_key = UNLIT;
-            volumes.scatter_key = 0;
-            plan.unlit = true;
+        state.update(
+            StageKeys::new(&params, &[], gpu.generation, &cloud.settings),
+            &cloud.settings,
+        );
+        if state.plan.unlit {
             queue.write_buffer(&volumes.params_buffer, 0, &uniform_bytes(&params));
             volumes.params = params;
         }
-        volumes.plan = plan;
         return;
-    }
-
-    let density_key = key_of((gpu.generation, n, params.light_n));
-    if density_key != volumes.density_key {
-        plan.voxelize = true;
-        volumes.density_key = density_key;
     }
 
     // Slot i shades the i-th light, in the cloud's local frame. A new light count or light
@@ -404,6 +346,7 @@ fn plan_cloud(
     if params.light_count != volumes.params.light_count || params.light_n != volumes.params.light_n
     {
         volumes.lights.clear();
+        state.keys.lights.clear();
         volumes.light_array = light_array(device, light_count);
         volumes.optical_depth = storage(
             device,
@@ -418,7 +361,6 @@ fn plan_cloud(
                 "particle_clouds_light_params",
                 LightParams::min_size().get(),
             ),
-            key: 0,
         });
     }
     let light_params: Vec<LightParams> = lights
@@ -434,56 +376,26 @@ fn plan_cloud(
             )
         })
         .collect();
-    let mut gather_inputs = Vec::with_capacity(light_params.len());
-    for (i, (light, slot)) in light_params.iter().zip(&mut volumes.lights).enumerate() {
-        let key = key_of((
-            density_key,
-            bits(light.w),
-            light.sigma_scale.to_bits(),
-            light.offset,
-            params.light_n,
-        ));
-        if key != slot.key {
-            plan.shade.push(i);
-            slot.key = key;
-        }
-        gather_inputs.push((key, bits(light.irradiance)));
+    state.update(
+        StageKeys::new(&params, &light_params, gpu.generation, &cloud.settings),
+        &cloud.settings,
+    );
+    if state.plan.is_empty() {
+        return;
     }
-
-    let gather_key = key_of((&gather_inputs, density_key, params.supersampling));
-    if gather_key != volumes.gather_key {
-        volumes.gather_key = gather_key;
-        plan.gather = true;
+    if params != volumes.params {
+        queue.write_buffer(&volumes.params_buffer, 0, &uniform_bytes(&params));
+        volumes.params = params;
     }
-    let scatter_key = key_of((
-        gather_key,
-        params.k_local.to_bits(),
-        params.albedo.to_bits(),
-        cloud.settings.scatter_stencil,
-        cloud.settings.scatter_iterations,
-    ));
-    if scatter_key != volumes.scatter_key {
-        volumes.scatter_key = scatter_key;
-        plan.scatter = Some(cloud.settings.scatter_iterations);
-        plan.stencil = cloud.settings.scatter_stencil;
+    let fine = fine_params(&params);
+    if fine != volumes.fine_params {
+        queue.write_buffer(&volumes.fine_params_buffer, 0, &uniform_bytes(&fine));
+        volumes.fine_params = fine;
     }
-
-    if !plan.is_empty() {
-        if params != volumes.params {
-            queue.write_buffer(&volumes.params_buffer, 0, &uniform_bytes(&params));
-            volumes.params = params;
-        }
-        let fine = fine_params(&params);
-        if fine != volumes.fine_params {
-            queue.write_buffer(&volumes.fine_params_buffer, 0, &uniform_bytes(&fine));
-            volumes.fine_params = fine;
-        }
-        for (light, slot) in light_params.iter().zip(&volumes.lights) {
-            queue.write_buffer(&slot.params, 0, &uniform_bytes(light));
-        }
-        queue.write_buffer(&volumes.light_array, 0, &storage_bytes(&light_params));
+    for (light, slot) in light_params.iter().zip(&volumes.lights) {
+        queue.write_buffer(&slot.params, 0, &uniform_bytes(light));
     }
-    volumes.plan = plan;
+    queue.write_buffer(&volumes.light_array, 0, &storage_bytes(&light_params));
 }
 
 /// The uniform of the fine grid (voxelize and shade): the same cube at `m` voxels per side.

@@ -1,0 +1,283 @@
+//! Which illumination stages a cloud must run this frame. Every stage's output is cached under a
+//! key of its inputs, and a stage runs only when its key changes (docs/illumination.md; the
+//! `--stats` counters show it). Planning is a pure function of the cached keys and this frame's
+//! keys, tested on the CPU.
+
+use bevy::prelude::*;
+
+use super::{
+    key_of,
+    volumes::{CloudParams, LightParams},
+};
+use crate::settings::{CloudQualitySettings, ScatterStencil};
+
+/// The key of every stage's inputs. A stage's key includes the keys of the stages it reads, so a
+/// change flows downstream: new particles re-voxelize, which re-shades every light, which
+/// re-gathers, which re-scatters.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct StageKeys {
+    /// Voxelize: the particles' upload and the grids' resolutions.
+    pub density: u64,
+    /// Shade, per light slot: the density, the light's local direction and the extinction.
+    pub lights: Vec<u64>,
+    /// Gather: every light's shaded volume and irradiance. [`StageKeys::UNLIT`] when no light
+    /// reaches the cloud.
+    pub gather: u64,
+    /// Scatter: the gathered source, the medium and the scattering knobs.
+    pub scatter: u64,
+}
+
+impl StageKeys {
+    /// The gather key of a cloud that no light reaches.
+    pub const UNLIT: u64 = 1;
+
+    /// This frame's keys of a cloud with the uniform `params`, its lights' uniforms `lights` (in
+    /// slot order), its particles' upload `generation` and its `settings`.
+    pub fn new(
+        params: &CloudParams,
+        lights: &[LightParams],
+        generation: u64,
+        settings: &CloudQualitySettings,
+    ) -> Self {
+        if lights.is_empty() {
+            return Self {
+                gather: Self::UNLIT,
+                ..default()
+            };
+        }
+        let bits = |v: Vec3| v.to_array().map(f32::to_bits);
+        let density = key_of((generation, params.n, params.light_n));
+        let shade = |light: &LightParams| {
+            key_of((
+                density,
+                bits(light.w),
+                light.sigma_scale.to_bits(),
+                light.offset,
+                params.light_n,
+            ))
+        };
+        let keys: Vec<u64> = lights.iter().map(shade).collect();
+        let gather_inputs: Vec<_> = keys
+            .iter()
+            .zip(lights)
+            .map(|(key, light)| (*key, bits(light.irradiance)))
+            .collect();
+        let gather = key_of((&gather_inputs, density, params.supersampling));
+        let scatter = key_of((
+            gather,
+            params.k_local.to_bits(),
+            params.albedo.to_bits(),
+            settings.scatter_stencil,
+            settings.scatter_iterations,
+        ));
+        Self {
+            density,
+            lights: keys,
+            gather,
+            scatter,
+        }
+    }
+}
+
+/// What the illumination system must do for one cloud this frame.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct WorkPlan {
+    /// Rebuild the density grid.
+    pub voxelize: bool,
+    /// Light slots to shade.
+    pub shade: Vec<usize>,
+    /// Gather every light into the scattering source `S_0`.
+    pub gather: bool,
+    /// Restart the multiple scattering from `S_0`: this many iterations, then the closure.
+    pub scatter: Option<u32>,
+    /// The stencil of those iterations.
+    pub stencil: ScatterStencil,
+    /// No light reaches the cloud: its multiple scattering is zeroed instead of computed.
+    pub unlit: bool,
+}
+
+impl WorkPlan {
+    /// Nothing to do.
+    pub fn is_empty(&self) -> bool {
+        *self == Self::default()
+    }
+}
+
+/// The stages whose keys changed between `cached` (what the volumes hold) and `now`.
+pub fn plan(cached: &StageKeys, now: &StageKeys, settings: &CloudQualitySettings) -> WorkPlan {
+    if now.gather == StageKeys::UNLIT {
+        // Nothing lights the cloud: it only absorbs. Zero its multiple scattering once.
+        return WorkPlan {
+            unlit: cached.gather != StageKeys::UNLIT,
+            ..default()
+        };
+    }
+    let changed = (now.scatter != cached.scatter).then_some(settings.scatter_iterations);
+    WorkPlan {
+        voxelize: now.density != cached.density,
+        shade: (0..now.lights.len())
+            .filter(|&i| cached.lights.get(i) != Some(&now.lights[i]))
+            .collect(),
+        gather: now.gather != cached.gather,
+        scatter: changed,
+        stencil: if changed.is_some() {
+            settings.scatter_stencil
+        } else {
+            default()
+        },
+        unlit: false,
+    }
+}
+
+/// A cloud's illumination state (render world component): the keys of what its volumes hold,
+/// this frame's plan, and whether a finished illumination exists.
+#[derive(Component, Clone, Debug, Default)]
+pub struct CloudIllumination {
+    /// The keys of the stages whose output the volumes hold.
+    pub keys: StageKeys,
+    /// This frame's work, consumed by `illuminate_clouds`.
+    pub plan: WorkPlan,
+    /// The volumes hold a finished illumination: the cloud may be drawn.
+    pub ready: bool,
+}
+
+impl CloudIllumination {
+    /// Plans this frame against the cached keys, which become `now`. An unlit cloud keeps its
+    /// density and shaded volumes: they are still valid when a light comes back.
+    pub fn update(&mut self, now: StageKeys, settings: &CloudQualitySettings) {
+        self.plan = plan(&self.keys, &now, settings);
+        self.keys = if now.gather == StageKeys::UNLIT {
+            StageKeys {
+                gather: StageKeys::UNLIT,
+                scatter: 0,
+                ..std::mem::take(&mut self.keys)
+            }
+        } else {
+            now
+        };
+    }
+
+    /// Forgets every cached stage, so that the next frame redoes all of them (when the work of a
+    /// frame could not be recorded, e.g. while pipelines compile).
+    pub fn invalidate(&mut self) {
+        self.keys = StageKeys::default();
+        self.plan = WorkPlan::default();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn params() -> CloudParams {
+        CloudParams {
+            n: 16,
+            light_n: 32,
+            supersampling: 2,
+            k_local: 10.0,
+            albedo: 0.9,
+            ..default()
+        }
+    }
+
+    fn light(w: Vec3, irradiance: f32, slot: u32) -> LightParams {
+        LightParams {
+            w,
+            irradiance: Vec3::splat(irradiance),
+            sigma_scale: 10.0,
+            offset: slot * 32u32.pow(3),
+            ..default()
+        }
+    }
+
+    fn keys(lights: &[LightParams], generation: u64, settings: &CloudQualitySettings) -> StageKeys {
+        StageKeys::new(&params(), lights, generation, settings)
+    }
+
+    #[test]
+    fn each_change_reruns_exactly_its_stage_and_those_downstream() {
+        let settings = CloudQualitySettings::default();
+        let two = [light(Vec3::X, 1.0, 0), light(Vec3::Y, 2.0, 1)];
+        let first = keys(&two, 1, &settings);
+        let all = plan(&StageKeys::default(), &first, &settings);
+        assert_eq!(
+            all,
+            WorkPlan {
+                voxelize: true,
+                shade: vec![0, 1],
+                gather: true,
+                scatter: Some(settings.scatter_iterations),
+                stencil: settings.scatter_stencil,
+                unlit: false,
+            }
+        );
+        // Nothing changed: nothing runs.
+        assert!(plan(&first, &keys(&two, 1, &settings), &settings).is_empty());
+        // One light turned: only it is shaded again, then gather and scatter.
+        let turned = [two[0], light(Vec3::Z, 2.0, 1)];
+        let p = plan(&first, &keys(&turned, 1, &settings), &settings);
+        assert_eq!(
+            (p.voxelize, p.shade.clone(), p.gather),
+            (false, vec![1], true)
+        );
+        assert!(p.scatter.is_some());
+        // A brighter light: no shading, gather and scatter only.
+        let brighter = [light(Vec3::X, 3.0, 0), two[1]];
+        let p = plan(&first, &keys(&brighter, 1, &settings), &settings);
+        assert_eq!((p.voxelize, p.shade.len(), p.gather), (false, 0, true));
+        // More iterations: scatter only.
+        let more = CloudQualitySettings {
+            scatter_iterations: 64,
+            ..settings
+        };
+        let p = plan(&first, &keys(&two, 1, &more), &more);
+        assert_eq!(
+            (p.voxelize, p.shade.len(), p.gather, p.scatter),
+            (false, 0, false, Some(64))
+        );
+        // New particles: everything.
+        let p = plan(&first, &keys(&two, 2, &settings), &settings);
+        assert_eq!(p, all);
+    }
+
+    #[test]
+    fn an_unlit_cloud_is_zeroed_once() {
+        let settings = CloudQualitySettings::default();
+        let lit = keys(&[light(Vec3::X, 1.0, 0)], 1, &settings);
+        let dark = keys(&[], 1, &settings);
+        let p = plan(&lit, &dark, &settings);
+        assert_eq!(
+            p,
+            WorkPlan {
+                unlit: true,
+                ..default()
+            }
+        );
+        assert!(plan(&dark, &dark, &settings).is_empty());
+        // Lit, dark, lit again: the density and the shaded light are kept; gather and scatter rerun.
+        let mut state = CloudIllumination::default();
+        state.update(lit.clone(), &settings);
+        state.update(dark.clone(), &settings);
+        assert!(state.plan.unlit);
+        state.update(dark, &settings);
+        assert!(state.plan.is_empty());
+        state.update(lit, &settings);
+        let p = &state.plan;
+        assert_eq!((p.voxelize, p.shade.len(), p.gather), (false, 0, true));
+        assert!(p.scatter.is_some());
+    }
+
+    #[test]
+    fn invalidating_replans_everything() {
+        let settings = CloudQualitySettings::default();
+        let mut state = CloudIllumination::default();
+        let now = keys(&[light(Vec3::X, 1.0, 0)], 1, &settings);
+        state.update(now.clone(), &settings);
+        assert!(!state.plan.is_empty());
+        state.update(now.clone(), &settings);
+        assert!(state.plan.is_empty());
+        state.invalidate();
+        state.update(now, &settings);
+        assert!(state.plan.voxelize && state.plan.gather && state.plan.scatter.is_some());
+    }
+}
