@@ -43,9 +43,9 @@ use bevy::{
 };
 
 use super::{
-    extract::ExtractedCloud, key_of, particles::GpuParticles, plan::CloudIllumination,
-    shaders::CloudShaders, sort::CloudSorts, view_volume::CloudViewVolumes, volumes::CloudVolumes,
-    volumes::uniform_bytes,
+    extract::ExtractedCloud, gpu::uniform_bytes, key_of, particles::GpuParticles,
+    plan::CloudIllumination, shaders::CloudShaders, sort::CloudSorts,
+    view_volume::CloudViewVolumes, volumes::CloudVolumes,
 };
 use crate::{
     cloud::ParticleCloud,

@@ -5,11 +5,10 @@
 use bevy::{
     prelude::*,
     render::{
-        diagnostic::{DiagnosticsRecorder, RecordDiagnostics},
         render_asset::RenderAssets,
         render_resource::{
             BindGroup, BindGroupEntries, BindGroupEntry, Buffer, BufferBinding, ComputePass,
-            ComputePassDescriptor, PipelineCache, ShaderType,
+            PipelineCache, ShaderType,
         },
         renderer::RenderContext,
     },
@@ -17,6 +16,7 @@ use bevy::{
 
 use super::{
     extract::ExtractedCloud,
+    gpu::record_stage,
     particles::GpuParticles,
     pipelines::{
         ComputeStage, IlluminationPipelines, ReadyPipelines, SWEEP_DIRECTION_STRIDE,
@@ -30,27 +30,6 @@ use crate::{
     settings::{ScatterStencil, ShadingMethod},
     stats::{CloudPass, CloudPassCounters},
 };
-
-/// Records one stage: a GPU time span around one compute pass, and the pass counter.
-pub(crate) fn record_stage(
-    ctx: &mut RenderContext,
-    recorder: Option<&DiagnosticsRecorder>,
-    counters: &CloudPassCounters,
-    stage: CloudPass,
-    body: impl FnOnce(&mut ComputePass) -> u32,
-) {
-    let span = recorder.time_span(ctx.command_encoder(), stage.span_name());
-    let mut pass = ctx
-        .command_encoder()
-        .begin_compute_pass(&ComputePassDescriptor {
-            label: Some(stage.span_name()),
-            ..default()
-        });
-    let runs = body(&mut pass);
-    drop(pass);
-    span.end(ctx.command_encoder());
-    counters.add(stage, runs);
-}
 
 /// Records every planned illumination stage of every cloud.
 pub(crate) fn illuminate_clouds(

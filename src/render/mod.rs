@@ -12,10 +12,12 @@
 //! | `view_volume.rs` | per-view optical depth from the camera (`Compositing::ViewTransmittance`) |
 //! | `draw.rs` | the billboard draw in `Transparent3d` |
 //! | `workgroups.rs` | workgroup sizes and dispatches, shared with the WGSL as shader defs |
+//! | `gpu.rs` | buffers, their encodings, and a recorded stage (compute pass, GPU time span, counter) |
 //! | `shaders.rs` | the WGSL beside each stage (`*.wgsl`), embedded |
 
 pub mod draw;
 pub mod extract;
+pub mod gpu;
 pub mod illumination;
 pub mod particles;
 pub mod pipelines;

@@ -1,6 +1,6 @@
 //! Compute pipelines of the illumination passes, created once in `RenderStartup`.
 
-use super::{shaders::CloudShaders, volumes::uniform_bytes};
+use super::{gpu::uniform_bytes, shaders::CloudShaders};
 use bevy::{
     prelude::*,
     render::{

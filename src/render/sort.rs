@@ -23,12 +23,11 @@ use bevy::{
 
 use super::{
     extract::ExtractedCloud,
-    illumination::record_stage,
+    gpu::{record_stage, storage, uniform_bytes},
     key_of,
     particles::GpuParticles,
     shaders::CloudShaders,
     views_by_cloud,
-    volumes::{storage, uniform_bytes},
     workgroups::{self, SORT_TILE, dispatch_linear},
 };
 use crate::{

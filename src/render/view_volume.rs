@@ -23,12 +23,13 @@ use bevy::{
 
 use super::{
     extract::ExtractedCloud,
-    illumination::record_stage,
+    gpu::record_stage,
+    gpu::{storage, uniform_bytes},
     key_of,
     plan::CloudIllumination,
     shaders::CloudShaders,
     views_by_cloud,
-    volumes::{CloudVolumes, storage, uniform_bytes},
+    volumes::CloudVolumes,
     workgroups,
 };
 use crate::{

@@ -7,13 +7,14 @@ use bevy::{
     prelude::*,
     render::{
         render_asset::RenderAssets,
-        render_resource::{Buffer, BufferDescriptor, BufferUsages, ShaderType, encase},
+        render_resource::{Buffer, ShaderType},
         renderer::{RenderDevice, RenderQueue},
     },
 };
 
 use super::{
     extract::{ExtractedCloud, ExtractedCloudLights},
+    gpu::{storage, storage_bytes, uniform, uniform_bytes},
     particles::{CloudBounds, GpuParticles},
     plan::{CloudIllumination, StageKeys},
 };
@@ -143,34 +144,6 @@ pub struct CloudVolumes {
     pub lights: Vec<LightVolume>,
 }
 
-/// A storage buffer of at least 16 bytes (bindings may not be empty) that can be cleared, copied and read back.
-pub(crate) fn storage(device: &RenderDevice, label: &'static str, size: u64) -> Buffer {
-    device.create_buffer(&BufferDescriptor {
-        label: Some(label),
-        size: size.max(16),
-        usage: BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC,
-        mapped_at_creation: false,
-    })
-}
-
-fn uniform(device: &RenderDevice, label: &'static str, size: u64) -> Buffer {
-    device.create_buffer(&BufferDescriptor {
-        label: Some(label),
-        size,
-        usage: BufferUsages::UNIFORM | BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    })
-}
-
-/// Encodes a `ShaderType` value as uniform-buffer bytes.
-pub fn uniform_bytes<T: ShaderType + encase::internal::WriteInto>(value: &T) -> Vec<u8> {
-    let mut buffer = encase::UniformBuffer::new(Vec::new());
-    buffer
-        .write(value)
-        .expect("uniform encoding cannot fail for plain structs");
-    buffer.into_inner()
-}
-
 /// The storage array of `count` lights' `LightParams` (at least one element: a binding of a
 /// runtime-sized array may not be shorter).
 fn light_array(device: &RenderDevice, count: u32) -> Buffer {
@@ -179,17 +152,6 @@ fn light_array(device: &RenderDevice, count: u32) -> Buffer {
         "particle_clouds_lights",
         LightParams::min_size().get() * count.max(1) as u64,
     )
-}
-
-/// Encodes a slice of `ShaderType` values as a storage-buffer array.
-pub fn storage_bytes<T: ShaderType + encase::internal::WriteInto + encase::ShaderSize>(
-    values: &[T],
-) -> Vec<u8> {
-    let mut buffer = encase::StorageBuffer::new(Vec::new());
-    buffer
-        .write(&values)
-        .expect("storage encoding cannot fail for plain structs");
-    buffer.into_inner()
 }
 
 impl CloudVolumes {

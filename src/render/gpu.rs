@@ -1,0 +1,78 @@
+//! The GPU helpers every pass shares: buffers, their encodings, and a recorded stage (a compute
+//! pass inside a GPU time span, counted in `CloudPassCounters`). Dispatch sizes are in
+//! [`workgroups`](super::workgroups).
+
+use bevy::{
+    prelude::*,
+    render::{
+        diagnostic::{DiagnosticsRecorder, RecordDiagnostics},
+        render_resource::{
+            Buffer, BufferDescriptor, BufferUsages, ComputePass, ComputePassDescriptor, ShaderType,
+            encase,
+        },
+        renderer::{RenderContext, RenderDevice},
+    },
+};
+
+use crate::stats::{CloudPass, CloudPassCounters};
+
+/// A storage buffer of at least 16 bytes (bindings may not be empty) that can be cleared, copied and read back.
+pub(crate) fn storage(device: &RenderDevice, label: &'static str, size: u64) -> Buffer {
+    device.create_buffer(&BufferDescriptor {
+        label: Some(label),
+        size: size.max(16),
+        usage: BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC,
+        mapped_at_creation: false,
+    })
+}
+
+/// A uniform buffer of `size` bytes, written with `RenderQueue::write_buffer`.
+pub(crate) fn uniform(device: &RenderDevice, label: &'static str, size: u64) -> Buffer {
+    device.create_buffer(&BufferDescriptor {
+        label: Some(label),
+        size,
+        usage: BufferUsages::UNIFORM | BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
+}
+
+/// Encodes a `ShaderType` value as uniform-buffer bytes.
+pub fn uniform_bytes<T: ShaderType + encase::internal::WriteInto>(value: &T) -> Vec<u8> {
+    let mut buffer = encase::UniformBuffer::new(Vec::new());
+    buffer
+        .write(value)
+        .expect("uniform encoding cannot fail for plain structs");
+    buffer.into_inner()
+}
+
+/// Encodes a slice of `ShaderType` values as a storage-buffer array.
+pub fn storage_bytes<T: ShaderType + encase::internal::WriteInto + encase::ShaderSize>(
+    values: &[T],
+) -> Vec<u8> {
+    let mut buffer = encase::StorageBuffer::new(Vec::new());
+    buffer
+        .write(&values)
+        .expect("storage encoding cannot fail for plain structs");
+    buffer.into_inner()
+}
+
+/// Records one stage: a GPU time span around one compute pass, and the pass counter.
+pub(crate) fn record_stage(
+    ctx: &mut RenderContext,
+    recorder: Option<&DiagnosticsRecorder>,
+    counters: &CloudPassCounters,
+    stage: CloudPass,
+    body: impl FnOnce(&mut ComputePass) -> u32,
+) {
+    let span = recorder.time_span(ctx.command_encoder(), stage.span_name());
+    let mut pass = ctx
+        .command_encoder()
+        .begin_compute_pass(&ComputePassDescriptor {
+            label: Some(stage.span_name()),
+            ..default()
+        });
+    let runs = body(&mut pass);
+    drop(pass);
+    span.end(ctx.command_encoder());
+    counters.add(stage, runs);
+}
