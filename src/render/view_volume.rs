@@ -23,8 +23,7 @@ use bevy::{
 
 use super::{
     extract::ExtractedCloud,
-    gpu::record_stage,
-    gpu::{storage, uniform_bytes},
+    gpu::{record_stage, storage, uniform_bytes},
     key_of,
     plan::CloudIllumination,
     shaders::CloudShaders,
