@@ -56,6 +56,7 @@ impl SyncComponent for ParticleCloud {
         ExtractedCloud,
         volumes::CloudVolumes,
         plan::CloudIllumination,
+        illumination::IlluminationBindGroups,
         sort::CloudSorts,
         view_volume::CloudViewVolumes,
         draw::CloudDrawBindGroups,
@@ -170,7 +171,11 @@ pub(crate) fn finish(app: &mut App) {
                 )
                     .chain()
                     .in_set(RenderSystems::PrepareResources),
-                draw::prepare_billboard_bind_groups.in_set(RenderSystems::PrepareBindGroups),
+                (
+                    illumination::prepare_illumination_bind_groups,
+                    draw::prepare_billboard_bind_groups,
+                )
+                    .in_set(RenderSystems::PrepareBindGroups),
                 draw::queue_cloud_billboards.in_set(RenderSystems::Queue),
             ),
         )
