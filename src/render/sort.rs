@@ -264,6 +264,8 @@ pub struct ViewSort {
     pub pending: bool,
     /// The order is valid and may be drawn.
     pub ready: bool,
+    /// The sort's bind groups, made in `PrepareBindGroups` while the sort is pending.
+    groups: Option<[BindGroup; 4]>,
 }
 
 /// Every view's sort of one cloud (render world component on the cloud).
@@ -310,6 +312,7 @@ pub(crate) fn prepare_cloud_sorts(
                     key: 0,
                     pending: false,
                     ready: false,
+                    groups: None,
                 });
             if sort.buffers.capacity != gpu.count {
                 sort.buffers = SortBuffers::new(&device, gpu.count);
@@ -324,6 +327,26 @@ pub(crate) fn prepare_cloud_sorts(
         }
         if is_fresh {
             commands.entity(entity).insert(fresh);
+        }
+    }
+}
+
+/// Makes the bind groups of every pending sort.
+pub(crate) fn prepare_sort_bind_groups(
+    mut clouds: Query<(&ExtractedCloud, &mut CloudSorts)>,
+    particles: Res<RenderAssets<GpuParticles>>,
+    pipelines: Option<Res<SortPipelines>>,
+    pipeline_cache: Res<PipelineCache>,
+    device: Res<RenderDevice>,
+) {
+    let Some(pipelines) = pipelines else { return };
+    let layout = pipeline_cache.get_bind_group_layout(&pipelines.layout);
+    for (cloud, mut sorts) in &mut clouds {
+        let Some(gpu) = particles.get(cloud.particles) else {
+            continue;
+        };
+        for sort in sorts.0.values_mut().filter(|s| s.pending) {
+            sort.groups = Some(sort.buffers.bind_groups(&device, &layout, &gpu.buffer));
         }
     }
 }
@@ -344,8 +367,6 @@ pub(crate) fn sort_cloud_particles(
     let Some(ready) = pipelines.ready(&pipeline_cache) else {
         return;
     };
-    let device = ctx.render_device().clone();
-    let layout = pipeline_cache.get_bind_group_layout(&pipelines.layout);
     let recorder = ctx.diagnostic_recorder();
     record_stage(
         &mut ctx,
@@ -359,7 +380,9 @@ pub(crate) fn sort_cloud_particles(
                     continue;
                 };
                 for sort in sorts.0.values_mut().filter(|s| s.pending) {
-                    let groups = sort.buffers.bind_groups(&device, &layout, &gpu.buffer);
+                    let Some(groups) = sort.groups.take() else {
+                        continue;
+                    };
                     record_sort(pass, &ready, &groups, gpu.count, true);
                     sort.pending = false;
                     sort.ready = true;

@@ -9,7 +9,7 @@ use bevy::{
     prelude::*,
     render::{
         render_resource::{
-            BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer,
+            BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer,
             BufferDescriptor, BufferUsages, CachedComputePipelineId, ComputePipelineDescriptor,
             PipelineCache, ShaderStages, ShaderType,
             binding_types::{
@@ -103,6 +103,8 @@ pub struct ViewVolume {
     pub pending: bool,
     /// The volume is valid and may be drawn with.
     pub ready: bool,
+    /// The march's bind group, made in `PrepareBindGroups` while the volume is pending.
+    group: Option<BindGroup>,
 }
 
 /// Every view's transmittance volume of one cloud (render world component on the cloud).
@@ -270,6 +272,32 @@ fn new_volume(device: &RenderDevice, n: u32) -> ViewVolume {
         key: 0,
         pending: false,
         ready: false,
+        group: None,
+    }
+}
+
+/// Makes the march's bind group of every pending view volume.
+pub(crate) fn prepare_view_volume_bind_groups(
+    mut clouds: Query<(&CloudVolumes, &mut CloudViewVolumes)>,
+    pipeline: Option<Res<ViewVolumePipeline>>,
+    pipeline_cache: Res<PipelineCache>,
+    device: Res<RenderDevice>,
+) {
+    let Some(pipeline) = pipeline else { return };
+    let layout = pipeline_cache.get_bind_group_layout(&pipeline.layout);
+    for (volumes, mut all) in &mut clouds {
+        for volume in all.0.values_mut().filter(|v| v.pending) {
+            volume.group = Some(device.create_bind_group(
+                "particle_clouds_view_volume_bind_group",
+                &layout,
+                &BindGroupEntries::sequential((
+                    volumes.fine_params_buffer.as_entire_binding(),
+                    volume.params.as_entire_binding(),
+                    volumes.fine_density.as_entire_binding(),
+                    volume.optical_depth.as_entire_binding(),
+                )),
+            ));
+        }
     }
 }
 
@@ -277,7 +305,7 @@ fn new_volume(device: &RenderDevice, n: u32) -> ViewVolume {
 /// illumination, before the cameras draw).
 pub(crate) fn march_view_volumes(
     mut ctx: RenderContext,
-    mut clouds: Query<(&CloudVolumes, &CloudIllumination, &mut CloudViewVolumes)>,
+    mut clouds: Query<(&CloudIllumination, &mut CloudViewVolumes)>,
     pipeline: Option<Res<ViewVolumePipeline>>,
     pipeline_cache: Res<PipelineCache>,
     counters: Res<CloudPassCounters>,
@@ -286,14 +314,12 @@ pub(crate) fn march_view_volumes(
     let pending = |illumination: &CloudIllumination, all: &CloudViewVolumes| {
         illumination.ready && all.0.values().any(|s| s.pending)
     };
-    if !clouds.iter().any(|(_, i, all)| pending(i, all)) {
+    if !clouds.iter().any(|(i, all)| pending(i, all)) {
         return;
     }
     let Some(march) = pipeline_cache.get_compute_pipeline(pipeline.march) else {
         return;
     };
-    let device = ctx.render_device().clone();
-    let layout = pipeline_cache.get_bind_group_layout(&pipeline.layout);
     let recorder = ctx.diagnostic_recorder();
     record_stage(
         &mut ctx,
@@ -303,21 +329,14 @@ pub(crate) fn march_view_volumes(
         |pass| {
             pass.set_pipeline(march);
             let mut runs = 0;
-            for (volumes, illumination, mut all) in &mut clouds {
+            for (illumination, mut all) in &mut clouds {
                 if !illumination.ready {
                     continue;
                 }
                 for volume in all.0.values_mut().filter(|s| s.pending) {
-                    let group = device.create_bind_group(
-                        "particle_clouds_view_volume_bind_group",
-                        &layout,
-                        &BindGroupEntries::sequential((
-                            volumes.fine_params_buffer.as_entire_binding(),
-                            volume.params.as_entire_binding(),
-                            volumes.fine_density.as_entire_binding(),
-                            volume.optical_depth.as_entire_binding(),
-                        )),
-                    );
+                    let Some(group) = volume.group.take() else {
+                        continue;
+                    };
                     pass.set_bind_group(0, &group, &[]);
                     workgroups::dispatch_columns(pass, volume.n);
                     volume.pending = false;
