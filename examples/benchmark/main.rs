@@ -230,6 +230,13 @@ fn run() -> Result<(), String> {
             settings.len()
         );
         let mut scene_rows = Vec::new();
+        let bar = ProgressBar::new(settings.len() as u64).with_style(
+            ProgressStyle::with_template(&format!(
+                "{} {{bar:40}} {{pos}}/{{len}} settings, {{eta}} left",
+                bench.name
+            ))
+            .expect("progress template"),
+        );
         for s in &settings {
             let t0 = Instant::now();
             b.set_quality(*s);
@@ -273,7 +280,9 @@ fn run() -> Result<(), String> {
                     &args.out.join(format!("{}-compare.png", bench.name)),
                 );
             }
-            eprintln!(
+            // Above the bar on a terminal; plain lines in a log.
+            bar.inc(1);
+            bar.suspend(|| eprintln!(
                 "benchmark: {} {:<16} GPU {:8.2} ms (static {:6.2}), wall {:8.1} ms; rel. RMSE {:.4} (denoised {:.4}, 4x4 box {:.4}) relMSE {:.5} MAE {:.5} ({:.1} s)",
                 bench.name,
                 setting_label(s),
@@ -286,7 +295,7 @@ fn run() -> Result<(), String> {
                 rel_mse_,
                 mae,
                 t0.elapsed().as_secs_f64()
-            );
+            ));
             scene_rows.push(Row {
                 scene: bench.name,
                 particles: scene.clouds.iter().map(|c| c.particles.len()).sum(),
@@ -310,6 +319,7 @@ fn run() -> Result<(), String> {
                 pareto: false,
             });
         }
+        bar.finish_and_clear();
         mark_pareto(&mut scene_rows);
         rows.extend(scene_rows);
         drop(b);
