@@ -46,15 +46,16 @@ struct Stream {
     time: f32,
 }
 
+/// Particles moving every frame beside a still cloud.
+#[derive(clap::Parser)]
+struct Args {
+    #[command(flatten)]
+    common: Options,
+}
+
 fn main() -> ExitCode {
-    let usage = format!("animated {}", support::COMMON_USAGE);
-    let options = match Options::parse(&usage, &[]) {
-        Ok(options) => options,
-        Err(message) => {
-            eprintln!("error: {message}");
-            return ExitCode::from(2);
-        }
-    };
+    let args: Args = support::parse_args();
+    let options = args.common;
     let fixed_step = options.screenshot.is_some();
     support::run(EXAMPLE, options, move |app| {
         app.add_systems(Startup, setup).add_systems(

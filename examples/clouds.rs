@@ -34,15 +34,16 @@ const EXAMPLE: Example = Example {
 /// Sun illuminance, lux.
 const SUN_LUX: f32 = 10_000.0;
 
+/// A field of cumulus over a ground plane under a sun turned with the arrow keys.
+#[derive(clap::Parser)]
+struct Args {
+    #[command(flatten)]
+    common: Options,
+}
+
 fn main() -> ExitCode {
-    let usage = format!("clouds {}", support::COMMON_USAGE);
-    let options = match Options::parse(&usage, &[]) {
-        Ok(options) => options,
-        Err(message) => {
-            eprintln!("error: {message}");
-            return ExitCode::from(2);
-        }
-    };
+    let args: Args = support::parse_args();
+    let options = args.common;
     support::run(EXAMPLE, options, |app| {
         app.insert_resource(DefaultCloudQuality(CloudQualitySettings {
             volume_resolution: 48,

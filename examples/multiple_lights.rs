@@ -29,15 +29,16 @@ const EXAMPLE: Example = Example {
 /// Illuminance of each light, lux.
 const LUX: f32 = 10_000.0;
 
+/// One cloud lit blue from one side and red from the other (the paper's Figure 2).
+#[derive(clap::Parser)]
+struct Args {
+    #[command(flatten)]
+    common: Options,
+}
+
 fn main() -> ExitCode {
-    let usage = format!("multiple_lights {}", support::COMMON_USAGE);
-    let options = match Options::parse(&usage, &[]) {
-        Ok(options) => options,
-        Err(message) => {
-            eprintln!("error: {message}");
-            return ExitCode::from(2);
-        }
-    };
+    let args: Args = support::parse_args();
+    let options = args.common;
     support::run(EXAMPLE, options, |app| {
         app.add_systems(Startup, setup)
             .add_systems(Update, describe.in_set(HudLines));

@@ -41,27 +41,21 @@ const SCATTER_STEPS: u32 = 5;
 #[derive(Resource)]
 struct BigBunny(Option<Particles>);
 
+/// 1.2 million particles filling a bunny (the paper's Figure 5).
+#[derive(clap::Parser)]
+struct Args {
+    #[command(flatten)]
+    common: Options,
+    /// Particles of the big bunny (the radius grows as N^(-1/3), keeping its optical thickness).
+    #[arg(long, value_name = "N", default_value_t = DEFAULT_PARTICLES as u64,
+          value_parser = clap::value_parser!(u64).range(1..=20_000_000))]
+    particles: u64,
+}
+
 fn main() -> ExitCode {
-    let usage = format!("snow_bunny [--particles N] {}", support::COMMON_USAGE);
-    let options = match Options::parse(&usage, &["--particles"]) {
-        Ok(options) => options,
-        Err(message) => {
-            eprintln!("error: {message}");
-            return ExitCode::from(2);
-        }
-    };
-    let count = match options.get::<usize>("--particles") {
-        Ok(None) => DEFAULT_PARTICLES,
-        Ok(Some(n)) if (1..=20_000_000).contains(&n) => n,
-        Ok(Some(n)) => {
-            eprintln!("error: --particles is {n}; allowed is 1..=20000000");
-            return ExitCode::from(2);
-        }
-        Err(message) => {
-            eprintln!("error: {message}\nusage: {usage}");
-            return ExitCode::from(2);
-        }
-    };
+    let args: Args = support::parse_args();
+    let options = args.common;
+    let count = args.particles as usize;
     let bunny = generate(count);
     support::run(EXAMPLE, options, move |app| {
         app.insert_resource(BigBunny(Some(bunny)))

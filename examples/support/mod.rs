@@ -10,10 +10,13 @@
 //! --screenshot PATH.png       render headlessly (no window, no display) and write the picture
 //! --size WxH                  window or picture size in pixels (default 1280x720 / 800x450)
 //! ```
+//!
+//! parsed with clap ([`Options`], flattened into each example's own arguments): `--help` lists
+//! them, and a bad value or an unknown flag is an error naming it.
 
 #![allow(dead_code)]
 
-use std::{path::PathBuf, process::ExitCode, str::FromStr, time::Instant};
+use std::{path::PathBuf, process::ExitCode, time::Instant};
 
 use bevy::{
     camera::{Exposure, Hdr, RenderTarget},
@@ -32,101 +35,51 @@ use bevy_particle_clouds::{
     image_io,
 };
 
-/// The options every example accepts (see the module documentation).
-pub const COMMON_USAGE: &str =
-    "[--frames N] [--screenshot PATH.png] [--window-screenshot PATH.png] [--size WxH]";
-
-/// The parsed command line.
-#[derive(Clone, Debug, Default)]
+/// The options every example accepts (see the module documentation); flatten them into the
+/// example's own `clap::Parser`.
+#[derive(clap::Args, Clone, Debug, Default)]
 pub struct Options {
-    /// `--frames N`: window mode exits after N frames; headless renders at least N frames.
+    /// Window: exit after N frames. Headless: render at least N frames.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
     pub frames: Option<u32>,
-    /// `--screenshot PATH`: render headlessly into this picture.
+    /// Render headlessly (no window, no display) into this picture (.png or .exr).
+    #[arg(long, value_name = "PATH", value_parser = output_path, conflicts_with = "window_screenshot")]
     pub screenshot: Option<PathBuf>,
-    /// `--window-screenshot PATH`: save the window's last frame (needs `--frames`).
+    /// With --frames: save the window's last frame as PNG, then exit.
+    #[arg(long, value_name = "PATH.png", requires = "frames")]
     pub window_screenshot: Option<PathBuf>,
-    /// `--size WxH`.
+    /// Window or picture size in pixels (default 1280x720 / 800x450), each in 16..=8192.
+    #[arg(long, value_name = "WxH", value_parser = parse_size)]
     pub size: Option<UVec2>,
-    /// The example's own flags and their values.
-    pub extra: Vec<(&'static str, String)>,
 }
 
-impl Options {
-    /// Parses `std::env::args()`; `extra_flags` are the example's own flags, each taking a value.
-    /// Call it first in `main`: it also points Bevy at this crate's `assets/`.
-    pub fn parse(usage: &str, extra_flags: &[&'static str]) -> Result<Self, String> {
-        // Bevy finds `assets/` through `CARGO_MANIFEST_DIR` under `cargo run`; a binary started
-        // directly (e.g. `target/debug/examples/snow_bunny`) looks next to itself instead. Point it at
-        // this crate's `assets/`.
-        if std::env::var_os("BEVY_ASSET_ROOT").is_none()
-            && std::env::var_os("CARGO_MANIFEST_DIR").is_none()
-        {
-            // SAFETY: no other thread exists yet (`parse` is the first thing each example's `main` calls).
-            unsafe { std::env::set_var("BEVY_ASSET_ROOT", env!("CARGO_MANIFEST_DIR")) };
-        }
-        let mut options = Options::default();
-        let mut args = std::env::args().skip(1);
-        while let Some(arg) = args.next() {
-            let mut value = |name: &str| {
-                args.next()
-                    .ok_or(format!("{name} needs a value\nusage: {usage}"))
-            };
-            match arg.as_str() {
-                "--frames" => {
-                    let v = value("--frames")?;
-                    let n = v.parse().ok().filter(|&n: &u32| n >= 1);
-                    options.frames =
-                        Some(n.ok_or(format!("--frames is {v}; it must be an integer >= 1"))?);
-                }
-                "--screenshot" => options.screenshot = Some(value("--screenshot")?.into()),
-                "--window-screenshot" => {
-                    options.window_screenshot = Some(value("--window-screenshot")?.into())
-                }
-                "--size" => {
-                    let v = value("--size")?;
-                    let size = v
-                        .split_once('x')
-                        .and_then(|(w, h)| Some(UVec2::new(w.parse().ok()?, h.parse().ok()?)))
-                        .filter(|s| (16..=8192).contains(&s.x) && (16..=8192).contains(&s.y));
-                    options.size =
-                        Some(size.ok_or(format!("--size is {v}; it must be WxH, 16..=8192 each"))?);
-                }
-                "-h" | "--help" => return Err(format!("usage: {usage}")),
-                flag => match extra_flags.iter().find(|f| **f == flag) {
-                    Some(&flag) => {
-                        let v = value(flag)?;
-                        options.extra.push((flag, v));
-                    }
-                    None => return Err(format!("unknown argument {flag}\nusage: {usage}")),
-                },
-            }
-        }
-        if options.window_screenshot.is_some() && options.frames.is_none() {
-            return Err(format!(
-                "--window-screenshot needs --frames N\nusage: {usage}"
-            ));
-        }
-        if options.window_screenshot.is_some() && options.screenshot.is_some() {
-            return Err(format!(
-                "--window-screenshot and --screenshot exclude each other\nusage: {usage}"
-            ));
-        }
-        if let Some(path) = &options.screenshot {
-            image_io::check_output_path(path).map_err(|e| e.to_string())?;
-        }
-        Ok(options)
-    }
+fn output_path(text: &str) -> Result<PathBuf, String> {
+    let path = PathBuf::from(text);
+    image_io::check_output_path(&path).map_err(|e| e.to_string())?;
+    Ok(path)
+}
 
-    /// The value of an example's own flag, parsed.
-    pub fn get<T: FromStr>(&self, flag: &str) -> Result<Option<T>, String> {
-        match self.extra.iter().rev().find(|(f, _)| *f == flag) {
-            None => Ok(None),
-            Some((_, v)) => v
-                .parse()
-                .map(Some)
-                .map_err(|_| format!("{flag} is {v}; not a valid value")),
-        }
+fn parse_size(text: &str) -> Result<UVec2, String> {
+    text.split_once('x')
+        .and_then(|(w, h)| Some(UVec2::new(w.parse().ok()?, h.parse().ok()?)))
+        .filter(|s| (16..=8192).contains(&s.x) && (16..=8192).contains(&s.y))
+        .ok_or(format!("--size is {text}; it must be WxH, 16..=8192 each"))
+}
+
+/// Parses the example's command line (exiting with a message and code 2 on a bad one, 0 after
+/// `--help`). Call it first in `main`: it also points Bevy at this crate's `assets/`.
+pub fn parse_args<A: clap::Parser>() -> A {
+    // Bevy finds `assets/` through `CARGO_MANIFEST_DIR` under `cargo run`; a binary started
+    // directly (e.g. `target/debug/examples/snow_bunny`) looks next to itself instead. Point it at
+    // this crate's `assets/`.
+    if std::env::var_os("BEVY_ASSET_ROOT").is_none()
+        && std::env::var_os("CARGO_MANIFEST_DIR").is_none()
+    {
+        // SAFETY: no other thread exists yet (`parse_args` is the first thing each example's
+        // `main` calls).
+        unsafe { std::env::set_var("BEVY_ASSET_ROOT", env!("CARGO_MANIFEST_DIR")) };
     }
+    A::parse()
 }
 
 /// Describes an example to the runner.
