@@ -113,25 +113,38 @@ pub(crate) fn build(app: &mut App) {
     }
 }
 
-/// Why this adapter cannot run the plugin, if it cannot: the passes need compute shaders, storage
-/// buffers in the vertex stage and six storage buffers per stage (the sort).
-fn unsupported(render_app: &SubApp) -> Option<String> {
+/// Why an adapter cannot run the plugin: the passes need compute shaders, storage buffers in the
+/// vertex stage and six storage buffers per stage (the sort).
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum Unsupported {
+    /// No compute shaders (WebGL2, for example).
+    #[error("the adapter has no compute shaders")]
+    ComputeShaders,
+    /// Vertex shaders cannot read storage buffers.
+    #[error("the adapter cannot read storage buffers in vertex shaders")]
+    VertexStorage,
+    /// Too few storage buffers per shader stage.
+    #[error("the adapter allows {0} storage buffers per shader stage; 6 are needed")]
+    StorageBuffers(u32),
+}
+
+/// Why this adapter cannot run the plugin, if it cannot.
+fn check_adapter(render_app: &SubApp) -> Result<(), Unsupported> {
     let adapter = render_app.world().resource::<RenderAdapter>();
     let flags = adapter.get_downlevel_capabilities().flags;
     let limits = render_app.world().resource::<RenderDevice>().limits();
     if !flags.contains(DownlevelFlags::COMPUTE_SHADERS) {
-        return Some("the adapter has no compute shaders".into());
+        return Err(Unsupported::ComputeShaders);
     }
     if !flags.contains(DownlevelFlags::VERTEX_STORAGE) {
-        return Some("the adapter cannot read storage buffers in vertex shaders".into());
+        return Err(Unsupported::VertexStorage);
     }
     if limits.max_storage_buffers_per_shader_stage < 6 {
-        return Some(format!(
-            "the adapter allows {} storage buffers per shader stage; 6 are needed",
-            limits.max_storage_buffers_per_shader_stage
+        return Err(Unsupported::StorageBuffers(
+            limits.max_storage_buffers_per_shader_stage,
         ));
     }
-    None
+    Ok(())
 }
 
 /// Adds the render-world systems once the adapter is known to support them (like Bevy's
@@ -140,7 +153,7 @@ pub(crate) fn finish(app: &mut App) {
     let Some(render_app) = app.get_sub_app_mut(RenderApp) else {
         return;
     };
-    if let Some(reason) = unsupported(render_app) {
+    if let Err(reason) = check_adapter(render_app) {
         error!("bevy_particle_clouds is disabled: {reason}; particle clouds will not be drawn");
         return;
     }
