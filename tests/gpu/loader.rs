@@ -30,15 +30,7 @@ fn bunny_ply_particles() -> Particles {
 /// Loads `path` (under `assets/`) and updates until it has loaded or failed (at most ~10 s).
 fn load(app: &mut App, path: &str) -> (Handle<Particles>, LoadState) {
     let handle: Handle<Particles> = app.world().resource::<AssetServer>().load(path.to_string());
-    for _ in 0..1000 {
-        headless::update(app).unwrap();
-        let state = app.world().resource::<AssetServer>().load_state(&handle);
-        if matches!(state, LoadState::Loaded | LoadState::Failed(_)) {
-            return (handle, state);
-        }
-        std::thread::sleep(Duration::from_millis(10));
-    }
-    panic!("{path} neither loaded nor failed within 1000 updates");
+    wait_for(app, handle, path)
 }
 
 /// Loads `path` with the loader settings `attributes` (the `AssetServer`'s load builder).
@@ -53,6 +45,15 @@ fn load_with(
         .load_builder()
         .with_settings(move |a: &mut ParticleAttributes| *a = attributes.clone())
         .load(path);
+    wait_for(app, handle, path)
+}
+
+/// Updates until `handle` has loaded or failed (at most ~10 s).
+fn wait_for(
+    app: &mut App,
+    handle: Handle<Particles>,
+    path: &str,
+) -> (Handle<Particles>, LoadState) {
     for _ in 0..1000 {
         headless::update(app).unwrap();
         let state = app.world().resource::<AssetServer>().load_state(&handle);
