@@ -281,7 +281,7 @@ fn check_volume_fits(app: &mut bevy::app::App, scene: &Scene, adapter: &str) -> 
         .world()
         .resource::<RenderDevice>()
         .limits()
-        .max_storage_buffer_binding_size as u64;
+        .max_storage_buffer_binding_size;
     let resolution = scene.settings.volume_resolution;
     let lights = scene.lights.len();
     let bytes = |n: u32| {

@@ -1260,7 +1260,7 @@ mod tests {
             scale: 0.01,
             ..Default::default()
         };
-        let expected = vec![Particle {
+        let expected = [Particle {
             position: Vec3::new(0.01, 0.02, 0.03),
             radius: 0.2,
             density: 0.5,

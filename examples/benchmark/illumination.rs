@@ -22,7 +22,7 @@ pub(crate) enum Change {
 impl Bench {
     /// Applies `change` for frame number `i` (alternating up and down, so nothing drifts).
     pub(crate) fn change(&mut self, change: Change, i: usize) {
-        let sign = if i % 2 == 0 { 1.0 } else { -1.0 };
+        let sign = if i.is_multiple_of(2) { 1.0 } else { -1.0 };
         let world = self.app.world_mut();
         match change {
             Change::Nothing => {}

@@ -25,7 +25,7 @@ pub(crate) fn plot(
         .copied()
         .filter(|n| rows.iter().any(|r| r.scene == *n))
         .collect();
-    let cols = scenes.len().min(3).max(1) as u32;
+    let cols = scenes.len().clamp(1, 3) as u32;
     let rows_n = (scenes.len() as u32).div_ceil(cols).max(1);
     let (w, h) = (420 * cols, 330 * rows_n + 64);
     let mut buffer = vec![255u8; (w * h * 3) as usize];

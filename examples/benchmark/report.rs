@@ -84,7 +84,7 @@ pub(crate) fn mark_pareto(rows: &mut [Row]) {
 }
 
 /// The rows that dominate the default settings of a scene.
-pub(crate) fn dominating<'a>(rows: &'a [Row]) -> Vec<&'a Row> {
+pub(crate) fn dominating(rows: &[Row]) -> Vec<&Row> {
     let Some(d) = rows
         .iter()
         .find(|r| r.settings == CloudQualitySettings::default())

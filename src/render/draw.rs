@@ -284,20 +284,23 @@ fn per_view_buffers<'a>(
     }
 }
 
+/// What the billboards of one cloud bind: its volumes and its per-view sorts or view volumes.
+type BillboardSources = (
+    Entity,
+    &'static ExtractedCloud,
+    &'static CloudVolumes,
+    Option<&'static CloudSorts>,
+    Option<&'static CloudViewVolumes>,
+    Option<&'static CloudDrawBindGroups>,
+);
+
 pub(crate) fn prepare_billboard_bind_groups(
     mut commands: Commands,
     pipeline: Option<Res<BillboardPipeline>>,
     pipeline_cache: Res<PipelineCache>,
     device: Res<RenderDevice>,
     view_uniforms: Res<ViewUniforms>,
-    clouds: Query<(
-        Entity,
-        &ExtractedCloud,
-        &CloudVolumes,
-        Option<&CloudSorts>,
-        Option<&CloudViewVolumes>,
-        Option<&CloudDrawBindGroups>,
-    )>,
+    clouds: Query<BillboardSources>,
     particles: Res<RenderAssets<GpuParticles>>,
 ) {
     let Some(pipeline) = pipeline else { return };
@@ -405,7 +408,17 @@ pub(crate) fn prepare_billboard_bind_groups(
 #[derive(Resource, Default)]
 pub struct BillboardEmitPipelines(HashMap<CachedRenderPipelineId, CachedRenderPipelineId>);
 
+/// Whether a cloud is ready to draw in a view, and what its phase item needs.
+type QueuedCloud = (
+    &'static ExtractedCloud,
+    &'static CloudIllumination,
+    Option<&'static CloudSorts>,
+    Option<&'static CloudViewVolumes>,
+    &'static MainEntity,
+);
+
 /// Adds one `Transparent3d` item per visible, drawable cloud to every view's phase.
+#[allow(clippy::too_many_arguments)] // a render system's resources
 pub(crate) fn queue_cloud_billboards(
     draw_functions: Res<DrawFunctions<Transparent3d>>,
     pipeline: Option<Res<BillboardPipeline>>,
@@ -414,13 +427,7 @@ pub(crate) fn queue_cloud_billboards(
     pipeline_cache: Res<PipelineCache>,
     mut phases: ResMut<ViewSortedRenderPhases<Transparent3d>>,
     views: Query<(&ExtractedView, &Msaa, &RenderVisibleEntities)>,
-    clouds: Query<(
-        &ExtractedCloud,
-        &CloudIllumination,
-        Option<&CloudSorts>,
-        Option<&CloudViewVolumes>,
-        &MainEntity,
-    )>,
+    clouds: Query<QueuedCloud>,
     particles: Res<RenderAssets<GpuParticles>>,
 ) {
     let Some(pipeline) = pipeline else { return };

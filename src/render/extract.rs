@@ -67,19 +67,28 @@ pub struct ExtractedCloudLights(pub Vec<CloudLight>);
 #[derive(Default)]
 pub(crate) struct RefusedClouds(HashMap<Entity, InvalidCloud>);
 
+/// A cloud as the main world has it.
+type MainWorldCloud = (
+    Entity,
+    RenderEntity,
+    &'static ParticleCloud,
+    &'static GlobalTransform,
+    &'static ViewVisibility,
+    Option<&'static CloudQualitySettings>,
+    Option<&'static Name>,
+);
+
+/// A light as the main world has it.
+type MainWorldLight = (
+    Entity,
+    &'static DirectionalLight,
+    &'static GlobalTransform,
+    &'static InheritedVisibility,
+);
+
 pub(crate) fn extract_clouds(
     mut commands: Commands,
-    clouds: Extract<
-        Query<(
-            Entity,
-            RenderEntity,
-            &ParticleCloud,
-            &GlobalTransform,
-            &ViewVisibility,
-            Option<&CloudQualitySettings>,
-            Option<&Name>,
-        )>,
-    >,
+    clouds: Extract<Query<MainWorldCloud>>,
     assets: Extract<Res<Assets<Particles>>>,
     validity: Extract<Res<ParticlesValidity>>,
     default_quality: Extract<Res<DefaultCloudQuality>>,
@@ -139,17 +148,7 @@ fn validate(
 
 pub(crate) fn extract_cloud_lights(
     mut lights: ResMut<ExtractedCloudLights>,
-    query: Extract<
-        Query<
-            (
-                Entity,
-                &DirectionalLight,
-                &GlobalTransform,
-                &InheritedVisibility,
-            ),
-            Without<NotCloudLight>,
-        >,
-    >,
+    query: Extract<Query<MainWorldLight, Without<NotCloudLight>>>,
 ) {
     lights.0.clear();
     for (entity, light, transform, visibility) in &query {

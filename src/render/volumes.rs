@@ -230,7 +230,7 @@ pub(crate) fn prepare_cloud_volumes(
     device: Res<RenderDevice>,
     queue: Res<RenderQueue>,
 ) {
-    let max_binding = device.limits().max_storage_buffer_binding_size as u64;
+    let max_binding = device.limits().max_storage_buffer_binding_size;
     for (entity, cloud, volumes, state) in &mut clouds {
         let Some(gpu) = particles.get(cloud.particles) else {
             continue;

@@ -2,7 +2,7 @@
 //! CPU reference (illumination + billboard compositor of docs/illumination.md).
 
 use bevy::{
-    math::{DQuat, DVec3},
+    math::DVec3,
     prelude::*,
     render::{
         render_resource::{
@@ -175,7 +175,7 @@ fn render(setup: &Setup) -> (App, SceneTarget, Render) {
 
 /// The CPU reference image of the same billboards.
 fn reference(setup: &Setup) -> Vec<[f32; 4]> {
-    let rotation = DQuat::from(setup.transform.rotation.as_dquat());
+    let rotation = setup.transform.rotation.as_dquat();
     let scale = setup.transform.scale.x as f64;
     let lights: Vec<LocalLight> = setup
         .lights

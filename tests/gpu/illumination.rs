@@ -6,7 +6,7 @@
 //! atomics in arbitrary order and multiplies `n` slice attenuations, so its error relative to the
 //! volume's maximum stays within ~`n * 2^-23`; the tests allow 2e-4 of the maximum.
 
-use bevy::{math::DQuat, prelude::*};
+use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
     CloudQualitySettings, LightSample, Medium, Particle, ParticleCloud, Particles, ScatterStencil,
@@ -127,7 +127,7 @@ fn check(case: Case) {
     let gpu_ratio = rgb(&headless::read_buffer(&mut app, &ratio).unwrap());
     let gpu_multiple = rgb(&headless::read_buffer(&mut app, &multiple).unwrap());
 
-    let rotation = DQuat::from(case.transform.rotation.as_dquat());
+    let rotation = case.transform.rotation.as_dquat();
     let lights: Vec<LocalLight> = case
         .lights
         .iter()
