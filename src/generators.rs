@@ -57,6 +57,17 @@ pub fn cuboid(extents: Vec3, particle_radius: f32, count: usize, seed: u64) -> P
 /// A cumulus: a flat-bottomed heap of overlapping puffs, about `size` metres across, made of
 /// `count` particles. Puffs are larger and denser at the core and thin out towards the edges.
 pub fn cumulus(size: f32, count: usize, seed: u64) -> Particles {
+    cumulus_with_puffs(size, count, seed, |size, core| size * (0.07 + 0.06 * core))
+}
+
+/// [`cumulus`] with the puffs' radius (metres) given by `radius(size, core)`, `core` in `[0, 1]`
+/// growing towards the centre of the puff's lobe.
+pub fn cumulus_with_puffs(
+    size: f32,
+    count: usize,
+    seed: u64,
+    radius: impl Fn(f32, f32) -> f32,
+) -> Particles {
     let mut rng = SplitMix64::new(seed);
     // A few large lobes give the cauliflower silhouette; particles cluster around them.
     let lobes: Vec<(Vec3, f32)> = (0..7)
@@ -79,7 +90,7 @@ pub fn cumulus(size: f32, count: usize, seed: u64) -> Particles {
             let core = 1.0 - ((p - centre).length() / lobe_radius).min(1.0);
             Particle {
                 position: p,
-                radius: size * (0.07 + 0.06 * core),
+                radius: radius(size, core),
                 density: 0.5 + 0.5 * core,
             }
         })

@@ -126,34 +126,11 @@ pub(crate) fn thin_smoke() -> Vec<Particle> {
         .collect()
 }
 
-/// A cumulus of `count` puffs about `size` metres across: lobes around a core, a flat base.
+/// A cumulus of `count` puffs about `size` metres across (`generators::cumulus_with_puffs`), its
+/// puffs `puff × size` to `2 puff × size` in radius.
 pub(crate) fn cumulus(size: f32, count: usize, puff: f32, seed: u64) -> Vec<Particle> {
-    let mut rng = SplitMix64::new(seed);
-    let lobes: Vec<(Vec3, f32)> = (0..7)
-        .map(|i| {
-            let a = i as f32 / 7.0 * std::f32::consts::TAU + rng.next_f32();
-            let r = if i == 0 {
-                0.0
-            } else {
-                0.28 + 0.12 * rng.next_f32()
-            };
-            let centre = Vec3::new(a.cos() * r, 0.1 + 0.25 * rng.next_f32(), a.sin() * r * 0.7);
-            (centre * size, size * (0.22 + 0.12 * rng.next_f32()))
-        })
-        .collect();
-    (0..count)
-        .map(|i| {
-            let (centre, lobe_radius) = lobes[i % lobes.len()];
-            let mut p = centre + rng.in_unit_ball() * lobe_radius;
-            p.y = p.y.max(-0.05 * size);
-            let core = 1.0 - ((p - centre).length() / lobe_radius).min(1.0);
-            Particle {
-                position: p,
-                radius: size * puff * (1.0 + core),
-                density: 0.5 + 0.5 * core,
-            }
-        })
-        .collect()
+    generators::cumulus_with_puffs(size, count, seed, |size, core| size * puff * (1.0 + core))
+        .particles
 }
 
 pub(crate) fn cumulus_2000() -> Vec<Particle> {
