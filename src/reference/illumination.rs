@@ -891,19 +891,11 @@ mod tests {
         }
     }
 
-    /// Deterministic pseudo-random numbers in [0, 1) (xorshift), so tests need no extra crate.
-    fn rng(seed: &mut u64) -> f64 {
-        *seed ^= *seed << 13;
-        *seed ^= *seed >> 7;
-        *seed ^= *seed << 17;
-        (*seed >> 11) as f64 / (1u64 << 53) as f64
-    }
-
     fn random_cloud(count: usize, seed: u64) -> Vec<Particle> {
-        let mut s = seed;
+        let mut rng = crate::math::SplitMix64::mixed(seed);
         (0..count)
             .map(|_| {
-                let mut r = || rng(&mut s) as f32;
+                let mut r = || rng.next_f32();
                 particle(
                     r() * 2.0 - 1.0,
                     r() - 0.5,
