@@ -524,6 +524,67 @@ pub fn read_buffer(
     Ok(data)
 }
 
+/// Copies a 2D texture (its first mip level; the depth aspect of a depth texture) back to the
+/// CPU (blocking), rows tightly packed: for comparing what a render pass wrote with the CPU
+/// reference. The texture needs `COPY_SRC` usage.
+pub fn read_texture(
+    app: &mut App,
+    texture: &bevy::render::render_resource::Texture,
+) -> Result<Vec<u8>, HeadlessError> {
+    use bevy::render::{
+        render_resource::{
+            BufferDescriptor, BufferUsages, CommandEncoderDescriptor, TexelCopyBufferInfo,
+            TexelCopyBufferLayout, TextureAspect,
+        },
+        renderer::RenderQueue,
+    };
+    let aspect = if texture.format().is_depth_stencil_format() {
+        TextureAspect::DepthOnly
+    } else {
+        TextureAspect::All
+    };
+    let texel = texture
+        .format()
+        .block_copy_size(Some(aspect))
+        .ok_or(HeadlessError::Format {
+            format: texture.format(),
+        })?;
+    let (width, height) = (texture.width(), texture.height());
+    let row = width * texel;
+    // Buffer copies need rows aligned to 256 bytes.
+    let padded = row.next_multiple_of(256);
+    let world = app.sub_app(RenderApp).world();
+    let device = world.resource::<RenderDevice>();
+    let staging = device.create_buffer(&BufferDescriptor {
+        label: Some("headless_texture_readback"),
+        size: u64::from(padded * height),
+        usage: BufferUsages::COPY_SRC | BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut encoder = device.create_command_encoder(&CommandEncoderDescriptor::default());
+    let mut source = texture.as_image_copy();
+    source.aspect = aspect;
+    encoder.copy_texture_to_buffer(
+        source,
+        TexelCopyBufferInfo {
+            buffer: &staging,
+            layout: TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(padded),
+                rows_per_image: Some(height),
+            },
+        },
+        texture.size(),
+    );
+    world.resource::<RenderQueue>().submit([encoder.finish()]);
+    let bytes = read_buffer(app, &staging)?;
+    Ok(bytes
+        .chunks_exact(padded as usize)
+        .flat_map(|r| &r[..row as usize])
+        .copied()
+        .collect())
+}
+
 /// Little-endian f32s of a byte buffer.
 pub fn floats(bytes: &[u8]) -> Vec<f32> {
     bytes

@@ -68,15 +68,17 @@ use bevy::prelude::*;
 
 pub use cloud::{CloudSystems, InvalidCloud, NotCloudLight, ParticleCloud, Particles};
 pub use particle::{LightSample, Medium, Particle};
-pub use settings::{CloudQualitySettings, Compositing, DefaultCloudQuality, ScatterStencil};
+pub use settings::{
+    CloudQualitySettings, CloudTargetScale, Compositing, DefaultCloudQuality, ScatterStencil,
+};
 pub use stats::{CloudPass, CloudPassCounters, PASSES};
 
 /// Everything a Bevy user needs.
 pub mod prelude {
     pub use crate::{
-        CloudQualitySettings, CloudSystems, Compositing, DefaultCloudQuality, Medium,
-        NotCloudLight, Particle, ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil,
-        generators,
+        CloudQualitySettings, CloudSystems, CloudTargetScale, Compositing, DefaultCloudQuality,
+        Medium, NotCloudLight, Particle, ParticleCloud, ParticleCloudsPlugin, Particles,
+        ScatterStencil, generators,
     };
 }
 
@@ -94,6 +96,7 @@ impl Plugin for ParticleCloudsPlugin {
             .register_type::<Particles>()
             .register_type::<NotCloudLight>()
             .register_type::<CloudQualitySettings>()
+            .register_type::<CloudTargetScale>()
             .register_type::<DefaultCloudQuality>()
             .init_resource::<DefaultCloudQuality>()
             .init_resource::<CloudPassCounters>()

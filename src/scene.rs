@@ -944,6 +944,14 @@ mod tests {
             |f| f.settings.forward_scattering = f32::NAN,
             "settings.forward_scattering is NaN; it must lie in [0, 1]",
         ),
+        (
+            |f| f.settings.cloud_target_scale = 0.1,
+            "settings.cloud_target_scale is 0.1; it must lie in [0.125, 1]",
+        ),
+        (
+            |f| f.settings.cloud_target_scale = f32::NAN,
+            "settings.cloud_target_scale is NaN; it must lie in [0.125, 1]",
+        ),
     ];
 
     #[test]

@@ -5,7 +5,7 @@
 //! struct under `settings`. The cost and error of each knob are measured by the time–error
 //! benchmark (see the README).
 
-use bevy::prelude::*;
+use bevy::{prelude::*, render::extract_component::ExtractComponent};
 use serde::Deserialize;
 
 /// How one multiple-scattering iteration carries light between voxels (docs/illumination.md §4).
@@ -82,6 +82,12 @@ pub struct CloudQualitySettings {
     pub chord_segments: u32,
     /// How the billboards are composited. Default [`Compositing::ViewTransmittance`].
     pub compositing: Compositing,
+    /// The billboards are drawn into a target of this fraction of the view's size per axis, then
+    /// enlarged onto the view with a depth-aware upsample (the paper's §4 fill-rate
+    /// optimisation; docs/illumination.md §6). A view draws all its clouds at one scale: its
+    /// camera's [`CloudTargetScale`] if it has one, else the largest scale any cloud it sees
+    /// asks for. Allowed: `MIN_CLOUD_TARGET_SCALE..=1`. Default 1 (full size).
+    pub cloud_target_scale: f32,
 }
 
 /// Smallest allowed `volume_resolution`.
@@ -95,6 +101,8 @@ pub const MAX_SCATTER_ITERATIONS: u32 = 4096;
 pub const MAX_LIGHT_SUPERSAMPLING: u32 = 4;
 /// Largest allowed `chord_segments`.
 pub const MAX_CHORD_SEGMENTS: u32 = 16;
+/// Smallest allowed `cloud_target_scale` (an eighth of the view's size per axis).
+pub const MIN_CLOUD_TARGET_SCALE: f32 = 0.125;
 
 impl Default for CloudQualitySettings {
     fn default() -> Self {
@@ -106,6 +114,7 @@ impl Default for CloudQualitySettings {
             light_supersampling: 3,
             chord_segments: 8,
             compositing: Compositing::ViewTransmittance,
+            cloud_target_scale: 1.0,
         }
     }
 }
@@ -139,6 +148,8 @@ pub enum InvalidSettings {
     LightSupersampling(u32),
     /// `chord_segments` outside `1..=MAX_CHORD_SEGMENTS`.
     ChordSegments(u32),
+    /// `cloud_target_scale` outside `[MIN_CLOUD_TARGET_SCALE, 1]` (or NaN).
+    CloudTargetScale(f32),
 }
 
 impl InvalidSettings {
@@ -150,6 +161,7 @@ impl InvalidSettings {
             Self::ForwardScattering(_) => "forward_scattering",
             Self::LightSupersampling(_) => "light_supersampling",
             Self::ChordSegments(_) => "chord_segments",
+            Self::CloudTargetScale(_) => "cloud_target_scale",
         }
     }
 
@@ -160,7 +172,7 @@ impl InvalidSettings {
             | Self::ScatterIterations(v)
             | Self::LightSupersampling(v)
             | Self::ChordSegments(v) => v.to_string(),
-            Self::ForwardScattering(v) => v.to_string(),
+            Self::ForwardScattering(v) | Self::CloudTargetScale(v) => v.to_string(),
         }
     }
 
@@ -174,6 +186,9 @@ impl InvalidSettings {
             Self::ForwardScattering(_) => "it must lie in [0, 1]".into(),
             Self::LightSupersampling(_) => format!("allowed is 1..={MAX_LIGHT_SUPERSAMPLING}"),
             Self::ChordSegments(_) => format!("allowed is 1..={MAX_CHORD_SEGMENTS}"),
+            Self::CloudTargetScale(_) => {
+                format!("it must lie in [{MIN_CLOUD_TARGET_SCALE}, 1]")
+            }
         }
     }
 }
@@ -198,7 +213,35 @@ impl CloudQualitySettings {
         if !(1..=MAX_CHORD_SEGMENTS).contains(&self.chord_segments) {
             return Err(InvalidSettings::ChordSegments(self.chord_segments));
         }
+        if !(MIN_CLOUD_TARGET_SCALE..=1.0).contains(&self.cloud_target_scale) {
+            return Err(InvalidSettings::CloudTargetScale(self.cloud_target_scale));
+        }
         Ok(())
+    }
+}
+
+/// A camera's cloud target scale: its clouds are drawn into a target of this fraction of its
+/// size per axis, then enlarged onto it with a depth-aware upsample. Overrides the
+/// `cloud_target_scale` of the clouds it sees. Allowed: `MIN_CLOUD_TARGET_SCALE..=1`; a value
+/// outside is clamped into it, NaN draws at full size.
+#[derive(Component, Clone, Copy, Debug, PartialEq, Reflect, Deref, ExtractComponent)]
+#[reflect(Component, Default, Debug, PartialEq)]
+pub struct CloudTargetScale(pub f32);
+
+impl Default for CloudTargetScale {
+    fn default() -> Self {
+        Self(1.0)
+    }
+}
+
+impl CloudTargetScale {
+    /// The scale in effect: clamped into `MIN_CLOUD_TARGET_SCALE..=1`, full size for NaN.
+    pub fn effective(self) -> f32 {
+        if self.0.is_nan() {
+            1.0
+        } else {
+            self.0.clamp(MIN_CLOUD_TARGET_SCALE, 1.0)
+        }
     }
 }
 

@@ -5,9 +5,11 @@
 //!   (`docs/illumination.md`); the GPU passes are tested voxel by voxel against it.
 //! - [`path_tracer`]: ground truth of the physical model itself (docs/physics.md), with no voxels and
 //!   no billboards; the time–error benchmark measures the real-time renderer against it.
+//! - [`cloud_target`]: the depth-aware upsample of a reduced-resolution cloud target.
 //! - [`metrics`]: the error metrics of docs/physics.md.
 
 pub mod camera;
+pub mod cloud_target;
 pub mod composite;
 pub mod geometry;
 pub mod illumination;

@@ -7,7 +7,11 @@
 //   camera (view_volume.wgsl); both are order-independent;
 // - otherwise `fragment` blends particles whole, back to front in the sorted order.
 #import bevy_render::view::View
-#import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, ViewVolumeParams, PI, grid_coords, light_coords, clamped_lookup, clamped_corner, corner_weight, opacity, voxel_index, view_volume_coords}
+//
+// CLOUD_TARGET: drawn into the view's reduced-resolution cloud target, which has no depth
+// attachment; each fragment is depth-tested here against the view pixel its texel stands for
+// (cloud_target.wgsl enlarges the target onto the view).
+#import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, ViewVolumeParams, CloudTargetParams, PI, grid_coords, light_coords, clamped_lookup, clamped_corner, corner_weight, opacity, voxel_index, view_volume_coords, cloud_target_depth_pixel}
 
 struct DrawParams {
     world_from_local: mat4x4<f32>,
@@ -22,6 +26,14 @@ struct DrawParams {
 }
 
 @group(0) @binding(0) var<uniform> view: View;
+#ifdef CLOUD_TARGET
+@group(0) @binding(1) var<uniform> cloud_target: CloudTargetParams;
+#ifdef MULTISAMPLED
+@group(0) @binding(2) var scene_depth: texture_depth_multisampled_2d;
+#else
+@group(0) @binding(2) var scene_depth: texture_depth_2d;
+#endif
+#endif
 @group(1) @binding(0) var<uniform> params: DrawParams;
 @group(1) @binding(1) var<uniform> cloud: CloudParams;
 @group(1) @binding(2) var<storage, read> particles: array<Particle>;
@@ -155,6 +167,17 @@ struct Chord {
     seen: bool,
 }
 
+// Whether opaque geometry hides the fragment (reverse Z: nearer is greater); the depth
+// attachment does this test when drawing at full size.
+fn occluded(position: vec4<f32>) -> bool {
+#ifdef CLOUD_TARGET
+    let pixel = cloud_target_depth_pixel(cloud_target, vec2<u32>(floor(position.xy)));
+    return position.z < textureLoad(scene_depth, pixel, 0);
+#else
+    return false;
+#endif
+}
+
 fn chord(in: VertexOutput) -> Chord {
     var c: Chord;
     let eye = view.world_position;
@@ -165,7 +188,7 @@ fn chord(in: VertexOutput) -> Chord {
     c.t_c = dot(to_centre, c.w);
     let closest = to_centre - c.t_c * c.w;
     c.q = 1.0 - dot(closest, closest) / (c.radius * c.radius);
-    c.seen = c.q > 0.0;
+    c.seen = c.q > 0.0 && !occluded(in.clip_position);
     c.s1 = c.radius * sqrt(max(c.q, 0.0));
     c.s0 = -c.s1;
     if in.on_near_plane != 0u {

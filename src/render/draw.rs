@@ -28,7 +28,7 @@ use bevy::{
             BlendComponent, BlendFactor, BlendOperation, BlendState, Buffer, BufferInitDescriptor,
             BufferUsages, CachedRenderPipelineId, ColorTargetState, ColorWrites, CompareFunction,
             DepthBiasState, DepthStencilState, FragmentState, MultisampleState, PipelineCache,
-            PrimitiveState, RenderPipelineDescriptor, ShaderStages, ShaderType,
+            PrimitiveState, RenderPipeline, RenderPipelineDescriptor, ShaderStages, ShaderType,
             SpecializedRenderPipeline, SpecializedRenderPipelines, StencilState, TextureFormat,
             VertexState,
             binding_types::{storage_buffer_read_only_sized, uniform_buffer, uniform_buffer_sized},
@@ -43,9 +43,16 @@ use bevy::{
 };
 
 use super::{
-    extract::ExtractedCloud, gpu::uniform_bytes, key_of, particles::GpuParticles,
-    plan::CloudIllumination, shaders::CloudShaders, sort::CloudSorts,
-    view_volume::CloudViewVolumes, volumes::CloudVolumes,
+    cloud_target::{ViewCloudDraws, ViewCloudTarget},
+    extract::ExtractedCloud,
+    gpu::uniform_bytes,
+    key_of,
+    particles::GpuParticles,
+    plan::CloudIllumination,
+    shaders::CloudShaders,
+    sort::CloudSorts,
+    view_volume::CloudViewVolumes,
+    volumes::CloudVolumes,
 };
 use crate::{
     cloud::ParticleCloud,
@@ -181,13 +188,29 @@ impl BillboardBlend {
     }
 }
 
-/// What a billboard pipeline depends on: the view's target and the draw's blend.
+/// Where the billboards are drawn.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+pub enum BillboardTarget {
+    /// Into the view's own colour target, depth-tested by its depth attachment.
+    View {
+        /// The view's colour target format (HDR or not).
+        format: TextureFormat,
+        /// MSAA sample count of the view.
+        samples: u32,
+    },
+    /// Into the view's reduced-resolution cloud target (`cloud_target.rs`), depth-tested in the
+    /// fragment shader against the view's depth.
+    CloudTarget {
+        /// Whether the view's depth is multisampled.
+        multisampled_depth: bool,
+    },
+}
+
+/// What a billboard pipeline depends on: where it draws and the draw's blend.
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
 pub struct BillboardPipelineKey {
-    /// The view's colour target format (HDR or not).
-    pub target_format: TextureFormat,
-    /// MSAA sample count of the view.
-    pub samples: u32,
+    /// The target drawn into.
+    pub target: BillboardTarget,
     /// Which of the compositing's draws.
     pub blend: BillboardBlend,
 }
@@ -202,12 +225,36 @@ impl SpecializedRenderPipeline for BillboardPipeline {
         if compositing == Compositing::ViewTransmittance {
             shader_defs.push("VIEW_TRANSMITTANCE".into());
         }
+        let (view_layout, format, samples, depth_stencil) = match key.target {
+            BillboardTarget::View { format, samples } => (
+                self.view_layout.clone(),
+                format,
+                samples,
+                Some(DepthStencilState {
+                    format: CORE_3D_DEPTH_FORMAT,
+                    // Read-only depth: opaque geometry hides particles, particles hide nothing.
+                    depth_write_enabled: Some(false),
+                    depth_compare: Some(CompareFunction::GreaterEqual),
+                    stencil: StencilState::default(),
+                    bias: DepthBiasState::default(),
+                }),
+            ),
+            BillboardTarget::CloudTarget { multisampled_depth } => {
+                shader_defs.push("CLOUD_TARGET".into());
+                if multisampled_depth {
+                    shader_defs.push("MULTISAMPLED".into());
+                }
+                (
+                    super::cloud_target::billboard_view_layout(multisampled_depth),
+                    super::cloud_target::CLOUD_TARGET_FORMAT,
+                    1,
+                    None,
+                )
+            }
+        };
         RenderPipelineDescriptor {
             label: Some("particle_clouds_billboards".into()),
-            layout: vec![
-                self.view_layout.clone(),
-                self.cloud_layout(compositing).clone(),
-            ],
+            layout: vec![view_layout, self.cloud_layout(compositing).clone()],
             vertex: VertexState {
                 shader: self.shader.clone(),
                 entry_point: Some("vertex".into()),
@@ -219,7 +266,7 @@ impl SpecializedRenderPipeline for BillboardPipeline {
                 entry_point: Some(key.blend.entry_point().into()),
                 shader_defs,
                 targets: vec![Some(ColorTargetState {
-                    format: key.target_format,
+                    format,
                     blend: Some(key.blend.state()),
                     write_mask: ColorWrites::ALL,
                 })],
@@ -228,16 +275,9 @@ impl SpecializedRenderPipeline for BillboardPipeline {
                 cull_mode: None,
                 ..default()
             },
-            depth_stencil: Some(DepthStencilState {
-                format: CORE_3D_DEPTH_FORMAT,
-                // Read-only depth: opaque geometry hides particles, particles hide nothing.
-                depth_write_enabled: Some(false),
-                depth_compare: Some(CompareFunction::GreaterEqual),
-                stencil: StencilState::default(),
-                bias: DepthBiasState::default(),
-            }),
+            depth_stencil,
             multisample: MultisampleState {
-                count: key.samples,
+                count: samples,
                 mask: !0,
                 alpha_to_coverage_enabled: false,
             },
@@ -406,7 +446,18 @@ pub(crate) fn prepare_billboard_bind_groups(
 /// The `Emit` pipeline drawn after each `Attenuate` pipeline (a view-transmittance cloud's
 /// phase item carries the first; its draw function adds the second).
 #[derive(Resource, Default)]
-pub struct BillboardEmitPipelines(HashMap<CachedRenderPipelineId, CachedRenderPipelineId>);
+pub struct BillboardEmitPipelines(
+    pub(crate) HashMap<CachedRenderPipelineId, CachedRenderPipelineId>,
+);
+
+/// A view whose clouds are queued: into its phase, or into its cloud target's list.
+type ViewToQueue = (
+    Entity,
+    &'static ExtractedView,
+    &'static Msaa,
+    &'static RenderVisibleEntities,
+    Option<&'static ViewCloudTarget>,
+);
 
 /// Whether a cloud is ready to draw in a view, and what its phase item needs.
 type QueuedCloud = (
@@ -417,34 +468,41 @@ type QueuedCloud = (
     &'static MainEntity,
 );
 
-/// Adds one `Transparent3d` item per visible, drawable cloud to every view's phase.
+/// Adds one `Transparent3d` item per visible, drawable cloud to every view's phase; a view with a
+/// cloud target gets its clouds as a back-to-front list instead.
 #[allow(clippy::too_many_arguments)] // a render system's resources
 pub(crate) fn queue_cloud_billboards(
+    mut commands: Commands,
     draw_functions: Res<DrawFunctions<Transparent3d>>,
     pipeline: Option<Res<BillboardPipeline>>,
     mut pipelines: ResMut<SpecializedRenderPipelines<BillboardPipeline>>,
     mut emit_pipelines: ResMut<BillboardEmitPipelines>,
     pipeline_cache: Res<PipelineCache>,
     mut phases: ResMut<ViewSortedRenderPhases<Transparent3d>>,
-    views: Query<(&ExtractedView, &Msaa, &RenderVisibleEntities)>,
+    views: Query<ViewToQueue>,
     clouds: Query<QueuedCloud>,
     particles: Res<RenderAssets<GpuParticles>>,
 ) {
     let Some(pipeline) = pipeline else { return };
     let draw_function = draw_functions.read().id::<DrawCloudBillboards>();
-    for (view, msaa, visible) in &views {
+    for (entity, view, msaa, visible, cloud_target) in &views {
         let Some(phase) = phases.get_mut(&view.retained_view_entity) else {
             continue;
         };
         let Some(class) = visible.get::<ParticleCloud>() else {
             continue;
         };
-        let mut specialize = |blend| {
-            let key = BillboardPipelineKey {
-                target_format: view.target_format,
+        let target = match cloud_target {
+            Some(t) => BillboardTarget::CloudTarget {
+                multisampled_depth: t.multisampled,
+            },
+            None => BillboardTarget::View {
+                format: view.target_format,
                 samples: msaa.samples(),
-                blend,
-            };
+            },
+        };
+        let mut specialize = |blend| {
+            let key = BillboardPipelineKey { target, blend };
             pipelines.specialize(&pipeline_cache, &pipeline, key)
         };
         let sorted = specialize(BillboardBlend::Sorted);
@@ -452,6 +510,8 @@ pub(crate) fn queue_cloud_billboards(
         let emit = specialize(BillboardBlend::Emit);
         emit_pipelines.0.insert(attenuate, emit);
         let here = &view.retained_view_entity;
+        let view_from_world = view.world_from_view.affine().inverse();
+        let mut into_target = Vec::new();
         for &(render_entity, _) in &class.entities_cpu_culling {
             let Ok((cloud, illumination, sorts, view_volumes, main_entity)) =
                 clouds.get(render_entity)
@@ -479,6 +539,12 @@ pub(crate) fn queue_cloud_billboards(
             let centre = cloud
                 .world_from_local
                 .transform_point3(gpu.bounds.map_or(Vec3::ZERO, |b| b.centre));
+            if cloud_target.is_some() {
+                // View space looks down -z: the farthest has the most negative z.
+                let z = view_from_world.transform_point3(centre).z;
+                into_target.push((z, render_entity, pipeline_id));
+                continue;
+            }
             phase.add_transient(Transparent3d {
                 sorting_info: TransparentSortingInfo3d::Sorted {
                     mesh_center: centre,
@@ -493,6 +559,11 @@ pub(crate) fn queue_cloud_billboards(
                 indexed: false,
             });
         }
+        if cloud_target.is_some() {
+            into_target.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let draws = into_target.into_iter().map(|(_, e, p)| (e, p)).collect();
+            commands.entity(entity).insert(ViewCloudDraws(draws));
+        }
     }
 }
 
@@ -500,7 +571,7 @@ pub(crate) fn queue_cloud_billboards(
 pub type DrawCloudBillboards = (
     SetItemPipeline,
     SetBillboardViewBindGroup<0>,
-    DrawBillboards<1>,
+    DrawBillboards,
 );
 
 /// Binds the view uniform at group `I`.
@@ -523,11 +594,27 @@ impl<P: PhaseItem, const I: usize> RenderCommand<P> for SetBillboardViewBindGrou
     }
 }
 
+/// Binds the cloud's group for this view (group 1) and draws six vertices per particle; through
+/// the view transmittance, a second time with the `emit` pipeline.
+pub(crate) fn draw_billboards<'w>(
+    pass: &mut TrackedRenderPass<'w>,
+    group: &'w BindGroup,
+    count: u32,
+    emit: Option<&'w RenderPipeline>,
+) {
+    pass.set_bind_group(1, group, &[]);
+    pass.draw(0..6, 0..count);
+    if let Some(emit) = emit {
+        pass.set_render_pipeline(emit);
+        pass.draw(0..6, 0..count);
+    }
+}
+
 /// Binds the cloud's group for this view and draws six vertices per particle; through the view
 /// transmittance, a second time with the `Emit` pipeline.
-pub struct DrawBillboards<const I: usize>;
+pub struct DrawBillboards;
 
-impl<P: CachedRenderPipelinePhaseItem, const I: usize> RenderCommand<P> for DrawBillboards<I> {
+impl<P: CachedRenderPipelinePhaseItem> RenderCommand<P> for DrawBillboards {
     type Param = (
         SRes<RenderAssets<GpuParticles>>,
         SRes<CloudPassCounters>,
@@ -554,17 +641,13 @@ impl<P: CachedRenderPipelinePhaseItem, const I: usize> RenderCommand<P> for Draw
         let Some(gpu) = particles.into_inner().get(cloud.particles) else {
             return RenderCommandResult::Skip;
         };
-        pass.set_bind_group(I, group, &[]);
         // A timestamp span only: Bevy's own span around the transparent pass already holds the
         // pass's pipeline-statistics query, and those cannot nest.
         let recorder = recorder.map(|r| r.into_inner());
         let span = recorder.time_span(pass.wgpu_pass(), CloudPass::Draw.span_name());
-        pass.draw(0..6, 0..gpu.count);
         let emit = emit.into_inner().0.get(&item.cached_pipeline());
-        if let Some(emit) = emit.and_then(|id| cache.into_inner().get_render_pipeline(*id)) {
-            pass.set_render_pipeline(emit);
-            pass.draw(0..6, 0..gpu.count);
-        }
+        let emit = emit.and_then(|id| cache.into_inner().get_render_pipeline(*id));
+        draw_billboards(pass, group, gpu.count, emit);
         span.end(pass.wgpu_pass());
         counters.add(CloudPass::Draw, 1);
         RenderCommandResult::Success

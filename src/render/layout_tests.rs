@@ -4,8 +4,9 @@
 use bevy::render::render_resource::ShaderType;
 
 use super::{
-    draw::DrawParams, particles::GpuParticle, pipelines::SweepDirection, sort::SortParams,
-    view_volume::ViewVolumeParams, volumes::CloudParams, volumes::LightParams,
+    cloud_target::CloudTargetParams, draw::DrawParams, particles::GpuParticle,
+    pipelines::SweepDirection, sort::SortParams, view_volume::ViewVolumeParams,
+    volumes::CloudParams, volumes::LightParams,
 };
 
 const WGSL: [&str; 4] = [
@@ -14,13 +15,14 @@ const WGSL: [&str; 4] = [
     include_str!("sort.wgsl"),
     include_str!("scatter.wgsl"),
 ];
-const RUST: [&str; 6] = [
+const RUST: [&str; 7] = [
     include_str!("volumes.rs"),
     include_str!("draw.rs"),
     include_str!("sort.rs"),
     include_str!("view_volume.rs"),
     include_str!("pipelines.rs"),
     include_str!("particles.rs"),
+    include_str!("cloud_target.rs"),
 ];
 
 /// The text of `struct <name> { … }` (from `start`, e.g. `struct ` or `pub struct `) up to the
@@ -87,6 +89,11 @@ fn rust_mirrors_have_the_wgsl_layout() {
         "SweepDirection",
         "SweepDirection",
         SweepDirection::min_size().get(),
+    );
+    check(
+        "CloudTargetParams",
+        "CloudTargetParams",
+        CloudTargetParams::min_size().get(),
     );
     // The particle buffer is plain bytes (bytemuck), laid out as `Particle`.
     let (size, _) = wgsl_layout("Particle");

@@ -11,10 +11,12 @@
 //! | `sort.rs` | per-view GPU radix sort of the particles (`Compositing::Sorted`) |
 //! | `view_volume.rs` | per-view optical depth from the camera (`Compositing::ViewTransmittance`) |
 //! | `draw.rs` | the billboard draw in `Transparent3d` |
+//! | `cloud_target.rs` | the paper's §4: billboards into a reduced-resolution target, upsampled by depth |
 //! | `workgroups.rs` | workgroup sizes and dispatches, shared with the WGSL as shader defs |
 //! | `gpu.rs` | buffers, their encodings, and a recorded stage (compute pass, GPU time span, counter) |
 //! | `shaders.rs` | the WGSL beside each stage (`*.wgsl`), embedded |
 
+pub mod cloud_target;
 pub mod draw;
 pub mod extract;
 pub mod gpu;
@@ -108,6 +110,7 @@ pub(crate) fn build(app: &mut App) {
         ExtractResourcePlugin::<CloudPassCounters>::default(),
         ExtractResourcePlugin::<ShadingMethod>::default(),
     ));
+    cloud_target::build(app);
     if let Some(render_app) = app.get_sub_app_mut(RenderApp) {
         render_app.insert_resource(shaders);
     }
@@ -205,4 +208,5 @@ pub(crate) fn finish(app: &mut App) {
                 .in_set(RenderGraphSystems::Render)
                 .before(camera_driver),
         );
+    cloud_target::finish(render_app);
 }

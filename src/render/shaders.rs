@@ -32,6 +32,8 @@ pub struct CloudShaders {
     pub view_volume: Handle<Shader>,
     /// `billboard.wgsl`.
     pub billboard: Handle<Shader>,
+    /// `cloud_target.wgsl`.
+    pub cloud_target: Handle<Shader>,
 }
 
 impl CloudShaders {
@@ -47,6 +49,7 @@ impl CloudShaders {
         embedded_asset!(app, "sort.wgsl");
         embedded_asset!(app, "view_volume.wgsl");
         embedded_asset!(app, "billboard.wgsl");
+        embedded_asset!(app, "cloud_target.wgsl");
         Self {
             types: load_embedded_asset!(&*app, "types.wgsl"),
             voxelize: load_embedded_asset!(&*app, "voxelize.wgsl"),
@@ -58,6 +61,7 @@ impl CloudShaders {
             sort: load_embedded_asset!(&*app, "sort.wgsl"),
             view_volume: load_embedded_asset!(&*app, "view_volume.wgsl"),
             billboard: load_embedded_asset!(&*app, "billboard.wgsl"),
+            cloud_target: load_embedded_asset!(&*app, "cloud_target.wgsl"),
         }
     }
 }

@@ -159,3 +159,33 @@ fn view_volume_coords(volume: ViewVolumeParams, p: vec3<f32>) -> vec3<f32> {
     );
     return clamp(t, vec3(0.0), vec3(1.0)) * f32(volume.n - 1u);
 }
+
+// A view's reduced-resolution cloud target (src/render/cloud_target.rs; docs/illumination.md §6).
+struct CloudTargetParams {
+    // The view's viewport in its target: corner and size, pixels.
+    viewport_origin: vec2<u32>,
+    viewport_size: vec2<u32>,
+    // Texels per side of the cloud target.
+    target_size: vec2<u32>,
+    // Cloud-target texels per view pixel, per axis.
+    scale: f32,
+    // Relative depth difference at which an upsampling weight falls to 1/e.
+    depth_tolerance: f32,
+}
+
+// The view pixel whose depth cloud-target texel `t` stands for: the one under the texel's centre.
+// The billboards are depth-tested against it, and the upsample compares it with each pixel's own.
+fn cloud_target_depth_pixel(params: CloudTargetParams, t: vec2<u32>) -> vec2<u32> {
+    let p = vec2<u32>((vec2<f32>(t) + 0.5) / params.scale);
+    return params.viewport_origin + min(p, params.viewport_size - 1u);
+}
+
+// |a - b| / max(a, b) for reverse-Z depths: the relative difference of the view depths, measured
+// from the farther one; 0 for equal depths, 1 between the sky (0) and any surface.
+fn relative_depth_difference(a: f32, b: f32) -> f32 {
+    let far = max(a, b);
+    if far <= 0.0 {
+        return 0.0;
+    }
+    return abs(a - b) / far;
+}

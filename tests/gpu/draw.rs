@@ -120,27 +120,37 @@ fn gpu_sort_equals_a_stable_cpu_sort() {
     }
 }
 
-const W: u32 = 48;
-const H: u32 = 40;
-const FOV: f32 = 40.0;
+pub(crate) const W: u32 = 48;
+pub(crate) const H: u32 = 40;
+pub(crate) const FOV: f32 = 40.0;
 
-struct Render {
-    image: LinearImage,
-    frames: FrameRecorder,
+pub(crate) struct Render {
+    pub(crate) image: LinearImage,
+    pub(crate) frames: FrameRecorder,
 }
 
-struct Setup {
-    particles: Vec<Particle>,
-    medium: Medium,
-    transform: Transform,
-    lights: Vec<LightSample>,
-    objects: Vec<SceneObject>,
-    camera: Transform,
-    background: Vec3,
-    settings: CloudQualitySettings,
+pub(crate) struct Setup {
+    pub(crate) particles: Vec<Particle>,
+    pub(crate) medium: Medium,
+    pub(crate) transform: Transform,
+    pub(crate) lights: Vec<LightSample>,
+    pub(crate) objects: Vec<SceneObject>,
+    pub(crate) camera: Transform,
+    pub(crate) background: Vec3,
+    pub(crate) settings: CloudQualitySettings,
 }
 
-fn render(setup: &Setup) -> (App, SceneTarget, Render) {
+/// Renders the setup until its illumination is finished and captures the image.
+pub(crate) fn render(setup: &Setup) -> (App, SceneTarget, Render) {
+    let (mut app, target) = spawn(setup);
+    let mut frames = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut frames, target.drawable_clouds, 20).unwrap();
+    let image = headless::capture(&mut app, &mut frames, &target.image).unwrap();
+    (app, target, Render { image, frames })
+}
+
+/// A headless app with the setup's camera, lights, objects and cloud.
+pub(crate) fn spawn(setup: &Setup) -> (App, SceneTarget) {
     let mut app = common::headless_app();
     let image = headless::float_target(&mut app, W, H);
     let camera =
@@ -167,10 +177,7 @@ fn render(setup: &Setup) -> (App, SceneTarget, Render) {
         camera,
         drawable_clouds: 1,
     };
-    let mut frames = FrameRecorder::default();
-    headless::render_until_steady(&mut app, &mut frames, target.drawable_clouds, 20).unwrap();
-    let image = headless::capture(&mut app, &mut frames, &target.image).unwrap();
-    (app, target, Render { image, frames })
+    (app, target)
 }
 
 /// The CPU reference image of the same billboards.
@@ -221,7 +228,7 @@ fn reference(setup: &Setup) -> Vec<[f32; 4]> {
     )
 }
 
-fn cloud_setup(seed: u64, camera: Transform) -> Setup {
+pub(crate) fn cloud_setup(seed: u64, camera: Transform) -> Setup {
     let mut rng = SplitMix64::new(seed);
     Setup {
         particles: (0..40)

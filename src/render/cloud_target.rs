@@ -1,0 +1,516 @@
+//! The paper's §4 fill-rate optimisation: a view whose cloud target scale is below 1 draws its
+//! clouds' billboards into a target of that fraction of its size (per axis), then enlarges the
+//! target onto the view with a depth-aware upsample (`cloud_target.wgsl`). The draw happens
+//! between the opaque and the transparent passes, and reads the view's depth without writing it.
+//!
+//! The billboards are depth-tested in their fragment shader against one view pixel per target
+//! texel (the one under the texel's centre). The upsample weighs the four texels around each view
+//! pixel bilinearly and by how close that pixel's depth is to each texel's, so an edge between
+//! near and far geometry takes its cloud from the texels on its own side.
+
+use bevy::{
+    camera::Camera3d,
+    core_pipeline::{
+        FullscreenShader,
+        core_3d::{main_opaque_pass_3d, main_transparent_pass_3d},
+        schedule::{Core3d, Core3dSystems},
+    },
+    prelude::*,
+    render::{
+        Render, RenderSystems,
+        camera::ExtractedCamera,
+        diagnostic::RecordDiagnostics,
+        extract_component::ExtractComponentPlugin,
+        render_asset::RenderAssets,
+        render_resource::{
+            BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries,
+            BlendState, BufferInitDescriptor, BufferUsages, CachedRenderPipelineId,
+            ColorTargetState, ColorWrites, FragmentState, LoadOp, Operations, PipelineCache,
+            RenderPassColorAttachment, RenderPassDescriptor, RenderPipelineDescriptor,
+            ShaderStages, ShaderType, SpecializedRenderPipeline, SpecializedRenderPipelines,
+            StoreOp, TextureDescriptor, TextureDimension, TextureFormat, TextureSampleType,
+            TextureUsages,
+            binding_types::{
+                texture_2d, texture_depth_2d, texture_depth_2d_multisampled, uniform_buffer,
+                uniform_buffer_sized,
+            },
+        },
+        renderer::{RenderContext, RenderDevice, ViewQuery},
+        texture::{CachedTexture, TextureCache},
+        view::{
+            ExtractedView, Msaa, RenderVisibleEntities, ViewDepthTexture, ViewTarget, ViewUniform,
+            ViewUniformOffset, ViewUniforms,
+        },
+    },
+};
+
+use super::{
+    draw::{CloudDrawBindGroups, draw_billboards},
+    extract::ExtractedCloud,
+    gpu::uniform_bytes,
+    particles::GpuParticles,
+    shaders::CloudShaders,
+};
+use crate::{
+    cloud::ParticleCloud,
+    settings::CloudTargetScale,
+    stats::{CloudPass, CloudPassCounters},
+};
+
+/// The format of the cloud target: premultiplied linear radiance and opacity, in HDR.
+pub const CLOUD_TARGET_FORMAT: TextureFormat = TextureFormat::Rgba16Float;
+
+/// The relative depth difference (see `relative_depth_difference` in `types.wgsl`) at which a
+/// texel's upsampling weight falls to `1/e`. Neighbouring pixels of one surface differ by far
+/// less, even at grazing angles; a cloud and the object in front of it by far more.
+pub const DEPTH_TOLERANCE: f32 = 0.05;
+
+/// The GPU time span of a view's cloud target (its draw and its composite).
+pub const SPAN_NAME: &str = "particle_clouds_cloud_target";
+
+/// Mirror of `CloudTargetParams` in `types.wgsl`.
+#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
+pub struct CloudTargetParams {
+    /// The view's viewport in its target: corner, pixels.
+    pub viewport_origin: UVec2,
+    /// The viewport's size, pixels.
+    pub viewport_size: UVec2,
+    /// Texels per side of the cloud target.
+    pub target_size: UVec2,
+    /// Cloud-target texels per view pixel, per axis.
+    pub scale: f32,
+    /// [`DEPTH_TOLERANCE`].
+    pub depth_tolerance: f32,
+}
+
+impl CloudTargetParams {
+    /// The target of a viewport of `size` pixels at `scale`: at least one texel per side.
+    pub fn new(viewport_origin: UVec2, viewport_size: UVec2, scale: f32) -> Self {
+        let target_size = (viewport_size.as_vec2() * scale)
+            .ceil()
+            .as_uvec2()
+            .max(UVec2::ONE);
+        Self {
+            viewport_origin,
+            viewport_size,
+            target_size,
+            scale,
+            depth_tolerance: DEPTH_TOLERANCE,
+        }
+    }
+
+    /// The view pixel whose depth texel `t` stands for (`cloud_target_depth_pixel` in WGSL).
+    pub fn depth_pixel(&self, t: UVec2) -> UVec2 {
+        let p = ((t.as_vec2() + 0.5) / self.scale).as_uvec2();
+        self.viewport_origin + p.min(self.viewport_size - 1)
+    }
+}
+
+/// A view's cloud target, when its scale is below 1: the scale and the target's size. Decided in
+/// `PrepareViews`, before the billboards are queued.
+#[derive(Component, Clone, Copy, Debug, PartialEq)]
+pub struct ViewCloudTarget {
+    /// The target's parameters (scale and sizes).
+    pub params: CloudTargetParams,
+    /// Whether the view's depth is multisampled.
+    pub multisampled: bool,
+}
+
+/// The clouds a view with a cloud target draws into it, back to front, with their pipelines.
+#[derive(Component, Default)]
+pub struct ViewCloudDraws(pub Vec<(Entity, CachedRenderPipelineId)>);
+
+/// A view's cloud target texture and its bind groups.
+#[derive(Component)]
+pub struct ViewCloudTargetResources {
+    /// The target: `CLOUD_TARGET_FORMAT`, the target's size.
+    pub texture: CachedTexture,
+    /// Group 0 of the billboards drawn into the target: view, target parameters, depth.
+    pub billboard_view: BindGroup,
+    /// The composite's group: target parameters, target, depth.
+    pub composite: BindGroup,
+}
+
+/// Group 0 of the billboard pipeline when drawing into a cloud target.
+pub(crate) fn billboard_view_layout(multisampled: bool) -> BindGroupLayoutDescriptor {
+    BindGroupLayoutDescriptor::new(
+        "particle_clouds_cloud_target_view_layout",
+        &BindGroupLayoutEntries::sequential(
+            ShaderStages::VERTEX_FRAGMENT,
+            (
+                uniform_buffer::<ViewUniform>(true),
+                uniform_buffer::<CloudTargetParams>(false),
+                depth_binding(multisampled),
+            ),
+        ),
+    )
+}
+
+fn composite_layout(multisampled: bool) -> BindGroupLayoutDescriptor {
+    BindGroupLayoutDescriptor::new(
+        "particle_clouds_cloud_target_composite_layout",
+        &BindGroupLayoutEntries::sequential(
+            ShaderStages::FRAGMENT,
+            (
+                uniform_buffer_sized(false, None),
+                texture_2d(TextureSampleType::Float { filterable: false }),
+                depth_binding(multisampled),
+            ),
+        ),
+    )
+}
+
+fn depth_binding(multisampled: bool) -> bevy::render::render_resource::BindGroupLayoutEntryBuilder {
+    if multisampled {
+        texture_depth_2d_multisampled()
+    } else {
+        texture_depth_2d()
+    }
+}
+
+/// The composite pipeline: the fullscreen triangle and `cloud_target.wgsl`.
+#[derive(Resource)]
+pub struct CompositePipeline {
+    fullscreen: FullscreenShader,
+    shader: Handle<Shader>,
+}
+
+/// What a composite pipeline depends on: the view's colour target and depth.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+pub struct CompositePipelineKey {
+    /// The view's colour target format.
+    pub target_format: TextureFormat,
+    /// MSAA samples of the view (its depth is multisampled when above 1).
+    pub samples: u32,
+}
+
+impl SpecializedRenderPipeline for CompositePipeline {
+    type Key = CompositePipelineKey;
+
+    fn specialize(&self, key: Self::Key) -> RenderPipelineDescriptor {
+        let multisampled = key.samples > 1;
+        let mut shader_defs = super::workgroups::shader_defs();
+        if multisampled {
+            shader_defs.push("MULTISAMPLED".into());
+        }
+        RenderPipelineDescriptor {
+            label: Some("particle_clouds_cloud_target_composite".into()),
+            layout: vec![composite_layout(multisampled)],
+            vertex: self.fullscreen.to_vertex_state(),
+            fragment: Some(FragmentState {
+                shader: self.shader.clone(),
+                entry_point: Some("composite".into()),
+                shader_defs,
+                targets: vec![Some(ColorTargetState {
+                    format: key.target_format,
+                    // The target holds premultiplied radiance and opacity: over what is behind.
+                    blend: Some(BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+                    write_mask: ColorWrites::ALL,
+                })],
+            }),
+            multisample: bevy::render::render_resource::MultisampleState {
+                count: key.samples,
+                ..default()
+            },
+            ..default()
+        }
+    }
+}
+
+/// A view's composite pipeline, specialized in `Queue`.
+#[derive(Component, Clone, Copy)]
+pub struct ViewCompositePipeline(pub CachedRenderPipelineId);
+
+pub(crate) fn build(app: &mut App) {
+    app.add_plugins(ExtractComponentPlugin::<CloudTargetScale>::default());
+}
+
+pub(crate) fn finish(render_app: &mut SubApp) {
+    render_app
+        .init_resource::<SpecializedRenderPipelines<CompositePipeline>>()
+        .add_systems(bevy::render::RenderStartup, init_composite_pipeline)
+        .add_systems(
+            Render,
+            (
+                choose_cloud_targets.in_set(RenderSystems::PrepareViews),
+                queue_composites.in_set(RenderSystems::Queue),
+                prepare_cloud_targets
+                    .in_set(RenderSystems::PrepareBindGroups)
+                    .after(super::draw::prepare_billboard_bind_groups),
+            ),
+        )
+        .add_systems(
+            Core3d,
+            draw_cloud_target
+                .in_set(Core3dSystems::MainPass)
+                .after(main_opaque_pass_3d)
+                .before(main_transparent_pass_3d),
+        );
+}
+
+fn init_composite_pipeline(
+    mut commands: Commands,
+    fullscreen: Res<FullscreenShader>,
+    shaders: Res<CloudShaders>,
+) {
+    commands.insert_resource(CompositePipeline {
+        fullscreen: fullscreen.clone(),
+        shader: shaders.cloud_target.clone(),
+    });
+}
+
+/// The scale a view draws its clouds at: its camera's [`CloudTargetScale`], else the largest
+/// `cloud_target_scale` of the clouds it sees (1 without clouds).
+pub fn view_scale<'a>(
+    camera: Option<&CloudTargetScale>,
+    clouds: impl IntoIterator<Item = &'a ExtractedCloud>,
+) -> f32 {
+    match camera {
+        Some(scale) => scale.effective(),
+        None => clouds
+            .into_iter()
+            .map(|c| c.settings.cloud_target_scale)
+            .fold(None, |a: Option<f32>, s| Some(a.map_or(s, |a| a.max(s))))
+            .unwrap_or(1.0),
+    }
+}
+
+/// Decides each view's cloud target and asks for its depth to be readable.
+fn choose_cloud_targets(
+    mut commands: Commands,
+    mut views: Query<(
+        Entity,
+        &ExtractedView,
+        &RenderVisibleEntities,
+        &Msaa,
+        Option<&CloudTargetScale>,
+        &mut Camera3d,
+    )>,
+    clouds: Query<&ExtractedCloud>,
+) {
+    for (entity, view, visible, msaa, camera_scale, mut camera) in &mut views {
+        let seen = visible
+            .get::<ParticleCloud>()
+            .into_iter()
+            .flat_map(|class| &class.entities_cpu_culling)
+            .filter_map(|(e, _)| clouds.get(*e).ok());
+        let scale = view_scale(camera_scale, seen);
+        if scale >= 1.0 || visible.get::<ParticleCloud>().is_none() {
+            commands
+                .entity(entity)
+                .remove::<(ViewCloudTarget, ViewCloudDraws, ViewCloudTargetResources)>();
+            continue;
+        }
+        camera.depth_texture_usages.0 |= TextureUsages::TEXTURE_BINDING.bits();
+        let viewport = view.viewport;
+        commands.entity(entity).insert(ViewCloudTarget {
+            params: CloudTargetParams::new(viewport.xy(), viewport.zw(), scale),
+            multisampled: msaa.samples() > 1,
+        });
+    }
+}
+
+fn queue_composites(
+    mut commands: Commands,
+    pipeline: Option<Res<CompositePipeline>>,
+    mut pipelines: ResMut<SpecializedRenderPipelines<CompositePipeline>>,
+    cache: Res<PipelineCache>,
+    views: Query<(Entity, &ExtractedView, &Msaa), With<ViewCloudTarget>>,
+) {
+    let Some(pipeline) = pipeline else { return };
+    for (entity, view, msaa) in &views {
+        let key = CompositePipelineKey {
+            target_format: view.target_format,
+            samples: msaa.samples(),
+        };
+        let id = pipelines.specialize(&cache, &pipeline, key);
+        commands.entity(entity).insert(ViewCompositePipeline(id));
+    }
+}
+
+/// Creates each cloud target's texture (from the texture cache: reused while its size holds) and
+/// its bind groups.
+#[allow(clippy::too_many_arguments)] // a render system's resources
+fn prepare_cloud_targets(
+    mut commands: Commands,
+    device: Res<RenderDevice>,
+    cache: Res<PipelineCache>,
+    mut textures: ResMut<TextureCache>,
+    view_uniforms: Res<ViewUniforms>,
+    views: Query<(Entity, &ViewCloudTarget, &ViewDepthTexture)>,
+) {
+    let Some(view_binding) = view_uniforms.uniforms.binding() else {
+        return;
+    };
+    for (entity, target, depth) in &views {
+        let size = target.params.target_size;
+        let texture = textures.get(
+            &device,
+            TextureDescriptor {
+                label: Some("particle_clouds_cloud_target"),
+                size: bevy::render::render_resource::Extent3d {
+                    width: size.x,
+                    height: size.y,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: TextureDimension::D2,
+                format: CLOUD_TARGET_FORMAT,
+                // Copied out by the tests that check the upsample against its CPU reference.
+                usage: TextureUsages::RENDER_ATTACHMENT
+                    | TextureUsages::TEXTURE_BINDING
+                    | TextureUsages::COPY_SRC,
+                view_formats: &[],
+            },
+        );
+        let params = device.create_buffer_with_data(&BufferInitDescriptor {
+            label: Some("particle_clouds_cloud_target_params"),
+            contents: &uniform_bytes(&target.params),
+            usage: BufferUsages::UNIFORM,
+        });
+        let billboard_view = device.create_bind_group(
+            "particle_clouds_cloud_target_view_bind_group",
+            &cache.get_bind_group_layout(&billboard_view_layout(target.multisampled)),
+            &BindGroupEntries::sequential((
+                view_binding.clone(),
+                params.as_entire_binding(),
+                depth.view(),
+            )),
+        );
+        let composite = device.create_bind_group(
+            "particle_clouds_cloud_target_composite_bind_group",
+            &cache.get_bind_group_layout(&composite_layout(target.multisampled)),
+            &BindGroupEntries::sequential((
+                params.as_entire_binding(),
+                &texture.default_view,
+                depth.view(),
+            )),
+        );
+        commands.entity(entity).insert(ViewCloudTargetResources {
+            texture,
+            billboard_view,
+            composite,
+        });
+    }
+}
+
+/// Draws the view's clouds into its cloud target (cleared to no cloud), then composites the
+/// target over the view.
+#[allow(clippy::too_many_arguments)] // a render pass's inputs
+fn draw_cloud_target(
+    view: ViewQuery<(
+        &ExtractedCamera,
+        &ExtractedView,
+        &ViewTarget,
+        &ViewUniformOffset,
+        &ViewCloudDraws,
+        &ViewCloudTargetResources,
+        &ViewCompositePipeline,
+    )>,
+    clouds: Query<(&ExtractedCloud, &CloudDrawBindGroups)>,
+    particles: Res<RenderAssets<GpuParticles>>,
+    emit: Res<super::draw::BillboardEmitPipelines>,
+    cache: Res<PipelineCache>,
+    counters: Res<CloudPassCounters>,
+    mut ctx: RenderContext,
+) {
+    let (camera, extracted, target, offset, draws, resources, composite) = view.into_inner();
+    let Some(composite) = cache.get_render_pipeline(composite.0) else {
+        return;
+    };
+    if draws.0.is_empty() {
+        return;
+    }
+    let recorder = ctx.diagnostic_recorder();
+    let recorder = recorder.as_deref();
+    let span = recorder.time_span(ctx.command_encoder(), SPAN_NAME);
+    let mut pass = ctx.begin_tracked_render_pass(RenderPassDescriptor {
+        label: Some("particle_clouds_cloud_target_draw"),
+        color_attachments: &[Some(RenderPassColorAttachment {
+            view: &resources.texture.default_view,
+            depth_slice: None,
+            resolve_target: None,
+            ops: Operations {
+                load: LoadOp::Clear(Default::default()),
+                store: StoreOp::Store,
+            },
+        })],
+        ..default()
+    });
+    pass.set_bind_group(0, &resources.billboard_view, &[offset.offset]);
+    let mut drawn = 0;
+    for &(entity, pipeline_id) in &draws.0 {
+        let Ok((cloud, groups)) = clouds.get(entity) else {
+            continue;
+        };
+        let (Some(pipeline), Some(group), Some(gpu)) = (
+            cache.get_render_pipeline(pipeline_id),
+            groups.groups.get(&extracted.retained_view_entity),
+            particles.get(cloud.particles),
+        ) else {
+            continue;
+        };
+        pass.set_render_pipeline(pipeline);
+        let emit = emit.0.get(&pipeline_id);
+        let emit = emit.and_then(|id| cache.get_render_pipeline(*id));
+        draw_billboards(&mut pass, group, gpu.count, emit);
+        drawn += 1;
+    }
+    drop(pass);
+    let mut pass = ctx.begin_tracked_render_pass(RenderPassDescriptor {
+        label: Some("particle_clouds_cloud_target_composite"),
+        color_attachments: &[Some(target.get_color_attachment())],
+        ..default()
+    });
+    if let Some(viewport) = camera.viewport.as_ref() {
+        pass.set_camera_viewport(viewport);
+    }
+    pass.set_render_pipeline(composite);
+    pass.set_bind_group(0, &resources.composite, &[]);
+    pass.draw(0..3, 0..1);
+    drop(pass);
+    span.end(ctx.command_encoder());
+    counters.add(CloudPass::Draw, drawn);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::settings::CloudQualitySettings;
+
+    fn cloud(scale: f32) -> ExtractedCloud {
+        ExtractedCloud {
+            particles: AssetId::default(),
+            extinction: 1.0,
+            albedo: 1.0,
+            world_from_local: default(),
+            settings: CloudQualitySettings {
+                cloud_target_scale: scale,
+                ..default()
+            },
+            visible: true,
+        }
+    }
+
+    #[test]
+    fn a_view_draws_at_its_camera_scale_else_at_the_finest_its_clouds_ask() {
+        let clouds = [cloud(0.5), cloud(0.25)];
+        assert_eq!(view_scale(None, &clouds), 0.5);
+        assert_eq!(view_scale(Some(&CloudTargetScale(0.25)), &clouds), 0.25);
+        assert_eq!(view_scale(Some(&CloudTargetScale(0.01)), &clouds), 0.125);
+        assert_eq!(view_scale(Some(&CloudTargetScale(f32::NAN)), &clouds), 1.0);
+        assert_eq!(view_scale(None, &[]), 1.0);
+    }
+
+    #[test]
+    fn the_target_covers_the_viewport_and_each_texel_stands_for_the_pixel_under_its_centre() {
+        let p = CloudTargetParams::new(UVec2::new(10, 20), UVec2::new(641, 480), 0.5);
+        assert_eq!(p.target_size, UVec2::new(321, 240));
+        assert_eq!(p.depth_pixel(UVec2::ZERO), UVec2::new(11, 21));
+        // The last texel overhangs the odd width: clamped into the viewport.
+        assert_eq!(p.depth_pixel(UVec2::new(320, 239)), UVec2::new(650, 499));
+        let tiny = CloudTargetParams::new(UVec2::ZERO, UVec2::new(3, 1), 0.125);
+        assert_eq!(tiny.target_size, UVec2::ONE);
+    }
+}
