@@ -26,6 +26,7 @@
 //! `main_transparent_pass_3d`) runs every frame anyway. The static cost is that of a frame where
 //! nothing changed: the draw only. Both are medians over `--frames` frames, wall time beside them.
 
+mod cloud_target_scale;
 mod decompose;
 mod illumination;
 mod plot;
@@ -42,7 +43,10 @@ use std::{
     time::Instant,
 };
 
-use bevy::{diagnostic::DiagnosticsStore, prelude::*};
+use bevy::{
+    diagnostic::{DiagnosticPath, DiagnosticsStore},
+    prelude::*,
+};
 use bevy_particle_clouds::headless::{self, FrameRecorder, FrameStats};
 use bevy_particle_clouds::reference::path_tracer::Progress;
 use bevy_particle_clouds::{
@@ -55,10 +59,12 @@ use bevy_particle_clouds::{
         metrics::{mean_absolute_error, rel_mse, relative_rmse},
         path_tracer::{self, PathTracerSettings, noise_level},
     },
+    render::cloud_target,
     scene::Scene,
     settings::ShadingMethod,
 };
 use clap::Parser;
+use cloud_target_scale::*;
 use illumination::*;
 use indicatif::{ProgressBar, ProgressStyle};
 use plot::*;
@@ -70,8 +76,12 @@ use sweep::*;
 /// Where Debian's `fonts-dejavu-core` puts the font of the plot's labels.
 const DEFAULT_FONT: &str = "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf";
 
-/// Bevy's render diagnostic of the transparent pass: the cloud billboards are its only items.
-const DRAW_DIAGNOSTIC: &str = "render/main_transparent_pass_3d/elapsed_gpu";
+/// The render diagnostics of the draw: Bevy's transparent pass (the cloud billboards are its only
+/// items) and the cloud target's draw and composite (`cloud_target_scale` below 1).
+fn draw_diagnostics() -> [DiagnosticPath; 2] {
+    ["main_transparent_pass_3d", cloud_target::SPAN_NAME]
+        .map(|span| DiagnosticPath::from_components(["render", span, "elapsed_gpu"]))
+}
 
 /// The time–error benchmark of the real-time renderer against the path tracer.
 #[derive(Parser, Debug)]
@@ -95,6 +105,10 @@ pub(crate) struct Args {
     /// Every illumination pass's GPU time instead of the sweep.
     #[arg(long, conflicts_with_all = ["decompose", "replot"])]
     pub(crate) illumination: bool,
+    /// The draw's cost and error at each cloud target scale (1, 1/2, 1/4) instead of the sweep:
+    /// against the path tracer and against the full-size image.
+    #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination"])]
+    pub(crate) cloud_target: bool,
     /// Overrides every scene's reference samples per pixel.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     pub(crate) spp: Option<u32>,
@@ -181,6 +195,9 @@ fn run() -> Result<(), String> {
         .map_err(|e| format!("cannot create {}: {e}", args.out.display()))?;
     if args.illumination {
         return illumination_benchmark(&args);
+    }
+    if args.cloud_target {
+        return cloud_target_benchmark(&args);
     }
     if args.replot {
         return replot(&args);
@@ -451,6 +468,8 @@ fn replot(args: &Args) -> Result<(), String> {
                 Some("ViewTransmittance") => Compositing::ViewTransmittance,
                 _ => Compositing::Sorted,
             },
+            // The sweep draws at full size; `--cloud-target` measures the scales.
+            cloud_target_scale: 1.0,
         };
         let timing = Timing {
             gpu_ms_total: num(gpu),

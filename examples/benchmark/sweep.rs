@@ -12,6 +12,7 @@ pub(crate) const PREVIOUS_DEFAULT: CloudQualitySettings = CloudQualitySettings {
     light_supersampling: 2,
     chord_segments: 4,
     compositing: Compositing::Sorted,
+    cloud_target_scale: 1.0,
 };
 
 /// The quality settings of a sweep: the defaults, then each knob varied on its own around them
@@ -126,7 +127,7 @@ pub(crate) struct Bench {
     pub(crate) target: headless::SceneTarget,
     pub(crate) recorder: FrameRecorder,
     pub(crate) clouds: Vec<(Entity, Handle<Particles>)>,
-    pub(crate) draw_seen: Option<bevy::platform::time::Instant>,
+    pub(crate) draw_seen: [Option<bevy::platform::time::Instant>; 2],
     pub(crate) adapter: String,
 }
 
@@ -146,7 +147,7 @@ impl Bench {
             target,
             recorder: FrameRecorder::default(),
             clouds,
-            draw_seen: None,
+            draw_seen: [None; 2],
             adapter,
         }
     }
@@ -165,19 +166,21 @@ impl Bench {
         }
     }
 
-    /// The transparent pass's GPU time measured since the last call, if a new one arrived.
+    /// The draw's GPU time measured since the last call, if a new one arrived: the transparent
+    /// pass (the billboards at full size) plus the cloud target's draw and composite.
     pub(crate) fn new_draw_time(&mut self) -> Option<f64> {
         let store = self.app.world().get_resource::<DiagnosticsStore>()?;
-        let m = store
-            .get(&bevy::diagnostic::DiagnosticPath::const_new(
-                DRAW_DIAGNOSTIC,
-            ))?
-            .measurement()?;
-        if self.draw_seen == Some(m.time) {
-            return None;
+        let mut total = None;
+        for (i, path) in draw_diagnostics().iter().enumerate() {
+            let m = store.get(path).and_then(|d| d.measurement());
+            if let Some(m) = m
+                && self.draw_seen[i] != Some(m.time)
+            {
+                self.draw_seen[i] = Some(m.time);
+                total = Some(total.unwrap_or(0.0) + m.value);
+            }
         }
-        self.draw_seen = Some(m.time);
-        Some(m.value)
+        total
     }
 
     pub(crate) fn frame(&mut self) -> usize {

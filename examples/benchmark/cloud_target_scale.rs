@@ -1,0 +1,135 @@
+//! `--cloud-target`: the draw's cost and error at each `cloud_target_scale` (the paper's §4
+//! fill-rate optimisation), at otherwise default settings.
+//!
+//! Cost: the draw's GPU time in a static frame (nothing else runs), and the static frame's wall
+//! time. Error: the relative RMSE against the path tracer (at the scene's error resolution, the
+//! reference's noise removed in quadrature), and against the full-size image at full resolution
+//! (no noise, and no downsampling to hide the upsample's error in).
+
+use super::*;
+
+/// The scales measured: full size, half and a quarter per axis.
+pub(crate) const SCALES: [f32; 3] = [1.0, 0.5, 0.25];
+
+/// The scenes measured unless `--scenes` names others: the paper's 640×480 scenes.
+const DEFAULT_SCENES: [&str; 3] = ["paper_3100", "paper_38k_1light", "paper_38k_5lights"];
+
+struct ScaleRow {
+    scene: &'static str,
+    scale: f32,
+    draw_ms: f64,
+    static_wall_ms: f64,
+    rel_rmse: f64,
+    reference_noise: f64,
+    reference_spp: u32,
+    against_full: f64,
+}
+
+pub(crate) fn cloud_target_benchmark(args: &Args) -> Result<(), String> {
+    let chosen: Vec<&BenchScene> = SCENES
+        .iter()
+        .filter(|s| match &args.scenes {
+            Some(names) => names.iter().any(|n| n == s.name),
+            None => DEFAULT_SCENES.contains(&s.name),
+        })
+        .collect();
+    let mut rows = Vec::new();
+    let mut adapter = String::new();
+    for bench in chosen {
+        let scene = load_scene(bench)?;
+        let reference = reference(&scene, bench, args.spp.unwrap_or(bench.spp), &args.out)?;
+        let reference_image = reference.image.clone();
+        let mut b = Bench::new(&scene);
+        adapter = b.adapter.clone();
+        let mut full: Option<LinearImage> = None;
+        for scale in SCALES {
+            b.set_quality(CloudQualitySettings {
+                cloud_target_scale: scale,
+                ..default()
+            });
+            let (image, timing) = b.measure(args.frames());
+            let against_full = full.as_ref().map_or(0.0, |f| {
+                relative_rmse(&opaque(&image).pixels, &opaque(f).pixels)
+            });
+            let small = downsample(&image, bench.error_downsample);
+            let rel_rmse = relative_rmse(&small.pixels, &reference_image);
+            let row = ScaleRow {
+                scene: bench.name,
+                scale,
+                draw_ms: timing.gpu_ms_static,
+                static_wall_ms: timing.wall_ms_static,
+                rel_rmse,
+                reference_noise: reference.noise,
+                reference_spp: reference.spp,
+                against_full,
+            };
+            eprintln!(
+                "benchmark: {} scale {scale}: draw GPU {:.2} ms, static frame wall {:.1} ms; rel. RMSE {:.4} (denoised {:.4}), against full size {:.4}",
+                bench.name,
+                row.draw_ms,
+                row.static_wall_ms,
+                rel_rmse,
+                denoised(rel_rmse, reference.noise),
+                against_full
+            );
+            let _ = write_png(
+                &opaque(&image),
+                &args
+                    .out
+                    .join(format!("{}-cloud-target-{scale}.png", bench.name)),
+            );
+            full.get_or_insert(image);
+            rows.push(row);
+        }
+    }
+    let table = table(&adapter, &rows, args.frames());
+    let md_path = args.out.join("cloud_target.md");
+    std::fs::write(&md_path, &table)
+        .map_err(|e| format!("cannot write {}: {e}", md_path.display()))?;
+    println!("{table}");
+    eprintln!("benchmark: wrote {}", md_path.display());
+    Ok(())
+}
+
+/// The image with alpha 1 (the metrics compare RGB).
+fn opaque(image: &LinearImage) -> LinearImage {
+    let mut shown = image.clone();
+    shown.pixels.iter_mut().for_each(|p| p[3] = 1.0);
+    shown
+}
+
+fn table(adapter: &str, rows: &[ScaleRow], frames: usize) -> String {
+    let mut md = format!(
+        "Adapter: `{adapter}`. Default settings but `cloud_target_scale`. Draw: GPU time of the \
+         draw in a static frame (the transparent pass at full size; the cloud target's draw and \
+         composite below it), median of {frames} frames, and its ratio to the full-size draw of \
+         the same run. Static frame: its wall time, Bevy's per-frame work included. Error: \
+         relative RMSE against the path tracer at the scene's error resolution, with the \
+         reference's noise removed in quadrature, and against the full-size image at full \
+         resolution.\n\n\
+         | scene | scale | draw (ms) | draw / full size | static frame wall (ms) | rel. RMSE vs path tracer (denoised) | added | reference spp (noise) | rel. RMSE vs full size |\n\
+         |---|---:|---:|---:|---:|---:|---:|---:|---:|\n"
+    );
+    for row in rows {
+        let full = rows
+            .iter()
+            .find(|r| r.scene == row.scene && r.scale == 1.0)
+            .expect("the full-size row comes first");
+        let error = denoised(row.rel_rmse, row.reference_noise);
+        let _ = writeln!(
+            md,
+            "| {} | {} | {:.2} | {:.2} | {:.0} | {:.4} | {:+.4} | {} ({:.4}) | {:.4} |",
+            row.scene,
+            row.scale,
+            row.draw_ms,
+            row.draw_ms / full.draw_ms,
+            row.static_wall_ms,
+            error,
+            error - denoised(full.rel_rmse, full.reference_noise),
+            row.reference_spp,
+            row.reference_noise,
+            row.against_full
+        );
+    }
+    md
+}
