@@ -68,11 +68,8 @@ fn near_plane() -> f32 {
 
 @vertex
 fn vertex(@builtin(vertex_index) vertex_index: u32, @builtin(instance_index) instance_index: u32) -> VertexOutput {
-    var corners = array<vec2<f32>, 6>(
-        vec2(-1.0, -1.0), vec2(1.0, -1.0), vec2(1.0, 1.0),
-        vec2(-1.0, -1.0), vec2(1.0, 1.0), vec2(-1.0, 1.0),
-    );
-    let corner = corners[vertex_index];
+    // A four-vertex triangle strip per instance: (-1,-1), (1,-1), (-1,1), (1,1).
+    let corner = vec2(f32(vertex_index & 1u), f32(vertex_index >> 1u)) * 2.0 - 1.0;
 #ifdef VIEW_TRANSMITTANCE
     let index = instance_index;
 #else
@@ -271,15 +268,32 @@ fn attenuate(in: VertexOutput) -> @location(0) vec4<f32> {
     return vec4(0.0, 0.0, 0.0, opacity(own_depth(c, c.s1)));
 }
 
-// Adds the particle's light: piece k of the chord adds
-// mean S * tau_k / tau_all * exp(-tau_view(a_k)) * (1 - exp(-tau_all)), tau_all the piece's
-// optical depth with every particle (the view volume's, at least the particle's own tau_k).
+// Adds the particle's light.
 @fragment
 fn emit(in: VertexOutput) -> @location(0) vec4<f32> {
     let c = chord(in);
     if !c.seen {
         discard;
     }
+    return vec4(emitted(c) * view.exposure, 0.0);
+}
+
+// Into a cloud target, which holds only clouds (cleared to no cloud), both at once: the light
+// adds up, the alpha channel accumulates 1 - the product of the transmittances (see
+// `BillboardBlend::Accumulate`). One draw instead of two.
+@fragment
+fn accumulate(in: VertexOutput) -> @location(0) vec4<f32> {
+    let c = chord(in);
+    if !c.seen {
+        discard;
+    }
+    return vec4(emitted(c) * view.exposure, opacity(own_depth(c, c.s1)));
+}
+
+// The particle's light: piece k of the chord adds
+// mean S * tau_k / tau_all * exp(-tau_view(a_k)) * (1 - exp(-tau_all)), tau_all the piece's
+// optical depth with every particle (the view volume's, at least the particle's own tau_k).
+fn emitted(c: Chord) -> vec3<f32> {
     let ds = (c.s1 - c.s0) / f32(params.segments);
     var light = vec3(0.0);
     var own_before = 0.0;
@@ -297,7 +311,7 @@ fn emit(in: VertexOutput) -> @location(0) vec4<f32> {
         view_before = view_after;
         s_before = s_after;
     }
-    return vec4(light * view.exposure, 0.0);
+    return light;
 }
 #else
 // Blends the particle whole: the chord in equal segments, front to back, each adds its opacity

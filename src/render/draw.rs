@@ -1,8 +1,9 @@
 //! The billboard draw in the `Transparent3d` phase (the paper's Algorithm 3): one phase item per
-//! cloud and view, instanced draws of six vertices per particle, depth test on (reverse Z), depth
-//! writes off. `Compositing::Sorted`: one draw in the sorted order, premultiplied-alpha blending.
-//! `Compositing::ViewTransmittance`: two order-independent draws, one multiplying what is behind
-//! by each particle's transmittance, one adding each particle's light.
+//! cloud and view, instanced draws of a four-vertex strip per particle, depth test on (reverse
+//! Z), depth writes off. `Compositing::Sorted`: one draw in the sorted order, premultiplied-alpha
+//! blending. `Compositing::ViewTransmittance`: two order-independent draws, one multiplying what
+//! is behind by each particle's transmittance, one adding each particle's light (one draw into a
+//! cloud target, `cloud_target.rs`, which holds only clouds).
 
 use bevy::{
     core_pipeline::core_3d::{CORE_3D_DEPTH_FORMAT, Transparent3d, TransparentSortingInfo3d},
@@ -28,9 +29,9 @@ use bevy::{
             BlendComponent, BlendFactor, BlendOperation, BlendState, Buffer, BufferInitDescriptor,
             BufferUsages, CachedRenderPipelineId, ColorTargetState, ColorWrites, CompareFunction,
             DepthBiasState, DepthStencilState, FragmentState, MultisampleState, PipelineCache,
-            PrimitiveState, RenderPipeline, RenderPipelineDescriptor, ShaderStages, ShaderType,
-            SpecializedRenderPipeline, SpecializedRenderPipelines, StencilState, TextureFormat,
-            VertexState,
+            PrimitiveState, PrimitiveTopology, RenderPipeline, RenderPipelineDescriptor,
+            ShaderStages, ShaderType, SpecializedRenderPipeline, SpecializedRenderPipelines,
+            StencilState, TextureFormat, VertexState,
             binding_types::{storage_buffer_read_only_sized, uniform_buffer, uniform_buffer_sized},
         },
         renderer::RenderDevice,
@@ -150,13 +151,17 @@ pub enum BillboardBlend {
     Attenuate,
     /// `Compositing::ViewTransmittance`, second draw: plus each particle's light.
     Emit,
+    /// `Compositing::ViewTransmittance` into a cloud target, which holds only clouds: one draw
+    /// that adds each particle's light and accumulates its opacity in alpha
+    /// (`a <- alpha + a (1 - alpha)`, so `1 - a` is the product of the transmittances).
+    Accumulate,
 }
 
 impl BillboardBlend {
     fn compositing(self) -> Compositing {
         match self {
             Self::Sorted => Compositing::Sorted,
-            Self::Attenuate | Self::Emit => Compositing::ViewTransmittance,
+            Self::Attenuate | Self::Emit | Self::Accumulate => Compositing::ViewTransmittance,
         }
     }
 
@@ -165,6 +170,7 @@ impl BillboardBlend {
             Self::Sorted => "fragment",
             Self::Attenuate => "attenuate",
             Self::Emit => "emit",
+            Self::Accumulate => "accumulate",
         }
     }
 
@@ -183,6 +189,10 @@ impl BillboardBlend {
             Self::Emit => BlendState {
                 color: component(BlendFactor::One, BlendFactor::One),
                 alpha: component(BlendFactor::Zero, BlendFactor::One),
+            },
+            Self::Accumulate => BlendState {
+                color: component(BlendFactor::One, BlendFactor::One),
+                alpha: component(BlendFactor::One, BlendFactor::OneMinusSrcAlpha),
             },
         }
     }
@@ -272,6 +282,7 @@ impl SpecializedRenderPipeline for BillboardPipeline {
                 })],
             }),
             primitive: PrimitiveState {
+                topology: PrimitiveTopology::TriangleStrip,
                 cull_mode: None,
                 ..default()
             },
@@ -506,9 +517,16 @@ pub(crate) fn queue_cloud_billboards(
             pipelines.specialize(&pipeline_cache, &pipeline, key)
         };
         let sorted = specialize(BillboardBlend::Sorted);
-        let attenuate = specialize(BillboardBlend::Attenuate);
-        let emit = specialize(BillboardBlend::Emit);
-        emit_pipelines.0.insert(attenuate, emit);
+        // Through the view transmittance: into a cloud target in one draw, into the view in two.
+        let view_transmittance = if cloud_target.is_some() {
+            specialize(BillboardBlend::Accumulate)
+        } else {
+            let attenuate = specialize(BillboardBlend::Attenuate);
+            emit_pipelines
+                .0
+                .insert(attenuate, specialize(BillboardBlend::Emit));
+            attenuate
+        };
         let here = &view.retained_view_entity;
         let view_from_world = view.world_from_view.affine().inverse();
         let mut into_target = Vec::new();
@@ -527,7 +545,7 @@ pub(crate) fn queue_cloud_billboards(
                     view_volumes
                         .and_then(|v| v.0.get(here))
                         .is_some_and(|v| v.ready),
-                    attenuate,
+                    view_transmittance,
                 ),
             };
             let Some(gpu) = particles.get(cloud.particles) else {
@@ -594,8 +612,9 @@ impl<P: PhaseItem, const I: usize> RenderCommand<P> for SetBillboardViewBindGrou
     }
 }
 
-/// Binds the cloud's group for this view (group 1) and draws six vertices per particle; through
-/// the view transmittance, a second time with the `emit` pipeline.
+/// Binds the cloud's group for this view (group 1) and draws a four-vertex strip per particle;
+/// when given an `emit` pipeline (through the view transmittance into the view), a second time
+/// with it.
 pub(crate) fn draw_billboards<'w>(
     pass: &mut TrackedRenderPass<'w>,
     group: &'w BindGroup,
@@ -603,15 +622,14 @@ pub(crate) fn draw_billboards<'w>(
     emit: Option<&'w RenderPipeline>,
 ) {
     pass.set_bind_group(1, group, &[]);
-    pass.draw(0..6, 0..count);
+    pass.draw(0..4, 0..count);
     if let Some(emit) = emit {
         pass.set_render_pipeline(emit);
-        pass.draw(0..6, 0..count);
+        pass.draw(0..4, 0..count);
     }
 }
 
-/// Binds the cloud's group for this view and draws six vertices per particle; through the view
-/// transmittance, a second time with the `Emit` pipeline.
+/// Binds the cloud's group for this view and draws its billboards ([`draw_billboards`]).
 pub struct DrawBillboards;
 
 impl<P: CachedRenderPipelinePhaseItem> RenderCommand<P> for DrawBillboards {

@@ -6,7 +6,7 @@ use bevy::{
     prelude::*,
     render::{
         render_resource::{Texture, TextureUsages},
-        view::ViewDepthTexture,
+        view::{Msaa, ViewDepthTexture},
     },
 };
 use bevy_particle_clouds::{
@@ -213,4 +213,54 @@ fn render_without_cloud(setup: &Setup) -> LinearImage {
         frames.frame(&mut app).unwrap();
     }
     headless::capture(&mut app, &mut frames, &target.image).unwrap()
+}
+
+/// With MSAA the view's depth is multisampled: the billboards and the composite read its first
+/// sample. The image matches the one without MSAA but at the objects' antialiased edges.
+#[test]
+fn a_multisampled_view_draws_the_same_clouds() {
+    let setup = occluded_setup(Compositing::ViewTransmittance, 0.5);
+    let images = [Msaa::Off, Msaa::Sample4].map(|msaa| {
+        let (mut app, target) = spawn(&setup);
+        app.world_mut().entity_mut(target.camera).insert(msaa);
+        let mut frames = FrameRecorder::default();
+        headless::render_until_steady(&mut app, &mut frames, 1, 20).unwrap();
+        let image = headless::capture(&mut app, &mut frames, &target.image).unwrap();
+        let multisampled = common::with_render_world(&mut app, |world| {
+            let mut views = world.query::<&ViewCloudTarget>();
+            views.single(world).expect("a cloud target").multisampled
+        });
+        assert_eq!(multisampled, msaa != Msaa::Off);
+        image
+    });
+    // Away from the objects' edges (within the 2 pixels a texel spans, and one for MSAA's
+    // blending): there the depth sample of a texel's pixel moves to its first sample.
+    let mut bare = setup;
+    bare.medium.extinction = 0.0;
+    let bare = render_without_cloud(&bare);
+    let at =
+        |x: i32, y: i32| (y.clamp(0, H as i32 - 1) * W as i32 + x.clamp(0, W as i32 - 1)) as usize;
+    let edge = |x: i32, y: i32| {
+        let here = bare.pixels[at(x, y)];
+        [(1, 0), (0, 1)].iter().any(|(dx, dy)| {
+            let there = bare.pixels[at(x + dx, y + dy)];
+            (0..3).any(|c| (there[c] - here[c]).abs() > 1e-3)
+        })
+    };
+    let (mut compared, mut worst) = (0, 0.0f32);
+    for y in 0..H as i32 {
+        for x in 0..W as i32 {
+            if (-3..=3).any(|dy| (-3..=3).any(|dx| edge(x + dx, y + dy))) {
+                continue;
+            }
+            compared += 1;
+            for c in 0..3 {
+                let d = (images[1].pixels[at(x, y)][c] - images[0].pixels[at(x, y)][c]).abs();
+                worst = worst.max(d);
+            }
+        }
+    }
+    eprintln!("MSAA against none: worst {worst:e} over {compared} pixels");
+    assert!(compared > 500, "{compared} pixels compared");
+    assert!(worst < 2e-3, "MSAA changes the clouds by {worst}");
 }
