@@ -8,7 +8,9 @@
 //!
 //! Controls: arrow keys turn the sun (azimuth, elevation); drag with the left mouse button or
 //! A/D/W/S to orbit; wheel or +/- to zoom; [ and ] change the multiple-scattering iterations,
-//! V the volume resolution (both through the `DefaultCloudQuality` resource).
+//! V the volume resolution (both through the `DefaultCloudQuality` resource), C the camera's
+//! `CloudTargetScale` (1, 1/2, 1/4: the clouds drawn at that fraction of the window's size and
+//! enlarged; 1/2 to start with, as a game would).
 //!
 //! Exposure: the sun's illuminance is E = 10 000 lux. The lit sides of these clouds (albedo 0.99,
 //! 8 scattering iterations) come out at roughly E / (4π) ≈ 800 (judged from the rendered
@@ -27,7 +29,7 @@ use support::{Example, Hud, HudLines, KeyLight, Options, OrbitCamera};
 
 const EXAMPLE: Example = Example {
     title: "bevy_particle_clouds: a field of cumulus",
-    controls: "arrows: sun | drag, A/D/W/S: orbit | wheel, +/-: zoom | [ ]: scatter iterations | V: volume resolution",
+    controls: "arrows: sun | drag, A/D/W/S: orbit | wheel, +/-: zoom | [ ]: scatter iterations | V: volume resolution | C: cloud target scale",
     steady: true,
 };
 
@@ -114,14 +116,22 @@ fn setup(
         yaw: 0.3,
         pitch: 0.12,
     };
-    commands.spawn(support::camera(
-        orbit,
-        9.3,
-        Color::linear_rgb(0.22, 0.38, 0.75),
+    commands.spawn((
+        support::camera(orbit, 9.3, Color::linear_rgb(0.22, 0.38, 0.75)),
+        CloudTargetScale(0.5),
     ));
 }
 
-fn change_quality(keys: Res<ButtonInput<KeyCode>>, mut quality: ResMut<DefaultCloudQuality>) {
+fn change_quality(
+    keys: Res<ButtonInput<KeyCode>>,
+    mut quality: ResMut<DefaultCloudQuality>,
+    mut target: Query<&mut CloudTargetScale>,
+) {
+    if keys.just_pressed(KeyCode::KeyC) {
+        for mut scale in &mut target {
+            scale.0 = if scale.0 <= 0.25 { 1.0 } else { scale.0 / 2.0 };
+        }
+    }
     if keys.just_pressed(KeyCode::BracketRight) {
         quality.scatter_iterations = (quality.scatter_iterations * 2).clamp(1, 64);
     }
@@ -142,7 +152,7 @@ fn describe(
     mut hud: ResMut<Hud>,
     quality: Res<DefaultCloudQuality>,
     sun: Query<&KeyLight>,
-    camera: Query<(&OrbitCamera, &bevy::camera::Exposure)>,
+    camera: Query<(&OrbitCamera, &bevy::camera::Exposure, &CloudTargetScale)>,
     clouds: Query<&ParticleCloud>,
     particles: Res<Assets<Particles>>,
 ) {
@@ -162,10 +172,10 @@ fn describe(
         hud.lines
             .push(format!("{}, {SUN_LUX} lux", light.describe()));
     }
-    for (orbit, exposure) in &camera {
+    for (orbit, exposure, target) in &camera {
         hud.lines.push(format!(
-            "camera {:.0} m from the centre, exposure ev100 {}",
-            orbit.distance, exposure.ev100
+            "camera {:.0} m from the centre, exposure ev100 {}, clouds drawn at {} of its size",
+            orbit.distance, exposure.ev100, target.0
         ));
     }
 }

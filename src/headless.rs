@@ -26,7 +26,7 @@ use bevy::app::PluginGroupBuilder;
 use bevy::{
     camera::{Exposure, Hdr, RenderTarget},
     core_pipeline::tonemapping::{DebandDither, Tonemapping},
-    diagnostic::DiagnosticsStore,
+    diagnostic::{DiagnosticPath, DiagnosticsStore},
     log::{Level, LogPlugin},
     prelude::*,
     render::{
@@ -286,7 +286,7 @@ pub struct FrameRecorder {
     /// Every recorded frame, in order.
     pub frames: Vec<FrameStats>,
     counted: [u32; PASSES],
-    last_seen: HashMap<CloudPass, Instant>,
+    last_seen: HashMap<DiagnosticPath, Instant>,
     waiting: HashMap<CloudPass, VecDeque<usize>>,
 }
 
@@ -336,25 +336,40 @@ impl FrameRecorder {
             return;
         };
         for pass in CloudPass::ALL {
-            let Some(diagnostic) = store.get(&pass.diagnostic_path()) else {
-                continue;
-            };
-            let Some(latest) = diagnostic.measurement().map(|m| m.time) else {
-                continue;
-            };
-            if self.last_seen.get(&pass) == Some(&latest) {
-                continue;
+            for path in pass.diagnostic_paths() {
+                self.collect_gpu_time(store, pass, &path);
             }
-            self.last_seen.insert(pass, latest);
-            // One frame's spans of a pass (e.g. one per cloud and view) share the sync instant.
-            let total: f64 = diagnostic
-                .measurements()
-                .filter(|m| m.time == latest)
-                .map(|m| m.value)
-                .sum();
-            if let Some(frame) = self.waiting.get_mut(&pass).and_then(VecDeque::pop_front) {
-                self.frames[frame].gpu_ms.insert(pass, total);
-            }
+        }
+    }
+}
+
+impl FrameRecorder {
+    /// The GPU time of `pass` under `path`, if a new measurement arrived: the frame waiting longest
+    /// for that pass's time gets it (added to what it holds from the pass's other paths).
+    fn collect_gpu_time(
+        &mut self,
+        store: &DiagnosticsStore,
+        pass: CloudPass,
+        path: &DiagnosticPath,
+    ) {
+        let Some(diagnostic) = store.get(path) else {
+            return;
+        };
+        let Some(latest) = diagnostic.measurement().map(|m| m.time) else {
+            return;
+        };
+        if self.last_seen.get(path) == Some(&latest) {
+            return;
+        }
+        self.last_seen.insert(path.clone(), latest);
+        // One frame's spans of a pass (e.g. one per cloud and view) share the sync instant.
+        let total: f64 = diagnostic
+            .measurements()
+            .filter(|m| m.time == latest)
+            .map(|m| m.value)
+            .sum();
+        if let Some(frame) = self.waiting.get_mut(&pass).and_then(VecDeque::pop_front) {
+            *self.frames[frame].gpu_ms.entry(pass).or_default() += total;
         }
     }
 }

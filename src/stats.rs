@@ -4,7 +4,7 @@
 //! shared (behind an `Arc`) by the main and render worlds. The counts only grow, so any number of
 //! readers can each keep their own snapshot and ask for the runs since it
 //! ([`CloudPassCounters::since`]). GPU times come from Bevy's render diagnostics
-//! (`RenderDiagnosticsPlugin`), under the paths [`CloudPass::diagnostic_path`].
+//! (`RenderDiagnosticsPlugin`), under the paths [`CloudPass::diagnostic_paths`].
 
 use std::sync::{
     Arc,
@@ -73,18 +73,24 @@ impl CloudPass {
         }
     }
 
-    /// The diagnostic holding this pass's GPU time in milliseconds (needs `RenderDiagnosticsPlugin`
-    /// and an adapter with timestamp queries).
-    pub fn diagnostic_path(self) -> DiagnosticPath {
+    /// The diagnostics holding this pass's GPU time in milliseconds (needs `RenderDiagnosticsPlugin`
+    /// and an adapter with timestamp queries). The draw has two: its spans nested in Bevy's span of
+    /// the transparent pass (at full size), and the span of a view's cloud target (its draw and
+    /// composite, `cloud_target_scale` below 1).
+    pub fn diagnostic_paths(self) -> Vec<DiagnosticPath> {
+        let top_level =
+            DiagnosticPath::from_components(["render", self.span_name(), "elapsed_gpu"]);
         match self {
-            // The draw's span is nested in Bevy's span of the transparent pass.
-            Self::Draw => DiagnosticPath::from_components([
-                "render",
-                "main_transparent_pass_3d",
-                self.span_name(),
-                "elapsed_gpu",
-            ]),
-            _ => DiagnosticPath::from_components(["render", self.span_name(), "elapsed_gpu"]),
+            Self::Draw => vec![
+                DiagnosticPath::from_components([
+                    "render",
+                    "main_transparent_pass_3d",
+                    self.span_name(),
+                    "elapsed_gpu",
+                ]),
+                top_level,
+            ],
+            _ => vec![top_level],
         }
     }
 }

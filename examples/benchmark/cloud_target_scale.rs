@@ -2,7 +2,8 @@
 //! fill-rate optimisation), at otherwise default settings.
 //!
 //! Cost: the draw's GPU time in a static frame (nothing else runs), and the static frame's wall
-//! time. Error: the relative RMSE against the path tracer (at the scene's error resolution, the
+//! time, medians over [`ROUNDS`] rounds that visit every scale in turn (so that a slow drift of
+//! the machine does not favour one scale). Error: the relative RMSE against the path tracer (at the scene's error resolution, the
 //! reference's noise removed in quadrature), and against the full-size image at full resolution
 //! (no noise, and no downsampling to hide the upsample's error in).
 
@@ -10,6 +11,9 @@ use super::*;
 
 /// The scales measured: full size, half and a quarter per axis.
 pub(crate) const SCALES: [f32; 3] = [1.0, 0.5, 0.25];
+
+/// Rounds of static frames per scale, interleaved over the scales.
+const ROUNDS: usize = 4;
 
 /// The scenes measured unless `--scenes` names others: the paper's 640×480 scenes.
 const DEFAULT_SCENES: [&str; 3] = ["paper_3100", "paper_38k_1light", "paper_38k_5lights"];
@@ -41,46 +45,61 @@ pub(crate) fn cloud_target_benchmark(args: &Args) -> Result<(), String> {
         let reference_image = reference.image.clone();
         let mut b = Bench::new(&scene);
         adapter = b.adapter.clone();
+        let quality = |scale| CloudQualitySettings {
+            cloud_target_scale: scale,
+            ..default()
+        };
         let mut full: Option<LinearImage> = None;
+        let mut images = Vec::new();
+        let mut scene_rows = Vec::new();
         for scale in SCALES {
-            b.set_quality(CloudQualitySettings {
-                cloud_target_scale: scale,
-                ..default()
-            });
-            let (image, timing) = b.measure(args.frames());
+            b.set_quality(quality(scale));
+            let image = b.image();
             let against_full = full.as_ref().map_or(0.0, |f| {
                 relative_rmse(&opaque(&image).pixels, &opaque(f).pixels)
             });
             let small = downsample(&image, bench.error_downsample);
-            let rel_rmse = relative_rmse(&small.pixels, &reference_image);
-            let row = ScaleRow {
+            images.push(opaque(&image));
+            full.get_or_insert(image);
+            scene_rows.push(ScaleRow {
                 scene: bench.name,
                 scale,
-                draw_ms: timing.gpu_ms_static,
-                static_wall_ms: timing.wall_ms_static,
-                rel_rmse,
+                draw_ms: 0.0,
+                static_wall_ms: 0.0,
+                rel_rmse: relative_rmse(&small.pixels, &reference_image),
                 reference_noise: reference.noise,
                 reference_spp: reference.spp,
                 against_full,
-            };
+            });
+        }
+        let _ = write_png(
+            &side_by_side_all(&images),
+            &args.out.join(format!("{}-cloud-target.png", bench.name)),
+        );
+        let mut times = vec![(Vec::new(), Vec::new()); SCALES.len()];
+        for _ in 0..ROUNDS {
+            for (i, scale) in SCALES.into_iter().enumerate() {
+                b.set_quality(quality(scale));
+                let (draw, wall) = b.static_frames(args.frames());
+                times[i].0.extend(draw);
+                times[i].1.extend(wall);
+            }
+        }
+        for (row, (draw, wall)) in scene_rows.iter_mut().zip(times) {
+            row.draw_ms = median(draw);
+            row.static_wall_ms = median(wall);
             eprintln!(
-                "benchmark: {} scale {scale}: draw GPU {:.2} ms, static frame wall {:.1} ms; rel. RMSE {:.4} (denoised {:.4}), against full size {:.4}",
-                bench.name,
+                "benchmark: {} scale {}: draw GPU {:.2} ms, static frame wall {:.1} ms; rel. RMSE {:.4} (denoised {:.4}), against full size {:.4}",
+                row.scene,
+                row.scale,
                 row.draw_ms,
                 row.static_wall_ms,
-                rel_rmse,
-                denoised(rel_rmse, reference.noise),
-                against_full
+                row.rel_rmse,
+                denoised(row.rel_rmse, row.reference_noise),
+                row.against_full
             );
-            let _ = write_png(
-                &opaque(&image),
-                &args
-                    .out
-                    .join(format!("{}-cloud-target-{scale}.png", bench.name)),
-            );
-            full.get_or_insert(image);
-            rows.push(row);
         }
+        rows.extend(scene_rows);
     }
     let table = table(&adapter, &rows, args.frames());
     let md_path = args.out.join("cloud_target.md");
@@ -89,6 +108,20 @@ pub(crate) fn cloud_target_benchmark(args: &Args) -> Result<(), String> {
     println!("{table}");
     eprintln!("benchmark: wrote {}", md_path.display());
     Ok(())
+}
+
+/// Images of one size side by side, left to right.
+fn side_by_side_all(images: &[LinearImage]) -> LinearImage {
+    let (w, h) = (images[0].width, images[0].height);
+    let mut out = LinearImage::new(w * images.len() as u32, h);
+    for (i, image) in images.iter().enumerate() {
+        for y in 0..h {
+            for x in 0..w {
+                *out.pixel_mut(i as u32 * w + x, y) = image.pixel(x, y);
+            }
+        }
+    }
+    out
 }
 
 /// The image with alpha 1 (the metrics compare RGB).
@@ -102,7 +135,8 @@ fn table(adapter: &str, rows: &[ScaleRow], frames: usize) -> String {
     let mut md = format!(
         "Adapter: `{adapter}`. Default settings but `cloud_target_scale`. Draw: GPU time of the \
          draw in a static frame (the transparent pass at full size; the cloud target's draw and \
-         composite below it), median of {frames} frames, and its ratio to the full-size draw of \
+         composite below it), median of {ROUNDS} rounds of {frames} frames visiting the scales in \
+         turn, and its ratio to the full-size draw of \
          the same run. Static frame: its wall time, Bevy's per-frame work included. Error: \
          relative RMSE against the path tracer at the scene's error resolution, with the \
          reference's noise removed in quadrature, and against the full-size image at full \

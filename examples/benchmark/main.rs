@@ -59,7 +59,6 @@ use bevy_particle_clouds::{
         metrics::{mean_absolute_error, rel_mse, relative_rmse},
         path_tracer::{self, PathTracerSettings, noise_level},
     },
-    render::cloud_target,
     scene::Scene,
     settings::ShadingMethod,
 };
@@ -79,7 +78,7 @@ const DEFAULT_FONT: &str = "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf";
 /// The render diagnostics of the draw: Bevy's transparent pass (the cloud billboards are its only
 /// items) and the cloud target's draw and composite (`cloud_target_scale` below 1).
 fn draw_diagnostics() -> [DiagnosticPath; 2] {
-    ["main_transparent_pass_3d", cloud_target::SPAN_NAME]
+    ["main_transparent_pass_3d", CloudPass::Draw.span_name()]
         .map(|span| DiagnosticPath::from_components(["render", span, "elapsed_gpu"]))
 }
 

@@ -190,8 +190,24 @@ impl Bench {
         self.recorder.frames.len() - 1
     }
 
-    /// Renders the finished image of the current settings and measures it.
-    pub(crate) fn measure(&mut self, frames: usize) -> (LinearImage, Timing) {
+    /// The draw's GPU time and the wall time of `frames` static frames (nothing changed: the
+    /// draw only), after two that warm up.
+    pub(crate) fn static_frames(&mut self, frames: usize) -> (Vec<f64>, Vec<f64>) {
+        for _ in 0..2 {
+            self.frame();
+            self.new_draw_time();
+        }
+        let (mut draw, mut wall) = (Vec::new(), Vec::new());
+        for _ in 0..frames {
+            let i = self.frame();
+            wall.push(self.recorder.frames[i].wall_ms);
+            draw.extend(self.new_draw_time());
+        }
+        (draw, wall)
+    }
+
+    /// Renders the finished image of the current settings.
+    pub(crate) fn image(&mut self) -> LinearImage {
         headless::render_until_steady(
             &mut self.app,
             &mut self.recorder,
@@ -199,8 +215,13 @@ impl Bench {
             200,
         )
         .expect("the benchmark scene renders");
-        let image = headless::capture(&mut self.app, &mut self.recorder, &self.target.image)
-            .expect("the benchmark scene renders");
+        headless::capture(&mut self.app, &mut self.recorder, &self.target.image)
+            .expect("the benchmark scene renders")
+    }
+
+    /// Renders the finished image of the current settings and measures it.
+    pub(crate) fn measure(&mut self, frames: usize) -> (LinearImage, Timing) {
+        let image = self.image();
         // Static frames: nothing changed, only the draw runs.
         for _ in 0..2 {
             self.frame();

@@ -489,9 +489,12 @@ fn compose_hud(
     let gpu: Vec<String> = CloudPass::ALL
         .iter()
         .map(|&p| {
-            let ms = store
-                .and_then(|d| d.get(&p.diagnostic_path()))
-                .and_then(|d| d.smoothed());
+            // The draw at full size or into a cloud target, whichever this view does.
+            let ms = p
+                .diagnostic_paths()
+                .iter()
+                .filter_map(|path| store.and_then(|d| d.get(path)).and_then(|d| d.smoothed()))
+                .reduce(f64::max);
             format!(
                 "{} {}",
                 p.name(),

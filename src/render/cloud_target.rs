@@ -65,9 +65,6 @@ pub const CLOUD_TARGET_FORMAT: TextureFormat = TextureFormat::Rgba16Float;
 /// less, even at grazing angles; a cloud and the object in front of it by far more.
 pub const DEPTH_TOLERANCE: f32 = 0.05;
 
-/// The GPU time span of a view's cloud target (its draw and its composite).
-pub const SPAN_NAME: &str = "particle_clouds_cloud_target";
-
 /// Mirror of `CloudTargetParams` in `types.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
 pub struct CloudTargetParams {
@@ -275,17 +272,20 @@ pub fn view_scale<'a>(
     }
 }
 
+/// A view whose cloud target is decided: what it sees, its camera's scale, its depth's usages.
+type ViewToTarget = (
+    Entity,
+    &'static ExtractedView,
+    &'static RenderVisibleEntities,
+    &'static Msaa,
+    Option<&'static CloudTargetScale>,
+    &'static mut Camera3d,
+);
+
 /// Decides each view's cloud target and asks for its depth to be readable.
 fn choose_cloud_targets(
     mut commands: Commands,
-    mut views: Query<(
-        Entity,
-        &ExtractedView,
-        &RenderVisibleEntities,
-        &Msaa,
-        Option<&CloudTargetScale>,
-        &mut Camera3d,
-    )>,
+    mut views: Query<ViewToTarget>,
     clouds: Query<&ExtractedCloud>,
 ) {
     for (entity, view, visible, msaa, camera_scale, mut camera) in &mut views {
@@ -424,7 +424,8 @@ fn draw_cloud_target(
     }
     let recorder = ctx.diagnostic_recorder();
     let recorder = recorder.as_deref();
-    let span = recorder.time_span(ctx.command_encoder(), SPAN_NAME);
+    // The draw's span (`CloudPass::Draw`), here around the cloud target's draw and composite.
+    let span = recorder.time_span(ctx.command_encoder(), CloudPass::Draw.span_name());
     let mut pass = ctx.begin_tracked_render_pass(RenderPassDescriptor {
         label: Some("particle_clouds_cloud_target_draw"),
         color_attachments: &[Some(RenderPassColorAttachment {

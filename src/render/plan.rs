@@ -235,6 +235,15 @@ mod tests {
             (p.voxelize, p.shade.len(), p.gather, p.scatter),
             (false, 0, false, Some(64))
         );
+        // Another draw target scale (or compositing, or chord segments): no illumination.
+        let drawn_smaller = CloudQualitySettings {
+            cloud_target_scale: 0.5,
+            chord_segments: 2,
+            compositing: crate::Compositing::Sorted,
+            ..settings
+        };
+        let p = plan(&first, &keys(&two, 1, &drawn_smaller), &drawn_smaller);
+        assert!(p.is_empty());
         // New particles: everything.
         let p = plan(&first, &keys(&two, 2, &settings), &settings);
         assert_eq!(p, all);
