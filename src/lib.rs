@@ -19,7 +19,8 @@
 //!         DirectionalLight { illuminance: 10_000.0, ..default() },
 //!         Transform::from_xyz(1.0, 1.0, 0.5).looking_at(Vec3::ZERO, Vec3::Y),
 //!     ));
-//!     commands.spawn((Camera3d::default(), Transform::from_xyz(0.0, 2.0, 8.0)));
+//!     // Clouds drawn at half the view's size per axis, enlarged by a depth-aware upsample.
+//!     commands.spawn((Camera3d::default(), CloudTargetScale(0.5), Transform::from_xyz(0.0, 2.0, 8.0)));
 //! }
 //!
 //! App::new()
