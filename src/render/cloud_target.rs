@@ -48,6 +48,7 @@ use super::{
     draw::{CloudDrawBindGroups, draw_billboards},
     extract::ExtractedCloud,
     gpu::uniform_bytes,
+    key_of,
     particles::GpuParticles,
     shaders::CloudShaders,
 };
@@ -120,6 +121,8 @@ pub struct ViewCloudDraws(pub Vec<(Entity, CachedRenderPipelineId)>);
 /// A view's cloud target texture and its bind groups.
 #[derive(Component)]
 pub struct ViewCloudTargetResources {
+    /// The key of what the bind groups bind.
+    key: u64,
     /// The target: `CLOUD_TARGET_FORMAT`, the target's size.
     pub texture: CachedTexture,
     /// Group 0 of the billboards drawn into the target: view, target parameters, depth.
@@ -328,8 +331,8 @@ fn queue_composites(
     }
 }
 
-/// Creates each cloud target's texture (from the texture cache: reused while its size holds) and
-/// its bind groups.
+/// Takes each cloud target's texture from the texture cache (every frame, which keeps it alive;
+/// the same texture while its size holds) and makes its bind groups when what they bind changed.
 #[allow(clippy::too_many_arguments)] // a render system's resources
 fn prepare_cloud_targets(
     mut commands: Commands,
@@ -337,12 +340,20 @@ fn prepare_cloud_targets(
     cache: Res<PipelineCache>,
     mut textures: ResMut<TextureCache>,
     view_uniforms: Res<ViewUniforms>,
-    views: Query<(Entity, &ViewCloudTarget, &ViewDepthTexture)>,
+    views: Query<(
+        Entity,
+        &ViewCloudTarget,
+        &ViewDepthTexture,
+        Option<&ViewCloudTargetResources>,
+    )>,
 ) {
-    let Some(view_binding) = view_uniforms.uniforms.binding() else {
+    let (Some(view_binding), Some(view_buffer)) = (
+        view_uniforms.uniforms.binding(),
+        view_uniforms.uniforms.buffer(),
+    ) else {
         return;
     };
-    for (entity, target, depth) in &views {
+    for (entity, target, depth, existing) in &views {
         let size = target.params.target_size;
         let texture = textures.get(
             &device,
@@ -364,6 +375,19 @@ fn prepare_cloud_targets(
                 view_formats: &[],
             },
         );
+        // The bind groups are remade only when what they bind changes.
+        let p = &target.params;
+        let key = key_of((
+            [p.viewport_origin, p.viewport_size, p.target_size],
+            [p.scale, p.depth_tolerance].map(f32::to_bits),
+            target.multisampled,
+            texture.default_view.id(),
+            depth.view().id(),
+            view_buffer.id(),
+        ));
+        if existing.is_some_and(|e| e.key == key) {
+            continue;
+        }
         let params = device.create_buffer_with_data(&BufferInitDescriptor {
             label: Some("particle_clouds_cloud_target_params"),
             contents: &uniform_bytes(&target.params),
@@ -388,6 +412,7 @@ fn prepare_cloud_targets(
             )),
         );
         commands.entity(entity).insert(ViewCloudTargetResources {
+            key,
             texture,
             billboard_view,
             composite,
