@@ -270,7 +270,7 @@ pub fn view_scale<'a>(
         None => clouds
             .into_iter()
             .map(|c| c.settings.cloud_target_scale)
-            .fold(None, |a: Option<f32>, s| Some(a.map_or(s, |a| a.max(s))))
+            .reduce(f32::max)
             .unwrap_or(1.0),
     }
 }
@@ -292,13 +292,15 @@ fn choose_cloud_targets(
     clouds: Query<&ExtractedCloud>,
 ) {
     for (entity, view, visible, msaa, camera_scale, mut camera) in &mut views {
-        let seen = visible
+        let seen: Vec<&ExtractedCloud> = visible
             .get::<ParticleCloud>()
             .into_iter()
             .flat_map(|class| &class.entities_cpu_culling)
-            .filter_map(|(e, _)| clouds.get(*e).ok());
-        let scale = view_scale(camera_scale, seen);
-        if scale >= 1.0 || visible.get::<ParticleCloud>().is_none() {
+            .filter_map(|(e, _)| clouds.get(*e).ok())
+            .collect();
+        let scale = view_scale(camera_scale, seen.iter().copied());
+        // No cloud in view: no target (and no texture kept alive).
+        if scale >= 1.0 || seen.is_empty() {
             commands
                 .entity(entity)
                 .remove::<(ViewCloudTarget, ViewCloudDraws, ViewCloudTargetResources)>();
