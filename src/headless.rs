@@ -506,22 +506,36 @@ pub fn read_buffer(
     app: &mut App,
     buffer: &bevy::render::render_resource::Buffer,
 ) -> Result<Vec<u8>, HeadlessError> {
+    read_back(app, buffer.size(), |encoder, staging| {
+        encoder.copy_buffer_to_buffer(buffer, 0, staging, 0, buffer.size());
+    })
+}
+
+/// Records `copy` of `size` bytes into a mappable staging buffer, submits it, waits and returns
+/// the bytes.
+fn read_back(
+    app: &mut App,
+    size: u64,
+    copy: impl FnOnce(
+        &mut bevy::render::render_resource::CommandEncoder,
+        &bevy::render::render_resource::Buffer,
+    ),
+) -> Result<Vec<u8>, HeadlessError> {
     use bevy::render::{
         render_resource::{BufferDescriptor, BufferUsages, CommandEncoderDescriptor, MapMode},
         renderer::RenderQueue,
     };
     let world = app.sub_app(RenderApp).world();
     let device = world.resource::<RenderDevice>();
-    let queue = world.resource::<RenderQueue>();
     let staging = device.create_buffer(&BufferDescriptor {
         label: Some("headless_readback"),
-        size: buffer.size(),
+        size,
         usage: BufferUsages::MAP_READ | BufferUsages::COPY_DST,
         mapped_at_creation: false,
     });
     let mut encoder = device.create_command_encoder(&CommandEncoderDescriptor::default());
-    encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, buffer.size());
-    queue.submit([encoder.finish()]);
+    copy(&mut encoder, &staging);
+    world.resource::<RenderQueue>().submit([encoder.finish()]);
     let slice = staging.slice(..);
     let mapped: Arc<Mutex<Option<String>>> = Arc::default();
     let sink = mapped.clone();
@@ -546,12 +560,8 @@ pub fn read_texture(
     app: &mut App,
     texture: &bevy::render::render_resource::Texture,
 ) -> Result<Vec<u8>, HeadlessError> {
-    use bevy::render::{
-        render_resource::{
-            BufferDescriptor, BufferUsages, CommandEncoderDescriptor, TexelCopyBufferInfo,
-            TexelCopyBufferLayout, TextureAspect,
-        },
-        renderer::RenderQueue,
+    use bevy::render::render_resource::{
+        TexelCopyBufferInfo, TexelCopyBufferLayout, TextureAspect,
     };
     let aspect = if texture.format().is_depth_stencil_format() {
         TextureAspect::DepthOnly
@@ -568,31 +578,22 @@ pub fn read_texture(
     let row = width * texel;
     // Buffer copies need rows aligned to 256 bytes.
     let padded = row.next_multiple_of(256);
-    let world = app.sub_app(RenderApp).world();
-    let device = world.resource::<RenderDevice>();
-    let staging = device.create_buffer(&BufferDescriptor {
-        label: Some("headless_texture_readback"),
-        size: u64::from(padded * height),
-        usage: BufferUsages::COPY_SRC | BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
-    let mut encoder = device.create_command_encoder(&CommandEncoderDescriptor::default());
-    let mut source = texture.as_image_copy();
-    source.aspect = aspect;
-    encoder.copy_texture_to_buffer(
-        source,
-        TexelCopyBufferInfo {
-            buffer: &staging,
-            layout: TexelCopyBufferLayout {
-                offset: 0,
-                bytes_per_row: Some(padded),
-                rows_per_image: Some(height),
+    let bytes = read_back(app, u64::from(padded * height), |encoder, staging| {
+        let mut source = texture.as_image_copy();
+        source.aspect = aspect;
+        encoder.copy_texture_to_buffer(
+            source,
+            TexelCopyBufferInfo {
+                buffer: staging,
+                layout: TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(padded),
+                    rows_per_image: Some(height),
+                },
             },
-        },
-        texture.size(),
-    );
-    world.resource::<RenderQueue>().submit([encoder.finish()]);
-    let bytes = read_buffer(app, &staging)?;
+            texture.size(),
+        );
+    })?;
     Ok(bytes
         .chunks_exact(padded as usize)
         .flat_map(|r| &r[..row as usize])

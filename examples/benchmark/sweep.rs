@@ -223,16 +223,7 @@ impl Bench {
     pub(crate) fn measure(&mut self, frames: usize) -> (LinearImage, Timing) {
         let image = self.image();
         // Static frames: nothing changed, only the draw runs.
-        for _ in 0..2 {
-            self.frame();
-            self.new_draw_time();
-        }
-        let mut draw = Vec::new();
-        let mut static_frames = Vec::new();
-        for _ in 0..frames {
-            static_frames.push(self.frame());
-            draw.extend(self.new_draw_time());
-        }
+        let (draw, static_wall) = self.static_frames(frames);
         // Frames where everything reruns.
         let mut dynamic = Vec::new();
         for _ in 0..frames {
@@ -249,7 +240,6 @@ impl Bench {
                 .map(|&i| self.recorder.frames[i].clone())
                 .collect()
         };
-        let statics = frames_of(&static_frames);
         // Every illumination pass and the view pass (the sort or the view volume).
         let reran = |f: &FrameStats| {
             [CloudPass::Voxelize, CloudPass::Shade, CloudPass::Gather]
@@ -313,7 +303,7 @@ impl Bench {
             gpu_ms_total,
             gpu_ms_static: draw_ms,
             wall_ms: median(dynamics.iter().map(|f| f.wall_ms).collect()),
-            wall_ms_static: median(statics.iter().map(|f| f.wall_ms).collect()),
+            wall_ms_static: median(static_wall),
         };
         (image, timing)
     }
