@@ -29,6 +29,56 @@ pub fn particle_optical_depth(extinction: f64, density: f64, radius: f64, b: f64
     extinction * density * radius * (16.0 / 15.0) * q * q * q.sqrt()
 }
 
+/// Largest radius, in voxels of its level, of a particle deposited on a density level: a larger
+/// one goes to a coarser level, so no particle visits more than `(2·16 + 1)³` voxels
+/// (docs/illumination.md §1, "Density levels"). Each level's upsampling blurs by about a third of
+/// a coarse voxel; at 8 to 16 voxels per radius that lowers a particle's peak column optical
+/// depth by at most about 2 %.
+pub const MAX_RADIUS_IN_LEVEL_VOXELS: f64 = 16.0;
+
+/// Most density levels of a fine grid (enough for `m = 256`: 256, 128, 64, 32, 16, 8, 4).
+pub const MAX_DENSITY_LEVELS: usize = 8;
+
+/// Voxels per side of the density levels of a fine grid of `m` voxels per side: `m`, then each
+/// level half the one before it (rounded up) while that one has at least 8 voxels per side. All
+/// share the fine grid's origin; level `l` has voxels `2^l` times as wide.
+pub fn density_level_sizes(m: u32) -> Vec<u32> {
+    let mut sizes = vec![m];
+    while let Some(&last) = sizes.last()
+        && last >= 8
+        && sizes.len() < MAX_DENSITY_LEVELS
+    {
+        sizes.push(last.div_ceil(2));
+    }
+    sizes
+}
+
+/// The level a particle of radius `r_over_h` fine voxels is deposited on, of `levels` levels: the
+/// finest whose voxels it spans at most [`MAX_RADIUS_IN_LEVEL_VOXELS`] of, else the coarsest.
+pub fn density_level(r_over_h: f64, levels: usize) -> usize {
+    let mut level = 0;
+    while level + 1 < levels && r_over_h > MAX_RADIUS_IN_LEVEL_VOXELS * (1u32 << level) as f64 {
+        level += 1;
+    }
+    level
+}
+
+/// The kernel radius with which a particle of radius `r` is deposited on a density level of voxel
+/// size `h_level` (fine voxel size `h`): narrower than `r` by what the upsampling to the fine grid
+/// spreads (docs/illumination.md §1). The upsampling blurs by a per-axis variance
+/// `s² = (h_level² - h²) / 4`, which lowers the particle's central column optical depth (its
+/// chord integral, `∝ (1 - b²/r²)^(5/2)`) by `5 s² / r²`; a kernel of radius `r'` raises it by
+/// `r² / r'² - 1`. So `r'² = r² - 5 s²` ([`LEVEL_KERNEL_NARROWING`]). The particle's mass is
+/// unchanged.
+pub fn level_kernel_radius(r: f64, h: f64, h_level: f64) -> f64 {
+    (r * r - LEVEL_KERNEL_NARROWING * (h_level * h_level - h * h))
+        .max(0.0)
+        .sqrt()
+}
+
+/// `r'² = r² - LEVEL_KERNEL_NARROWING (h_level² - h²)` in [`level_kernel_radius`]: `5 / 4`.
+pub const LEVEL_KERNEL_NARROWING: f64 = 1.25;
+
 /// Orthonormal basis `[u, v, w]` with `w` the given unit vector (Duff et al. 2017, branchless, with
 /// `sign(0) = +1` so that `w.z = ±0` is handled like the WGSL `select`). The light-aligned volumes
 /// of the renderer and of the reference are laid out along it.
@@ -125,6 +175,38 @@ impl SplitMix64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn density_levels_halve_down_to_a_few_voxels() {
+        assert_eq!(density_level_sizes(144), [144, 72, 36, 18, 9, 5]);
+        assert_eq!(density_level_sizes(256), [256, 128, 64, 32, 16, 8, 4]);
+        assert_eq!(density_level_sizes(7), [7]);
+        assert_eq!(density_level_sizes(8), [8, 4]);
+        for m in 1..=256 {
+            assert!(density_level_sizes(m).len() <= MAX_DENSITY_LEVELS, "{m}");
+        }
+    }
+
+    #[test]
+    fn particles_go_to_the_finest_level_they_span_at_most_16_voxels_of() {
+        let cases = [
+            (0.5, 0),
+            (16.0, 0),
+            (16.01, 1),
+            (32.0, 1),
+            (32.01, 2),
+            (128.0, 3),
+            (1e9, 5),
+        ];
+        for (r_over_h, level) in cases {
+            assert_eq!(density_level(r_over_h, 6), level, "r/h = {r_over_h}");
+        }
+        assert_eq!(
+            density_level(100.0, 1),
+            0,
+            "one level: always the fine grid"
+        );
+    }
 
     #[test]
     fn light_basis_is_orthonormal_for_axes_and_random_directions() {

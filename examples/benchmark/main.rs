@@ -7,6 +7,7 @@
 //! cargo run --example benchmark -- [--quick] [--out DIR] [--scenes a,b] [--frames K] [--font TTF]
 //! cargo run --example benchmark -- --settings '(volume_resolution: 64)' [--settings …] [--scenes a,b]
 //! cargo run --example benchmark -- --illumination [--out DIR]
+//! cargo run --example benchmark -- --voxelize [--out DIR]
 //! cargo run --example benchmark -- --decompose [--scenes a,b] [--spp N] [--out DIR]
 //! ```
 //!
@@ -34,6 +35,7 @@ mod reference_cache;
 mod report;
 mod scenes;
 mod sweep;
+mod voxelize;
 
 use std::{
     collections::HashMap,
@@ -71,6 +73,7 @@ use reference_cache::*;
 use report::*;
 use scenes::*;
 use sweep::*;
+use voxelize::*;
 
 /// Where Debian's `fonts-dejavu-core` puts the font of the plot's labels.
 const DEFAULT_FONT: &str = "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf";
@@ -108,6 +111,9 @@ pub(crate) struct Args {
     /// against the path tracer and against the full-size image.
     #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination"])]
     pub(crate) cloud_target: bool,
+    /// The voxelize pass's cost against particle size (r/h from 1 to 64) instead of the sweep.
+    #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target"])]
+    pub(crate) voxelize: bool,
     /// Overrides every scene's reference samples per pixel.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     pub(crate) spp: Option<u32>,
@@ -197,6 +203,9 @@ fn run() -> Result<(), String> {
     }
     if args.cloud_target {
         return cloud_target_benchmark(&args);
+    }
+    if args.voxelize {
+        return voxelize_benchmark(&args);
     }
     if args.replot {
         return replot(&args);

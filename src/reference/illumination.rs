@@ -14,7 +14,9 @@ use std::ops::{Add, Mul};
 use bevy::math::{DQuat, DVec3};
 use rayon::prelude::*;
 
-use crate::math::{kernel_u2, light_basis};
+use crate::math::{
+    density_level, density_level_sizes, kernel_u2, level_kernel_radius, light_basis,
+};
 use crate::particle::{LightSample, Medium, Particle};
 use crate::settings::{CloudQualitySettings, ScatterStencil};
 
@@ -208,32 +210,106 @@ fn support_bounds(particles: &[Particle]) -> Option<(DVec3, DVec3)> {
 
 /// Voxelizes the particles with `density > 0` on an `n³` grid (contract section 1).
 ///
-/// Each particle deposits exactly its mass `Particle::mass()`: large particles (`r >= h`) spread it
-/// with kernel-shaped weights over the voxel centres inside their support, sub-voxel particles
-/// (`r < h`) with the trilinear weights of their centre. Returns `None` when no particle has
-/// `density > 0` (there is no medium to bound). Panics if `n == 0`.
+/// Each particle deposits exactly its mass `Particle::mass()` on its density level (the finest on
+/// which its radius spans at most 16 voxels, [`density_level`]): large particles (`r >= h`) spread it
+/// with kernel-shaped weights over the level's voxel centres inside their support, sub-voxel
+/// particles (`r < h`) with the trilinear weights of their centre. The levels are then enlarged
+/// into the fine grid, coarsest first ([`upsample_into`]), which keeps their mass. Returns `None`
+/// when no particle has `density > 0` (there is no medium to bound). Panics if `n == 0`.
 pub fn voxelize(particles: &[Particle], n: usize) -> Option<DensityGrid> {
     assert!(n > 0, "volume resolution must be > 0");
     let (lo, hi) = support_bounds(particles)?;
     let side = (hi - lo).max_element();
     let h = side / n as f64;
-    let mut grid = DensityGrid {
+    let fine = DensityGrid {
         n,
         centre: (lo + hi) * 0.5,
         side,
         h,
         rho: vec![0.0; n * n * n],
     };
-    // `rho` holds deposited mass until the final division by the voxel volume.
+    let mut levels = density_levels(fine);
+    // `rho` holds deposited mass until the division by each level's voxel volume.
     for p in particles.iter().filter(|p| p.density > 0.0) {
         let (c, r, m) = (p.position.as_dvec3(), p.radius as f64, p.mass());
-        if r < h || !deposit_kernel(&mut grid, c, r, m) {
-            deposit_trilinear(&mut grid, c, m);
+        let level = density_level(r / h, levels.len());
+        let grid = &mut levels[level];
+        let shape = level_kernel_radius(r, h, grid.h);
+        if r < grid.h || !deposit_kernel(grid, c, shape, m) {
+            deposit_trilinear(grid, c, m);
         }
     }
-    let inv_volume = 1.0 / (h * h * h);
-    grid.rho.iter_mut().for_each(|v| *v *= inv_volume);
-    Some(grid)
+    for grid in &mut levels {
+        let inv_volume = 1.0 / grid.h.powi(3);
+        grid.rho.iter_mut().for_each(|v| *v *= inv_volume);
+    }
+    while let Some(coarse) = levels.pop() {
+        match levels.last_mut() {
+            Some(finer) => upsample_into(finer, &coarse),
+            None => return Some(coarse),
+        }
+    }
+    unreachable!("there is at least the fine level")
+}
+
+/// The empty density levels of `fine` ([`density_level_sizes`]): level `l` has voxels `2^l` times
+/// as wide, from the same origin (so an odd level's last voxel reaches past the cube).
+fn density_levels(fine: DensityGrid) -> Vec<DensityGrid> {
+    let origin = fine.origin();
+    let sizes = density_level_sizes(fine.n as u32);
+    let mut levels = vec![fine];
+    for (l, &n) in sizes.iter().enumerate().skip(1) {
+        let n = n as usize;
+        let h = levels[0].h * (1u32 << l) as f64;
+        let side = n as f64 * h;
+        levels.push(DensityGrid {
+            n,
+            centre: origin + DVec3::splat(side * 0.5),
+            side,
+            h,
+            rho: vec![0.0; n * n * n],
+        });
+    }
+    levels
+}
+
+/// The coarse voxels `(index, density weight)` that fine voxel `i` of a level of `fine_n` takes its
+/// density from, one axis of the level above (`coarse_n` voxels). Coarse voxel `J` gives 1/8, 3/8,
+/// 3/8 and 1/8 of its mass to fine voxels `2J - 1 ..= 2J + 2`; a share that would leave the level
+/// goes to its edge voxel instead, so no mass is lost. Density weights are twice the mass shares
+/// (a fine voxel is half as wide); inside, they are trilinear interpolation's.
+fn prolongation(i: usize, fine_n: usize, coarse_n: usize) -> Vec<(usize, f64)> {
+    const SHARES: [(i64, f64); 4] = [(-1, 0.125), (0, 0.375), (1, 0.375), (2, 0.125)];
+    let mut weights = Vec::with_capacity(3);
+    for j in (i / 2).saturating_sub(1)..=(i / 2 + 1).min(coarse_n - 1) {
+        let w: f64 = SHARES
+            .iter()
+            .filter(|(d, _)| (2 * j as i64 + d).clamp(0, fine_n as i64 - 1) == i as i64)
+            .map(|(_, share)| 2.0 * share)
+            .sum();
+        if w > 0.0 {
+            weights.push((j, w));
+        }
+    }
+    weights
+}
+
+/// Adds level `coarse` (densities), enlarged by [`prolongation`] on every axis, to the level below.
+fn upsample_into(fine: &mut DensityGrid, coarse: &DensityGrid) {
+    let axis: Vec<Vec<(usize, f64)>> = (0..fine.n)
+        .map(|i| prolongation(i, fine.n, coarse.n))
+        .collect();
+    let n = fine.n;
+    for (idx, value) in fine.rho.iter_mut().enumerate() {
+        let (i, j, k) = unravel(idx, n);
+        for &(c, wk) in &axis[k] {
+            for &(b, wj) in &axis[j] {
+                for &(a, wi) in &axis[i] {
+                    *value += wi * wj * wk * coarse.rho[coarse.index(a, b, c)];
+                }
+            }
+        }
+    }
 }
 
 /// Range of voxel indices on one axis whose centres lie within `[lo, hi]` (grid coordinates, so
@@ -1059,6 +1135,135 @@ mod tests {
         assert_eq!(voxelize(&[big, ghost], 8).unwrap(), grid_only_big);
         assert!(voxelize(&[ghost], 8).is_none());
         assert!(voxelize(&[], 8).is_none());
+    }
+
+    /// One axis of the upsampling: each coarse voxel's density weights sum to 2 over the fine
+    /// voxels (its mass is kept, at either parity of the fine level), and inside they
+    /// interpolate a linear profile exactly.
+    #[test]
+    fn prolongation_keeps_mass_and_interpolates_linearly() {
+        for fine_n in 2usize..40 {
+            let coarse_n = fine_n.div_ceil(2);
+            let mut given = vec![0.0; coarse_n];
+            for i in 0..fine_n {
+                for (j, w) in prolongation(i, fine_n, coarse_n) {
+                    given[j] += w;
+                }
+            }
+            for (j, total) in given.iter().enumerate() {
+                assert!(
+                    (total - 2.0).abs() < 1e-15,
+                    "{fine_n}: coarse {j} gives {total}"
+                );
+            }
+            // Coarse centre j at 2j + 1/2 in fine coordinates; fine centre i at i.
+            for i in 2..fine_n.saturating_sub(2) {
+                let value: f64 = prolongation(i, fine_n, coarse_n)
+                    .iter()
+                    .map(|&(j, w)| w * (3.0 + 0.5 * (2.0 * j as f64 + 0.5)))
+                    .sum();
+                assert!(
+                    (value - (3.0 + 0.5 * i as f64)).abs() < 1e-12,
+                    "{fine_n}, {i}"
+                );
+            }
+        }
+        assert_eq!(prolongation(0, 8, 4), [(0, 1.0)]);
+        assert_eq!(prolongation(5, 8, 4), [(2, 0.75), (3, 0.25)]);
+        // An odd level: the last coarse voxel half overhangs; its whole share stays in voxel 8.
+        assert_eq!(prolongation(8, 9, 5), [(3, 0.25), (4, 1.75)]);
+    }
+
+    /// The levels' upsampling, compensated by the narrower kernel (`level_kernel_radius`): a
+    /// particle just too wide for the level below (8.1–8.5 voxels per radius on its level) keeps
+    /// its central column optical depth within 0.1 % of the exact chord integral, as a particle
+    /// of 8 fine voxels per radius deposited directly does. (Uncompensated, it is 1.8 % low.)
+    #[test]
+    fn coarse_levels_keep_a_particles_central_column() {
+        let p = particle(0.0, 0.0, 0.0, 1.0, 1.0);
+        // The mean of the four voxel columns around the particle's axis (each h / √2 from it),
+        // relative to the exact chord integral there.
+        let centre_column = |n: usize| {
+            let grid = voxelize(&[p], n).unwrap();
+            let column =
+                |i: usize, j: usize| -> f64 { (0..n).map(|k| grid.rho[grid.index(i, j, k)]).sum() };
+            let c = n / 2 - 1;
+            let sum = column(c, c) + column(c + 1, c) + column(c, c + 1) + column(c + 1, c + 1);
+            let exact = crate::math::particle_optical_depth(1.0, 1.0, 1.0, grid.h / 2f64.sqrt());
+            sum / 4.0 * grid.h / exact - 1.0
+        };
+        let direct = centre_column(16);
+        for (n, level) in [(34, 1), (66, 2), (130, 3)] {
+            let levels = density_level_sizes(n as u32).len();
+            assert_eq!(density_level(n as f64 / 2.0, levels), level);
+            let error = centre_column(n);
+            assert!(
+                error.abs() < 1e-3 && direct.abs() < 1e-3,
+                "n = {n}, level {level}: {error} against {direct} directly"
+            );
+        }
+    }
+
+    /// The density levels: particles of every size keep their mass exactly on grids of either
+    /// parity, and the large ones, deposited on coarse levels and enlarged, stay close to their
+    /// direct deposit on the fine grid (the column optical depths within 0.5 % of the largest).
+    #[test]
+    fn coarse_levels_keep_mass_and_stay_close_to_the_direct_deposit() {
+        let mut rng = crate::math::SplitMix64::new(3);
+        let particles: Vec<Particle> = (0..40)
+            .map(|i| {
+                let c = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) - 0.5;
+                let radius = [0.01, 0.05, 0.2, 0.6, 1.2][i % 5];
+                particle(c.x, c.y, c.z, radius, 1.0 + rng.next_f32())
+            })
+            .collect();
+        let mass: f64 = particles.iter().map(|p| p.mass()).sum();
+        for n in [127, 128, 96, 45] {
+            let grid = voxelize(&particles, n).unwrap();
+            let deepest = particles
+                .iter()
+                .map(|p| density_level(p.radius as f64 / grid.h, 8))
+                .max();
+            assert!(
+                deepest >= Some(1 + (n >= 96) as usize),
+                "n = {n}: {deepest:?}"
+            );
+            assert!(
+                (grid.mass() - mass).abs() < 1e-10 * mass,
+                "n = {n}: {} vs {mass}",
+                grid.mass()
+            );
+            // The same particles deposited directly on the fine grid.
+            let mut direct = DensityGrid {
+                rho: vec![0.0; grid.len()],
+                ..grid.clone()
+            };
+            for p in &particles {
+                let (c, r, m) = (p.position.as_dvec3(), p.radius as f64, p.mass());
+                if r < direct.h || !deposit_kernel(&mut direct, c, r, m) {
+                    deposit_trilinear(&mut direct, c, m);
+                }
+            }
+            let inv_volume = 1.0 / direct.h.powi(3);
+            direct.rho.iter_mut().for_each(|v| *v *= inv_volume);
+            // Column optical depths (sums along z) through every (i, j), relative to the largest.
+            let columns = |g: &DensityGrid| -> Vec<f64> {
+                (0..n * n)
+                    .map(|ij| (0..n).map(|k| g.rho[ij + n * n * k]).sum::<f64>() * g.h)
+                    .collect()
+            };
+            let (a, b) = (columns(&grid), columns(&direct));
+            let largest = b.iter().copied().fold(0.0, f64::max);
+            let worst = a
+                .iter()
+                .zip(&b)
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0, f64::max);
+            assert!(
+                worst < 0.005 * largest,
+                "n = {n}: worst column {worst} of {largest}"
+            );
+        }
     }
 
     #[test]

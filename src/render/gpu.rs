@@ -7,8 +7,8 @@ use bevy::{
     render::{
         diagnostic::{DiagnosticsRecorder, RecordDiagnostics},
         render_resource::{
-            Buffer, BufferDescriptor, BufferUsages, ComputePass, ComputePassDescriptor, ShaderType,
-            encase,
+            Buffer, BufferDescriptor, BufferInitDescriptor, BufferUsages, ComputePass,
+            ComputePassDescriptor, ShaderType, encase,
         },
         renderer::{RenderContext, RenderDevice},
     },
@@ -43,6 +43,29 @@ pub fn uniform_bytes<T: ShaderType + encase::internal::WriteInto>(value: &T) -> 
         .write(value)
         .expect("uniform encoding cannot fail for plain structs");
     buffer.into_inner()
+}
+
+/// Byte stride of the entries of a dynamic-offset uniform buffer (the largest dynamic-offset
+/// alignment WebGPU allows adapters to require).
+pub const DYNAMIC_UNIFORM_STRIDE: u32 = 256;
+
+/// A uniform buffer of `values`, [`DYNAMIC_UNIFORM_STRIDE`] bytes apart: entry `i` is bound at
+/// dynamic offset `i * DYNAMIC_UNIFORM_STRIDE`.
+pub(crate) fn dynamic_uniform<T: ShaderType + encase::internal::WriteInto>(
+    device: &RenderDevice,
+    label: &'static str,
+    values: impl IntoIterator<Item = T>,
+) -> Buffer {
+    let mut bytes = Vec::new();
+    for (i, value) in values.into_iter().enumerate() {
+        bytes.resize(i * DYNAMIC_UNIFORM_STRIDE as usize, 0);
+        bytes.extend_from_slice(&uniform_bytes(&value));
+    }
+    device.create_buffer_with_data(&BufferInitDescriptor {
+        label: Some(label),
+        contents: &bytes,
+        usage: BufferUsages::UNIFORM,
+    })
 }
 
 /// Encodes a slice of `ShaderType` values as a storage-buffer array.

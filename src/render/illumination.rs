@@ -17,14 +17,14 @@ use bevy::{
 
 use super::{
     extract::ExtractedCloud,
-    gpu::record_stage,
+    gpu::{DYNAMIC_UNIFORM_STRIDE, record_stage},
     particles::GpuParticles,
     pipelines::{
-        ComputeStage, IlluminationPipelines, ReadyPipelines, SWEEP_DIRECTION_STRIDE,
-        SweepDirection, sweep_directions, sweep_lines,
+        ComputeStage, IlluminationPipelines, ReadyPipelines, SweepDirection, sweep_directions,
+        sweep_lines,
     },
     plan::CloudIllumination,
-    volumes::CloudVolumes,
+    volumes::{CloudVolumes, DensityLevels},
     workgroups::{self, dispatch_columns, dispatch_linear, dispatch_volume},
 };
 use crate::{
@@ -35,7 +35,7 @@ use crate::{
 /// The bind groups of one cloud's planned stages this frame (render world component).
 #[derive(Component, Default)]
 pub struct IlluminationBindGroups {
-    /// Voxelize (both of its entry points).
+    /// Voxelize (all three of its entry points).
     voxelize: Option<BindGroup>,
     /// Shade, per planned light slot.
     shade: Vec<(usize, BindGroup)>,
@@ -92,6 +92,11 @@ pub(crate) fn prepare_illumination_bind_groups(
                     gpu.buffer.as_entire_binding(),
                     v.fine_density.as_entire_binding(),
                     v.kernel_sums.as_entire_binding(),
+                    BufferBinding {
+                        buffer: &v.density_levels,
+                        offset: 0,
+                        size: Some(DensityLevels::min_size()),
+                    },
                 )),
             )
         });
@@ -205,8 +210,9 @@ pub(crate) fn illuminate_clouds(
         .filter_map(|(cloud, v, s, groups)| Some((particles.get(cloud.particles)?, v, s, groups?)))
         .collect();
 
-    // Voxelize (docs/illumination.md §1): clear, then every particle deposits its mass into the
-    // fine grid, one row of its support per invocation: the kernel's sums, then the deposit.
+    // Voxelize (docs/illumination.md §1): clear, then every particle deposits its mass on its
+    // density level, one row of its support per invocation: the kernel's sums, then the deposit.
+    // Then the coarse levels are enlarged into the fine grid, coarsest first.
     let voxelizing: Vec<_> = clouds
         .iter()
         .filter_map(|(gpu, v, _, g)| Some((gpu, v, g.voxelize.as_ref()?)))
@@ -226,12 +232,19 @@ pub(crate) fn illuminate_clouds(
                     pass.set_pipeline(pipeline);
                     for (gpu, v, group) in &voxelizing {
                         let rows = v.fine_params.rows;
-                        pass.set_bind_group(0, *group, &[]);
+                        pass.set_bind_group(0, *group, &[0]);
                         pass.dispatch_workgroups(
                             gpu.count.div_ceil(workgroups::LINEAR).max(1),
                             rows,
                             rows,
                         );
+                    }
+                }
+                pass.set_pipeline(ready.upsample);
+                for (_, v, group) in &voxelizing {
+                    for coarse in (1..v.levels_in_use).rev() {
+                        pass.set_bind_group(0, *group, &[coarse as u32 * DYNAMIC_UNIFORM_STRIDE]);
+                        dispatch_volume(pass, v.level_sizes[coarse - 1]);
                     }
                 }
                 voxelizing.len() as u32
@@ -345,7 +358,7 @@ fn scatter_cloud(
         if sweep {
             // One dispatch per direction pair: the lines of one direction partition the grid.
             for (i, o) in sweep_directions().enumerate() {
-                pass.set_bind_group(0, group, &[i as u32 * SWEEP_DIRECTION_STRIDE]);
+                pass.set_bind_group(0, group, &[i as u32 * DYNAMIC_UNIFORM_STRIDE]);
                 dispatch_linear(pass, sweep_lines(o, n));
             }
         } else {

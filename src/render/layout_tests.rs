@@ -6,7 +6,7 @@ use bevy::render::render_resource::ShaderType;
 use super::{
     cloud_target::CloudTargetParams, draw::DrawParams, particles::GpuParticle,
     pipelines::SweepDirection, sort::SortParams, view_volume::ViewVolumeParams,
-    volumes::CloudParams, volumes::LightParams,
+    volumes::CloudParams, volumes::DensityLevels, volumes::LightParams,
 };
 
 const WGSL: [&str; 4] = [
@@ -78,6 +78,11 @@ fn check(wgsl: &str, rust: &str, rust_size: u64) {
 fn rust_mirrors_have_the_wgsl_layout() {
     check("CloudParams", "CloudParams", CloudParams::min_size().get());
     check("LightParams", "LightParams", LightParams::min_size().get());
+    check(
+        "DensityLevels",
+        "DensityLevels",
+        DensityLevels::min_size().get(),
+    );
     check("DrawParams", "DrawParams", DrawParams::min_size().get());
     check("SortParams", "SortParams", SortParams::min_size().get());
     check(

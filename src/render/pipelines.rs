@@ -1,13 +1,12 @@
 //! Compute pipelines of the illumination passes, created once in `RenderStartup`.
 
-use super::{gpu::uniform_bytes, shaders::CloudShaders};
+use super::{gpu::dynamic_uniform, shaders::CloudShaders, volumes::DensityLevels};
 use bevy::{
     prelude::*,
     render::{
         render_resource::{
-            BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, BufferInitDescriptor,
-            BufferUsages, CachedComputePipelineId, ComputePipeline, ComputePipelineDescriptor,
-            PipelineCache, ShaderStages, ShaderType,
+            BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, CachedComputePipelineId,
+            ComputePipeline, ComputePipelineDescriptor, PipelineCache, ShaderStages, ShaderType,
             binding_types::{
                 storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer,
                 uniform_buffer_sized,
@@ -77,10 +76,6 @@ pub fn sweep_lines(o: IVec3, n: u32) -> u32 {
     n.pow(3 - moving) * (2 * n - 1).pow(moving - 1)
 }
 
-/// Byte stride of the sweep directions in their uniform buffer (the largest dynamic-offset
-/// alignment WebGPU allows adapters to require).
-pub const SWEEP_DIRECTION_STRIDE: u32 = 256;
-
 /// The pipelines of the illumination passes.
 #[derive(Resource)]
 pub struct IlluminationPipelines {
@@ -88,6 +83,8 @@ pub struct IlluminationPipelines {
     pub kernel_sums: ComputeStage,
     /// `voxelize.wgsl`, `deposit` (same layout as `kernel_sums`).
     pub voxelize: ComputeStage,
+    /// `voxelize.wgsl`, `upsample` (same layout): a density level enlarged into the one below.
+    pub upsample: ComputeStage,
     /// `shade.wgsl`, `shade` (incremental).
     pub shade: ComputeStage,
     /// `shade.wgsl`, `shade_brute_force` (benchmarks).
@@ -102,7 +99,7 @@ pub struct IlluminationPipelines {
     pub order_ratio: ComputeStage,
     /// `closure.wgsl`, `extrapolate` (same layout as `order_ratio`).
     pub extrapolate: ComputeStage,
-    /// The 13 `SweepDirection`s, `SWEEP_DIRECTION_STRIDE` bytes apart (a dynamic uniform).
+    /// The 13 `SweepDirection`s, `DYNAMIC_UNIFORM_STRIDE` bytes apart (a dynamic uniform).
     pub sweep_directions: Buffer,
 }
 
@@ -112,6 +109,8 @@ pub struct ReadyPipelines<'a> {
     pub kernel_sums: &'a ComputePipeline,
     /// Voxelize's deposit.
     pub voxelize: &'a ComputePipeline,
+    /// Voxelize's level upsampling.
+    pub upsample: &'a ComputePipeline,
     /// Gather.
     pub gather: &'a ComputePipeline,
     /// Sweep.
@@ -130,6 +129,7 @@ impl IlluminationPipelines {
         Some(ReadyPipelines {
             kernel_sums: self.kernel_sums.get(cache)?,
             voxelize: self.voxelize.get(cache)?,
+            upsample: self.upsample.get(cache)?,
             gather: self.gather.get(cache)?,
             sweep: self.sweep.get(cache)?,
             scatter_paper: self.scatter_paper.get(cache)?,
@@ -140,20 +140,14 @@ impl IlluminationPipelines {
 }
 
 fn sweep_direction_buffer(device: &RenderDevice) -> Buffer {
-    let mut bytes = Vec::new();
-    for (i, o) in sweep_directions().enumerate() {
-        let entry = uniform_bytes(&SweepDirection {
+    dynamic_uniform(
+        device,
+        "particle_clouds_sweep_directions",
+        sweep_directions().enumerate().map(|(i, o)| SweepDirection {
             o,
             first: (i == 0) as u32,
-        });
-        bytes.resize(i * SWEEP_DIRECTION_STRIDE as usize, 0);
-        bytes.extend_from_slice(&entry);
-    }
-    device.create_buffer_with_data(&BufferInitDescriptor {
-        label: Some("particle_clouds_sweep_directions"),
-        contents: &bytes,
-        usage: BufferUsages::UNIFORM,
-    })
+        }),
+    )
 }
 
 pub(crate) fn init_illumination_pipelines(
@@ -169,7 +163,13 @@ pub(crate) fn init_illumination_pipelines(
         "particle_clouds_voxelize_layout",
         &BindGroupLayoutEntries::sequential(
             ShaderStages::COMPUTE,
-            (uniform(), read(), write(), write()),
+            (
+                uniform(),
+                read(),
+                write(),
+                write(),
+                uniform_buffer::<DensityLevels>(true),
+            ),
         ),
     );
     let shade = BindGroupLayoutDescriptor::new(
@@ -215,6 +215,7 @@ pub(crate) fn init_illumination_pipelines(
     commands.insert_resource(IlluminationPipelines {
         kernel_sums: stage(&shaders.voxelize, "kernel_sums", &voxelize),
         voxelize: stage(&shaders.voxelize, "deposit", &voxelize),
+        upsample: stage(&shaders.voxelize, "upsample", &voxelize),
         shade: stage(&shaders.shade, "shade", &shade),
         shade_brute_force: stage(&shaders.shade, "shade_brute_force", &shade),
         gather: stage(&shaders.gather, "gather", &gather),

@@ -55,6 +55,22 @@ struct LightParams {
     offset: u32,
 }
 
+// The density levels of a fine grid (docs/illumination.md §1). Rust mirror: `DensityLevels` in
+// src/render/volumes.rs.
+struct DensityLevels {
+    // Per level, the fine grid first: voxels per side (x) and first element in the density
+    // buffer (y).
+    size_offset: array<vec4<u32>, 8>,
+    // Levels in use.
+    count: u32,
+    // The level an upsample dispatch enlarges into the one below it.
+    upsample_from: u32,
+    // Largest radius, in voxels of its level, of a particle deposited on a level.
+    max_radius: f32,
+    // On level l, a particle deposits a kernel of radius sqrt(r² - kernel_narrowing (h_l² - h²)).
+    kernel_narrowing: f32,
+}
+
 // Linear index of voxel `v` in an n^3 volume.
 fn voxel_index(v: vec3<u32>, n: u32) -> u32 {
     return v.x + n * (v.y + n * v.z);

@@ -14,11 +14,14 @@ use bevy::{
 
 use super::{
     extract::{ExtractedCloud, ExtractedCloudLights},
-    gpu::{storage, storage_bytes, uniform, uniform_bytes},
+    gpu::{dynamic_uniform, storage, storage_bytes, uniform, uniform_bytes},
     particles::{CloudBounds, GpuParticles},
     plan::{CloudIllumination, StageKeys},
 };
-use crate::math::light_basis;
+use crate::math::{
+    LEVEL_KERNEL_NARROWING, MAX_DENSITY_LEVELS, MAX_RADIUS_IN_LEVEL_VOXELS, density_level,
+    density_level_sizes, light_basis,
+};
 
 /// Mirror of `CloudParams` in `types.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
@@ -45,9 +48,49 @@ pub struct CloudParams {
     pub forward_scattering: f32,
     /// Fine voxels per scattering voxel and axis, `f` (`light_supersampling` in effect).
     pub supersampling: u32,
-    /// Rows per axis of the largest particle's support in the fine grid: the voxelize dispatch is
-    /// particles × rows × rows.
+    /// Rows per axis of the largest particle's support on its density level (at most 33): the voxelize dispatch is particles × rows × rows.
     pub rows: u32,
+}
+
+/// Mirror of `DensityLevels` in `types.wgsl`: the density levels of a fine grid
+/// (docs/illumination.md §1), with the level one upsample dispatch enlarges.
+#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
+pub struct DensityLevels {
+    /// Per level, the fine grid first: voxels per side (x) and first element in the density
+    /// buffer (y).
+    pub size_offset: [UVec4; MAX_DENSITY_LEVELS],
+    /// Levels in use.
+    pub count: u32,
+    /// The level an upsample dispatch enlarges into the one below it (0 for the deposit).
+    pub upsample_from: u32,
+    /// [`MAX_RADIUS_IN_LEVEL_VOXELS`].
+    pub max_radius: f32,
+    /// [`LEVEL_KERNEL_NARROWING`].
+    pub kernel_narrowing: f32,
+}
+
+impl DensityLevels {
+    /// The levels of a fine grid of `m` voxels per side, one entry per value of `upsample_from`
+    /// (`0..count`); and the elements of the density buffer that holds them all.
+    fn entries(m: u32) -> (Vec<DensityLevels>, u64) {
+        let sizes = density_level_sizes(m);
+        let mut size_offset = [UVec4::ZERO; MAX_DENSITY_LEVELS];
+        let mut elements = 0;
+        for (entry, &n) in size_offset.iter_mut().zip(&sizes) {
+            *entry = UVec4::new(n, elements as u32, 0, 0);
+            elements += (n as u64).pow(3);
+        }
+        let entries = (0..sizes.len() as u32)
+            .map(|upsample_from| DensityLevels {
+                size_offset,
+                count: sizes.len() as u32,
+                upsample_from,
+                max_radius: MAX_RADIUS_IN_LEVEL_VOXELS as f32,
+                kernel_narrowing: LEVEL_KERNEL_NARROWING as f32,
+            })
+            .collect();
+        (entries, elements)
+    }
 }
 
 /// Mirror of `LightParams` in `types.wgsl`.
@@ -121,8 +164,16 @@ pub struct CloudVolumes {
     /// Its buffer (voxelize and shade).
     pub fine_params_buffer: Buffer,
     /// `m³` f32 fine density (written as atomic u32 bits by voxelize), what the lights shine
-    /// through.
+    /// through, followed by its coarser density levels.
     pub fine_density: Buffer,
+    /// Voxels per side of each density level, the fine grid's `m` first.
+    pub level_sizes: Vec<u32>,
+    /// The levels that hold particles (the fine grid and the coarser ones down to the largest
+    /// particle's): only these are enlarged, so a cloud of small particles does no upsampling.
+    pub levels_in_use: usize,
+    /// The `DensityLevels` uniform, one entry per `upsample_from`, `DYNAMIC_UNIFORM_STRIDE`
+    /// bytes apart.
+    pub density_levels: Buffer,
     /// `n³` f32 density of the scattering grid (the mean of each voxel's children, by gather).
     pub density: Buffer,
     /// One f32 per particle: its kernel's sum over the fine voxel centres in its support (voxelize).
@@ -157,6 +208,7 @@ fn light_array(device: &RenderDevice, count: u32) -> Buffer {
 impl CloudVolumes {
     fn new(device: &RenderDevice, n: u32, m: u32, particle_count: u32) -> Self {
         let voxels = (n as u64).pow(3);
+        let (levels, level_elements) = DensityLevels::entries(m);
         Self {
             params: CloudParams {
                 n,
@@ -175,11 +227,10 @@ impl CloudVolumes {
                 "particle_clouds_fine_params",
                 CloudParams::min_size().get(),
             ),
-            fine_density: storage(
-                device,
-                "particle_clouds_fine_density",
-                (m as u64).pow(3) * 4,
-            ),
+            fine_density: storage(device, "particle_clouds_fine_density", level_elements * 4),
+            level_sizes: density_level_sizes(m),
+            levels_in_use: 1,
+            density_levels: dynamic_uniform(device, "particle_clouds_density_levels", levels),
             density: storage(device, "particle_clouds_density", voxels * 4),
             kernel_sums: storage(
                 device,
@@ -349,6 +400,7 @@ fn plan_cloud(
         queue.write_buffer(&volumes.params_buffer, 0, &uniform_bytes(&params));
         volumes.params = params;
     }
+    volumes.levels_in_use = levels_in_use(bounds, params.light_n);
     let fine = fine_params(&params);
     if fine != volumes.fine_params {
         queue.write_buffer(&volumes.fine_params_buffer, 0, &uniform_bytes(&fine));
@@ -370,11 +422,32 @@ fn fine_params(params: &CloudParams) -> CloudParams {
     }
 }
 
-/// Rows per axis of the largest support in a grid of `m` voxels per side over `bounds`: at most
-/// `2 r / h + 1` voxel centres, and no more than the grid holds.
+/// The largest particle's radius in fine voxels, and its density level, in a fine grid of `m`
+/// voxels per side over `bounds`.
+fn largest_particle(bounds: CloudBounds, m: u32) -> (f64, usize) {
+    let r_over_h = (bounds.max_radius * m as f32 / bounds.side) as f64;
+    let levels = density_level_sizes(m).len();
+    (r_over_h, density_level(r_over_h, levels))
+}
+
+/// Density levels that hold particles: the fine grid down to the largest particle's level.
+fn levels_in_use(bounds: CloudBounds, m: u32) -> usize {
+    largest_particle(bounds, m).1 + 1
+}
+
+/// Rows per axis of the largest support on its density level, in a fine grid of `m` voxels per
+/// side over `bounds`: at most `2 r / h_l + 1` voxel centres, and no more than the fine grid
+/// holds. Particles on finer levels than the largest one's span up to
+/// `MAX_RADIUS_IN_LEVEL_VOXELS`.
 fn support_rows(bounds: CloudBounds, m: u32) -> u32 {
-    let h = bounds.side / m as f32;
-    let rows = 2.0 * (bounds.max_radius / h).ceil() + 1.0;
+    let (r_over_h, level) = largest_particle(bounds, m);
+    let on_level = r_over_h / (1u32 << level) as f64;
+    let widest = if level == 0 {
+        on_level
+    } else {
+        on_level.max(MAX_RADIUS_IN_LEVEL_VOXELS)
+    };
+    let rows = 2.0 * widest.ceil() + 1.0;
     (rows as u32).clamp(1, m + 1)
 }
 
@@ -399,5 +472,65 @@ fn cloud_params(
         forward_scattering: cloud.settings.forward_scattering,
         supersampling: cloud.settings.supersampling(),
         rows: support_rows(bounds, cloud.settings.light_resolution()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bounds(max_radius: f32) -> CloudBounds {
+        CloudBounds {
+            centre: Vec3::ZERO,
+            side: 2.0,
+            max_radius,
+        }
+    }
+
+    /// The voxelize dispatch no longer grows with the particles' size: a particle as wide as
+    /// the grid takes no more rows than one 16 voxels wide.
+    #[test]
+    fn voxelize_rows_are_bounded_whatever_the_particles_size() {
+        let m = 144;
+        let h = 2.0 / m as f32;
+        assert_eq!(support_rows(bounds(0.5 * h), m), 3);
+        assert_eq!(support_rows(bounds(3.5 * h), m), 9);
+        assert_eq!(support_rows(bounds(16.0 * h), m), 33);
+        for r_over_h in [16.5, 32.0, 33.0, 40.0, 72.0] {
+            assert_eq!(
+                support_rows(bounds(r_over_h * h), m),
+                33,
+                "r/h = {r_over_h}"
+            );
+        }
+        // One level only (m < 8): the fine grid bounds the rows.
+        assert_eq!(support_rows(bounds(1.0), 6), 7);
+    }
+
+    #[test]
+    fn only_levels_holding_particles_are_upsampled() {
+        let m = 144;
+        let h = 2.0 / m as f32;
+        assert_eq!(levels_in_use(bounds(16.0 * h), m), 1);
+        assert_eq!(levels_in_use(bounds(16.5 * h), m), 2);
+        assert_eq!(levels_in_use(bounds(72.0 * h), m), 4);
+    }
+
+    #[test]
+    fn density_levels_pack_after_the_fine_grid() {
+        let (entries, elements) = DensityLevels::entries(144);
+        assert_eq!(entries.len(), 6);
+        assert_eq!(
+            elements,
+            [144u64, 72, 36, 18, 9, 5]
+                .iter()
+                .map(|n| n.pow(3))
+                .sum::<u64>()
+        );
+        let e = &entries[3];
+        assert_eq!((e.count, e.upsample_from), (6, 3));
+        assert_eq!(e.size_offset[0], UVec4::new(144, 0, 0, 0));
+        assert_eq!(e.size_offset[1], UVec4::new(72, 144u32.pow(3), 0, 0));
+        assert_eq!(e.size_offset[6], UVec4::ZERO);
     }
 }

@@ -323,3 +323,34 @@ fn one_particle_filling_a_fine_grid_of_256_cubed() {
         settings: common::quality(128, 2),
     });
 }
+
+#[test]
+fn large_particles_on_coarse_density_levels_of_odd_sizes() {
+    // A fine grid of 135³: its density levels are 135, 68, 34, 17, 9, 5 voxels per side, so the
+    // upsampling meets levels of both parities. Radii up to ~36 fine voxels put particles on
+    // levels 0, 1 and 2.
+    let mut rng = SplitMix64::new(21);
+    let particles = (0..60)
+        .map(|i| Particle {
+            position: rng.in_unit_ball(),
+            radius: [0.03, 0.2, 0.6, 1.2][i % 4] * (0.8 + 0.2 * rng.next_f32()),
+            density: 0.2 + rng.next_f32(),
+        })
+        .collect();
+    check(Case {
+        particles,
+        medium: Medium {
+            extinction: 2.0,
+            albedo: 0.9,
+        },
+        lights: vec![LightSample {
+            direction: Vec3::new(-0.4, -1.0, 0.3),
+            irradiance: Vec3::ONE,
+        }],
+        transform: Transform::IDENTITY,
+        settings: CloudQualitySettings {
+            light_supersampling: 3,
+            ..common::quality(45, 2)
+        },
+    });
+}

@@ -1,0 +1,112 @@
+//! `--voxelize`: the voxelize pass's GPU time against particle size, at a fixed particle count.
+//!
+//! [`PARTICLES`] particles with centres in a unit cube, all of radius `r`, chosen so that `r / h`
+//! (the radius in fine voxels of the default settings) takes each value of [`RADII_IN_VOXELS`].
+//! Every measured frame touches the particles, so every pass reruns; the voxelize pass's GPU
+//! time is the median over [`ROUNDS`] rounds of `--frames` frames, each round visiting every size. Depositing a particle's kernel on every fine voxel
+//! of its support costs `(r / h)³`; docs/illumination.md §1 says how the coarse density levels
+//! bound it.
+
+use super::*;
+
+/// Particles in every measured cloud.
+const PARTICLES: usize = 1000;
+
+/// Rounds over the sizes.
+const ROUNDS: usize = 3;
+
+/// The particles' radius in fine voxels, `r / h`.
+const RADII_IN_VOXELS: [f32; 7] = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0];
+
+/// A 64×64 view of a cloud of [`PARTICLES`] particles of `r / h = q` at `settings`, holding about
+/// the same optical thickness whatever `q`.
+fn scene(q: f32, settings: CloudQualitySettings) -> Scene {
+    let m = settings.light_resolution() as f32;
+    // The grid's side is the centres' unit cube plus one radius each side: h = (1 + 2r) / m.
+    let r = q / (m - 2.0 * q);
+    let side = 1.0 + 2.0 * r;
+    // Total mass ≈ side³, so the mean density, and the cloud's look, hardly change with `q`.
+    let density = side.powi(3) / (PARTICLES as f32 * r.powi(3) * 0.957);
+    let mut rng = SplitMix64::new(7);
+    let particles = (0..PARTICLES)
+        .map(|_| Particle {
+            position: Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) - 0.5,
+            radius: r,
+            density,
+        })
+        .collect();
+    Scene {
+        camera: bevy_particle_clouds::scene::SceneCamera {
+            position: Vec3::new(0.0, 0.0, 3.0 * side),
+            look_at: Vec3::ZERO,
+            up: Vec3::Y,
+            vertical_fov_degrees: 40.0,
+            width: 64,
+            height: 64,
+        },
+        background: Vec3::ZERO,
+        lights: vec![bevy_particle_clouds::LightSample {
+            direction: Vec3::new(-0.5, -1.0, -0.3).normalize(),
+            irradiance: Vec3::ONE,
+        }],
+        clouds: vec![bevy_particle_clouds::scene::ResolvedCloud {
+            translation: Vec3::ZERO,
+            medium: bevy_particle_clouds::Medium {
+                extinction: 2.0,
+                albedo: 0.9,
+            },
+            particles,
+        }],
+        objects: Vec::new(),
+        settings,
+    }
+}
+
+pub(crate) fn voxelize_benchmark(args: &Args) -> Result<(), String> {
+    let settings = CloudQualitySettings::default();
+    let mut benches: Vec<Bench> = RADII_IN_VOXELS
+        .iter()
+        .map(|&q| Bench::new(&scene(q, settings)))
+        .collect();
+    let adapter = benches[0].adapter.clone();
+    // Rounds that visit every size in turn, so that a slow drift of the machine favours none.
+    let mut times = vec![Vec::new(); RADII_IN_VOXELS.len()];
+    for round in 0..ROUNDS {
+        for ((q, b), times) in RADII_IN_VOXELS.iter().zip(&mut benches).zip(&mut times) {
+            let (_, timing) = b.measure(args.frames());
+            eprintln!(
+                "benchmark: voxelize, round {round}, r/h = {q}: {:.2} ms (GPU)",
+                timing.pass_ms[0]
+            );
+            times.push(timing.pass_ms[0]);
+        }
+    }
+    let rows: Vec<(f32, f64)> = RADII_IN_VOXELS
+        .iter()
+        .zip(times)
+        .map(|(&q, t)| (q, median(t)))
+        .collect();
+    let base = rows[0].1;
+    let mut table = format!(
+        "Adapter: `{adapter}`. {PARTICLES} particles of radius `r` in a unit cube, default settings \
+         (fine grid {m}³). The voxelize pass's GPU time (both of its dispatches and the levels' \
+         upsampling), median of {} rounds × {} frames that each re-voxelize, the rounds visiting the sizes in turn.\n\n\
+         | r / h | support voxels per particle (4π/3 (r/h)³) | voxelize, ms | / r = h |\n|---:|---:|---:|---:|\n",
+        ROUNDS,
+        args.frames(),
+        m = settings.light_resolution(),
+    );
+    for (q, ms) in &rows {
+        let support = 4.0 / 3.0 * std::f32::consts::PI * q.powi(3);
+        let _ = writeln!(
+            table,
+            "| {q} | {support:.0} | {ms:.2} | {:.1}× |",
+            ms / base
+        );
+    }
+    let path = args.out.join("voxelize.md");
+    std::fs::write(&path, &table).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+    println!("{table}");
+    eprintln!("benchmark: wrote {}", path.display());
+    Ok(())
+}
