@@ -134,6 +134,8 @@ pub enum CloudSystems {
     ValidateParticles,
     /// Sets each cloud's `Aabb` from its particles (in `VisibilitySystems::CalculateBounds`).
     CalculateBounds,
+    /// Sets each cloud's `CloudLod` from the cameras (after the transforms and the bounds).
+    LevelOfDetail,
 }
 
 /// Validates the particle assets that changed this frame (after Bevy wrote the asset events).

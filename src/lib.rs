@@ -54,6 +54,7 @@ pub mod headless;
 pub mod image_io;
 pub mod linear_image;
 pub mod loader;
+pub mod lod;
 pub mod math;
 pub mod particle;
 pub mod particle_files;
@@ -68,6 +69,7 @@ pub mod stats;
 use bevy::prelude::*;
 
 pub use cloud::{CloudSystems, InvalidCloud, NotCloudLight, ParticleCloud, Particles};
+pub use lod::{CloudLevelOfDetail, CloudLod};
 pub use particle::{LightSample, Medium, Particle};
 pub use settings::{
     CloudQualitySettings, CloudTargetScale, Compositing, DefaultCloudQuality, ScatterStencil,
@@ -77,9 +79,9 @@ pub use stats::{CloudPass, CloudPassCounters, PASSES};
 /// Everything a Bevy user needs.
 pub mod prelude {
     pub use crate::{
-        CloudQualitySettings, CloudSystems, CloudTargetScale, Compositing, DefaultCloudQuality,
-        Medium, NotCloudLight, Particle, ParticleCloud, ParticleCloudsPlugin, Particles,
-        ScatterStencil, generators,
+        CloudLevelOfDetail, CloudLod, CloudQualitySettings, CloudSystems, CloudTargetScale,
+        Compositing, DefaultCloudQuality, Medium, NotCloudLight, Particle, ParticleCloud,
+        ParticleCloudsPlugin, Particles, ScatterStencil, generators,
     };
 }
 
@@ -99,7 +101,10 @@ impl Plugin for ParticleCloudsPlugin {
             .register_type::<CloudQualitySettings>()
             .register_type::<CloudTargetScale>()
             .register_type::<DefaultCloudQuality>()
+            .register_type::<CloudLevelOfDetail>()
+            .register_type::<CloudLod>()
             .init_resource::<DefaultCloudQuality>()
+            .init_resource::<CloudLevelOfDetail>()
             .init_resource::<CloudPassCounters>()
             .init_resource::<cloud::ParticlesValidity>()
             .add_systems(
@@ -111,6 +116,11 @@ impl Plugin for ParticleCloudsPlugin {
                     cloud::validate_changed_particles
                         .in_set(CloudSystems::ValidateParticles)
                         .after(bevy::asset::AssetEventSystems),
+                    lod::update_cloud_lod
+                        .in_set(CloudSystems::LevelOfDetail)
+                        .after(CloudSystems::CalculateBounds)
+                        .after(bevy::transform::TransformSystems::Propagate)
+                        .after(bevy::camera::CameraUpdateSystems),
                 ),
             );
         render::build(app);

@@ -517,6 +517,7 @@ mod tests {
                 cloud_target_scale: scale,
                 ..default()
             },
+            lod_resolution: 48,
             visible: true,
         }
     }

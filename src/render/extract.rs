@@ -11,6 +11,7 @@ use bevy::{
 
 use crate::{
     cloud::{InvalidCloud, NotCloudLight, ParticleCloud, Particles, ParticlesValidity},
+    lod::{CloudLevelOfDetail, CloudLod},
     settings::{CloudQualitySettings, DefaultCloudQuality},
 };
 
@@ -27,6 +28,9 @@ pub struct ExtractedCloud {
     pub world_from_local: Affine3A,
     /// The cloud's quality knobs (its component, else the default resource).
     pub settings: CloudQualitySettings,
+    /// The volume resolution its level of detail asks for (`settings.volume_resolution` when
+    /// level of detail is off); the renderer moves to it when the cloud is next re-lit.
+    pub lod_resolution: u32,
     /// Visible in at least one view: only such clouds do illumination work.
     pub visible: bool,
 }
@@ -75,6 +79,7 @@ type MainWorldCloud = (
     &'static GlobalTransform,
     &'static ViewVisibility,
     Option<&'static CloudQualitySettings>,
+    Option<&'static CloudLod>,
     Option<&'static Name>,
 );
 
@@ -92,10 +97,16 @@ pub(crate) fn extract_clouds(
     assets: Extract<Res<Assets<Particles>>>,
     validity: Extract<Res<ParticlesValidity>>,
     default_quality: Extract<Res<DefaultCloudQuality>>,
+    level_of_detail: Extract<Res<CloudLevelOfDetail>>,
     mut refused: Local<RefusedClouds>,
 ) {
-    for (entity, render_entity, cloud, transform, visibility, settings, name) in &clouds {
+    for (entity, render_entity, cloud, transform, visibility, settings, lod, name) in &clouds {
         let settings = settings.copied().unwrap_or(default_quality.0);
+        let lod_resolution = lod
+            .filter(|_| level_of_detail.enabled())
+            .map_or(settings.volume_resolution, |l| {
+                l.resolution.min(settings.volume_resolution)
+            });
         // Particles are validated once per asset change; an asset without a verdict yet (added
         // this frame before the events were written) is checked here.
         let particles = match validity.0.get(&cloud.particles.id()) {
@@ -124,6 +135,7 @@ pub(crate) fn extract_clouds(
                     albedo: cloud.albedo,
                     world_from_local: transform.affine(),
                     settings,
+                    lod_resolution,
                     visible: visibility.get(),
                 });
             }

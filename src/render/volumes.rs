@@ -292,6 +292,8 @@ pub(crate) fn prepare_cloud_volumes(
                 .remove::<(CloudVolumes, CloudIllumination)>();
             continue;
         };
+        let held = volumes.as_deref().zip(state.as_deref());
+        let cloud = &at_resolution(cloud, held_resolution(cloud, held, gpu, bounds, &lights));
         let n = cloud.settings.volume_resolution;
         let m = cloud.settings.light_resolution();
         if largest_binding(n, m, lights.0.len()) > max_binding
@@ -352,9 +354,8 @@ fn plan_cloud(
         return;
     }
 
-    // Slot i shades the i-th light, in the cloud's local frame. A new light count or light
-    // resolution reallocates the shared light buffers, and every light is shaded again.
-    let to_local = cloud.rotation().inverse();
+    // Slot i shades the i-th light. A new light count or light resolution reallocates the
+    // shared light buffers, and every light is shaded again.
     let light_count = lights.0.len() as u32;
     if params.light_count != volumes.params.light_count || params.light_n != volumes.params.light_n
     {
@@ -376,19 +377,7 @@ fn plan_cloud(
             ),
         });
     }
-    let light_params: Vec<LightParams> = lights
-        .0
-        .iter()
-        .zip(0..light_count)
-        .map(|(l, i)| {
-            LightParams::new(
-                &params,
-                (to_local * l.direction).normalize(),
-                l.irradiance,
-                i,
-            )
-        })
-        .collect();
+    let light_params = light_params(&params, cloud, lights);
     state.update(
         StageKeys::new(&params, &light_params, gpu.generation, &cloud.settings),
         &cloud.settings,
@@ -410,6 +399,67 @@ fn plan_cloud(
         queue.write_buffer(&slot.params, 0, &uniform_bytes(light));
     }
     queue.write_buffer(&volumes.light_array, 0, &storage_bytes(&light_params));
+}
+
+/// Every light's uniform for a cloud of uniform `params`, slot `i` shading the `i`-th light in
+/// the cloud's local frame.
+fn light_params(
+    params: &CloudParams,
+    cloud: &ExtractedCloud,
+    lights: &ExtractedCloudLights,
+) -> Vec<LightParams> {
+    let to_local = cloud.rotation().inverse();
+    lights
+        .0
+        .iter()
+        .zip(0..)
+        .map(|(l, i)| {
+            LightParams::new(
+                params,
+                (to_local * l.direction).normalize(),
+                l.irradiance,
+                i,
+            )
+        })
+        .collect()
+}
+
+/// The volume resolution a cloud is illuminated at this frame: the one its level of detail asks
+/// for, once its volumes must be re-lit anyway (new particles, or a light that moved) or when it
+/// has none yet; until then the one its volumes hold, so a level change never pops on a still
+/// sky (docs/illumination.md §7).
+fn held_resolution(
+    cloud: &ExtractedCloud,
+    held: Option<(&CloudVolumes, &CloudIllumination)>,
+    gpu: &GpuParticles,
+    bounds: CloudBounds,
+    lights: &ExtractedCloudLights,
+) -> u32 {
+    let wanted = cloud.lod_resolution;
+    let Some((volumes, state)) = held else {
+        return wanted;
+    };
+    let n = volumes.params.n;
+    if n == wanted || !state.ready || lights.0.is_empty() {
+        return wanted;
+    }
+    let at_held = at_resolution(cloud, n);
+    let params = cloud_params(&at_held, gpu, bounds, lights.0.len());
+    let now = StageKeys::new(
+        &params,
+        &light_params(&params, &at_held, lights),
+        gpu.generation,
+        &at_held.settings,
+    );
+    let relit = now.density != state.keys.density || now.lights != state.keys.lights;
+    if relit { wanted } else { n }
+}
+
+/// `cloud` illuminated at `n` voxels per side.
+fn at_resolution(cloud: &ExtractedCloud, n: u32) -> ExtractedCloud {
+    let mut cloud = cloud.clone();
+    cloud.settings.volume_resolution = n;
+    cloud
 }
 
 /// The uniform of the fine grid (voxelize and shade): the same cube at `m` voxels per side.

@@ -6,6 +6,7 @@ mod common;
 mod draw;
 mod illumination;
 mod loader;
+mod lod;
 mod plugin;
 mod shading_method;
 mod stress;
