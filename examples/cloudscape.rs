@@ -1,0 +1,253 @@
+//! A sky full of clouds: 100 cumulus (300,000 particles) over a ground plane, under a sun that
+//! moves, seen from a camera that flies around them. Level of detail lowers the resolution of the
+//! clouds that are small on screen, and the clouds are drawn at half the window's size.
+//!
+//! ```text
+//! cargo run --example cloudscape                              # a window
+//! cargo run --example cloudscape -- --clouds 400 --particles 1200000
+//! cargo run --example cloudscape -- --screenshot cloudscape.png [--size 800x450] [--frames N]
+//! ```
+//!
+//! The on-screen text shows the frame time, the passes run in the last frame (and their GPU
+//! times), and how many clouds are at each level of detail. Controls: Space stops or starts the
+//! sun, F the flight; arrows turn the sun by hand; drag or A/D/W/S orbit; wheel or +/- zoom;
+//! L cycles the level of detail (off, 1, 2, 4 pixels per voxel).
+//!
+//! With the sun still and the camera still, no cloud is re-lit: a frame only draws. With the
+//! camera flying and the sun still, clouds are not re-lit either: a level change waits for the
+//! next re-lighting. With the sun moving, every visible cloud is re-lit every frame.
+
+mod support;
+
+use std::process::ExitCode;
+
+use bevy::{platform::collections::HashMap, prelude::*};
+use bevy_particle_clouds::prelude::*;
+use support::{Example, Hud, HudLines, KeyLight, Options, OrbitCamera};
+
+const EXAMPLE: Example = Example {
+    title: "bevy_particle_clouds: a cloudscape",
+    controls: "Space: sun on/off | F: flight on/off | L: level of detail | arrows: sun | drag, A/D/W/S: orbit | wheel, +/-: zoom",
+    steady: false,
+};
+
+/// Sun illuminance, lux (as in the `clouds` example, whose exposure this one shares).
+const SUN_LUX: f32 = 10_000.0;
+/// The sun's azimuth rate while it moves, radians per second.
+const SUN_RATE: f32 = 0.05;
+/// The camera's orbit rate while it flies, radians per second.
+const FLIGHT_RATE: f32 = 0.04;
+/// The level-of-detail settings L cycles through, pixels per scattering voxel (0: off).
+const PIXELS_PER_VOXEL: [f32; 4] = [2.0, 4.0, 0.0, 1.0];
+
+/// A sky full of cumulus over a ground plane, under a moving sun.
+#[derive(clap::Parser)]
+struct Args {
+    #[command(flatten)]
+    common: Options,
+    /// Clouds, on a jittered grid.
+    #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    clouds: u32,
+    /// Particles in all the clouds together.
+    #[arg(long, default_value_t = 300_000, value_parser = clap::value_parser!(u32).range(1000..=5_000_000))]
+    particles: u32,
+}
+
+/// Whether the sun moves and the camera flies.
+#[derive(Resource, Clone, Copy)]
+struct Motion {
+    sun: bool,
+    flight: bool,
+}
+
+fn main() -> ExitCode {
+    let args: Args = support::parse_args();
+    let (clouds, particles) = (args.clouds, args.particles);
+    support::run(EXAMPLE, args.common, move |app| {
+        app.insert_resource(DefaultCloudQuality(CloudQualitySettings {
+            volume_resolution: 32,
+            scatter_iterations: 8,
+            light_supersampling: 2,
+            ..default()
+        }))
+        .insert_resource(CloudLevelOfDetail {
+            pixels_per_voxel: PIXELS_PER_VOXEL[0],
+            min_resolution: 12,
+        })
+        .insert_resource(Motion {
+            sun: true,
+            flight: true,
+        })
+        .add_systems(
+            Startup,
+            move |commands: Commands, assets: ResMut<Assets<Particles>>| {
+                spawn_clouds(commands, assets, clouds, particles)
+            },
+        )
+        .add_systems(Startup, setup)
+        .add_systems(Update, (controls, move_sun, fly))
+        .add_systems(Update, describe.in_set(HudLines));
+    })
+}
+
+/// `clouds` cumulus of `particles / clouds` particles each, 25–60 m across, their bases at
+/// 70–110 m, on a jittered grid 80 m apart.
+fn spawn_clouds(
+    mut commands: Commands,
+    mut assets: ResMut<Assets<Particles>>,
+    clouds: u32,
+    particles: u32,
+) {
+    let side = (clouds as f32).sqrt().ceil() as u32;
+    let per_cloud = (particles / clouds).max(1) as usize;
+    let mut rng = generators::SplitMix64::new(7);
+    for i in 0..clouds {
+        let size = 25.0 + 35.0 * rng.next_f32();
+        let cell = Vec2::new((i % side) as f32, (i / side) as f32) - (side as f32 - 1.0) / 2.0;
+        let jitter = Vec2::new(rng.next_f32(), rng.next_f32()) - 0.5;
+        let at = (cell + 0.6 * jitter) * 80.0;
+        let handle = assets.add(generators::cumulus(size, per_cloud, 1000 + i as u64));
+        commands.spawn((
+            // Optical thickness independent of size: extinction ∝ 1 / size.
+            ParticleCloud::new(handle).with_medium(Medium {
+                extinction: 20.0 / size,
+                albedo: 0.99,
+            }),
+            Transform::from_xyz(at.x, 70.0 + 40.0 * rng.next_f32(), at.y).with_rotation(
+                Quat::from_rotation_y(rng.next_f32() * std::f32::consts::TAU),
+            ),
+        ));
+    }
+}
+
+fn setup(
+    mut commands: Commands,
+    mut meshes: ResMut<Assets<Mesh>>,
+    mut materials: ResMut<Assets<StandardMaterial>>,
+) {
+    commands.spawn(support::ground(
+        &mut meshes,
+        &mut materials,
+        5000.0,
+        Color::linear_rgb(0.03, 0.055, 0.02),
+    ));
+    commands.spawn(support::key_light(
+        KeyLight {
+            name: "sun",
+            azimuth: 30f32.to_radians(),
+            elevation: 30f32.to_radians(),
+            keys: [
+                KeyCode::ArrowLeft,
+                KeyCode::ArrowRight,
+                KeyCode::ArrowDown,
+                KeyCode::ArrowUp,
+            ],
+        },
+        Color::linear_rgb(1.0, 0.95, 0.85),
+        SUN_LUX,
+    ));
+    let orbit = OrbitCamera {
+        target: Vec3::new(0.0, 90.0, 0.0),
+        distance: 420.0,
+        yaw: 0.3,
+        pitch: 0.12,
+    };
+    commands.spawn((
+        support::camera(orbit, 9.3, Color::linear_rgb(0.22, 0.38, 0.75)),
+        CloudTargetScale(0.5),
+    ));
+}
+
+fn controls(
+    keys: Res<ButtonInput<KeyCode>>,
+    mut motion: ResMut<Motion>,
+    mut lod: ResMut<CloudLevelOfDetail>,
+) {
+    if keys.just_pressed(KeyCode::Space) {
+        motion.sun = !motion.sun;
+    }
+    if keys.just_pressed(KeyCode::KeyF) {
+        motion.flight = !motion.flight;
+    }
+    if keys.just_pressed(KeyCode::KeyL) {
+        let at = PIXELS_PER_VOXEL
+            .iter()
+            .position(|&p| p == lod.pixels_per_voxel)
+            .unwrap_or(0);
+        lod.pixels_per_voxel = PIXELS_PER_VOXEL[(at + 1) % PIXELS_PER_VOXEL.len()];
+    }
+}
+
+fn move_sun(time: Res<Time>, motion: Res<Motion>, mut sun: Query<(&mut KeyLight, &mut Transform)>) {
+    if !motion.sun {
+        return;
+    }
+    for (mut light, mut transform) in &mut sun {
+        light.azimuth += SUN_RATE * time.delta_secs();
+        *transform = light.transform();
+    }
+}
+
+fn fly(
+    time: Res<Time>,
+    motion: Res<Motion>,
+    mut camera: Query<(&mut OrbitCamera, &mut Transform)>,
+) {
+    if !motion.flight {
+        return;
+    }
+    for (mut orbit, mut transform) in &mut camera {
+        orbit.yaw += FLIGHT_RATE * time.delta_secs();
+        *transform = orbit.transform();
+    }
+}
+
+fn describe(
+    mut hud: ResMut<Hud>,
+    motion: Res<Motion>,
+    lod: Res<CloudLevelOfDetail>,
+    quality: Res<DefaultCloudQuality>,
+    sun: Query<&KeyLight>,
+    clouds: Query<(&ParticleCloud, Option<&CloudLod>)>,
+    particles: Res<Assets<Particles>>,
+) {
+    hud.lines.clear();
+    let count: usize = clouds
+        .iter()
+        .filter_map(|(c, _)| particles.get(&c.particles))
+        .map(|p| p.particles.len())
+        .sum();
+    hud.lines.push(format!(
+        "{} clouds, {count} particles, at most {}^3 voxels, {} scatter iterations",
+        clouds.iter().len(),
+        quality.volume_resolution,
+        quality.scatter_iterations
+    ));
+    let mut levels: HashMap<u32, usize> = HashMap::default();
+    for (_, l) in &clouds {
+        let resolution = l
+            .filter(|_| lod.enabled())
+            .map_or(quality.volume_resolution, |l| l.resolution);
+        *levels.entry(resolution).or_default() += 1;
+    }
+    let mut levels: Vec<(u32, usize)> = levels.into_iter().collect();
+    levels.sort();
+    let levels: Vec<String> = levels.iter().map(|(r, n)| format!("{r}^3 x{n}")).collect();
+    let mode = if lod.enabled() {
+        format!("{} pixels per voxel", lod.pixels_per_voxel)
+    } else {
+        "off".into()
+    };
+    hud.lines.push(format!(
+        "level of detail {mode}: {} (a change waits until the cloud is re-lit)",
+        levels.join(", ")
+    ));
+    for light in &sun {
+        hud.lines.push(format!(
+            "{}, {}; camera {}",
+            light.describe(),
+            if motion.sun { "moving" } else { "still" },
+            if motion.flight { "flying" } else { "still" }
+        ));
+    }
+}
