@@ -11,11 +11,13 @@
 //! The on-screen text shows the frame time, the passes run in the last frame (and their GPU
 //! times), and how many clouds are at each level of detail. Controls: Space stops or starts the
 //! sun, F the flight; arrows turn the sun by hand; drag or A/D/W/S orbit; wheel or +/- zoom;
-//! L cycles the level of detail (off, 1, 2, 4 pixels per voxel).
+//! L cycles the level of detail (2, 4 pixels per voxel, off, 1), B the re-light budget (10
+//! clouds per frame, 25, no limit).
 //!
 //! With the sun still and the camera still, no cloud is re-lit: a frame only draws. With the
 //! camera flying and the sun still, clouds are not re-lit either: a level change waits for the
-//! next re-lighting. With the sun moving, every visible cloud is re-lit every frame.
+//! next re-lighting. With the sun moving, the clouds take turns: at most `CloudRelightBudget`
+//! clouds are re-lit per frame, the others keep their previous lighting until their turn.
 
 mod support;
 
@@ -27,7 +29,7 @@ use support::{Example, Hud, HudLines, KeyLight, Options, OrbitCamera};
 
 const EXAMPLE: Example = Example {
     title: "bevy_particle_clouds: a cloudscape",
-    controls: "Space: sun on/off | F: flight on/off | L: level of detail | arrows: sun | drag, A/D/W/S: orbit | wheel, +/-: zoom",
+    controls: "Space: sun on/off | F: flight on/off | L: level of detail | B: re-light budget | arrows: sun | drag, A/D/W/S: orbit | wheel, +/-: zoom",
     steady: false,
 };
 
@@ -39,6 +41,8 @@ const SUN_RATE: f32 = 0.05;
 const FLIGHT_RATE: f32 = 0.04;
 /// The level-of-detail settings L cycles through, pixels per scattering voxel (0: off).
 const PIXELS_PER_VOXEL: [f32; 4] = [2.0, 4.0, 0.0, 1.0];
+/// The re-light budgets B cycles through, clouds per frame (0: no limit).
+const BUDGETS: [u32; 3] = [10, 25, 0];
 
 /// A sky full of cumulus over a ground plane, under a moving sun.
 #[derive(clap::Parser)]
@@ -74,6 +78,7 @@ fn main() -> ExitCode {
             pixels_per_voxel: PIXELS_PER_VOXEL[0],
             min_resolution: 12,
         })
+        .insert_resource(CloudRelightBudget(BUDGETS[0]))
         .insert_resource(Motion {
             sun: true,
             flight: true,
@@ -162,7 +167,12 @@ fn controls(
     keys: Res<ButtonInput<KeyCode>>,
     mut motion: ResMut<Motion>,
     mut lod: ResMut<CloudLevelOfDetail>,
+    mut budget: ResMut<CloudRelightBudget>,
 ) {
+    if keys.just_pressed(KeyCode::KeyB) {
+        let at = BUDGETS.iter().position(|&b| b == budget.0).unwrap_or(0);
+        budget.0 = BUDGETS[(at + 1) % BUDGETS.len()];
+    }
     if keys.just_pressed(KeyCode::Space) {
         motion.sun = !motion.sun;
     }
@@ -204,8 +214,11 @@ fn fly(
 
 fn describe(
     mut hud: ResMut<Hud>,
-    motion: Res<Motion>,
-    lod: Res<CloudLevelOfDetail>,
+    (motion, lod, budget): (
+        Res<Motion>,
+        Res<CloudLevelOfDetail>,
+        Res<CloudRelightBudget>,
+    ),
     quality: Res<DefaultCloudQuality>,
     sun: Query<&KeyLight>,
     clouds: Query<(&ParticleCloud, Option<&CloudLod>)>,
@@ -242,6 +255,10 @@ fn describe(
         "level of detail {mode}: {} (a change waits until the cloud is re-lit)",
         levels.join(", ")
     ));
+    hud.lines.push(match budget.0 {
+        0 => "re-light budget: none (every cloud re-lit when the sun moves)".into(),
+        n => format!("re-light budget: {n} clouds per frame (the others wait their turn)"),
+    });
     for light in &sun {
         hud.lines.push(format!(
             "{}, {}; camera {}",

@@ -72,16 +72,17 @@ pub use cloud::{CloudSystems, InvalidCloud, NotCloudLight, ParticleCloud, Partic
 pub use lod::{CloudLevelOfDetail, CloudLod};
 pub use particle::{LightSample, Medium, Particle};
 pub use settings::{
-    CloudQualitySettings, CloudTargetScale, Compositing, DefaultCloudQuality, ScatterStencil,
+    CloudQualitySettings, CloudRelightBudget, CloudTargetScale, Compositing, DefaultCloudQuality,
+    ScatterStencil,
 };
 pub use stats::{CloudPass, CloudPassCounters, PASSES};
 
 /// Everything a Bevy user needs.
 pub mod prelude {
     pub use crate::{
-        CloudLevelOfDetail, CloudLod, CloudQualitySettings, CloudSystems, CloudTargetScale,
-        Compositing, DefaultCloudQuality, Medium, NotCloudLight, Particle, ParticleCloud,
-        ParticleCloudsPlugin, Particles, ScatterStencil, generators,
+        CloudLevelOfDetail, CloudLod, CloudQualitySettings, CloudRelightBudget, CloudSystems,
+        CloudTargetScale, Compositing, DefaultCloudQuality, Medium, NotCloudLight, Particle,
+        ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil, generators,
     };
 }
 

@@ -250,6 +250,19 @@ impl CloudTargetScale {
 #[reflect(Resource, Default, Debug, PartialEq)]
 pub struct DefaultCloudQuality(pub CloudQualitySettings);
 
+/// The most clouds re-lit in one frame (a resource; docs/illumination.md §8).
+///
+/// When the sun moves every frame, every visible cloud must be re-lit every frame. With a budget
+/// of `n`, only the `n` clouds that have waited longest do their illumination work this frame;
+/// the others keep drawing with their previous illumination (the sun where it was when they were
+/// last re-lit) until their turn, so a frame re-lights at most `n` clouds and each cloud is
+/// re-lit at least every `ceil(clouds / n)` frames. A cloud that has never been illuminated is
+/// always illuminated at once (it could not be drawn otherwise). A still sky re-lights nothing,
+/// whatever the budget. `0`, the default, means no limit.
+#[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
+#[reflect(Resource, Default, Debug, PartialEq)]
+pub struct CloudRelightBudget(pub u32);
+
 /// How the shade pass computes each light's transmittance volume (docs/illumination.md §2).
 ///
 /// A resource of the main world, extracted to the render world. Both methods give the same

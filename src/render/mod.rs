@@ -16,6 +16,7 @@
 //! | `gpu.rs` | buffers, their encodings, and a recorded stage (compute pass, GPU time span, counter) |
 //! | `shaders.rs` | the WGSL beside each stage (`*.wgsl`), embedded |
 
+pub mod budget;
 pub mod cloud_target;
 pub mod draw;
 pub mod extract;
@@ -51,7 +52,11 @@ use bevy::{
 };
 
 use self::{extract::ExtractedCloud, shaders::CloudShaders};
-use crate::{cloud::ParticleCloud, settings::ShadingMethod, stats::CloudPassCounters};
+use crate::{
+    cloud::ParticleCloud,
+    settings::{CloudRelightBudget, ShadingMethod},
+    stats::CloudPassCounters,
+};
 
 impl SyncComponent for ParticleCloud {
     type Target = (
@@ -69,6 +74,13 @@ impl bevy::render::extract_resource::ExtractResource for CloudPassCounters {
     type Source = CloudPassCounters;
     fn extract_resource(source: &Self::Source) -> Self {
         source.clone()
+    }
+}
+
+impl bevy::render::extract_resource::ExtractResource for CloudRelightBudget {
+    type Source = CloudRelightBudget;
+    fn extract_resource(source: &Self::Source) -> Self {
+        *source
     }
 }
 
@@ -103,12 +115,15 @@ pub(crate) fn key_of(value: impl std::hash::Hash) -> u64 {
 pub(crate) fn build(app: &mut App) {
     let shaders = CloudShaders::load(app);
     app.init_resource::<ShadingMethod>()
-        .register_type::<ShadingMethod>();
+        .register_type::<ShadingMethod>()
+        .init_resource::<CloudRelightBudget>()
+        .register_type::<CloudRelightBudget>();
     app.insert_resource(shaders.clone()).add_plugins((
         SyncComponentPlugin::<ParticleCloud>::default(),
         RenderAssetPlugin::<particles::GpuParticles>::default(),
         ExtractResourcePlugin::<CloudPassCounters>::default(),
         ExtractResourcePlugin::<ShadingMethod>::default(),
+        ExtractResourcePlugin::<CloudRelightBudget>::default(),
     ));
     cloud_target::build(app);
     if let Some(render_app) = app.get_sub_app_mut(RenderApp) {

@@ -139,6 +139,8 @@ pub struct CloudIllumination {
     pub plan: WorkPlan,
     /// The volumes hold a finished illumination: the cloud may be drawn.
     pub ready: bool,
+    /// Frames its pending work has been put off by the re-light budget.
+    pub waited: u32,
 }
 
 impl CloudIllumination {

@@ -4,6 +4,7 @@
 //! directions change) and scale only changes the extinction.
 
 use bevy::{
+    platform::collections::HashSet,
     prelude::*,
     render::{
         render_asset::RenderAssets,
@@ -13,15 +14,17 @@ use bevy::{
 };
 
 use super::{
+    budget::{RelightCandidate, relit_this_frame},
     extract::{ExtractedCloud, ExtractedCloudLights},
     gpu::{dynamic_uniform, storage, storage_bytes, uniform, uniform_bytes},
     particles::{CloudBounds, GpuParticles},
-    plan::{CloudIllumination, StageKeys},
+    plan::{CloudIllumination, StageKeys, plan},
 };
 use crate::math::{
     LEVEL_KERNEL_NARROWING, MAX_DENSITY_LEVELS, MAX_RADIUS_IN_LEVEL_VOXELS, density_level,
     density_level_sizes, light_basis,
 };
+use crate::settings::CloudRelightBudget;
 
 /// Mirror of `CloudParams` in `types.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
@@ -270,17 +273,15 @@ pub fn largest_binding(n: u32, m: u32, lights: usize) -> u64 {
 /// Decides each visible cloud's work for this frame and writes the uniforms it needs.
 pub(crate) fn prepare_cloud_volumes(
     mut commands: Commands,
-    mut clouds: Query<(
-        Entity,
-        &ExtractedCloud,
-        Option<&mut CloudVolumes>,
-        Option<&mut CloudIllumination>,
-    )>,
+    mut clouds: Query<PreparedCloud>,
     lights: Res<ExtractedCloudLights>,
     particles: Res<RenderAssets<GpuParticles>>,
+    budget: Option<Res<CloudRelightBudget>>,
     device: Res<RenderDevice>,
     queue: Res<RenderQueue>,
 ) {
+    let budget = budget.map_or(0, |b| b.0);
+    let deferred = deferred_by_budget(&clouds, &lights, &particles, budget);
     let max_binding = device.limits().max_storage_buffer_binding_size;
     for (entity, cloud, volumes, state) in &mut clouds {
         let Some(gpu) = particles.get(cloud.particles) else {
@@ -312,9 +313,17 @@ pub(crate) fn prepare_cloud_volumes(
             continue; // cached volumes stay; no work for clouds nobody sees or that are transparent
         }
         match (volumes, state) {
-            (Some(mut v), Some(mut state)) if v.fits(n, m, gpu.count) => plan_cloud(
-                &mut v, &mut state, cloud, gpu, bounds, &lights, &device, &queue,
-            ),
+            (Some(_), Some(mut state)) if deferred.contains(&entity) => {
+                // Its turn comes later: it draws with what its volumes hold.
+                state.plan = default();
+                state.waited += 1;
+            }
+            (Some(mut v), Some(mut state)) if v.fits(n, m, gpu.count) => {
+                plan_cloud(
+                    &mut v, &mut state, cloud, gpu, bounds, &lights, &device, &queue,
+                );
+                state.waited = 0;
+            }
             _ => {
                 let mut v = CloudVolumes::new(&device, n, m, gpu.count);
                 let mut state = CloudIllumination::default();
@@ -325,6 +334,66 @@ pub(crate) fn prepare_cloud_volumes(
             }
         }
     }
+}
+
+/// A cloud as the prepare system sees it.
+type PreparedCloud = (
+    Entity,
+    &'static ExtractedCloud,
+    Option<&'static mut CloudVolumes>,
+    Option<&'static mut CloudIllumination>,
+);
+
+/// The visible clouds whose pending illumination work waits for a later frame under the
+/// re-light `budget` (none when it is 0): every cloud whose stage keys changed is a candidate,
+/// and [`relit_this_frame`] picks those that go now.
+fn deferred_by_budget(
+    clouds: &Query<PreparedCloud>,
+    lights: &ExtractedCloudLights,
+    particles: &RenderAssets<GpuParticles>,
+    budget: u32,
+) -> HashSet<Entity> {
+    if budget == 0 {
+        return HashSet::default();
+    }
+    let mut candidates = Vec::new();
+    for (entity, cloud, volumes, state) in clouds {
+        let Some(gpu) = particles.get(cloud.particles) else {
+            continue;
+        };
+        let Some(bounds) = gpu
+            .bounds
+            .filter(|_| cloud.visible && cloud.extinction > 0.0)
+        else {
+            continue;
+        };
+        let held = volumes.zip(state);
+        let cloud = at_resolution(cloud, held_resolution(cloud, held, gpu, bounds, lights));
+        let (n, m) = (
+            cloud.settings.volume_resolution,
+            cloud.settings.light_resolution(),
+        );
+        match held {
+            Some((v, s)) if s.ready && v.fits(n, m, gpu.count) => {
+                let now = frame_keys(&cloud, gpu, bounds, lights);
+                if !plan(&s.keys, &now, &cloud.settings).is_empty() {
+                    candidates.push(RelightCandidate {
+                        entity,
+                        first: false,
+                        waited: s.waited,
+                    });
+                }
+            }
+            _ => candidates.push(RelightCandidate {
+                entity,
+                first: true,
+                waited: 0,
+            }),
+        }
+    }
+    let pending: HashSet<Entity> = candidates.iter().map(|c| c.entity).collect();
+    let relit: HashSet<Entity> = relit_this_frame(candidates, budget).into_iter().collect();
+    pending.difference(&relit).copied().collect()
 }
 
 /// Sizes the light buffers, plans the cloud's stages and writes the uniforms they read.
@@ -443,16 +512,25 @@ fn held_resolution(
     if n == wanted || !state.ready || lights.0.is_empty() {
         return wanted;
     }
-    let at_held = at_resolution(cloud, n);
-    let params = cloud_params(&at_held, gpu, bounds, lights.0.len());
-    let now = StageKeys::new(
-        &params,
-        &light_params(&params, &at_held, lights),
-        gpu.generation,
-        &at_held.settings,
-    );
+    let now = frame_keys(&at_resolution(cloud, n), gpu, bounds, lights);
     let relit = now.density != state.keys.density || now.lights != state.keys.lights;
     if relit { wanted } else { n }
+}
+
+/// This frame's stage keys of `cloud` (at its settings' resolution).
+fn frame_keys(
+    cloud: &ExtractedCloud,
+    gpu: &GpuParticles,
+    bounds: CloudBounds,
+    lights: &ExtractedCloudLights,
+) -> StageKeys {
+    let params = cloud_params(cloud, gpu, bounds, lights.0.len());
+    StageKeys::new(
+        &params,
+        &light_params(&params, cloud, lights),
+        gpu.generation,
+        &cloud.settings,
+    )
 }
 
 /// `cloud` illuminated at `n` voxels per side.
