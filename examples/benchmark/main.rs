@@ -8,6 +8,7 @@
 //! cargo run --example benchmark -- --settings '(volume_resolution: 64)' [--settings …] [--scenes a,b]
 //! cargo run --example benchmark -- --illumination [--out DIR]
 //! cargo run --example benchmark -- --voxelize [--out DIR]
+//! cargo run --example benchmark -- --scale [--out DIR]
 //! cargo run --example benchmark -- --decompose [--scenes a,b] [--spp N] [--out DIR]
 //! ```
 //!
@@ -33,6 +34,7 @@ mod illumination;
 mod plot;
 mod reference_cache;
 mod report;
+mod scale;
 mod scenes;
 mod sweep;
 mod voxelize;
@@ -71,6 +73,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use plot::*;
 use reference_cache::*;
 use report::*;
+use scale::*;
 use scenes::*;
 use sweep::*;
 use voxelize::*;
@@ -111,6 +114,11 @@ pub(crate) struct Args {
     /// against the path tracer and against the full-size image.
     #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination"])]
     pub(crate) cloud_target: bool,
+    /// Cost at scale instead of the sweep: against particles (3.1k–1.2M), clouds (1, 10, 100)
+    /// and view size (720p–4K).
+    /// With --replot: only redraw DIR/scale.png from DIR/scale.csv.
+    #[arg(long, conflicts_with_all = ["decompose", "illumination", "cloud_target", "voxelize"])]
+    pub(crate) scale: bool,
     /// The voxelize pass's cost against particle size (r/h from 1 to 64) instead of the sweep.
     #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target"])]
     pub(crate) voxelize: bool,
@@ -206,6 +214,13 @@ fn run() -> Result<(), String> {
     }
     if args.voxelize {
         return voxelize_benchmark(&args);
+    }
+    if args.scale {
+        return if args.replot {
+            replot_scale(&args)
+        } else {
+            scale_benchmark(&args)
+        };
     }
     if args.replot {
         return replot(&args);

@@ -2,14 +2,9 @@
 
 use super::*;
 
-pub(crate) fn plot(
-    path: &Path,
-    font: &Path,
-    adapter: &str,
-    rows: &[Row],
-    scene_order: &[&'static str],
-) -> Result<(), String> {
-    use plotters::prelude::*;
+/// Registers the TTF `font` as plotters' "sans-serif".
+pub(crate) fn register_font(font: &Path) -> Result<(), String> {
+    use plotters::prelude::FontStyle;
     let bytes = std::fs::read(font).map_err(|e| {
         format!(
             "cannot read the plot's font {}: {e}; install it with `apt-get install fonts-dejavu-core` or pass --font FILE.ttf",
@@ -18,7 +13,18 @@ pub(crate) fn plot(
     })?;
     let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
     plotters::style::register_font("sans-serif", FontStyle::Normal, bytes)
-        .map_err(|_| format!("{} is not a TrueType/OpenType font", font.display()))?;
+        .map_err(|_| format!("{} is not a TrueType/OpenType font", font.display()))
+}
+
+pub(crate) fn plot(
+    path: &Path,
+    font: &Path,
+    adapter: &str,
+    rows: &[Row],
+    scene_order: &[&'static str],
+) -> Result<(), String> {
+    use plotters::prelude::*;
+    register_font(font)?;
 
     let scenes: Vec<&str> = scene_order
         .iter()

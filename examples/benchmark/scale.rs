@@ -1,0 +1,437 @@
+//! `--scale`: cost at game scale, in three sweeps (issue #11):
+//!
+//! - **particles**: one cumulus of 3,100, 38,000, 300,000 and 1,200,000 particles (radii
+//!   `∝ count^(-1/3)`) at default settings, 640×360;
+//! - **clouds**: the same 38,400 particles (100 puffs of 384) as 1, 10 and 100 clouds, at
+//!   [`CLOUD_SWEEP_SETTINGS`], 1280×720, and the 100 clouds again with level of detail on;
+//! - **view size**: the 38,000-particle cumulus at 1280×720, 1920×1080 and 3840×2160.
+//!
+//! On lavapipe (a 2-core CPU) the draw's fill dominates, so the particle sweep is at 640×360 and
+//! the cloud 80 m away (about a third of the view's height).
+//!
+//! Each configuration: every pass's GPU time in frames that rerun every pass (the particles
+//! touched), the static frame's draw, wall times, and how many times each pass ran in a re-lit
+//! frame. Writes `DIR/scale.csv`, `DIR/scale.md` and `DIR/scale.png`.
+
+use std::fmt::Write as _;
+
+use bevy_particle_clouds::{CloudLevelOfDetail, LightSample, Medium, scene::ResolvedCloud};
+
+use super::*;
+
+/// The cloud sweep's knobs: 100 clouds at the default 48³ × 32 iterations would take minutes a
+/// frame on lavapipe.
+const CLOUD_SWEEP_SETTINGS: CloudQualitySettings = CloudQualitySettings {
+    volume_resolution: 16,
+    scatter_iterations: 8,
+    forward_scattering: 0.0,
+    scatter_stencil: ScatterStencil::DiscreteOrdinates,
+    light_supersampling: 3,
+    chord_segments: 8,
+    compositing: Compositing::ViewTransmittance,
+    cloud_target_scale: 1.0,
+};
+
+/// One measured configuration.
+struct ScaleRow {
+    sweep: &'static str,
+    label: String,
+    /// Particles, clouds or view pixels.
+    x: f64,
+    timing: Timing,
+    /// Runs of each pass in a frame that re-lights everything.
+    runs: [u32; PASSES],
+}
+
+fn camera(distance: f32, width: u32, height: u32) -> bevy_particle_clouds::scene::SceneCamera {
+    bevy_particle_clouds::scene::SceneCamera {
+        position: Vec3::new(0.0, 0.3 * distance, distance),
+        look_at: Vec3::ZERO,
+        up: Vec3::Y,
+        vertical_fov_degrees: 40.0,
+        width,
+        height,
+    }
+}
+
+fn scene(
+    clouds: Vec<ResolvedCloud>,
+    distance: f32,
+    (width, height): (u32, u32),
+    settings: CloudQualitySettings,
+) -> Scene {
+    Scene {
+        camera: camera(distance, width, height),
+        background: Vec3::new(0.2, 0.35, 0.6),
+        lights: vec![LightSample {
+            direction: Vec3::new(-0.6, -0.7, -0.4).normalize(),
+            irradiance: Vec3::new(3.0, 2.9, 2.7),
+        }],
+        clouds,
+        objects: Vec::new(),
+        settings,
+    }
+}
+
+/// A 20 m cumulus of `count` particles whose radii shrink as `count^(-1/3)` from the paper's
+/// 3,100-particle cloud's, so that the particles fill the same volume whatever `count` (and the
+/// draw's fill grows only as `count^(1/3)`).
+fn cumulus(count: usize) -> ResolvedCloud {
+    let shrink = (3_100.0 / count as f32).cbrt();
+    let particles = generators::cumulus_with_puffs(20.0, count, 11, |size, core| {
+        size * (0.07 + 0.06 * core) * shrink
+    });
+    ResolvedCloud {
+        translation: Vec3::ZERO,
+        medium: Medium {
+            extinction: 2.0,
+            albedo: 0.95,
+        },
+        particles: particles.particles,
+    }
+}
+
+/// 100 puffs of 384 particles on a 10 × 10 grid 12 m apart, grouped into `clouds` clouds of
+/// whole puffs (each cloud's particles in its own local frame around its first puff).
+fn puffs(clouds: usize) -> Vec<ResolvedCloud> {
+    let per = 100 / clouds;
+    (0..clouds)
+        .map(|c| {
+            let origin = puff_centre(c * per);
+            let particles = (c * per..(c + 1) * per)
+                .flat_map(|p| {
+                    let offset = puff_centre(p) - origin;
+                    generators::cumulus(8.0, 384, 500 + p as u64)
+                        .particles
+                        .into_iter()
+                        .map(move |mut q| {
+                            q.position += offset;
+                            q
+                        })
+                })
+                .collect();
+            ResolvedCloud {
+                translation: origin,
+                medium: Medium {
+                    extinction: 2.5,
+                    albedo: 0.95,
+                },
+                particles,
+            }
+        })
+        .collect()
+}
+
+fn puff_centre(p: usize) -> Vec3 {
+    Vec3::new((p % 10) as f32 - 4.5, 0.0, (p / 10) as f32 - 4.5) * 12.0
+}
+
+fn measure(
+    scene: &Scene,
+    lod: Option<f32>,
+    frames: usize,
+    adapter: &mut String,
+) -> (Timing, [u32; PASSES]) {
+    let mut b = Bench::new(scene);
+    *adapter = b.adapter.clone();
+    if let Some(pixels_per_voxel) = lod {
+        b.app.insert_resource(CloudLevelOfDetail {
+            pixels_per_voxel,
+            min_resolution: 8,
+        });
+    }
+    let (_, timing) = b.measure(frames);
+    b.touch_particles();
+    let i = b.frame();
+    let frame = &b.recorder.frames[i];
+    (timing, CloudPass::ALL.map(|p| frame.runs(p)))
+}
+
+pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {
+    let frames = args.frames();
+    let mut adapter = String::new();
+    let mut rows = Vec::new();
+    let mut run = |sweep, label: String, x: f64, scene: Scene, lod: Option<f32>| {
+        eprintln!("benchmark: scale, {sweep}: {label}");
+        let (timing, runs) = measure(&scene, lod, frames, &mut adapter);
+        eprintln!(
+            "benchmark: scale, {sweep}: {label}: GPU {:.1} ms (static {:.1}), wall {:.0} ms",
+            timing.gpu_ms_total, timing.gpu_ms_static, timing.wall_ms
+        );
+        rows.push(ScaleRow {
+            sweep,
+            label,
+            x,
+            timing,
+            runs,
+        });
+    };
+    let hd = (1280, 720);
+    for count in [3_100, 38_000, 300_000, 1_200_000] {
+        let s = scene(vec![cumulus(count)], 80.0, (640, 360), default());
+        run(
+            "particles",
+            format!("{count} particles"),
+            count as f64,
+            s,
+            None,
+        );
+    }
+    for clouds in [1, 10, 100] {
+        let s = scene(puffs(clouds), 170.0, hd, CLOUD_SWEEP_SETTINGS);
+        run("clouds", format!("{clouds} clouds"), clouds as f64, s, None);
+    }
+    let s = scene(puffs(100), 170.0, hd, CLOUD_SWEEP_SETTINGS);
+    run(
+        "clouds, level of detail",
+        "100 clouds, 2 pixels per voxel".into(),
+        100.0,
+        s,
+        Some(2.0),
+    );
+    for (w, h) in [(1280, 720), (1920, 1080), (3840, 2160)] {
+        let s = scene(vec![cumulus(38_000)], 80.0, (w, h), default());
+        run("view", format!("{w}×{h}"), (w * h) as f64, s, None);
+    }
+    write_scale(args, &adapter, &rows)
+}
+
+fn write_scale(args: &Args, adapter: &str, rows: &[ScaleRow]) -> Result<(), String> {
+    let names: Vec<&str> = CloudPass::ALL.iter().map(|p| p.name()).collect();
+    let mut csv = format!(
+        "adapter,sweep,label,x,{},gpu_ms_total,gpu_ms_static,wall_ms,wall_ms_static,{}\n",
+        names
+            .iter()
+            .map(|n| format!("gpu_ms_{n}"))
+            .collect::<Vec<_>>()
+            .join(","),
+        names
+            .iter()
+            .map(|n| format!("runs_{n}"))
+            .collect::<Vec<_>>()
+            .join(",")
+    );
+    let mut md = format!(
+        "Adapter: `{adapter}`. GPU ms per pass: median of {} frames that rerun every pass (the \
+         particles touched); draw: a static frame's. Runs: how many times each pass ran in a \
+         re-lit frame (per cloud, per light, per scattering iteration, per view). Particles: \
+         640×360, radii ∝ count^(-1/3); clouds sweep: `volume_resolution` 16, 8 iterations; the \
+         others: default settings.\n\n\
+         | sweep | configuration | voxelize | shade | gather | scatter | sort + view volume | draw (static) | GPU total | wall | static wall | pass runs |\n\
+         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+        args.frames()
+    );
+    for r in rows {
+        let p = &r.timing.pass_ms;
+        let _ = writeln!(
+            csv,
+            "\"{adapter}\",\"{}\",\"{}\",{},{},{:.4},{:.4},{:.3},{:.3},{}",
+            r.sweep,
+            r.label,
+            r.x,
+            p.iter()
+                .map(|v| format!("{v:.4}"))
+                .collect::<Vec<_>>()
+                .join(","),
+            r.timing.gpu_ms_total,
+            r.timing.gpu_ms_static,
+            r.timing.wall_ms,
+            r.timing.wall_ms_static,
+            r.runs
+                .iter()
+                .map(u32::to_string)
+                .collect::<Vec<_>>()
+                .join(",")
+        );
+        let _ = writeln!(
+            md,
+            "| {} | {} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {} |",
+            r.sweep,
+            r.label,
+            p[0],
+            p[1],
+            p[2],
+            p[3],
+            p[4] + p[5],
+            p[6],
+            r.timing.gpu_ms_total,
+            r.timing.wall_ms,
+            r.timing.wall_ms_static,
+            r.runs.iter().sum::<u32>()
+        );
+    }
+    for (path, text) in [("scale.csv", &csv), ("scale.md", &md)] {
+        let path = args.out.join(path);
+        std::fs::write(&path, text).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+    }
+    plot_scale(&args.out.join("scale.png"), &args.font, adapter, rows)?;
+    println!("{md}");
+    eprintln!(
+        "benchmark: wrote scale.csv, scale.md and scale.png in {}",
+        args.out.display()
+    );
+    Ok(())
+}
+
+/// `1.2M`, `38k`, `720`, `0.5`: an axis label.
+fn short_number(v: f64) -> String {
+    match v {
+        v if v >= 1e6 => format!("{}M", (v / 1e5).round() / 10.0),
+        v if v >= 1e4 => format!("{}k", (v / 1e3).round()),
+        v if v >= 1.0 => format!("{}", v.round()),
+        v => format!("{}", (v * 100.0).round() / 100.0),
+    }
+}
+
+/// `--scale --replot`: redraws `DIR/scale.png` from `DIR/scale.csv`.
+pub(crate) fn replot_scale(args: &Args) -> Result<(), String> {
+    let path = args.out.join("scale.csv");
+    let cannot_read = |e: csv::Error| format!("cannot read {}: {e}", path.display());
+    let mut reader = csv::Reader::from_path(&path).map_err(cannot_read)?;
+    let header = reader.headers().map_err(cannot_read)?.clone();
+    let column = |name: &str| {
+        header
+            .iter()
+            .position(|h| h == name)
+            .ok_or(format!("{}: no column {name}", path.display()))
+    };
+    let passes: Vec<usize> = CloudPass::ALL
+        .iter()
+        .map(|p| column(&format!("gpu_ms_{}", p.name())))
+        .collect::<Result<_, _>>()?;
+    let [adapter, sweep, label, x, total] =
+        ["adapter", "sweep", "label", "x", "gpu_ms_total"].map(column);
+    let (adapter, sweep, label, x, total) = (adapter?, sweep?, label?, x?, total?);
+    let number = |record: &csv::StringRecord, i: usize| -> Result<f64, String> {
+        record[i]
+            .parse()
+            .map_err(|_| format!("{}: `{}` is not a number", path.display(), &record[i]))
+    };
+    let mut rows = Vec::new();
+    let mut adapter_name = String::new();
+    for record in reader.records() {
+        let record = record.map_err(cannot_read)?;
+        adapter_name = record[adapter].to_string();
+        let sweep = ["particles", "clouds", "clouds, level of detail", "view"]
+            .into_iter()
+            .find(|s| *s == &record[sweep])
+            .ok_or(format!(
+                "{}: unknown sweep `{}`",
+                path.display(),
+                &record[sweep]
+            ))?;
+        let mut timing = Timing {
+            gpu_ms_total: number(&record, total)?,
+            ..default()
+        };
+        for (ms, &i) in timing.pass_ms.iter_mut().zip(&passes) {
+            *ms = number(&record, i)?;
+        }
+        rows.push(ScaleRow {
+            sweep,
+            label: record[label].to_string(),
+            x: number(&record, x)?,
+            timing,
+            runs: [0; PASSES],
+        });
+    }
+    let png = args.out.join("scale.png");
+    plot_scale(&png, &args.font, &adapter_name, &rows)?;
+    eprintln!("benchmark: wrote {}", png.display());
+    Ok(())
+}
+
+/// Log–log panels of each pass's GPU time against the sweep's variable.
+fn plot_scale(path: &Path, font: &Path, adapter: &str, rows: &[ScaleRow]) -> Result<(), String> {
+    use plotters::prelude::*;
+    register_font(font)?;
+    let sweeps = [
+        ("particles", "particles"),
+        ("clouds", "clouds (38,400 particles in all)"),
+        ("view", "view pixels"),
+    ];
+    let (w, h) = (1260u32, 420u32);
+    let mut buffer = vec![255u8; (w * h * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buffer, (w, h)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| e.to_string())?;
+        let (title, body) = root.split_vertically(40);
+        title
+            .draw_text(
+                &format!("GPU ms per pass (frames that rerun every pass; draw: static), {adapter}"),
+                &("sans-serif", 16).into_font().color(&BLACK),
+                (10, 10),
+            )
+            .map_err(|e| e.to_string())?;
+        let panels = body.split_evenly((1, sweeps.len()));
+        for (panel, (sweep, axis)) in panels.iter().zip(sweeps) {
+            let pts: Vec<&ScaleRow> = rows.iter().filter(|r| r.sweep == sweep).collect();
+            let series: Vec<(String, Vec<(f64, f64)>)> = CloudPass::ALL
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| pts.iter().any(|r| r.timing.pass_ms[*i] > 0.0))
+                .map(|(i, p)| {
+                    let line = pts
+                        .iter()
+                        .filter(|r| r.timing.pass_ms[i] > 0.0)
+                        .map(|r| (r.x, r.timing.pass_ms[i]))
+                        .collect();
+                    (p.name().to_string(), line)
+                })
+                .chain(std::iter::once((
+                    "total".to_string(),
+                    pts.iter().map(|r| (r.x, r.timing.gpu_ms_total)).collect(),
+                )))
+                .collect();
+            let all = series.iter().flat_map(|(_, s)| s.iter());
+            let (x_lo, x_hi, y_lo, y_hi) = all.fold(
+                (f64::INFINITY, 0.0f64, f64::INFINITY, 0.0f64),
+                |(a, b, c, d), &(x, y)| (a.min(x), b.max(x), c.min(y), d.max(y)),
+            );
+            if !x_lo.is_finite() || !y_lo.is_finite() {
+                continue;
+            }
+            let mut chart = ChartBuilder::on(panel)
+                .margin(10)
+                .x_label_area_size(36)
+                .y_label_area_size(50)
+                .build_cartesian_2d(
+                    (x_lo * 0.8..x_hi * 1.25).log_scale(),
+                    (y_lo * 0.5..y_hi * 2.0).log_scale(),
+                )
+                .map_err(|e| e.to_string())?;
+            chart
+                .configure_mesh()
+                .x_desc(axis)
+                .y_desc("GPU ms")
+                .x_labels(6)
+                .x_label_formatter(&|x| short_number(*x))
+                .y_label_formatter(&|y| short_number(*y))
+                .draw()
+                .map_err(|e| e.to_string())?;
+            for (i, (name, line)) in series.iter().enumerate() {
+                let color = Palette99::pick(i).to_rgba();
+                chart
+                    .draw_series(LineSeries::new(line.iter().copied(), color.stroke_width(2)))
+                    .map_err(|e| e.to_string())?
+                    .label(name.as_str())
+                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], color));
+                chart
+                    .draw_series(line.iter().map(|&p| Circle::new(p, 3, color.filled())))
+                    .map_err(|e| e.to_string())?;
+            }
+            chart
+                .configure_series_labels()
+                .position(SeriesLabelPosition::UpperLeft)
+                .background_style(WHITE.mix(0.8))
+                .border_style(BLACK)
+                .draw()
+                .map_err(|e| e.to_string())?;
+        }
+        root.present().map_err(|e| e.to_string())?;
+    }
+    let image = image::RgbImage::from_raw(w, h, buffer).expect("buffer size");
+    image
+        .save_with_format(path, image::ImageFormat::Png)
+        .map_err(|e| format!("cannot write {}: {e}", path.display()))
+}
