@@ -42,7 +42,8 @@ use bevy::{
 };
 
 use crate::{
-    CloudPass, CloudPassCounters, PASSES, ParticleCloud, ParticleCloudsPlugin, Particles,
+    CloudPass, CloudPassCounters, CloudQualitySettings, Medium, PASSES, Particle, ParticleCloud,
+    ParticleCloudsPlugin, Particles,
     linear_image::LinearImage,
     scene::{ObjectShape, Scene},
 };
@@ -200,18 +201,16 @@ pub fn spawn_scene(app: &mut App, scene: &Scene) -> SceneTarget {
     }
     let mut drawable_clouds = 0;
     for cloud in &scene.clouds {
-        let handle = app
-            .world_mut()
-            .resource_mut::<Assets<Particles>>()
-            .add(Particles::new(cloud.particles.clone()));
         if cloud.medium.extinction > 0.0 && cloud.particles.iter().any(|p| p.density > 0.0) {
             drawable_clouds += 1;
         }
-        app.world_mut().spawn((
-            ParticleCloud::new(handle).with_medium(cloud.medium),
+        spawn_cloud(
+            app,
+            cloud.particles.clone(),
+            cloud.medium,
             scene.settings,
             Transform::from_translation(cloud.translation),
-        ));
+        );
     }
     for object in &scene.objects {
         spawn_object(app, object.shape, object.translation, object.color);
@@ -223,6 +222,28 @@ pub fn spawn_scene(app: &mut App, scene: &Scene) -> SceneTarget {
         camera: camera_entity,
         drawable_clouds,
     }
+}
+
+/// A cloud of `particles` (cloud-local metres) with `medium` and `settings`, placed by
+/// `transform`; its `Particles` asset is added here.
+pub fn spawn_cloud(
+    app: &mut App,
+    particles: Vec<Particle>,
+    medium: Medium,
+    settings: CloudQualitySettings,
+    transform: Transform,
+) -> Entity {
+    let handle = app
+        .world_mut()
+        .resource_mut::<Assets<Particles>>()
+        .add(Particles::new(particles));
+    app.world_mut()
+        .spawn((
+            ParticleCloud::new(handle).with_medium(medium),
+            settings,
+            transform,
+        ))
+        .id()
 }
 
 /// An opaque, unlit object showing the constant linear radiance `color`.

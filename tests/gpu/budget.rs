@@ -4,7 +4,7 @@
 use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder};
 use bevy_particle_clouds::settings::CloudRelightBudget;
-use bevy_particle_clouds::{CloudPass, Medium, Particle, ParticleCloud, Particles};
+use bevy_particle_clouds::{CloudPass, Medium, Particle};
 
 use crate::common;
 
@@ -24,18 +24,16 @@ fn three_clouds(budget: u32) -> (App, Entity) {
                 density: 1.0,
             })
             .collect();
-        let handle = app
-            .world_mut()
-            .resource_mut::<Assets<Particles>>()
-            .add(Particles::new(particles));
-        app.world_mut().spawn((
-            ParticleCloud::new(handle).with_medium(Medium {
+        headless::spawn_cloud(
+            &mut app,
+            particles,
+            Medium {
                 extinction: 3.0,
                 albedo: 0.9,
-            }),
+            },
             common::quality(12, 4),
             Transform::from_xyz(x, 0.0, 0.0),
-        ));
+        );
     }
     (app, light)
 }

@@ -4,8 +4,7 @@
 use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder};
 use bevy_particle_clouds::{
-    CloudLevelOfDetail, CloudLod, CloudPass, Medium, Particle, ParticleCloud, Particles,
-    render::volumes::CloudVolumes,
+    CloudLevelOfDetail, CloudLod, CloudPass, Medium, Particle, render::volumes::CloudVolumes,
 };
 
 use crate::common;
@@ -22,19 +21,16 @@ fn spawn_cloud(app: &mut App) -> Entity {
             }
         })
         .collect();
-    let handle = app
-        .world_mut()
-        .resource_mut::<Assets<Particles>>()
-        .add(Particles::new(particles));
-    app.world_mut()
-        .spawn((
-            ParticleCloud::new(handle).with_medium(Medium {
-                extinction: 3.0,
-                albedo: 0.9,
-            }),
-            common::quality(32, 4),
-        ))
-        .id()
+    headless::spawn_cloud(
+        app,
+        particles,
+        Medium {
+            extinction: 3.0,
+            albedo: 0.9,
+        },
+        common::quality(32, 4),
+        Transform::IDENTITY,
+    )
 }
 
 /// The volume resolution the cloud's volumes hold.

@@ -50,20 +50,16 @@ fn small_cloud(app: &mut App, albedo: f32, translation: Vec3) -> Entity {
             }
         })
         .collect();
-    let handle = app
-        .world_mut()
-        .resource_mut::<Assets<Particles>>()
-        .add(Particles::new(particles));
-    app.world_mut()
-        .spawn((
-            ParticleCloud::new(handle).with_medium(Medium {
-                extinction: 4.0,
-                albedo,
-            }),
-            common::quality(16, 4),
-            Transform::from_translation(translation),
-        ))
-        .id()
+    headless::spawn_cloud(
+        app,
+        particles,
+        Medium {
+            extinction: 4.0,
+            albedo,
+        },
+        common::quality(16, 4),
+        Transform::from_translation(translation),
+    )
 }
 
 /// [`small_cloud`] composited with `compositing`.
