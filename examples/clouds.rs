@@ -25,16 +25,13 @@ use std::process::ExitCode;
 
 use bevy::prelude::*;
 use bevy_particle_clouds::prelude::*;
-use support::{Example, Hud, HudLines, KeyLight, Options, OrbitCamera};
+use support::{Example, Hud, HudLines, KeyLight, Options, OrbitCamera, SUN_LUX};
 
 const EXAMPLE: Example = Example {
     title: "bevy_particle_clouds: a field of cumulus",
     controls: "arrows: sun | drag, A/D/W/S: orbit | wheel, +/-: zoom | [ ]: scatter iterations | V: volume resolution | C: cloud target scale",
     steady: true,
 };
-
-/// Sun illuminance, lux.
-const SUN_LUX: f32 = 10_000.0;
 
 /// A field of cumulus over a ground plane under a sun turned with the arrow keys.
 #[derive(clap::Parser)]
@@ -89,37 +86,21 @@ fn setup(
             Transform::from_translation(position).with_rotation(Quat::from_rotation_y(angle)),
         ));
     }
-    commands.spawn(support::ground(
-        &mut meshes,
-        &mut materials,
-        1000.0,
-        Color::linear_rgb(0.03, 0.055, 0.02),
-    ));
-    commands.spawn(support::key_light(
-        KeyLight {
-            name: "sun",
-            azimuth: 30f32.to_radians(),
-            elevation: 25f32.to_radians(),
-            keys: [
-                KeyCode::ArrowLeft,
-                KeyCode::ArrowRight,
-                KeyCode::ArrowDown,
-                KeyCode::ArrowUp,
-            ],
-        },
-        Color::linear_rgb(1.0, 0.95, 0.85),
-        SUN_LUX,
-    ));
     let orbit = OrbitCamera {
         target: Vec3::new(0.0, 8.0, 0.0),
         distance: 55.0,
         yaw: 0.3,
         pitch: 0.12,
     };
-    commands.spawn((
-        support::camera(orbit, 9.3, Color::linear_rgb(0.22, 0.38, 0.75)),
-        CloudTargetScale(0.5),
-    ));
+    let sun = (30f32.to_radians(), 25f32.to_radians());
+    support::spawn_outdoor(
+        &mut commands,
+        &mut meshes,
+        &mut materials,
+        1000.0,
+        sun,
+        orbit,
+    );
 }
 
 fn change_quality(

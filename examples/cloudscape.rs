@@ -33,8 +33,6 @@ const EXAMPLE: Example = Example {
     steady: false,
 };
 
-/// Sun illuminance, lux (as in the `clouds` example, whose exposure this one shares).
-const SUN_LUX: f32 = 10_000.0;
 /// The sun's azimuth rate while it moves, radians per second.
 const SUN_RATE: f32 = 0.05;
 /// The camera's orbit rate while it flies, radians per second.
@@ -130,37 +128,21 @@ fn setup(
     mut meshes: ResMut<Assets<Mesh>>,
     mut materials: ResMut<Assets<StandardMaterial>>,
 ) {
-    commands.spawn(support::ground(
-        &mut meshes,
-        &mut materials,
-        5000.0,
-        Color::linear_rgb(0.03, 0.055, 0.02),
-    ));
-    commands.spawn(support::key_light(
-        KeyLight {
-            name: "sun",
-            azimuth: 30f32.to_radians(),
-            elevation: 30f32.to_radians(),
-            keys: [
-                KeyCode::ArrowLeft,
-                KeyCode::ArrowRight,
-                KeyCode::ArrowDown,
-                KeyCode::ArrowUp,
-            ],
-        },
-        Color::linear_rgb(1.0, 0.95, 0.85),
-        SUN_LUX,
-    ));
     let orbit = OrbitCamera {
         target: Vec3::new(0.0, 90.0, 0.0),
         distance: 420.0,
         yaw: 0.3,
         pitch: 0.12,
     };
-    commands.spawn((
-        support::camera(orbit, 9.3, Color::linear_rgb(0.22, 0.38, 0.75)),
-        CloudTargetScale(0.5),
-    ));
+    let sun = (30f32.to_radians(), 30f32.to_radians());
+    support::spawn_outdoor(
+        &mut commands,
+        &mut meshes,
+        &mut materials,
+        5000.0,
+        sun,
+        orbit,
+    );
 }
 
 fn controls(

@@ -30,7 +30,8 @@ use bevy::{
     },
 };
 use bevy_particle_clouds::{
-    CloudPass, CloudPassCounters, PASSES, ParticleCloud, ParticleCloudsPlugin, Particles,
+    CloudPass, CloudPassCounters, CloudTargetScale, PASSES, ParticleCloud, ParticleCloudsPlugin,
+    Particles,
     headless::{self, FrameRecorder},
     image_io,
 };
@@ -199,6 +200,48 @@ pub fn key_light(key: KeyLight, color: Color, illuminance: f32) -> impl Bundle {
         key.transform(),
         key,
     )
+}
+
+/// Sun illuminance of the outdoor examples, lux.
+pub const SUN_LUX: f32 = 10_000.0;
+
+/// The outdoor set of the sky examples: a green ground plane `ground` metres across, a sun of
+/// [`SUN_LUX`] turned with the arrow keys from `azimuth` and `elevation` (radians), and the
+/// camera on `orbit` (exposure ev100 9.3, blue sky), drawing its clouds at half its size as a game
+/// would.
+pub fn spawn_outdoor(
+    commands: &mut Commands,
+    meshes: &mut Assets<Mesh>,
+    materials: &mut Assets<StandardMaterial>,
+    ground_size: f32,
+    (azimuth, elevation): (f32, f32),
+    orbit: OrbitCamera,
+) {
+    commands.spawn(ground(
+        meshes,
+        materials,
+        ground_size,
+        Color::linear_rgb(0.03, 0.055, 0.02),
+    ));
+    commands.spawn(key_light(
+        KeyLight {
+            name: "sun",
+            azimuth,
+            elevation,
+            keys: [
+                KeyCode::ArrowLeft,
+                KeyCode::ArrowRight,
+                KeyCode::ArrowDown,
+                KeyCode::ArrowUp,
+            ],
+        },
+        Color::linear_rgb(1.0, 0.95, 0.85),
+        SUN_LUX,
+    ));
+    commands.spawn((
+        camera(orbit, 9.3, Color::linear_rgb(0.22, 0.38, 0.75)),
+        CloudTargetScale(0.5),
+    ));
 }
 
 /// A large lit ground plane of `size` metres and linear albedo `color`, at `y = 0`.
