@@ -398,18 +398,43 @@ fn run() -> Result<(), String> {
     Ok(())
 }
 
-/// Redraws `DIR/pareto.png` from `DIR/results.csv` (e.g. after changing the plot).
-fn replot(args: &Args) -> Result<(), String> {
-    let path = args.out.join("results.csv");
-    let cannot_read = |e: csv::Error| format!("cannot read {}: {e}", path.display());
-    let mut reader = csv::Reader::from_path(&path).map_err(cannot_read)?;
-    let header = reader.headers().map_err(cannot_read)?.clone();
-    let column = |name: &str| {
-        header
+/// A CSV file the benchmark wrote, opened for a replot.
+pub(crate) struct CsvTable {
+    pub(crate) reader: csv::Reader<std::fs::File>,
+    header: csv::StringRecord,
+    pub(crate) path: PathBuf,
+}
+
+impl CsvTable {
+    pub(crate) fn open(path: PathBuf) -> Result<Self, String> {
+        let mut reader = csv::Reader::from_path(&path)
+            .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+        let header = reader
+            .headers()
+            .map_err(|e| format!("cannot read {}: {e}", path.display()))?
+            .clone();
+        Ok(Self {
+            reader,
+            header,
+            path,
+        })
+    }
+
+    /// The index of column `name`.
+    pub(crate) fn column(&self, name: &str) -> Result<usize, String> {
+        self.header
             .iter()
             .position(|h| h == name)
-            .ok_or(format!("{}: no column {name}", path.display()))
-    };
+            .ok_or(format!("{}: no column {name}", self.path.display()))
+    }
+}
+
+/// Redraws `DIR/pareto.png` from `DIR/results.csv` (e.g. after changing the plot).
+fn replot(args: &Args) -> Result<(), String> {
+    let mut table = CsvTable::open(args.out.join("results.csv"))?;
+    let path = table.path.clone();
+    let cannot_read = |e: csv::Error| format!("cannot read {}: {e}", path.display());
+    let column = |name: &str| table.column(name);
     let [
         adapter,
         scene,
@@ -463,7 +488,7 @@ fn replot(args: &Args) -> Result<(), String> {
     let mut rows = Vec::new();
     let mut order: Vec<&'static str> = Vec::new();
     let mut adapter_name = String::new();
-    for record in reader.records() {
+    for record in table.reader.records() {
         let record = record.map_err(cannot_read)?;
         let f = |i: usize| record.get(i).unwrap_or_default();
         let num = |i: usize| f(i).parse::<f64>().unwrap_or(f64::NAN);

@@ -231,6 +231,11 @@ pub(crate) fn plot(
         }
         root.present().map_err(|e| e.to_string())?;
     }
+    save_plot(buffer, (w, h), path)
+}
+
+/// Writes a plot's RGB `buffer` of `(w, h)` pixels as PNG.
+pub(crate) fn save_plot(buffer: Vec<u8>, (w, h): (u32, u32), path: &Path) -> Result<(), String> {
     let image = image::RgbImage::from_raw(w, h, buffer).expect("buffer size");
     image
         .save_with_format(path, image::ImageFormat::Png)

@@ -285,16 +285,10 @@ fn short_number(v: f64) -> String {
 
 /// `--scale --replot`: redraws `DIR/scale.png` from `DIR/scale.csv`.
 pub(crate) fn replot_scale(args: &Args) -> Result<(), String> {
-    let path = args.out.join("scale.csv");
+    let mut table = CsvTable::open(args.out.join("scale.csv"))?;
+    let path = table.path.clone();
     let cannot_read = |e: csv::Error| format!("cannot read {}: {e}", path.display());
-    let mut reader = csv::Reader::from_path(&path).map_err(cannot_read)?;
-    let header = reader.headers().map_err(cannot_read)?.clone();
-    let column = |name: &str| {
-        header
-            .iter()
-            .position(|h| h == name)
-            .ok_or(format!("{}: no column {name}", path.display()))
-    };
+    let column = |name: &str| table.column(name);
     let passes: Vec<usize> = CloudPass::ALL
         .iter()
         .map(|p| column(&format!("gpu_ms_{}", p.name())))
@@ -309,7 +303,7 @@ pub(crate) fn replot_scale(args: &Args) -> Result<(), String> {
     };
     let mut rows = Vec::new();
     let mut adapter_name = String::new();
-    for record in reader.records() {
+    for record in table.reader.records() {
         let record = record.map_err(cannot_read)?;
         adapter_name = record[adapter].to_string();
         let sweep = ["particles", "clouds", "clouds, level of detail", "view"]
@@ -430,8 +424,5 @@ fn plot_scale(path: &Path, font: &Path, adapter: &str, rows: &[ScaleRow]) -> Res
         }
         root.present().map_err(|e| e.to_string())?;
     }
-    let image = image::RgbImage::from_raw(w, h, buffer).expect("buffer size");
-    image
-        .save_with_format(path, image::ImageFormat::Png)
-        .map_err(|e| format!("cannot write {}: {e}", path.display()))
+    save_plot(buffer, (w, h), path)
 }
