@@ -373,10 +373,18 @@ fn deferred_by_budget(
             cloud.settings.volume_resolution,
             cloud.settings.light_resolution(),
         );
+        // A cloud whose level of detail changes (its volumes no longer fit) waits its turn like
+        // any other; only one never illuminated cannot wait.
         match held {
-            Some((v, s)) if s.ready && v.fits(n, m, gpu.count) => {
-                let now = frame_keys(&cloud, gpu, bounds, lights);
-                if !plan(&s.keys, &now, &cloud.settings).is_empty() {
+            Some((v, s)) if s.ready => {
+                let pending = !v.fits(n, m, gpu.count)
+                    || !plan(
+                        &s.keys,
+                        &frame_keys(&cloud, gpu, bounds, lights),
+                        &cloud.settings,
+                    )
+                    .is_empty();
+                if pending {
                     candidates.push(RelightCandidate {
                         entity,
                         first: false,
