@@ -4,33 +4,18 @@
 use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder};
 use bevy_particle_clouds::{
-    CloudLevelOfDetail, CloudLod, CloudPass, Medium, Particle, render::volumes::CloudVolumes,
+    CloudLevelOfDetail, CloudLod, CloudPass, render::volumes::CloudVolumes,
 };
 
 use crate::common;
 
-/// A cloud about 2.4 m across (bounding sphere radius ~1.2 m) at the origin, at most 32³.
+/// The plugin tests' small cloud (bounding sphere radius ~1.3 m) at the origin, at most 32³.
 fn spawn_cloud(app: &mut App) -> Entity {
-    let particles: Vec<Particle> = (0..30)
-        .map(|i| {
-            let a = i as f32 * 0.9;
-            Particle {
-                position: Vec3::new(a.cos() * 0.5, (i as f32 * 0.03) - 0.45, a.sin() * 0.5),
-                radius: 0.35,
-                density: 1.0,
-            }
-        })
-        .collect();
-    headless::spawn_cloud(
-        app,
-        particles,
-        Medium {
-            extinction: 3.0,
-            albedo: 0.9,
-        },
-        common::quality(32, 4),
-        Transform::IDENTITY,
-    )
+    let cloud = crate::plugin::small_cloud(app, 0.9, Vec3::ZERO);
+    app.world_mut()
+        .entity_mut(cloud)
+        .insert(common::quality(32, 4));
+    cloud
 }
 
 /// The volume resolution the cloud's volumes hold.

@@ -39,7 +39,8 @@ fn close(a: [f32; 4], b: Vec3, tolerance: f32) -> bool {
         && (a[2] - b.z).abs() <= tolerance
 }
 
-fn small_cloud(app: &mut App, albedo: f32, translation: Vec3) -> Entity {
+/// A small cloud (20 particles, bounding sphere radius ~1.3 m) at `translation`, 16³.
+pub(crate) fn small_cloud(app: &mut App, albedo: f32, translation: Vec3) -> Entity {
     let particles: Vec<Particle> = (0..20)
         .map(|i| {
             let a = i as f32 * 0.7;
