@@ -25,7 +25,7 @@ use bevy_particle_clouds::{
     image_io::{ImageMetadata, LinearImage, write_exr_with_metadata, write_image},
     particle::{LightSample, Medium},
     reference::path_tracer::{self, PathTracerSettings, Progress},
-    render::volumes::largest_binding,
+    render::pools::VolumeShape,
     scene::{MAX_IMAGE_SIZE, ResolvedCloud, Scene, SceneCamera, apply_setting},
 };
 use clap::Parser;
@@ -284,22 +284,24 @@ fn check_volume_fits(app: &mut bevy::app::App, scene: &Scene, adapter: &str) -> 
         .max_storage_buffer_binding_size;
     let resolution = scene.settings.volume_resolution;
     let lights = scene.lights.len();
-    let bytes = |n: u32| {
+    let fits = |n: u32| {
         let settings = CloudQualitySettings {
             volume_resolution: n,
             ..scene.settings
         };
-        largest_binding(n, settings.light_resolution(), lights)
+        let shape = VolumeShape {
+            n,
+            m: settings.light_resolution(),
+            lights: lights as u32,
+        };
+        shape.max_slots(limit) > 0
     };
-    if bytes(resolution) > limit {
+    if !fits(resolution) {
         return Err(format!(
             "settings.volume_resolution is {resolution} (light volumes of {}³ for {lights} lights); \
              this adapter ({adapter}) allows at most {} (its storage buffers hold {limit} bytes)",
             scene.settings.light_resolution(),
-            (1..=resolution)
-                .rev()
-                .find(|&n| bytes(n) <= limit)
-                .unwrap_or(0)
+            (1..=resolution).rev().find(|&n| fits(n)).unwrap_or(0)
         ));
     }
     Ok(())

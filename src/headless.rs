@@ -270,6 +270,13 @@ pub fn spawn_object(app: &mut App, shape: ObjectShape, translation: Vec3, color:
         .id()
 }
 
+fn count_of(counts: &[(CloudPass, u32)], pass: CloudPass) -> u32 {
+    counts
+        .iter()
+        .find(|(p, _)| *p == pass)
+        .map_or(0, |(_, n)| *n)
+}
+
 /// What one frame did.
 #[derive(Clone, Debug, Default)]
 pub struct FrameStats {
@@ -277,6 +284,8 @@ pub struct FrameStats {
     pub wall_ms: f64,
     /// Runs of each pass this frame.
     pub passes: Vec<(CloudPass, u32)>,
+    /// Compute dispatches of each pass this frame.
+    pub dispatches: Vec<(CloudPass, u32)>,
     /// GPU time of each pass that ran, when the adapter reported it.
     pub gpu_ms: HashMap<CloudPass, f64>,
 }
@@ -284,10 +293,12 @@ pub struct FrameStats {
 impl FrameStats {
     /// Runs of `pass` this frame.
     pub fn runs(&self, pass: CloudPass) -> u32 {
-        self.passes
-            .iter()
-            .find(|(p, _)| *p == pass)
-            .map_or(0, |(_, n)| *n)
+        count_of(&self.passes, pass)
+    }
+
+    /// Compute dispatches of `pass` this frame.
+    pub fn dispatches(&self, pass: CloudPass) -> u32 {
+        count_of(&self.dispatches, pass)
     }
 
     /// Runs of the illumination and sort passes (everything but the draw).
@@ -307,6 +318,7 @@ pub struct FrameRecorder {
     /// Every recorded frame, in order.
     pub frames: Vec<FrameStats>,
     counted: [u32; PASSES],
+    dispatched: [u32; PASSES],
     last_seen: HashMap<DiagnosticPath, Instant>,
     waiting: HashMap<CloudPass, VecDeque<usize>>,
 }
@@ -317,11 +329,9 @@ impl FrameRecorder {
         let start = Instant::now();
         update(app)?;
         let wall_ms = start.elapsed().as_secs_f64() * 1e3;
-        let passes = app
-            .world()
-            .resource::<CloudPassCounters>()
-            .since(&mut self.counted)
-            .to_vec();
+        let counters = app.world().resource::<CloudPassCounters>();
+        let passes = counters.since(&mut self.counted).to_vec();
+        let dispatches = counters.dispatches_since(&mut self.dispatched).to_vec();
         let index = self.frames.len();
         for &(pass, runs) in &passes {
             if runs > 0 {
@@ -331,6 +341,7 @@ impl FrameRecorder {
         self.frames.push(FrameStats {
             wall_ms,
             passes,
+            dispatches,
             gpu_ms: HashMap::new(),
         });
         self.collect_gpu_times(app);
@@ -345,9 +356,9 @@ impl FrameRecorder {
     /// Updates without recording (to let late GPU times and screenshots arrive).
     pub fn drain(&mut self, app: &mut App) -> Result<(), HeadlessError> {
         update(app)?;
-        app.world()
-            .resource::<CloudPassCounters>()
-            .since(&mut self.counted);
+        let counters = app.world().resource::<CloudPassCounters>();
+        counters.since(&mut self.counted);
+        counters.dispatches_since(&mut self.dispatched);
         self.collect_gpu_times(app);
         Ok(())
     }
@@ -529,6 +540,16 @@ pub fn read_buffer(
 ) -> Result<Vec<u8>, HeadlessError> {
     read_back(app, buffer.size(), |encoder, staging| {
         encoder.copy_buffer_to_buffer(buffer, 0, staging, 0, buffer.size());
+    })
+}
+
+/// The bytes of a part of a GPU buffer (a cloud's slot in a volume pool, for example).
+pub fn read_buffer_range(
+    app: &mut App,
+    range: &crate::render::pools::BufferRange,
+) -> Result<Vec<u8>, HeadlessError> {
+    read_back(app, range.size, |encoder, staging| {
+        encoder.copy_buffer_to_buffer(&range.buffer, range.offset, staging, 0, range.size);
     })
 }
 

@@ -95,24 +95,54 @@ impl CloudPass {
     }
 }
 
-/// Dispatch counters per pass, shared by the main and the render world.
+/// Run and dispatch counters per pass, shared by the main and the render world.
+///
+/// A *run* is a unit of a pass's work (a cloud voxelized, a light shaded, a scattering iteration,
+/// a cloud drawn in a view); a *dispatch* is one compute dispatch. The illumination passes batch
+/// every cloud of a volume shape into one dispatch, so their dispatches grow with the shapes in
+/// use, not with the clouds (docs/illumination.md §9).
 #[derive(Resource, Clone, Default, Debug)]
-pub struct CloudPassCounters(Arc<[AtomicU32; PASSES]>);
+pub struct CloudPassCounters(Arc<PassCounts>);
+
+#[derive(Default, Debug)]
+struct PassCounts {
+    runs: [AtomicU32; PASSES],
+    dispatches: [AtomicU32; PASSES],
+}
+
+/// The growth of `counts` since `snapshot`, which is then moved to now.
+fn counted_since(
+    counts: &[AtomicU32; PASSES],
+    snapshot: &mut [u32; PASSES],
+) -> [(CloudPass, u32); PASSES] {
+    CloudPass::ALL.map(|p| {
+        let now = counts[p as usize].load(Ordering::Relaxed);
+        let runs = now.wrapping_sub(snapshot[p as usize]);
+        snapshot[p as usize] = now;
+        (p, runs)
+    })
+}
 
 impl CloudPassCounters {
     /// Adds `n` runs of `pass`.
     pub fn add(&self, pass: CloudPass, n: u32) {
-        self.0[pass as usize].fetch_add(n, Ordering::Relaxed);
+        self.0.runs[pass as usize].fetch_add(n, Ordering::Relaxed);
+    }
+
+    /// Adds `n` compute dispatches of `pass`.
+    pub fn add_dispatches(&self, pass: CloudPass, n: u32) {
+        self.0.dispatches[pass as usize].fetch_add(n, Ordering::Relaxed);
     }
 
     /// The runs of each pass since the reader's `snapshot`, which is then moved to now. Start
     /// from `[0; PASSES]` to count from the app's start.
     pub fn since(&self, snapshot: &mut [u32; PASSES]) -> [(CloudPass, u32); PASSES] {
-        CloudPass::ALL.map(|p| {
-            let now = self.0[p as usize].load(Ordering::Relaxed);
-            let runs = now.wrapping_sub(snapshot[p as usize]);
-            snapshot[p as usize] = now;
-            (p, runs)
-        })
+        counted_since(&self.0.runs, snapshot)
+    }
+
+    /// The compute dispatches of each pass since the reader's `snapshot` (a snapshot of its
+    /// own, apart from the runs'), which is then moved to now.
+    pub fn dispatches_since(&self, snapshot: &mut [u32; PASSES]) -> [(CloudPass, u32); PASSES] {
+        counted_since(&self.0.dispatches, snapshot)
     }
 }

@@ -1,16 +1,19 @@
 // Closing the scattering series (docs/illumination.md §4): the orders past M are taken as
 // geometric with the per-channel ratio of the last two, lambda = sum rho S_M / sum rho S_{M-1},
-// and S_M lambda / (1 - lambda) is added to the multiple-scattering volume.
-#import bevy_particle_clouds::types::{CloudParams, flat_invocation}
+// and S_M lambda / (1 - lambda) is added to the multiple-scattering volume. Every cloud of a
+// volume pool in one dispatch: z workgroup i closes slot `work[i]`.
+#import bevy_particle_clouds::types::{Slot, flat_invocation}
 
-@group(0) @binding(0) var<uniform> cloud: CloudParams;
-@group(0) @binding(1) var<storage, read> density: array<f32>;
+@group(0) @binding(0) var<storage, read> slots: array<Slot>;
+@group(0) @binding(1) var<storage, read> densities: array<f32>;
 // S_M and S_{M-1}.
 @group(0) @binding(2) var<storage, read> last: array<vec4<f32>>;
 @group(0) @binding(3) var<storage, read> before: array<vec4<f32>>;
 @group(0) @binding(4) var<storage, read_write> multiple: array<vec4<f32>>;
-// lambda per channel (xyz).
+// lambda per channel (xyz), one per slot.
 @group(0) @binding(5) var<storage, read_write> ratio: array<vec4<f32>>;
+// A slot per z workgroup.
+@group(0) @binding(6) var<storage, read> work: array<u32>;
 
 const MAX_ORDER_RATIO: f32 = 0.995;
 const THREADS: u32 = 256u;
@@ -21,19 +24,22 @@ var<workgroup> denominators: array<vec3<f32>, THREADS>;
 // One workgroup: the two density-weighted sums, then lambda. Each thread takes 4 voxels per
 // iteration (a 256^3 grid stays within software rasterisers' 65535 loop iterations).
 @compute @workgroup_size(256)
-fn order_ratio(@builtin(local_invocation_index) i: u32) {
-    let voxels = cloud.n * cloud.n * cloud.n;
+fn order_ratio(@builtin(local_invocation_index) i: u32, @builtin(workgroup_id) group: vec3<u32>) {
+    let slot = slots[work[group.z]];
+    let voxels = slot.cloud.n * slot.cloud.n * slot.cloud.n;
+    let d = slot.density;
+    let s = slot.volume;
     var numerator = vec3(0.0);
     var denominator = vec3(0.0);
     for (var first = 4u * i; first < voxels; first += 4u * THREADS) {
         // Unrolled by hand: a nested loop would count against the same limit.
         let v = min(vec4(first) + vec4(0u, 1u, 2u, 3u), vec4(voxels - 1u));
         let inside = vec4<f32>(vec4(first) + vec4(0u, 1u, 2u, 3u) < vec4(voxels));
-        let rho = vec4(density[v.x], density[v.y], density[v.z], density[v.w]) * inside;
-        numerator += rho.x * last[v.x].xyz + rho.y * last[v.y].xyz + rho.z * last[v.z].xyz
-            + rho.w * last[v.w].xyz;
-        denominator += rho.x * before[v.x].xyz + rho.y * before[v.y].xyz
-            + rho.z * before[v.z].xyz + rho.w * before[v.w].xyz;
+        let rho = vec4(densities[d + v.x], densities[d + v.y], densities[d + v.z], densities[d + v.w]) * inside;
+        numerator += rho.x * last[s + v.x].xyz + rho.y * last[s + v.y].xyz
+            + rho.z * last[s + v.z].xyz + rho.w * last[s + v.w].xyz;
+        denominator += rho.x * before[s + v.x].xyz + rho.y * before[s + v.y].xyz
+            + rho.z * before[s + v.z].xyz + rho.w * before[s + v.w].xyz;
     }
     numerators[i] = numerator;
     denominators[i] = denominator;
@@ -48,16 +54,18 @@ fn order_ratio(@builtin(local_invocation_index) i: u32) {
     if i == 0u {
         let den = denominators[0];
         let lambda = clamp(numerators[0] / max(den, vec3(1e-30)), vec3(0.0), vec3(MAX_ORDER_RATIO));
-        ratio[0] = vec4(select(vec3(0.0), lambda, den > vec3(0.0)), 0.0);
+        ratio[slot.ratio] = vec4(select(vec3(0.0), lambda, den > vec3(0.0)), 0.0);
     }
 }
 
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn extrapolate(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let slot = slots[work[id.z]];
     let v = flat_invocation(id, groups);
-    if v >= cloud.n * cloud.n * cloud.n {
+    if v >= slot.cloud.n * slot.cloud.n * slot.cloud.n {
         return;
     }
-    let lambda = ratio[0].xyz;
-    multiple[v] += vec4(last[v].xyz * (lambda / (1.0 - lambda)), 0.0);
+    let lambda = ratio[slot.ratio].xyz;
+    let i = slot.volume + v;
+    multiple[i] += vec4(last[i].xyz * (lambda / (1.0 - lambda)), 0.0);
 }

@@ -50,6 +50,7 @@ use super::{
     key_of,
     particles::GpuParticles,
     plan::CloudIllumination,
+    pools::VolumePools,
     shaders::CloudShaders,
     sort::CloudSorts,
     view_volume::CloudViewVolumes,
@@ -345,6 +346,7 @@ type BillboardSources = (
     Option<&'static CloudDrawBindGroups>,
 );
 
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn prepare_billboard_bind_groups(
     mut commands: Commands,
     pipeline: Option<Res<BillboardPipeline>>,
@@ -353,6 +355,7 @@ pub(crate) fn prepare_billboard_bind_groups(
     view_uniforms: Res<ViewUniforms>,
     clouds: Query<BillboardSources>,
     particles: Res<RenderAssets<GpuParticles>>,
+    pools: Res<VolumePools>,
 ) {
     let Some(pipeline) = pipeline else { return };
     let Some(view_binding) = view_uniforms.uniforms.binding() else {
@@ -368,6 +371,9 @@ pub(crate) fn prepare_billboard_bind_groups(
             continue;
         };
         let compositing = cloud.settings.compositing;
+        let pool = pools.pool(&volumes.slot);
+        let optical_depth = pool.optical_depth(volumes.slot.index);
+        let multiple = pool.volume(&pool.multiple, volumes.slot.index);
         let layout = pipeline_cache.get_bind_group_layout(pipeline.cloud_layout(compositing));
         let world_from_local = Mat4::from(cloud.world_from_local);
         let params = DrawParams {
@@ -389,13 +395,8 @@ pub(crate) fn prepare_billboard_bind_groups(
             params.extinction.to_bits(),
             params.segments,
             gpu.buffer.id(),
-            [
-                &volumes.params_buffer,
-                &volumes.light_array,
-                &volumes.optical_depth,
-                &volumes.multiple,
-            ]
-            .map(|b| b.id()),
+            [&volumes.params_buffer, &volumes.light_array].map(|b| b.id()),
+            [&optical_depth, &multiple].map(|r| (r.buffer.id(), r.offset)),
             views,
             compositing,
         ));
@@ -416,8 +417,8 @@ pub(crate) fn prepare_billboard_bind_groups(
                     gpu.buffer.as_entire_binding(),
                     a.as_entire_binding(),
                     volumes.light_array.as_entire_binding(),
-                    volumes.optical_depth.as_entire_binding(),
-                    volumes.multiple.as_entire_binding(),
+                    optical_depth.binding(),
+                    multiple.binding(),
                 );
                 let group = match compositing {
                     Compositing::Sorted => device.create_bind_group(

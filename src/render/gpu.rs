@@ -7,8 +7,8 @@ use bevy::{
     render::{
         diagnostic::{DiagnosticsRecorder, RecordDiagnostics},
         render_resource::{
-            Buffer, BufferDescriptor, BufferInitDescriptor, BufferUsages, ComputePass,
-            ComputePassDescriptor, ShaderType, encase,
+            BindGroup, Buffer, BufferDescriptor, BufferInitDescriptor, BufferUsages, ComputePass,
+            ComputePassDescriptor, ComputePipeline, ShaderType, encase,
         },
         renderer::{RenderContext, RenderDevice},
     },
@@ -79,13 +79,51 @@ pub fn storage_bytes<T: ShaderType + encase::internal::WriteInto + encase::Shade
     buffer.into_inner()
 }
 
-/// Records one stage: a GPU time span around one compute pass, and the pass counter.
+/// A stage's compute pass, counting its dispatches.
+pub struct StagePass<'p, 'a> {
+    pass: &'p mut ComputePass<'a>,
+    dispatches: u32,
+}
+
+impl<'p, 'a> StagePass<'p, 'a> {
+    /// Wraps `pass`, with no dispatch counted yet.
+    pub fn new(pass: &'p mut ComputePass<'a>) -> Self {
+        Self {
+            pass,
+            dispatches: 0,
+        }
+    }
+
+    /// Dispatches recorded so far.
+    pub fn dispatches(&self) -> u32 {
+        self.dispatches
+    }
+
+    /// Sets the pipeline of the next dispatches.
+    pub fn set_pipeline(&mut self, pipeline: &ComputePipeline) {
+        self.pass.set_pipeline(pipeline);
+    }
+
+    /// Sets bind group `index`, with its dynamic offsets.
+    pub fn set_bind_group(&mut self, index: u32, group: &BindGroup, offsets: &[u32]) {
+        self.pass.set_bind_group(index, group, offsets);
+    }
+
+    /// Dispatches `x × y × z` workgroups, and counts it.
+    pub fn dispatch(&mut self, x: u32, y: u32, z: u32) {
+        self.pass.dispatch_workgroups(x, y, z);
+        self.dispatches += 1;
+    }
+}
+
+/// Records one stage: a GPU time span around one compute pass, and the pass's counters (the
+/// runs `body` returns, and its dispatches).
 pub(crate) fn record_stage(
     ctx: &mut RenderContext,
     recorder: Option<&DiagnosticsRecorder>,
     counters: &CloudPassCounters,
     stage: CloudPass,
-    body: impl FnOnce(&mut ComputePass) -> u32,
+    body: impl FnOnce(&mut StagePass) -> u32,
 ) {
     let span = recorder.time_span(ctx.command_encoder(), stage.span_name());
     let mut pass = ctx
@@ -94,8 +132,11 @@ pub(crate) fn record_stage(
             label: Some(stage.span_name()),
             ..default()
         });
-    let runs = body(&mut pass);
+    let mut counted = StagePass::new(&mut pass);
+    let runs = body(&mut counted);
+    let dispatches = counted.dispatches();
     drop(pass);
     span.end(ctx.command_encoder());
     counters.add(stage, runs);
+    counters.add_dispatches(stage, dispatches);
 }

@@ -1,15 +1,19 @@
 //! The illumination passes (the paper's Algorithm 1, lines 2–6): voxelize, shade per light,
 //! gather and multiple scattering. Only the stages planned for this frame run
-//! ([`plan`](super::plan)). Their bind groups are made in `PrepareBindGroups`; the system in the
-//! `RenderGraph` schedule, once per frame before any camera, only records.
+//! ([`plan`](super::plan)). Voxelize runs per cloud (each cloud's particles are their own
+//! buffer); shade, gather and scatter are batched: one dispatch covers every cloud of a volume
+//! pool ([`pools`](super::pools)), its z workgroups walking a work list. Their bind groups and
+//! work lists are made in `PrepareBindGroups`; the system in the `RenderGraph` schedule, once per
+//! frame before any camera, only records.
 
 use bevy::{
+    platform::collections::HashMap,
     prelude::*,
     render::{
         render_asset::RenderAssets,
         render_resource::{
-            BindGroup, BindGroupEntries, BindGroupEntry, Buffer, BufferBinding, ComputePass,
-            PipelineCache, ShaderType,
+            BindGroup, BindGroupEntries, BindGroupEntry, Buffer, BufferBinding,
+            BufferInitDescriptor, BufferUsages, PipelineCache, ShaderType,
         },
         renderer::{RenderContext, RenderDevice},
     },
@@ -17,46 +21,123 @@ use bevy::{
 
 use super::{
     extract::ExtractedCloud,
-    gpu::{DYNAMIC_UNIFORM_STRIDE, record_stage},
+    gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, record_stage},
     particles::GpuParticles,
     pipelines::{
         ComputeStage, IlluminationPipelines, ReadyPipelines, SweepDirection, sweep_directions,
         sweep_lines,
     },
     plan::CloudIllumination,
+    pools::{PoolId, VolumePool, VolumePools},
     volumes::{CloudVolumes, DensityLevels},
-    workgroups::{self, dispatch_columns, dispatch_linear, dispatch_volume},
+    workgroups::{self, dispatch_columns, dispatch_linear},
 };
 use crate::{
     settings::{ScatterStencil, ShadingMethod},
     stats::{CloudPass, CloudPassCounters},
 };
 
-/// The bind groups of one cloud's planned stages this frame (render world component).
+/// The voxelize bind group of a cloud whose density is rebuilt this frame (render world
+/// component); the batched passes' bind groups are in [`IlluminationBatches`].
 #[derive(Component, Default)]
 pub struct IlluminationBindGroups {
     /// Voxelize (all three of its entry points).
     voxelize: Option<BindGroup>,
-    /// Shade, per planned light slot.
-    shade: Vec<(usize, BindGroup)>,
-    /// Gather.
-    gather: Option<BindGroup>,
-    /// The scattering iterations' three order pairs: `S_0 → a`, `a → b`, `b → a`.
-    scatter: Option<[BindGroup; 3]>,
-    /// The closure, reading the last two orders.
-    closure: Option<BindGroup>,
 }
 
-/// `S_0` for `k = 0`, else the order written by iteration `k - 1` (the two order volumes alternate).
-fn order(v: &CloudVolumes, k: u32) -> &Buffer {
-    if k == 0 {
-        &v.source
-    } else {
-        &v.orders[(k as usize - 1) % 2]
+/// Work items per dispatch of a batched pass: the most z workgroups (65535) rounded down so that
+/// each chunk starts on a 256-byte dynamic offset for items of 4 or 8 bytes.
+pub const WORK_CHUNK: u32 = 65472;
+
+/// The work list of one batched pass: a slot, or a (slot, light) pair, per z workgroup, bound a
+/// chunk at a time with a dynamic offset.
+pub struct WorkList {
+    buffer: Buffer,
+    items: u32,
+    item_bytes: u32,
+}
+
+impl WorkList {
+    /// A list of `items` (each a `u32`, or a `[u32; 2]`).
+    fn new<T: bytemuck::Pod>(device: &RenderDevice, items: &[T]) -> Self {
+        let item_bytes = size_of::<T>() as u32;
+        let count = items.len() as u32;
+        let mut bytes: Vec<u8> = bytemuck::cast_slice(items).to_vec();
+        // Every chunk's binding is as long as the first; the last is padded to it.
+        let last = count.saturating_sub(1) / WORK_CHUNK * WORK_CHUNK;
+        bytes.resize(((last + count.min(WORK_CHUNK)) * item_bytes) as usize, 0);
+        let buffer = device.create_buffer_with_data(&BufferInitDescriptor {
+            label: Some("particle_clouds_work"),
+            contents: &bytes,
+            usage: BufferUsages::STORAGE,
+        });
+        Self {
+            buffer,
+            items: count,
+            item_bytes,
+        }
+    }
+
+    fn binding(&self) -> BufferBinding<'_> {
+        BufferBinding {
+            buffer: &self.buffer,
+            offset: 0,
+            size: std::num::NonZeroU64::new((self.items.min(WORK_CHUNK) * self.item_bytes) as u64),
+        }
+    }
+
+    /// Each chunk's dynamic offset and its number of items.
+    fn chunks(&self) -> impl Iterator<Item = (u32, u32)> + '_ {
+        (0..self.items).step_by(WORK_CHUNK as usize).map(|first| {
+            (
+                first * self.item_bytes,
+                (self.items - first).min(WORK_CHUNK),
+            )
+        })
     }
 }
 
-/// Which of [`IlluminationBindGroups::scatter`] iteration `k` reads and writes with.
+/// One batched pass over a pool: its bind group and work list.
+struct Batch {
+    group: BindGroup,
+    work: WorkList,
+}
+
+/// The scattering of a pool's clouds that share an iteration count and stencil.
+struct ScatterBatch {
+    iterations: u32,
+    sweep: bool,
+    /// The iterations' three order pairs: `S_0 → a`, `a → b`, `b → a`.
+    groups: [BindGroup; 3],
+    /// The closure, reading the last two orders.
+    closure: BindGroup,
+    work: WorkList,
+}
+
+/// The batched passes of one volume pool this frame.
+struct PoolBatches {
+    /// Voxels per side of the scattering grid, and of the fine grid and light volumes.
+    n: u32,
+    m: u32,
+    shade: Option<Batch>,
+    gather: Option<Batch>,
+    scatter: Vec<ScatterBatch>,
+}
+
+/// This frame's batched passes, per pool (render world resource, made in `PrepareBindGroups`).
+#[derive(Resource, Default)]
+pub struct IlluminationBatches(Vec<PoolBatches>);
+
+/// `S_0` for `k = 0`, else the order written by iteration `k - 1` (the two order volumes alternate).
+fn order(pool: &VolumePool, k: u32) -> &Buffer {
+    if k == 0 {
+        &pool.source
+    } else {
+        &pool.orders[(k as usize - 1) % 2]
+    }
+}
+
+/// Which of [`ScatterBatch::groups`] iteration `k` reads and writes with.
 fn scatter_group(k: u32) -> usize {
     match k {
         0 => 0,
@@ -65,11 +146,22 @@ fn scatter_group(k: u32) -> usize {
     }
 }
 
-/// Makes the bind groups of every cloud's planned stages.
+/// What each pool's clouds run this frame: (slot, light) to shade, slots to gather, and slots
+/// to scatter per (iterations, stencil).
+#[derive(Default)]
+struct PoolWork {
+    shade: Vec<[u32; 2]>,
+    gather: Vec<u32>,
+    scatter: HashMap<(u32, ScatterStencil), Vec<u32>>,
+}
+
+/// Makes the voxelize bind group of every cloud whose density is rebuilt, and the bind groups
+/// and work lists of every pool's batched passes.
 pub(crate) fn prepare_illumination_bind_groups(
     mut commands: Commands,
     clouds: Query<(Entity, &ExtractedCloud, &CloudVolumes, &CloudIllumination)>,
     particles: Res<RenderAssets<GpuParticles>>,
+    pools: Res<VolumePools>,
     pipelines: Option<Res<IlluminationPipelines>>,
     pipeline_cache: Res<PipelineCache>,
     device: Res<RenderDevice>,
@@ -79,18 +171,20 @@ pub(crate) fn prepare_illumination_bind_groups(
         let layout = pipeline_cache.get_bind_group_layout(&stage.layout);
         device.create_bind_group(None, &layout, entries)
     };
+    let mut work: HashMap<PoolId, PoolWork> = HashMap::default();
     for (entity, cloud, v, state) in &clouds {
         let plan = &state.plan;
         let Some(gpu) = particles.get(cloud.particles).filter(|_| !plan.is_empty()) else {
             continue;
         };
+        let pool = pools.pool(&v.slot);
         let voxelize = plan.voxelize.then(|| {
             bind(
                 &pipelines.voxelize,
                 &BindGroupEntries::sequential((
                     v.fine_params_buffer.as_entire_binding(),
                     gpu.buffer.as_entire_binding(),
-                    v.fine_density.as_entire_binding(),
+                    pool.fine_density(v.slot.index).binding(),
                     v.kernel_sums.as_entire_binding(),
                     BufferBinding {
                         buffer: &v.density_levels,
@@ -100,75 +194,126 @@ pub(crate) fn prepare_illumination_bind_groups(
                 )),
             )
         });
-        let shade = plan
-            .shade
-            .iter()
-            .map(|&i| {
-                let entries = BindGroupEntries::sequential((
-                    v.fine_params_buffer.as_entire_binding(),
-                    v.lights[i].params.as_entire_binding(),
-                    v.fine_density.as_entire_binding(),
-                    v.optical_depth.as_entire_binding(),
-                ));
-                (i, bind(&pipelines.shade, &entries))
-            })
-            .collect();
-        let gather = plan.gather.then(|| {
-            bind(
+        commands
+            .entity(entity)
+            .insert(IlluminationBindGroups { voxelize });
+        let slot = v.slot.index;
+        let w = work.entry(v.slot.pool).or_default();
+        w.shade.extend(plan.shade.iter().map(|&l| [slot, l as u32]));
+        if plan.gather {
+            w.gather.push(slot);
+        }
+        if let Some(iterations) = plan.scatter.filter(|&i| i > 0) {
+            let key = (iterations, plan.stencil);
+            w.scatter.entry(key).or_default().push(slot);
+        }
+    }
+    let mut batches = Vec::new();
+    for (id, w) in work {
+        let pool = &pools.0[&id];
+        let shade = (!w.shade.is_empty()).then(|| {
+            let work = WorkList::new(&device, &w.shade);
+            let group = bind(
+                &pipelines.shade,
+                &BindGroupEntries::sequential((
+                    pool.slots.as_entire_binding(),
+                    pool.lights.as_entire_binding(),
+                    pool.densities.as_entire_binding(),
+                    pool.optical_depth.as_entire_binding(),
+                    work.binding(),
+                )),
+            );
+            Batch { group, work }
+        });
+        let gather = (!w.gather.is_empty()).then(|| {
+            let work = WorkList::new(&device, &w.gather);
+            let group = bind(
                 &pipelines.gather,
                 &BindGroupEntries::sequential((
-                    v.params_buffer.as_entire_binding(),
-                    v.light_array.as_entire_binding(),
-                    v.optical_depth.as_entire_binding(),
-                    v.fine_density.as_entire_binding(),
-                    v.density.as_entire_binding(),
-                    v.source.as_entire_binding(),
+                    pool.slots.as_entire_binding(),
+                    pool.lights.as_entire_binding(),
+                    pool.optical_depth.as_entire_binding(),
+                    pool.densities.as_entire_binding(),
+                    pool.source.as_entire_binding(),
+                    work.binding(),
                 )),
-            )
+            );
+            Batch { group, work }
         });
-        let iterations = plan.scatter.unwrap_or(0);
-        let sweep = |k: u32| {
-            bind(
-                &pipelines.sweep,
-                &BindGroupEntries::sequential((
-                    v.params_buffer.as_entire_binding(),
-                    BufferBinding {
-                        buffer: &pipelines.sweep_directions,
-                        offset: 0,
-                        size: Some(SweepDirection::min_size()),
-                    },
-                    v.density.as_entire_binding(),
-                    order(v, k).as_entire_binding(),
-                    order(v, k + 1).as_entire_binding(),
-                    v.multiple.as_entire_binding(),
-                )),
-            )
-        };
-        let scatter = (iterations > 0).then(|| [sweep(0), sweep(1), sweep(2)]);
-        let closure = (iterations > 0).then(|| {
-            bind(
-                &pipelines.order_ratio,
-                &BindGroupEntries::sequential((
-                    v.params_buffer.as_entire_binding(),
-                    v.density.as_entire_binding(),
-                    order(v, iterations).as_entire_binding(),
-                    order(v, iterations - 1).as_entire_binding(),
-                    v.multiple.as_entire_binding(),
-                    v.order_ratio.as_entire_binding(),
-                )),
-            )
-        });
-        commands.entity(entity).insert(IlluminationBindGroups {
-            voxelize,
+        let scatter = w
+            .scatter
+            .into_iter()
+            .map(|((iterations, stencil), slots)| {
+                scatter_batch(
+                    &bind, &pipelines, pool, iterations, stencil, &device, &slots,
+                )
+            })
+            .collect();
+        let (n, m, _) = id.shape;
+        batches.push(PoolBatches {
+            n,
+            m,
             shade,
             gather,
             scatter,
-            closure,
         });
+    }
+    commands.insert_resource(IlluminationBatches(batches));
+}
+
+/// The bind groups and work list of `slots`' scattering, `iterations` of `stencil`, in `pool`.
+fn scatter_batch(
+    bind: &impl Fn(&ComputeStage, &[BindGroupEntry]) -> BindGroup,
+    pipelines: &IlluminationPipelines,
+    pool: &VolumePool,
+    iterations: u32,
+    stencil: ScatterStencil,
+    device: &RenderDevice,
+    slots: &[u32],
+) -> ScatterBatch {
+    let work = WorkList::new(device, slots);
+    let sweep = |k: u32| {
+        bind(
+            &pipelines.sweep,
+            &BindGroupEntries::sequential((
+                pool.slots.as_entire_binding(),
+                BufferBinding {
+                    buffer: &pipelines.sweep_directions,
+                    offset: 0,
+                    size: Some(SweepDirection::min_size()),
+                },
+                pool.densities.as_entire_binding(),
+                order(pool, k).as_entire_binding(),
+                order(pool, k + 1).as_entire_binding(),
+                pool.multiple.as_entire_binding(),
+                work.binding(),
+            )),
+        )
+    };
+    let groups = [sweep(0), sweep(1), sweep(2)];
+    let closure = bind(
+        &pipelines.order_ratio,
+        &BindGroupEntries::sequential((
+            pool.slots.as_entire_binding(),
+            pool.densities.as_entire_binding(),
+            order(pool, iterations).as_entire_binding(),
+            order(pool, iterations - 1).as_entire_binding(),
+            pool.multiple.as_entire_binding(),
+            pool.order_ratios.as_entire_binding(),
+            work.binding(),
+        )),
+    );
+    ScatterBatch {
+        iterations,
+        sweep: stencil == ScatterStencil::DiscreteOrdinates,
+        groups,
+        closure,
+        work,
     }
 }
 
 /// Records every planned illumination stage of every cloud.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn illuminate_clouds(
     mut ctx: RenderContext,
     mut clouds: Query<(
@@ -177,6 +322,8 @@ pub(crate) fn illuminate_clouds(
         &mut CloudIllumination,
         Option<&IlluminationBindGroups>,
     )>,
+    batches: Option<Res<IlluminationBatches>>,
+    pools: Res<VolumePools>,
     particles: Res<RenderAssets<GpuParticles>>,
     pipelines: Option<Res<IlluminationPipelines>>,
     pipeline_cache: Res<PipelineCache>,
@@ -193,9 +340,10 @@ pub(crate) fn illuminate_clouds(
     } else {
         &pipelines.shade
     };
-    let (Some(ready), Some(shade)) = (
+    let (Some(ready), Some(shade), Some(batches)) = (
         pipelines.ready(&pipeline_cache),
         shade_stage.get(&pipeline_cache),
+        batches,
     ) else {
         // Not compiled yet: forget the plan so that the next frame does all of it.
         clouds
@@ -204,7 +352,7 @@ pub(crate) fn illuminate_clouds(
         return;
     };
     let recorder = ctx.diagnostic_recorder();
-    let clouds: Vec<_> = clouds
+    let mut clouds: Vec<_> = clouds
         .iter_mut()
         .filter(|(_, _, s, _)| !s.plan.is_empty())
         .filter_map(|(cloud, v, s, groups)| Some((particles.get(cloud.particles)?, v, s, groups?)))
@@ -219,8 +367,10 @@ pub(crate) fn illuminate_clouds(
         .collect();
     if !voxelizing.is_empty() {
         for (_, v, _) in &voxelizing {
-            ctx.command_encoder().clear_buffer(&v.fine_density, 0, None);
-            ctx.command_encoder().clear_buffer(&v.kernel_sums, 0, None);
+            let fine = pools.pool(&v.slot).fine_density(v.slot.index);
+            let encoder = ctx.command_encoder();
+            encoder.clear_buffer(&fine.buffer, fine.offset, Some(fine.size));
+            encoder.clear_buffer(&v.kernel_sums, 0, None);
         }
         record_stage(
             &mut ctx,
@@ -232,19 +382,15 @@ pub(crate) fn illuminate_clouds(
                     pass.set_pipeline(pipeline);
                     for (gpu, v, group) in &voxelizing {
                         let rows = v.fine_params.rows;
-                        pass.set_bind_group(0, *group, &[0]);
-                        pass.dispatch_workgroups(
-                            gpu.count.div_ceil(workgroups::LINEAR).max(1),
-                            rows,
-                            rows,
-                        );
+                        pass.set_bind_group(0, group, &[0]);
+                        pass.dispatch(gpu.count.div_ceil(workgroups::LINEAR).max(1), rows, rows);
                     }
                 }
                 pass.set_pipeline(ready.upsample);
                 for (_, v, group) in &voxelizing {
                     for coarse in (1..v.levels_in_use).rev() {
-                        pass.set_bind_group(0, *group, &[coarse as u32 * DYNAMIC_UNIFORM_STRIDE]);
-                        dispatch_volume(pass, v.level_sizes[coarse - 1]);
+                        pass.set_bind_group(0, group, &[coarse as u32 * DYNAMIC_UNIFORM_STRIDE]);
+                        workgroups::dispatch_volume(pass, v.level_sizes[coarse - 1]);
                     }
                 }
                 voxelizing.len() as u32
@@ -254,7 +400,8 @@ pub(crate) fn illuminate_clouds(
 
     // Shade (§2): one column per invocation, marching slice by slice away from the light (or, with
     // `ShadingMethod::BruteForce`, one voxel per invocation marching all the way to the light).
-    if clouds.iter().any(|(_, _, _, g)| !g.shade.is_empty()) {
+    // Every (cloud, light) of a pool in one dispatch.
+    if batches.0.iter().any(|b| b.shade.is_some()) {
         record_stage(
             &mut ctx,
             recorder.as_deref(),
@@ -263,16 +410,17 @@ pub(crate) fn illuminate_clouds(
             |pass| {
                 pass.set_pipeline(shade);
                 let mut runs = 0;
-                for (_, v, _, g) in &clouds {
-                    for (_, group) in &g.shade {
-                        pass.set_bind_group(0, group, &[]);
+                for b in &batches.0 {
+                    let Some(batch) = &b.shade else { continue };
+                    for (offset, items) in batch.work.chunks() {
+                        pass.set_bind_group(0, &batch.group, &[offset]);
                         if brute_force {
-                            dispatch_volume(pass, v.params.light_n);
+                            dispatch_linear(pass, b.m.pow(3), items);
                         } else {
-                            dispatch_columns(pass, v.params.light_n);
+                            dispatch_columns(pass, b.m, items);
                         }
-                        runs += 1;
                     }
+                    runs += batch.work.items;
                 }
                 runs
             },
@@ -280,8 +428,8 @@ pub(crate) fn illuminate_clouds(
     }
 
     // Gather (§1, §3): the scattering grid's density, and every light's single scattering into
-    // its source S_0.
-    if clouds.iter().any(|(_, _, _, g)| g.gather.is_some()) {
+    // its source S_0. Every cloud of a pool in one dispatch.
+    if batches.0.iter().any(|b| b.gather.is_some()) {
         record_stage(
             &mut ctx,
             recorder.as_deref(),
@@ -290,12 +438,13 @@ pub(crate) fn illuminate_clouds(
             |pass| {
                 pass.set_pipeline(ready.gather);
                 let mut runs = 0;
-                for (_, v, _, g) in &clouds {
-                    if let Some(group) = &g.gather {
-                        pass.set_bind_group(0, group, &[]);
-                        dispatch_volume(pass, v.params.n);
-                        runs += 1;
+                for b in &batches.0 {
+                    let Some(batch) = &b.gather else { continue };
+                    for (offset, items) in batch.work.chunks() {
+                        pass.set_bind_group(0, &batch.group, &[offset]);
+                        dispatch_linear(pass, b.n.pow(3), items);
                     }
+                    runs += batch.work.items;
                 }
                 runs
             },
@@ -305,10 +454,16 @@ pub(crate) fn illuminate_clouds(
     // Multiple scattering (§4): the iterations, then the series' closure.
     for (_, v, s, _) in &clouds {
         if s.plan.scatter.is_some() || s.plan.unlit {
-            ctx.command_encoder().clear_buffer(&v.multiple, 0, None);
+            let pool = pools.pool(&v.slot);
+            let multiple = pool.volume(&pool.multiple, v.slot.index);
+            ctx.command_encoder().clear_buffer(
+                &multiple.buffer,
+                multiple.offset,
+                Some(multiple.size),
+            );
         }
     }
-    if clouds.iter().any(|(_, _, s, _)| s.plan.scatter.is_some()) {
+    if batches.0.iter().any(|b| !b.scatter.is_empty()) {
         record_stage(
             &mut ctx,
             recorder.as_deref(),
@@ -316,61 +471,58 @@ pub(crate) fn illuminate_clouds(
             CloudPass::Scatter,
             |pass| {
                 let mut runs = 0;
-                for (_, v, s, g) in &clouds {
-                    let Some(iterations) = s.plan.scatter else {
-                        continue;
-                    };
-                    let sweep = s.plan.stencil == ScatterStencil::DiscreteOrdinates;
-                    scatter_cloud(pass, &ready, g, v.params.n, iterations, sweep);
-                    runs += iterations;
+                for b in &batches.0 {
+                    for batch in &b.scatter {
+                        scatter_batch_passes(pass, &ready, batch, b.n);
+                        runs += batch.iterations * batch.work.items;
+                    }
                 }
                 runs
             },
         );
     }
 
-    for (_, _, mut s, _) in clouds {
+    for (_, _, s, _) in &mut clouds {
         s.ready |= s.plan.scatter.is_some() || s.plan.unlit;
         s.plan = default();
     }
 }
 
-/// Records one cloud's scattering iterations (the discrete-ordinates `sweep`, else the paper's
-/// stencil) on its `n³` grid, and the closure (§4).
-fn scatter_cloud(
-    pass: &mut ComputePass,
+/// Records a batch's scattering iterations (the discrete-ordinates `sweep`, else the paper's
+/// stencil) on its clouds' `n³` grids, and the closure (§4).
+fn scatter_batch_passes(
+    pass: &mut StagePass,
     ready: &ReadyPipelines,
-    groups: &IlluminationBindGroups,
+    batch: &ScatterBatch,
     n: u32,
-    iterations: u32,
-    sweep: bool,
 ) {
-    let (Some(scatter), Some(closure)) = (&groups.scatter, &groups.closure) else {
-        return;
-    };
-    pass.set_pipeline(if sweep {
+    pass.set_pipeline(if batch.sweep {
         ready.sweep
     } else {
         ready.scatter_paper
     });
-    for k in 0..iterations {
-        let group = &scatter[scatter_group(k)];
-        if sweep {
-            // One dispatch per direction pair: the lines of one direction partition the grid.
-            for (i, o) in sweep_directions().enumerate() {
-                pass.set_bind_group(0, group, &[i as u32 * DYNAMIC_UNIFORM_STRIDE]);
-                dispatch_linear(pass, sweep_lines(o, n));
+    for (work, items) in batch.work.chunks() {
+        for k in 0..batch.iterations {
+            let group = &batch.groups[scatter_group(k)];
+            if batch.sweep {
+                // One dispatch per direction pair: the lines of one direction partition the grid.
+                for (i, o) in sweep_directions().enumerate() {
+                    pass.set_bind_group(0, group, &[i as u32 * DYNAMIC_UNIFORM_STRIDE, work]);
+                    dispatch_linear(pass, sweep_lines(o, n), items);
+                }
+            } else {
+                pass.set_bind_group(0, group, &[0, work]);
+                dispatch_linear(pass, n.pow(3), items);
             }
-        } else {
-            pass.set_bind_group(0, group, &[0]);
-            dispatch_volume(pass, n);
         }
     }
-    pass.set_bind_group(0, closure, &[]);
-    pass.set_pipeline(ready.order_ratio);
-    pass.dispatch_workgroups(1, 1, 1);
-    pass.set_pipeline(ready.extrapolate);
-    dispatch_linear(pass, n.pow(3));
+    for (work, items) in batch.work.chunks() {
+        pass.set_bind_group(0, &batch.closure, &[work]);
+        pass.set_pipeline(ready.order_ratio);
+        pass.dispatch(1, 1, items);
+        pass.set_pipeline(ready.extrapolate);
+        dispatch_linear(pass, n.pow(3), items);
+    }
 }
 
 #[cfg(test)]

@@ -5,7 +5,7 @@ use bevy::render::render_resource::ShaderType;
 
 use super::{
     cloud_target::CloudTargetParams, draw::DrawParams, particles::GpuParticle,
-    pipelines::SweepDirection, sort::SortParams, view_volume::ViewVolumeParams,
+    pipelines::SweepDirection, pools::Slot, sort::SortParams, view_volume::ViewVolumeParams,
     volumes::CloudParams, volumes::DensityLevels, volumes::LightParams,
 };
 
@@ -15,8 +15,9 @@ const WGSL: [&str; 4] = [
     include_str!("sort.wgsl"),
     include_str!("scatter.wgsl"),
 ];
-const RUST: [&str; 7] = [
+const RUST: [&str; 8] = [
     include_str!("volumes.rs"),
+    include_str!("pools.rs"),
     include_str!("draw.rs"),
     include_str!("sort.rs"),
     include_str!("view_volume.rs"),
@@ -53,8 +54,16 @@ fn field_names(block: &str, prefix: &str) -> Vec<String> {
 
 /// Size (bytes) and member names of a WGSL struct, as naga lays it out.
 fn wgsl_layout(name: &str) -> (u32, Vec<String>) {
-    let source = block(&WGSL, "struct ", name);
-    let module = naga::front::wgsl::parse_str(source).expect("the struct parses alone");
+    // A struct parses alone, or after `CloudParams`, which `Slot` holds.
+    let source = match name {
+        "Slot" => format!(
+            "{}\n{}",
+            block(&WGSL, "struct ", "CloudParams"),
+            block(&WGSL, "struct ", name)
+        ),
+        _ => block(&WGSL, "struct ", name).to_owned(),
+    };
+    let module = naga::front::wgsl::parse_str(&source).expect("the struct parses");
     let (_, ty) = module
         .types
         .iter()
@@ -78,6 +87,7 @@ fn check(wgsl: &str, rust: &str, rust_size: u64) {
 fn rust_mirrors_have_the_wgsl_layout() {
     check("CloudParams", "CloudParams", CloudParams::min_size().get());
     check("LightParams", "LightParams", LightParams::min_size().get());
+    check("Slot", "Slot", Slot::min_size().get());
     check(
         "DensityLevels",
         "DensityLevels",

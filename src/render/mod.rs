@@ -5,9 +5,10 @@
 //! | `extract.rs` | clouds and lights into the render world |
 //! | `particles.rs` | the `Particles` asset on the GPU |
 //! | `volumes.rs` | per-cloud GPU volumes, sized and filled with uniforms in a prepare system |
+//! | `pools.rs` | the volumes of every cloud of one shape packed into shared buffers, one slot per cloud |
 //! | `plan.rs` | which stages rerun this frame: cache keys per stage, a pure planning function |
 //! | `pipelines.rs` | compute pipelines of the illumination passes |
-//! | `illumination.rs` | voxelize, shade, gather, scatter, colour (the `RenderGraph` schedule) |
+//! | `illumination.rs` | voxelize, then shade, gather, scatter batched per pool (the `RenderGraph` schedule) |
 //! | `sort.rs` | per-view GPU radix sort of the particles (`Compositing::Sorted`) |
 //! | `view_volume.rs` | per-view optical depth from the camera (`Compositing::ViewTransmittance`) |
 //! | `draw.rs` | the billboard draw in `Transparent3d` |
@@ -25,6 +26,7 @@ pub mod illumination;
 pub mod particles;
 pub mod pipelines;
 pub mod plan;
+pub mod pools;
 pub mod shaders;
 pub mod sort;
 pub mod view_volume;
@@ -132,7 +134,7 @@ pub(crate) fn build(app: &mut App) {
 }
 
 /// Why an adapter cannot run the plugin: the passes need compute shaders, storage buffers in the
-/// vertex stage and six storage buffers per stage (the sort).
+/// vertex stage and seven storage buffers per stage (the scattering's closure).
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum Unsupported {
     /// No compute shaders (WebGL2, for example).
@@ -142,7 +144,7 @@ pub enum Unsupported {
     #[error("the adapter cannot read storage buffers in vertex shaders")]
     VertexStorage,
     /// Too few storage buffers per shader stage.
-    #[error("the adapter allows {0} storage buffers per shader stage; 6 are needed")]
+    #[error("the adapter allows {0} storage buffers per shader stage; 7 are needed")]
     StorageBuffers(u32),
 }
 
@@ -157,7 +159,7 @@ fn check_adapter(render_app: &SubApp) -> Result<(), Unsupported> {
     if !flags.contains(DownlevelFlags::VERTEX_STORAGE) {
         return Err(Unsupported::VertexStorage);
     }
-    if limits.max_storage_buffers_per_shader_stage < 6 {
+    if limits.max_storage_buffers_per_shader_stage < 7 {
         return Err(Unsupported::StorageBuffers(
             limits.max_storage_buffers_per_shader_stage,
         ));
@@ -177,6 +179,7 @@ pub(crate) fn finish(app: &mut App) {
     }
     render_app
         .init_resource::<extract::ExtractedCloudLights>()
+        .init_resource::<pools::VolumePools>()
         .init_resource::<SpecializedRenderPipelines<draw::BillboardPipeline>>()
         .init_resource::<draw::BillboardEmitPipelines>()
         .add_render_command::<Transparent3d, draw::DrawCloudBillboards>()

@@ -159,6 +159,8 @@ pub(crate) fn init_illumination_pipelines(
     let uniform = || uniform_buffer_sized(false, None);
     let read = || storage_buffer_read_only_sized(false, None);
     let write = || storage_buffer_sized(false, None);
+    // The batched passes' work list, a chunk of it per dispatch (illumination.rs, `WorkList`).
+    let work = || storage_buffer_read_only_sized(true, None);
     let voxelize = BindGroupLayoutDescriptor::new(
         "particle_clouds_voxelize_layout",
         &BindGroupLayoutEntries::sequential(
@@ -176,14 +178,14 @@ pub(crate) fn init_illumination_pipelines(
         "particle_clouds_shade_layout",
         &BindGroupLayoutEntries::sequential(
             ShaderStages::COMPUTE,
-            (uniform(), uniform(), read(), write()),
+            (read(), read(), read(), write(), work()),
         ),
     );
     let gather = BindGroupLayoutDescriptor::new(
         "particle_clouds_gather_layout",
         &BindGroupLayoutEntries::sequential(
             ShaderStages::COMPUTE,
-            (uniform(), read(), read(), read(), write(), write()),
+            (read(), read(), read(), write(), write(), work()),
         ),
     );
     let scatter = BindGroupLayoutDescriptor::new(
@@ -191,12 +193,13 @@ pub(crate) fn init_illumination_pipelines(
         &BindGroupLayoutEntries::sequential(
             ShaderStages::COMPUTE,
             (
-                uniform(),
+                read(),
                 uniform_buffer::<SweepDirection>(true),
                 read(),
                 read(),
                 write(),
                 write(),
+                work(),
             ),
         ),
     );
@@ -204,7 +207,7 @@ pub(crate) fn init_illumination_pipelines(
         "particle_clouds_closure_layout",
         &BindGroupLayoutEntries::sequential(
             ShaderStages::COMPUTE,
-            (uniform(), read(), read(), read(), write(), write()),
+            (read(), read(), read(), read(), write(), write(), work()),
         ),
     );
     let cache = pipeline_cache.as_ref();

@@ -1,6 +1,7 @@
 // Multiple scattering: one iteration n -> n + 1 (docs/illumination.md §4). Reads S_n, writes
 // S_{n+1} and adds it to the multiple-scattering volume. Two stencils, one entry point each.
-#import bevy_particle_clouds::types::{CloudParams, voxel_index, flat_invocation}
+// Every cloud of a volume pool in one dispatch: z workgroup i scatters slot `work[i]`.
+#import bevy_particle_clouds::types::{CloudParams, Slot, voxel_index, flat_invocation}
 
 // One direction pair (o, -o) of the discrete-ordinates sweep, o's first non-zero component
 // positive; `first` is 1 for the first of an iteration's 13 dispatches (it overwrites S_{n+1}).
@@ -9,12 +10,31 @@ struct SweepDirection {
     first: u32,
 }
 
-@group(0) @binding(0) var<uniform> cloud: CloudParams;
+@group(0) @binding(0) var<storage, read> slots: array<Slot>;
 @group(0) @binding(1) var<uniform> direction: SweepDirection;
-@group(0) @binding(2) var<storage, read> density: array<f32>;
+@group(0) @binding(2) var<storage, read> densities: array<f32>;
 @group(0) @binding(3) var<storage, read> s_in: array<vec4<f32>>;
 @group(0) @binding(4) var<storage, read_write> s_out: array<vec4<f32>>;
 @group(0) @binding(5) var<storage, read_write> multiple: array<vec4<f32>>;
+// A slot per z workgroup.
+@group(0) @binding(6) var<storage, read> work: array<u32>;
+
+var<private> slot: Slot;
+var<private> cloud: CloudParams;
+
+fn begin(item: u32) {
+    slot = slots[work[item]];
+    cloud = slot.cloud;
+}
+
+// Voxel i of this slot's density and volumes.
+fn density(i: u32) -> f32 {
+    return densities[slot.density + i];
+}
+
+fn order_in(i: u32) -> vec3<f32> {
+    return s_in[slot.volume + i].xyz;
+}
 
 // Below this optical depth the segment weights use their series: 1 - e and (1 - e)/tau - e
 // cancel in f32.
@@ -48,7 +68,8 @@ fn transport(upwind: vec3<f32>, rho: f32, s: vec3<f32>, rho_up: f32, s_up: vec3<
     return (1.0 - w.x) * upwind + cloud.albedo * (s * w.x + (s_up - s) * w.y);
 }
 
-fn deposit(i: u32, radiance: vec3<f32>, overwrite: bool) {
+fn deposit(voxel: u32, radiance: vec3<f32>, overwrite: bool) {
+    let i = slot.volume + voxel;
     let share = vec4(radiance / 26.0, 0.0);
     if overwrite {
         s_out[i] = share;
@@ -63,6 +84,7 @@ fn deposit(i: u32, radiance: vec3<f32>, overwrite: bool) {
 // written by one invocation of this dispatch.
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    begin(id.z);
     let n = i32(cloud.n);
     let o = direction.o;
     let first_axis = select(select(2, 1, o.y != 0), 0, o.x != 0);
@@ -102,8 +124,8 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
     var s_up = vec3(0.0);
     for (var t = t1 - 1; t >= t0; t--) {
         let i = line_voxel(start, t, flip);
-        let rho = density[i];
-        let s = s_in[i].xyz;
+        let rho = density(i);
+        let s = order_in(i);
         radiance = transport(radiance, rho, s, rho_up, s_up, half_step);
         deposit(i, radiance, direction.first != 0u);
         rho_up = rho;
@@ -115,8 +137,8 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
     s_up = vec3(0.0);
     for (var t = t0; t < t1; t++) {
         let i = line_voxel(start, t, flip);
-        let rho = density[i];
-        let s = s_in[i].xyz;
+        let rho = density(i);
+        let s = order_in(i);
         radiance = transport(radiance, rho, s, rho_up, s_up, half_step);
         deposit(i, radiance, false);
         rho_up = rho;
@@ -125,12 +147,15 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
 }
 
 // The paper's Algorithm 2: every neighbour inside the grid weighted by the voxel's own opacity.
-@compute @workgroup_size(#{VOXEL_WORKGROUP}, #{VOXEL_WORKGROUP}, #{VOXEL_WORKGROUP})
-fn scatter_paper(@builtin(global_invocation_id) id: vec3<u32>) {
+@compute @workgroup_size(#{LINEAR_WORKGROUP})
+fn scatter_paper(@builtin(global_invocation_id) invocation: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    begin(invocation.z);
     let n = cloud.n;
-    if any(id >= vec3(n)) {
+    let flat = flat_invocation(invocation, groups);
+    if flat >= n * n * n {
         return;
     }
+    let id = vec3(flat % n, (flat / n) % n, flat / (n * n));
     var sum = vec3(0.0);
     for (var z = -1; z <= 1; z++) {
         for (var y = -1; y <= 1; y++) {
@@ -139,13 +164,12 @@ fn scatter_paper(@builtin(global_invocation_id) id: vec3<u32>) {
                 if all(vec3(x, y, z) == vec3(0)) || any(v < vec3(0)) || any(v >= vec3(i32(n))) {
                     continue;
                 }
-                sum += s_in[voxel_index(vec3<u32>(v), n)].xyz;
+                sum += order_in(voxel_index(vec3<u32>(v), n));
             }
         }
     }
-    let i = voxel_index(id, n);
-    let opacity = 1.0 - exp(-cloud.k_local * density[i] * cloud.h);
+    let opacity = 1.0 - exp(-cloud.k_local * density(flat) * cloud.h);
     let s = sum * (cloud.albedo / 26.0 * opacity);
-    s_out[i] = vec4(s, 0.0);
-    multiple[i] += vec4(s, 0.0);
+    s_out[slot.volume + flat] = vec4(s, 0.0);
+    multiple[slot.volume + flat] += vec4(s, 0.0);
 }

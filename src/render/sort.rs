@@ -10,8 +10,8 @@ use bevy::{
         render_resource::{
             BindGroup, BindGroupEntries, BindGroupLayout, BindGroupLayoutDescriptor,
             BindGroupLayoutEntries, Buffer, BufferDescriptor, BufferUsages,
-            CachedComputePipelineId, ComputePass, ComputePipeline, ComputePipelineDescriptor,
-            PipelineCache, ShaderStages, ShaderType,
+            CachedComputePipelineId, ComputePipeline, ComputePipelineDescriptor, PipelineCache,
+            ShaderStages, ShaderType,
             binding_types::{
                 storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer_sized,
             },
@@ -23,7 +23,7 @@ use bevy::{
 
 use super::{
     extract::ExtractedCloud,
-    gpu::{record_stage, storage, uniform_bytes},
+    gpu::{StagePass, record_stage, storage, uniform_bytes},
     key_of,
     particles::GpuParticles,
     shaders::CloudShaders,
@@ -231,7 +231,7 @@ impl SortBuffers {
 
 /// Records a sort of `count` elements: optionally the depth keys, then four radix passes.
 pub fn record_sort(
-    pass: &mut ComputePass,
+    pass: &mut StagePass,
     pipelines: &ReadySortPipelines,
     groups: &[BindGroup; 4],
     count: u32,
@@ -240,17 +240,17 @@ pub fn record_sort(
     if depth_keys {
         pass.set_pipeline(pipelines.depth_keys);
         pass.set_bind_group(0, &groups[0], &[]);
-        dispatch_linear(pass, count);
+        dispatch_linear(pass, count, 1);
     }
     let tiles = count.div_ceil(SORT_TILE);
     for group in groups {
         pass.set_bind_group(0, group, &[]);
         pass.set_pipeline(pipelines.count_digits);
-        dispatch_linear(pass, tiles);
+        dispatch_linear(pass, tiles, 1);
         pass.set_pipeline(pipelines.scan_digits);
-        pass.dispatch_workgroups(1, 1, 1);
+        pass.dispatch(1, 1, 1);
         pass.set_pipeline(pipelines.scatter_digits);
-        dispatch_linear(pass, tiles);
+        dispatch_linear(pass, tiles, 1);
     }
 }
 

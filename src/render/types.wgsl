@@ -55,6 +55,28 @@ struct LightParams {
     offset: u32,
 }
 
+// One cloud's place in the volume pool of its shape (src/render/pools.rs; docs/illumination.md
+// §9): its uniforms, and the first element of each of its volumes in the pool's buffers. The
+// batched passes find it through their work list, one entry per z workgroup. Rust mirror: `Slot`.
+struct Slot {
+    // The scattering grid's uniform.
+    cloud: CloudParams,
+    // The fine grid's uniform (shade).
+    fine: CloudParams,
+    // First f32 of the fine density (its finest level) in `densities`.
+    fine_density: u32,
+    // First f32 of the scattering grid's density in `densities`.
+    density: u32,
+    // First f32 of the light volumes in `optical_depth`.
+    optical_depth: u32,
+    // First vec4 of the volume in `source`, `orders` and `multiple`.
+    volume: u32,
+    // First of the cloud's lights in the pool's light array.
+    lights: u32,
+    // Its element of the closure's `order_ratios`.
+    ratio: u32,
+}
+
 // The density levels of a fine grid (docs/illumination.md §1). Rust mirror: `DensityLevels` in
 // src/render/volumes.rs.
 struct DensityLevels {

@@ -26,6 +26,7 @@ use super::{
     gpu::{record_stage, storage, uniform_bytes},
     key_of,
     plan::CloudIllumination,
+    pools::VolumePools,
     shaders::CloudShaders,
     views_by_cloud,
     volumes::CloudVolumes,
@@ -280,12 +281,14 @@ fn new_volume(device: &RenderDevice, n: u32) -> ViewVolume {
 pub(crate) fn prepare_view_volume_bind_groups(
     mut clouds: Query<(&CloudVolumes, &mut CloudViewVolumes)>,
     pipeline: Option<Res<ViewVolumePipeline>>,
+    pools: Res<VolumePools>,
     pipeline_cache: Res<PipelineCache>,
     device: Res<RenderDevice>,
 ) {
     let Some(pipeline) = pipeline else { return };
     let layout = pipeline_cache.get_bind_group_layout(&pipeline.layout);
     for (volumes, mut all) in &mut clouds {
+        let fine_density = pools.pool(&volumes.slot).fine_density(volumes.slot.index);
         for volume in all.0.values_mut().filter(|v| v.pending) {
             volume.group = Some(device.create_bind_group(
                 "particle_clouds_view_volume_bind_group",
@@ -293,7 +296,7 @@ pub(crate) fn prepare_view_volume_bind_groups(
                 &BindGroupEntries::sequential((
                     volumes.fine_params_buffer.as_entire_binding(),
                     volume.params.as_entire_binding(),
-                    volumes.fine_density.as_entire_binding(),
+                    fine_density.binding(),
                     volume.optical_depth.as_entire_binding(),
                 )),
             ));
@@ -338,7 +341,7 @@ pub(crate) fn march_view_volumes(
                         continue;
                     };
                     pass.set_bind_group(0, &group, &[]);
-                    workgroups::dispatch_columns(pass, volume.n);
+                    workgroups::dispatch_columns(pass, volume.n, 1);
                     volume.pending = false;
                     volume.ready = true;
                     runs += 1;

@@ -2,9 +2,11 @@
 // grid along n x n view rays and stored at n view depths (docs/illumination.md §5). One
 // invocation per ray; tau_k = tau_{k-1} + K (rho_{k-1} + rho_k) / 2 * dz sqrt(1 + u^2 + v^2).
 // The billboards read it to see each piece of a particle through every particle in front of it.
-#import bevy_particle_clouds::types::{ViewVolumeParams, voxel_index}
+#import bevy_particle_clouds::types::{CloudParams, ViewVolumeParams, voxel_index}
 #import bevy_particle_clouds::density::density_at
 
+// The cloud's fine grid (its density, this cloud's only, at binding 2).
+@group(0) @binding(0) var<uniform> cloud: CloudParams;
 @group(0) @binding(1) var<uniform> volume: ViewVolumeParams;
 @group(0) @binding(3) var<storage, read_write> view_optical_depth: array<f32>;
 
@@ -23,7 +25,7 @@ fn march(@builtin(global_invocation_id) id: vec3<u32>) {
     for (var k = 0u; k < n; k++) {
         let z = volume.depth.x + dz * f32(k);
         let local = (volume.local_from_view * vec4(uv * z, -z, 1.0)).xyz;
-        let here = density_at(local);
+        let here = density_at(cloud, 0u, local);
         if k > 0u {
             tau += (before + here) * step;
         }

@@ -19,6 +19,7 @@ use super::{
     gpu::{dynamic_uniform, storage, storage_bytes, uniform, uniform_bytes},
     particles::{CloudBounds, GpuParticles},
     plan::{CloudIllumination, StageKeys, plan},
+    pools::{PoolSlot, Slot, VolumePool, VolumePools, VolumeShape},
 };
 use crate::math::{
     LEVEL_KERNEL_NARROWING, MAX_DENSITY_LEVELS, MAX_RADIUS_IN_LEVEL_VOXELS, density_level,
@@ -73,6 +74,14 @@ pub struct DensityLevels {
 }
 
 impl DensityLevels {
+    /// Elements of the buffer that holds every density level of a fine grid of `m` voxels per side.
+    pub fn elements(m: u32) -> u64 {
+        density_level_sizes(m)
+            .iter()
+            .map(|&n| (n as u64).pow(3))
+            .sum()
+    }
+
     /// The levels of a fine grid of `m` voxels per side, one entry per value of `upsample_from`
     /// (`0..count`); and the elements of the density buffer that holds them all.
     fn entries(m: u32) -> (Vec<DensityLevels>, u64) {
@@ -149,26 +158,19 @@ impl LightParams {
     }
 }
 
-/// One light of a cloud: its uniform (for the shade pass).
-pub struct LightVolume {
-    /// Its `LightParams` uniform.
-    pub params: Buffer,
-}
-
-/// The GPU volumes of one cloud (render world component).
+/// The GPU volumes of one cloud (render world component): its uniforms, and its slot in the
+/// pool of its shape, which holds its density, light and scattering volumes
+/// ([`pools`](super::pools)).
 #[derive(Component)]
 pub struct CloudVolumes {
     /// The current uniform values.
     pub params: CloudParams,
-    /// The `CloudParams` uniform.
+    /// The `CloudParams` uniform (the billboards).
     pub params_buffer: Buffer,
     /// The fine grid's uniform: `CloudParams` with `m` voxels per side of size `h / f`.
     pub fine_params: CloudParams,
-    /// Its buffer (voxelize and shade).
+    /// Its buffer (voxelize and the view volume).
     pub fine_params_buffer: Buffer,
-    /// `m³` f32 fine density (written as atomic u32 bits by voxelize), what the lights shine
-    /// through, followed by its coarser density levels.
-    pub fine_density: Buffer,
     /// Voxels per side of each density level, the fine grid's `m` first.
     pub level_sizes: Vec<u32>,
     /// The levels that hold particles (the fine grid and the coarser ones down to the largest
@@ -177,25 +179,12 @@ pub struct CloudVolumes {
     /// The `DensityLevels` uniform, one entry per `upsample_from`, `DYNAMIC_UNIFORM_STRIDE`
     /// bytes apart.
     pub density_levels: Buffer,
-    /// `n³` f32 density of the scattering grid (the mean of each voxel's children, by gather).
-    pub density: Buffer,
     /// One f32 per particle: its kernel's sum over the fine voxel centres in its support (voxelize).
     pub kernel_sums: Buffer,
-    /// `n³` vec4 multiple-scattering source `S_0`.
-    pub source: Buffer,
-    /// `n³` vec4 ping-pong scattering orders.
-    pub orders: [Buffer; 2],
-    /// `n³` vec4 multiple scattering `S_m` (all orders past the first), what the billboards add
-    /// to the single scattering.
-    pub multiple: Buffer,
-    /// One vec4: the closure's per-channel order ratio `lambda`.
-    pub order_ratio: Buffer,
-    /// Every light's `LightParams`, a storage array (gather and the billboards).
+    /// Every light's `LightParams`, a storage array (the billboards).
     pub light_array: Buffer,
-    /// Every light's `m³` f32 optical depth, light `l` at `l m³`.
-    pub optical_depth: Buffer,
-    /// One entry per light, in the order of `ExtractedCloudLights`.
-    pub lights: Vec<LightVolume>,
+    /// Its slot in the pool of its shape.
+    pub slot: PoolSlot,
 }
 
 /// The storage array of `count` lights' `LightParams` (at least one element: a binding of a
@@ -209,14 +198,24 @@ fn light_array(device: &RenderDevice, count: u32) -> Buffer {
 }
 
 impl CloudVolumes {
-    fn new(device: &RenderDevice, n: u32, m: u32, particle_count: u32) -> Self {
-        let voxels = (n as u64).pow(3);
-        let (levels, level_elements) = DensityLevels::entries(m);
-        Self {
+    /// Volumes for a cloud of `shape` with `particle_count` particles, in a slot of `pools`;
+    /// `None` when one such cloud exceeds the adapter's storage binding limit.
+    fn new(
+        device: &RenderDevice,
+        queue: &RenderQueue,
+        pools: &mut VolumePools,
+        shape: VolumeShape,
+        particle_count: u32,
+    ) -> Option<Self> {
+        let max_binding = device.limits().max_storage_buffer_binding_size;
+        let slot = pools.allocate(device, queue, shape, max_binding)?;
+        let (levels, _) = DensityLevels::entries(shape.m);
+        Some(Self {
             params: CloudParams {
-                n,
+                n: shape.n,
                 particle_count,
-                light_n: m,
+                light_n: shape.m,
+                light_count: shape.lights,
                 ..default()
             },
             params_buffer: uniform(
@@ -230,33 +229,30 @@ impl CloudVolumes {
                 "particle_clouds_fine_params",
                 CloudParams::min_size().get(),
             ),
-            fine_density: storage(device, "particle_clouds_fine_density", level_elements * 4),
-            level_sizes: density_level_sizes(m),
+            level_sizes: density_level_sizes(shape.m),
             levels_in_use: 1,
             density_levels: dynamic_uniform(device, "particle_clouds_density_levels", levels),
-            density: storage(device, "particle_clouds_density", voxels * 4),
             kernel_sums: storage(
                 device,
                 "particle_clouds_kernel_sums",
                 particle_count as u64 * 4,
             ),
-            source: storage(device, "particle_clouds_source", voxels * 16),
-            orders: [
-                storage(device, "particle_clouds_order_a", voxels * 16),
-                storage(device, "particle_clouds_order_b", voxels * 16),
-            ],
-            multiple: storage(device, "particle_clouds_multiple", voxels * 16),
-            order_ratio: storage(device, "particle_clouds_order_ratio", 16),
-            light_array: light_array(device, 0),
-            optical_depth: storage(device, "particle_clouds_optical_depth", 0),
-            lights: Vec::new(),
-        }
+            light_array: light_array(device, shape.lights),
+            slot,
+        })
     }
 
-    fn fits(&self, n: u32, m: u32, particle_count: u32) -> bool {
-        self.params.n == n
-            && self.params.light_n == m
-            && self.params.particle_count == particle_count
+    fn fits(&self, shape: VolumeShape, particle_count: u32) -> bool {
+        self.shape() == shape && self.params.particle_count == particle_count
+    }
+
+    /// The shape of its volumes (its pool's).
+    pub fn shape(&self) -> VolumeShape {
+        VolumeShape {
+            n: self.params.n,
+            m: self.params.light_n,
+            lights: self.params.light_count,
+        }
     }
 }
 
@@ -264,25 +260,22 @@ impl CloudVolumes {
 /// workgroup along x, where at most 65535 fit.
 pub const MAX_PARTICLES: u32 = 65535 * 64;
 
-/// Bytes of the largest buffer of one cloud (for the adapter-limit check): an RGBA volume of
-/// `n³`, or the optical depths of `lights` light volumes of `m³` (at least the fine density's `m³`).
-pub fn largest_binding(n: u32, m: u32, lights: usize) -> u64 {
-    ((n as u64).pow(3) * 16).max((m as u64).pow(3) * 4 * lights.max(1) as u64)
-}
-
 /// Decides each visible cloud's work for this frame and writes the uniforms it needs.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn prepare_cloud_volumes(
     mut commands: Commands,
     mut clouds: Query<PreparedCloud>,
     lights: Res<ExtractedCloudLights>,
     particles: Res<RenderAssets<GpuParticles>>,
     budget: Option<Res<CloudRelightBudget>>,
+    mut pools: ResMut<VolumePools>,
     device: Res<RenderDevice>,
     queue: Res<RenderQueue>,
 ) {
     let budget = budget.map_or(0, |b| b.0);
     let deferred = deferred_by_budget(&clouds, &lights, &particles, budget);
     let max_binding = device.limits().max_storage_buffer_binding_size;
+    pools.release_empty();
     for (entity, cloud, volumes, state) in &mut clouds {
         let Some(gpu) = particles.get(cloud.particles) else {
             continue;
@@ -295,20 +288,11 @@ pub(crate) fn prepare_cloud_volumes(
         };
         let held = volumes.as_deref().zip(state.as_deref());
         let cloud = &at_resolution(cloud, held_resolution(cloud, held, gpu, bounds, &lights));
-        let n = cloud.settings.volume_resolution;
-        let m = cloud.settings.light_resolution();
-        if largest_binding(n, m, lights.0.len()) > max_binding
-            || gpu.count as u64 * 32 > max_binding
-        {
-            warn_once!(
-                "particle cloud: `volume_resolution` {n} (light volumes {m}³ for {} lights) or {} \
-                 particles exceed this adapter's storage buffer limit of {max_binding} bytes; the \
-                 cloud is not drawn",
-                lights.0.len(),
-                gpu.count
-            );
-            continue;
-        }
+        let shape = VolumeShape {
+            n: cloud.settings.volume_resolution,
+            m: cloud.settings.light_resolution(),
+            lights: lights.0.len() as u32,
+        };
         if !cloud.visible || cloud.extinction <= 0.0 {
             continue; // cached volumes stay; no work for clouds nobody sees or that are transparent
         }
@@ -318,17 +302,36 @@ pub(crate) fn prepare_cloud_volumes(
                 state.plan = default();
                 state.waited += 1;
             }
-            (Some(mut v), Some(mut state)) if v.fits(n, m, gpu.count) => {
+            (Some(mut v), Some(mut state)) if v.fits(shape, gpu.count) => {
+                let pool = pools.pool(&v.slot);
                 plan_cloud(
-                    &mut v, &mut state, cloud, gpu, bounds, &lights, &device, &queue,
+                    &mut v, &mut state, cloud, gpu, bounds, &lights, pool, &queue,
                 );
                 state.waited = 0;
             }
             _ => {
-                let mut v = CloudVolumes::new(&device, n, m, gpu.count);
+                let new = (gpu.count as u64 * 32 <= max_binding)
+                    .then(|| CloudVolumes::new(&device, &queue, &mut pools, shape, gpu.count))
+                    .flatten();
+                let Some(mut v) = new else {
+                    warn_once!(
+                        "particle cloud: `volume_resolution` {} (light volumes {}³ for {} lights) \
+                         or {} particles exceed this adapter's storage buffer limit of \
+                         {max_binding} bytes; the cloud is not drawn",
+                        shape.n,
+                        shape.m,
+                        shape.lights,
+                        gpu.count
+                    );
+                    commands
+                        .entity(entity)
+                        .remove::<(CloudVolumes, CloudIllumination)>();
+                    continue;
+                };
                 let mut state = CloudIllumination::default();
+                let pool = pools.pool(&v.slot);
                 plan_cloud(
-                    &mut v, &mut state, cloud, gpu, bounds, &lights, &device, &queue,
+                    &mut v, &mut state, cloud, gpu, bounds, &lights, pool, &queue,
                 );
                 commands.entity(entity).insert((v, state));
             }
@@ -369,15 +372,16 @@ fn deferred_by_budget(
         };
         let held = volumes.zip(state);
         let cloud = at_resolution(cloud, held_resolution(cloud, held, gpu, bounds, lights));
-        let (n, m) = (
-            cloud.settings.volume_resolution,
-            cloud.settings.light_resolution(),
-        );
+        let shape = VolumeShape {
+            n: cloud.settings.volume_resolution,
+            m: cloud.settings.light_resolution(),
+            lights: lights.0.len() as u32,
+        };
         // A cloud whose level of detail changes (its volumes no longer fit) waits its turn like
         // any other; only one never illuminated cannot wait.
         match held {
             Some((v, s)) if s.ready => {
-                let pending = !v.fits(n, m, gpu.count)
+                let pending = !v.fits(shape, gpu.count)
                     || !plan(
                         &s.keys,
                         &frame_keys(&cloud, gpu, bounds, lights),
@@ -404,7 +408,7 @@ fn deferred_by_budget(
     pending.difference(&relit).copied().collect()
 }
 
-/// Sizes the light buffers, plans the cloud's stages and writes the uniforms they read.
+/// Plans the cloud's stages and writes the uniforms they read: its own, and its slot's in `pool`.
 #[allow(clippy::too_many_arguments)]
 fn plan_cloud(
     volumes: &mut CloudVolumes,
@@ -413,47 +417,12 @@ fn plan_cloud(
     gpu: &GpuParticles,
     bounds: CloudBounds,
     lights: &ExtractedCloudLights,
-    device: &RenderDevice,
+    pool: &VolumePool,
     queue: &RenderQueue,
 ) {
     let params = cloud_params(cloud, gpu, bounds, lights.0.len());
-    if lights.0.is_empty() {
-        // Nothing lights the cloud: it only absorbs. Zero its multiple scattering and tell the
-        // billboards there are no lights, once; no pass runs.
-        state.update(
-            StageKeys::new(&params, &[], gpu.generation, &cloud.settings),
-            &cloud.settings,
-        );
-        if state.plan.unlit {
-            queue.write_buffer(&volumes.params_buffer, 0, &uniform_bytes(&params));
-            volumes.params = params;
-        }
-        return;
-    }
-
-    // Slot i shades the i-th light. A new light count or light resolution reallocates the
-    // shared light buffers, and every light is shaded again.
-    let light_count = lights.0.len() as u32;
-    if params.light_count != volumes.params.light_count || params.light_n != volumes.params.light_n
-    {
-        volumes.lights.clear();
-        state.keys.lights.clear();
-        volumes.light_array = light_array(device, light_count);
-        volumes.optical_depth = storage(
-            device,
-            "particle_clouds_optical_depth",
-            (params.light_n as u64).pow(3) * 4 * light_count as u64,
-        );
-    }
-    while volumes.lights.len() < lights.0.len() {
-        volumes.lights.push(LightVolume {
-            params: uniform(
-                device,
-                "particle_clouds_light_params",
-                LightParams::min_size().get(),
-            ),
-        });
-    }
+    // Slot i shades the i-th light (none: the cloud only absorbs, and the plan zeroes its
+    // multiple scattering once).
     let light_params = light_params(&params, cloud, lights);
     state.update(
         StageKeys::new(&params, &light_params, gpu.generation, &cloud.settings),
@@ -472,10 +441,20 @@ fn plan_cloud(
         queue.write_buffer(&volumes.fine_params_buffer, 0, &uniform_bytes(&fine));
         volumes.fine_params = fine;
     }
-    for (light, slot) in light_params.iter().zip(&volumes.lights) {
-        queue.write_buffer(&slot.params, 0, &uniform_bytes(light));
+    let index = volumes.slot.index;
+    let slot = pool.slot(index, params, fine);
+    let slot_bytes = Slot::min_size().get();
+    queue.write_buffer(
+        &pool.slots,
+        index as u64 * slot_bytes,
+        &storage_bytes(&[slot]),
+    );
+    if !light_params.is_empty() {
+        let bytes = storage_bytes(&light_params);
+        queue.write_buffer(&volumes.light_array, 0, &bytes);
+        let first = slot.lights as u64 * LightParams::min_size().get();
+        queue.write_buffer(&pool.lights, first, &bytes);
     }
-    queue.write_buffer(&volumes.light_array, 0, &storage_bytes(&light_params));
 }
 
 /// Every light's uniform for a cloud of uniform `params`, slot `i` shading the `i`-th light in

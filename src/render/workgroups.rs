@@ -2,7 +2,9 @@
 //! (`#{LINEAR_WORKGROUP}` …), so that a dispatch and the `@workgroup_size` it assumes cannot
 //! disagree.
 
-use bevy::{render::render_resource::ComputePass, shader::ShaderDefVal};
+use bevy::shader::ShaderDefVal;
+
+use super::gpu::StagePass;
 
 /// Invocations per workgroup of the one-dimensional kernels (per particle, per lattice line, per
 /// tile); the shaders flatten `(x, y)` workgroups with `flat_invocation`.
@@ -33,22 +35,23 @@ pub fn linear_groups(count: u32) -> [u32; 3] {
     [x, groups.div_ceil(x), 1]
 }
 
-/// Dispatches `count` invocations of a [`LINEAR`] kernel.
-pub fn dispatch_linear(pass: &mut ComputePass, count: u32) {
-    let [x, y, z] = linear_groups(count);
-    pass.dispatch_workgroups(x, y, z);
+/// Dispatches `count` invocations of a [`LINEAR`] kernel, for each of `items` z workgroups.
+pub(crate) fn dispatch_linear(pass: &mut StagePass, count: u32, items: u32) {
+    let [x, y, _] = linear_groups(count);
+    pass.dispatch(x, y, items);
 }
 
 /// Dispatches one invocation per voxel of an `n³` volume ([`VOXEL`]³ workgroups).
-pub fn dispatch_volume(pass: &mut ComputePass, n: u32) {
+pub(crate) fn dispatch_volume(pass: &mut StagePass, n: u32) {
     let g = n.div_ceil(VOXEL);
-    pass.dispatch_workgroups(g, g, g);
+    pass.dispatch(g, g, g);
 }
 
-/// Dispatches one invocation per column of an `n × n` slice ([`SLICE`]² workgroups).
-pub fn dispatch_columns(pass: &mut ComputePass, n: u32) {
+/// Dispatches one invocation per column of an `n × n` slice ([`SLICE`]² workgroups), for each
+/// of `items` z workgroups.
+pub(crate) fn dispatch_columns(pass: &mut StagePass, n: u32, items: u32) {
     let g = n.div_ceil(SLICE);
-    pass.dispatch_workgroups(g, g, 1);
+    pass.dispatch(g, g, items);
 }
 
 #[cfg(test)]

@@ -24,6 +24,7 @@ use bevy_particle_clouds::{
         illumination::{LocalLight, illuminate},
         metrics::relative_rmse,
     },
+    render::gpu::StagePass,
     render::sort::{SortBuffers, SortPipelines, record_sort},
     scene::{ObjectShape, SceneObject},
 };
@@ -60,7 +61,13 @@ fn gpu_sort(app: &mut App, keys: &[u32]) -> (Vec<u32>, Vec<u32>) {
         let mut encoder = device.create_command_encoder(&CommandEncoderDescriptor::default());
         {
             let mut pass = encoder.begin_compute_pass(&ComputePassDescriptor::default());
-            record_sort(&mut pass, &ready, &groups, count, false);
+            record_sort(
+                &mut StagePass::new(&mut pass),
+                &ready,
+                &groups,
+                count,
+                false,
+            );
         }
         queue.submit([encoder.finish()]);
         (

@@ -12,7 +12,7 @@ use bevy_particle_clouds::{
     CloudQualitySettings, LightSample, Medium, Particle, ParticleCloud, Particles, ScatterStencil,
     generators::SplitMix64,
     reference::illumination::{LocalLight, illuminate},
-    render::volumes::CloudVolumes,
+    render::{pools::VolumePools, volumes::CloudVolumes},
 };
 
 use crate::common;
@@ -105,17 +105,19 @@ fn check(case: Case) {
                 .query::<&CloudVolumes>()
                 .single(world)
                 .expect("one cloud's volumes");
+            let pool = world.resource::<VolumePools>().pool(&volumes.slot);
+            let slot = volumes.slot.index;
             (
-                volumes.fine_density.clone(),
-                volumes.density.clone(),
-                volumes.optical_depth.clone(),
-                volumes.source.clone(),
-                volumes.order_ratio.clone(),
-                volumes.multiple.clone(),
+                pool.fine_density(slot),
+                pool.density(slot),
+                pool.optical_depth(slot),
+                pool.volume(&pool.source, slot),
+                pool.order_ratio(slot),
+                pool.volume(&pool.multiple, slot),
             )
         });
-    let read_f64 = |app: &mut App, buffer| -> Vec<f64> {
-        headless::floats(&headless::read_buffer(app, buffer).unwrap())
+    let read_f64 = |app: &mut App, range| -> Vec<f64> {
+        headless::floats(&headless::read_buffer_range(app, range).unwrap())
             .into_iter()
             .map(f64::from)
             .collect()
@@ -123,9 +125,9 @@ fn check(case: Case) {
     let gpu_fine_density = read_f64(&mut app, &fine_density);
     let gpu_density = read_f64(&mut app, &density);
     let gpu_depths = read_f64(&mut app, &depths);
-    let gpu_source = rgb(&headless::read_buffer(&mut app, &source).unwrap());
-    let gpu_ratio = rgb(&headless::read_buffer(&mut app, &ratio).unwrap());
-    let gpu_multiple = rgb(&headless::read_buffer(&mut app, &multiple).unwrap());
+    let gpu_source = rgb(&headless::read_buffer_range(&mut app, &source).unwrap());
+    let gpu_ratio = rgb(&headless::read_buffer_range(&mut app, &ratio).unwrap());
+    let gpu_multiple = rgb(&headless::read_buffer_range(&mut app, &multiple).unwrap());
 
     let rotation = case.transform.rotation.as_dquat();
     let lights: Vec<LocalLight> = case

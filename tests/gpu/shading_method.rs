@@ -6,7 +6,9 @@ use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
     CloudPass, CloudQualitySettings, LightSample, Medium, Particle, ParticleCloud, Particles,
-    generators::SplitMix64, render::volumes::CloudVolumes, settings::ShadingMethod,
+    generators::SplitMix64,
+    render::{pools::VolumePools, volumes::CloudVolumes},
+    settings::ShadingMethod,
 };
 
 use crate::common;
@@ -82,12 +84,14 @@ fn render(
             .query::<&CloudVolumes>()
             .single(world)
             .expect("one cloud's volumes");
-        (volumes.optical_depth.clone(), volumes.multiple.clone())
+        let pool = world.resource::<VolumePools>().pool(&volumes.slot);
+        let slot = volumes.slot.index;
+        (pool.optical_depth(slot), pool.volume(&pool.multiple, slot))
     });
     let n3 = (settings.volume_resolution as usize).pow(3);
     let m3 = (settings.light_resolution() as usize).pow(3);
-    let read = |app: &mut App, buffer| -> Vec<f64> {
-        headless::floats(&headless::read_buffer(app, buffer).unwrap())
+    let read = |app: &mut App, range| -> Vec<f64> {
+        headless::floats(&headless::read_buffer_range(app, range).unwrap())
             .into_iter()
             .map(f64::from)
             .collect()

@@ -1,0 +1,408 @@
+//! Volume pools: the illumination volumes of every cloud of one shape (voxels per side, light
+//! voxels per side, lights) packed into shared buffers, one slot per cloud. Each illumination pass
+//! then covers every cloud of a pool in one dispatch, whose z workgroups walk a list of slots
+//! (docs/illumination.md §9): the dispatch count grows with the shapes in use, not with the
+//! clouds. A slot's region of each buffer starts on a [`SLOT_ALIGNMENT`] boundary, so the
+//! per-cloud passes (voxelize, view volume, draw) bind it on its own, as if it were the cloud's
+//! own buffer.
+
+use std::sync::{Arc, Mutex};
+
+use bevy::{
+    platform::collections::HashMap,
+    prelude::*,
+    render::{
+        render_resource::{Buffer, BufferBinding, CommandEncoderDescriptor, ShaderType},
+        renderer::{RenderDevice, RenderQueue},
+    },
+};
+
+use super::{
+    gpu::storage,
+    volumes::{CloudParams, DensityLevels, LightParams},
+};
+
+/// The byte boundary every slot's region starts on: WebGPU's largest
+/// `min_storage_buffer_offset_alignment`.
+pub const SLOT_ALIGNMENT: u64 = 256;
+
+/// Clouds whose volumes can share a pool.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct VolumeShape {
+    /// Voxels per side `N` of the scattering grid.
+    pub n: u32,
+    /// Voxels per side `m` of the fine grid and of each light volume.
+    pub m: u32,
+    /// Lights, each with a light volume.
+    pub lights: u32,
+}
+
+/// Mirror of `Slot` in `types.wgsl`: one cloud's uniforms and the first element of each of its
+/// volumes in its pool's buffers.
+#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
+pub struct Slot {
+    /// The scattering grid's uniform.
+    pub cloud: CloudParams,
+    /// The fine grid's uniform (shade).
+    pub fine: CloudParams,
+    /// First f32 of the fine density (its finest level) in `densities`.
+    pub fine_density: u32,
+    /// First f32 of the scattering grid's density in `densities`.
+    pub density: u32,
+    /// First f32 of the light volumes in `optical_depth`.
+    pub optical_depth: u32,
+    /// First vec4 of the volume in `source`, `orders` and `multiple`.
+    pub volume: u32,
+    /// First of the cloud's lights in the pool's light array.
+    pub lights: u32,
+    /// Its element of the closure's `order_ratios`.
+    pub ratio: u32,
+}
+
+/// Bytes of one slot in each kind of pool buffer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct SlotBytes {
+    /// The fine density with its levels, then (aligned) the scattering grid's density.
+    densities: u64,
+    /// Where in a slot of `densities` the scattering grid's density starts.
+    density_at: u64,
+    /// The fine density levels' bytes (what voxelize and the view volume bind).
+    fine_density: u64,
+    /// Every light's `m³` optical depth.
+    optical_depth: u64,
+    /// One `n³` vec4 volume (`source`, each order, `multiple`).
+    volume: u64,
+}
+
+fn aligned(bytes: u64) -> u64 {
+    bytes.max(1).div_ceil(SLOT_ALIGNMENT) * SLOT_ALIGNMENT
+}
+
+impl VolumeShape {
+    fn bytes(&self) -> SlotBytes {
+        let voxels = (self.n as u64).pow(3);
+        let fine_density = DensityLevels::elements(self.m) * 4;
+        let density_at = aligned(fine_density);
+        SlotBytes {
+            densities: density_at + aligned(voxels * 4),
+            density_at,
+            fine_density,
+            optical_depth: aligned((self.m as u64).pow(3) * 4 * self.lights.max(1) as u64),
+            volume: aligned(voxels * 16),
+        }
+    }
+
+    /// The most slots a pool of this shape may hold under the adapter's `max_binding` (bytes of
+    /// one storage binding), at most 65535 (the dispatches' z workgroups).
+    pub fn max_slots(&self, max_binding: u64) -> u32 {
+        let b = self.bytes();
+        let largest = b.densities.max(b.optical_depth).max(b.volume);
+        (max_binding / largest).min(65535) as u32
+    }
+}
+
+/// A part of a buffer, as a binding.
+#[derive(Clone, Debug)]
+pub struct BufferRange {
+    /// The buffer.
+    pub buffer: Buffer,
+    /// First byte.
+    pub offset: u64,
+    /// Bytes.
+    pub size: u64,
+}
+
+impl BufferRange {
+    /// The range as a bind group entry's resource.
+    pub fn binding(&self) -> BufferBinding<'_> {
+        BufferBinding {
+            buffer: &self.buffer,
+            offset: self.offset,
+            size: std::num::NonZeroU64::new(self.size),
+        }
+    }
+}
+
+/// A cloud's place in a pool; dropping it frees the slot.
+#[derive(Debug)]
+pub struct PoolSlot {
+    /// Which pool.
+    pub pool: PoolId,
+    /// The slot's index in it.
+    pub index: u32,
+    free: Arc<Mutex<Vec<u32>>>,
+}
+
+impl Drop for PoolSlot {
+    fn drop(&mut self) {
+        if let Ok(mut free) = self.free.lock() {
+            free.push(self.index);
+        }
+    }
+}
+
+/// A pool: its shape and its number among the pools of that shape.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct PoolId {
+    /// Voxels per side, light voxels per side, lights.
+    pub shape: (u32, u32, u32),
+    /// Pools of one shape are numbered from 0 as each fills up.
+    pub number: u32,
+}
+
+/// The shared buffers of the clouds of one shape.
+pub struct VolumePool {
+    shape: VolumeShape,
+    /// Slots the buffers hold.
+    capacity: u32,
+    /// The most slots it may grow to.
+    max_slots: u32,
+    /// Slots handed out at least once; those below it and not free are in use.
+    used: u32,
+    free: Arc<Mutex<Vec<u32>>>,
+    /// `Slot` per slot.
+    pub slots: Buffer,
+    /// `LightParams` per slot and light.
+    pub lights: Buffer,
+    /// f32 fine density levels and scattering-grid density per slot.
+    pub densities: Buffer,
+    /// f32 optical depth of every light volume per slot.
+    pub optical_depth: Buffer,
+    /// vec4 multiple-scattering source `S_0` per slot.
+    pub source: Buffer,
+    /// vec4 ping-pong scattering orders per slot.
+    pub orders: [Buffer; 2],
+    /// vec4 multiple scattering `S_m` per slot.
+    pub multiple: Buffer,
+    /// vec4 closure ratio per slot.
+    pub order_ratios: Buffer,
+}
+
+impl VolumePool {
+    fn new(device: &RenderDevice, shape: VolumeShape, capacity: u32, max_slots: u32) -> Self {
+        let b = shape.bytes();
+        let c = capacity as u64;
+        let lights = LightParams::min_size().get() * shape.lights.max(1) as u64;
+        Self {
+            shape,
+            capacity,
+            max_slots,
+            used: 0,
+            free: Arc::default(),
+            slots: storage(device, "particle_clouds_slots", Slot::min_size().get() * c),
+            lights: storage(device, "particle_clouds_pool_lights", lights * c),
+            densities: storage(device, "particle_clouds_densities", b.densities * c),
+            optical_depth: storage(device, "particle_clouds_optical_depth", b.optical_depth * c),
+            source: storage(device, "particle_clouds_source", b.volume * c),
+            orders: [
+                storage(device, "particle_clouds_order_a", b.volume * c),
+                storage(device, "particle_clouds_order_b", b.volume * c),
+            ],
+            multiple: storage(device, "particle_clouds_multiple", b.volume * c),
+            order_ratios: storage(device, "particle_clouds_order_ratios", 16 * c),
+        }
+    }
+
+    fn buffers(&self) -> [&Buffer; 9] {
+        [
+            &self.slots,
+            &self.lights,
+            &self.densities,
+            &self.optical_depth,
+            &self.source,
+            &self.orders[0],
+            &self.orders[1],
+            &self.multiple,
+            &self.order_ratios,
+        ]
+    }
+
+    /// Doubles the capacity (within `max_slots`), copying every slot's contents on the GPU.
+    fn grow(&mut self, device: &RenderDevice, queue: &RenderQueue) {
+        let capacity = (self.capacity * 2).min(self.max_slots);
+        let mut grown = Self::new(device, self.shape, capacity, self.max_slots);
+        let mut encoder = device.create_command_encoder(&CommandEncoderDescriptor {
+            label: Some("particle_clouds_grow_pool"),
+        });
+        for (old, new) in self.buffers().into_iter().zip(grown.buffers()) {
+            encoder.copy_buffer_to_buffer(old, 0, new, 0, old.size());
+        }
+        queue.submit([encoder.finish()]);
+        grown.used = self.used;
+        grown.free = self.free.clone();
+        *self = grown;
+    }
+
+    /// A free slot, growing the buffers if needed; `None` when the pool is full.
+    fn allocate(
+        &mut self,
+        device: &RenderDevice,
+        queue: &RenderQueue,
+        id: PoolId,
+    ) -> Option<PoolSlot> {
+        let freed = self.free.lock().ok()?.pop();
+        let index = match freed {
+            Some(index) => index,
+            None => {
+                if self.used == self.capacity && self.capacity < self.max_slots {
+                    self.grow(device, queue);
+                }
+                if self.used == self.capacity {
+                    return None;
+                }
+                self.used += 1;
+                self.used - 1
+            }
+        };
+        Some(PoolSlot {
+            pool: id,
+            index,
+            free: self.free.clone(),
+        })
+    }
+
+    /// No slot is in use.
+    fn is_empty(&self) -> bool {
+        self.free
+            .lock()
+            .is_ok_and(|f| f.len() == self.used as usize)
+    }
+
+    /// The `Slot` uniform of slot `index` of a cloud with the uniforms `cloud` and `fine`.
+    pub fn slot(&self, index: u32, cloud: CloudParams, fine: CloudParams) -> Slot {
+        let b = self.shape.bytes();
+        let i = index as u64;
+        let element = |bytes: u64, size: u64| (bytes / size) as u32;
+        Slot {
+            cloud,
+            fine,
+            fine_density: element(i * b.densities, 4),
+            density: element(i * b.densities + b.density_at, 4),
+            optical_depth: element(i * b.optical_depth, 4),
+            volume: element(i * b.volume, 16),
+            lights: index * self.shape.lights,
+            ratio: index,
+        }
+    }
+
+    fn range(buffer: &Buffer, index: u32, stride: u64, offset: u64, size: u64) -> BufferRange {
+        BufferRange {
+            buffer: buffer.clone(),
+            offset: index as u64 * stride + offset,
+            size,
+        }
+    }
+
+    /// Slot `index`'s fine density levels (voxelize writes them, shade and the view volume read them).
+    pub fn fine_density(&self, index: u32) -> BufferRange {
+        let b = self.shape.bytes();
+        Self::range(&self.densities, index, b.densities, 0, b.fine_density)
+    }
+
+    /// Slot `index`'s scattering-grid density.
+    pub fn density(&self, index: u32) -> BufferRange {
+        let b = self.shape.bytes();
+        let size = (self.shape.n as u64).pow(3) * 4;
+        Self::range(&self.densities, index, b.densities, b.density_at, size)
+    }
+
+    /// Slot `index`'s light volumes.
+    pub fn optical_depth(&self, index: u32) -> BufferRange {
+        let b = self.shape.bytes();
+        let size = (self.shape.m as u64).pow(3) * 4 * self.shape.lights.max(1) as u64;
+        Self::range(&self.optical_depth, index, b.optical_depth, 0, size)
+    }
+
+    /// Slot `index`'s `n³` vec4 volume in `buffer` (`source`, an order or `multiple`).
+    pub fn volume(&self, buffer: &Buffer, index: u32) -> BufferRange {
+        let b = self.shape.bytes();
+        let size = (self.shape.n as u64).pow(3) * 16;
+        Self::range(buffer, index, b.volume, 0, size)
+    }
+
+    /// Slot `index`'s closure ratio.
+    pub fn order_ratio(&self, index: u32) -> BufferRange {
+        Self::range(&self.order_ratios, index, 16, 0, 16)
+    }
+}
+
+/// Every pool, by id (render world resource).
+#[derive(Resource, Default)]
+pub struct VolumePools(pub HashMap<PoolId, VolumePool>);
+
+impl VolumePools {
+    /// A slot for a cloud of `shape`: in the first pool of that shape with room, else in a new
+    /// one. `None` when one cloud alone exceeds the adapter's `max_binding`.
+    pub fn allocate(
+        &mut self,
+        device: &RenderDevice,
+        queue: &RenderQueue,
+        shape: VolumeShape,
+        max_binding: u64,
+    ) -> Option<PoolSlot> {
+        let max_slots = shape.max_slots(max_binding);
+        if max_slots == 0 {
+            return None;
+        }
+        for number in 0.. {
+            let id = PoolId {
+                shape: (shape.n, shape.m, shape.lights),
+                number,
+            };
+            let pool = self
+                .0
+                .entry(id)
+                .or_insert_with(|| VolumePool::new(device, shape, 1, max_slots));
+            if let Some(slot) = pool.allocate(device, queue, id) {
+                return Some(slot);
+            }
+        }
+        None
+    }
+
+    /// The pool of `slot`.
+    pub fn pool(&self, slot: &PoolSlot) -> &VolumePool {
+        &self.0[&slot.pool]
+    }
+
+    /// Drops the pools nobody uses.
+    pub fn release_empty(&mut self) {
+        self.0.retain(|_, pool| !pool.is_empty());
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn slots_start_on_the_alignment_and_hold_their_volumes() {
+        let shape = VolumeShape {
+            n: 5,
+            m: 10,
+            lights: 3,
+        };
+        let b = shape.bytes();
+        for bytes in [b.densities, b.density_at, b.optical_depth, b.volume] {
+            assert_eq!(bytes % SLOT_ALIGNMENT, 0, "{b:?}");
+        }
+        assert!(b.fine_density >= 1000 * 4 && b.density_at >= b.fine_density);
+        assert!(b.densities - b.density_at >= 125 * 4);
+        assert!(b.optical_depth >= 3 * 1000 * 4);
+        assert!(b.volume >= 125 * 16);
+    }
+
+    #[test]
+    fn a_pool_holds_what_fits_in_one_binding() {
+        let shape = VolumeShape {
+            n: 16,
+            m: 32,
+            lights: 1,
+        };
+        // The fine density levels of 32³ and the 16³ density: 37,448 + 4,096 f32.
+        let largest = shape.bytes().densities;
+        assert_eq!(shape.max_slots(10 * largest + 1), 10);
+        assert_eq!(shape.max_slots(largest - 1), 0);
+        assert_eq!(shape.max_slots(u64::MAX), 65535);
+    }
+}

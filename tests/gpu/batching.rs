@@ -1,0 +1,172 @@
+//! Batching on the GPU: the clouds of one volume shape share a pool, and each illumination pass
+//! covers them all in one dispatch. The dispatch count stays flat in clouds; a cloud's volumes are
+//! the same whether it is lit alone or beside others; a pool that grows keeps what it held.
+
+use bevy::{prelude::*, render::sync_world::RenderEntity};
+use bevy_particle_clouds::headless::{self, FrameRecorder};
+use bevy_particle_clouds::render::{pools::VolumePools, volumes::CloudVolumes};
+use bevy_particle_clouds::{CloudPass, Medium, Particle};
+
+use crate::common;
+
+/// A camera and one light looking at clouds along x.
+fn scene() -> App {
+    let mut app = common::headless_app();
+    let image = headless::float_target(&mut app, 64, 32);
+    let eye = Transform::from_xyz(0.0, 0.0, 24.0).looking_at(Vec3::ZERO, Vec3::Y);
+    headless::spawn_linear_camera(&mut app, image, eye, 40.0, Vec3::ZERO);
+    headless::spawn_light(&mut app, Vec3::new(-1.0, -1.0, -0.4), Vec3::ONE);
+    app
+}
+
+/// A small cloud at `x`, its particles varied by `seed`, at `resolution`³.
+fn spawn(app: &mut App, x: f32, seed: u32, resolution: u32) -> Entity {
+    let particles = (0..12)
+        .map(|i| Particle {
+            position: Vec3::new(
+                (i % 3) as f32 - 1.0,
+                (i / 3) as f32 * 0.4 - 0.6,
+                ((i * 7 + seed) % 5) as f32 * 0.1,
+            ) * 0.6,
+            radius: 0.4 + 0.05 * seed as f32,
+            density: 1.0,
+        })
+        .collect();
+    headless::spawn_cloud(
+        app,
+        particles,
+        Medium {
+            extinction: 3.0,
+            albedo: 0.9,
+        },
+        common::quality(resolution, 3),
+        Transform::from_xyz(x, 0.0, 0.0),
+    )
+}
+
+/// Runs and dispatches of the batched passes until the scene is steady (counted by `recorder`
+/// from where it stands).
+fn illuminate(app: &mut App, recorder: &mut FrameRecorder, clouds: u32) -> ([u32; 3], [u32; 3]) {
+    let first = recorder.frames.len();
+    headless::render_until_steady(app, recorder, clouds, 20).unwrap();
+    let frames = &recorder.frames[first..];
+    let passes = [CloudPass::Shade, CloudPass::Gather, CloudPass::Scatter];
+    let sum = |f: &dyn Fn(&headless::FrameStats, CloudPass) -> u32| {
+        passes.map(|p| frames.iter().map(|s| f(s, p)).sum())
+    };
+    (sum(&|s, p| s.runs(p)), sum(&|s, p| s.dispatches(p)))
+}
+
+/// A cloud's light volumes and multiple scattering, read from its slot.
+fn volumes_of(app: &mut App, cloud: Entity) -> (Vec<f32>, Vec<f32>) {
+    let render = app.world().get::<RenderEntity>(cloud).unwrap().id();
+    let (depths, multiple) = common::with_render_world(app, |world| {
+        let volumes = world
+            .get::<CloudVolumes>(render)
+            .expect("the cloud's volumes");
+        let pool = world.resource::<VolumePools>().pool(&volumes.slot);
+        let slot = volumes.slot.index;
+        (pool.optical_depth(slot), pool.volume(&pool.multiple, slot))
+    });
+    let read =
+        |app: &mut App, range| headless::floats(&headless::read_buffer_range(app, range).unwrap());
+    (read(app, &depths), read(app, &multiple))
+}
+
+/// The largest difference between two volumes, relative to the largest value.
+fn relative_difference(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    let largest = a.iter().fold(0f32, |m, v| m.max(v.abs()));
+    assert!(largest > 0.0, "an empty volume");
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+        / largest
+}
+
+#[test]
+fn the_dispatches_stay_flat_in_clouds_of_one_shape() {
+    let mut one = scene();
+    spawn(&mut one, 0.0, 0, 12);
+    let (runs_one, dispatches_one) = illuminate(&mut one, &mut FrameRecorder::default(), 1);
+    // One light, 3 iterations of 13 sweep directions, then the closure's two dispatches.
+    assert_eq!(runs_one, [1, 1, 3]);
+    assert_eq!(dispatches_one, [1, 1, 3 * 13 + 2]);
+
+    let mut six = scene();
+    for i in 0..6 {
+        spawn(&mut six, 3.0 * i as f32 - 7.5, i, 12);
+    }
+    let (runs_six, dispatches_six) = illuminate(&mut six, &mut FrameRecorder::default(), 6);
+    assert_eq!(runs_six, [6, 6, 18]);
+    assert_eq!(dispatches_six, dispatches_one);
+
+    // A second shape is a second pool: one more dispatch per pass, whatever its clouds.
+    let mut mixed = scene();
+    for i in 0..6 {
+        spawn(
+            &mut mixed,
+            3.0 * i as f32 - 7.5,
+            i,
+            if i < 4 { 12 } else { 8 },
+        );
+    }
+    let (runs_mixed, dispatches_mixed) = illuminate(&mut mixed, &mut FrameRecorder::default(), 6);
+    assert_eq!(runs_mixed, [6, 6, 18]);
+    assert_eq!(dispatches_mixed, dispatches_one.map(|d| 2 * d));
+}
+
+#[test]
+fn a_cloud_lit_beside_others_has_the_volumes_it_has_alone() {
+    let mut alone = scene();
+    let cloud = spawn(&mut alone, 0.0, 2, 12);
+    illuminate(&mut alone, &mut FrameRecorder::default(), 1);
+    let (depths_alone, multiple_alone) = volumes_of(&mut alone, cloud);
+
+    let mut together = scene();
+    let mut clouds = Vec::new();
+    for i in 0..4 {
+        clouds.push(spawn(&mut together, 3.0 * i as f32 - 6.0, 5 - i, 12));
+    }
+    let cloud = spawn(&mut together, 0.0, 2, 12);
+    illuminate(&mut together, &mut FrameRecorder::default(), 5);
+    let (depths, multiple) = volumes_of(&mut together, cloud);
+    // Voxelize adds with float atomics, in any order: only rounding may differ.
+    assert!(relative_difference(&depths, &depths_alone) < 1e-5);
+    assert!(relative_difference(&multiple, &multiple_alone) < 1e-5);
+    // Its neighbours, with other particles, hold other volumes (the slots are not shared).
+    let (_, neighbour) = volumes_of(&mut together, clouds[0]);
+    assert!(relative_difference(&neighbour, &multiple_alone) > 1e-2);
+}
+
+#[test]
+fn a_growing_pool_keeps_what_its_clouds_hold() {
+    let mut app = scene();
+    let mut recorder = FrameRecorder::default();
+    let first = spawn(&mut app, -6.0, 1, 12);
+    illuminate(&mut app, &mut recorder, 1);
+    let before = volumes_of(&mut app, first);
+    // Three more clouds of its shape: the pool grows from one slot to two, then four.
+    for i in 0..3 {
+        spawn(&mut app, 3.0 * i as f32 - 2.0, 3 + i, 12);
+    }
+    let (runs, _) = illuminate(&mut app, &mut recorder, 4);
+    assert_eq!(runs, [3, 3, 9], "only the new clouds are lit");
+    let after = volumes_of(&mut app, first);
+    assert_eq!(after, before);
+
+    // A despawned cloud frees its slot, and the next cloud of its shape takes it.
+    let slot_of = |app: &mut App, cloud: Entity| {
+        let render = app.world().get::<RenderEntity>(cloud).unwrap().id();
+        common::with_render_world(app, |world| {
+            world.get::<CloudVolumes>(render).unwrap().slot.index
+        })
+    };
+    let freed = slot_of(&mut app, first);
+    app.world_mut().despawn(first);
+    illuminate(&mut app, &mut recorder, 3);
+    let next = spawn(&mut app, -6.0, 7, 12);
+    illuminate(&mut app, &mut recorder, 4);
+    assert_eq!(slot_of(&mut app, next), freed);
+}
