@@ -38,6 +38,8 @@ struct ScaleRow {
     timing: Timing,
     /// Runs of each pass in a frame that re-lights everything.
     runs: [u32; PASSES],
+    /// Compute dispatches of each pass in that frame.
+    dispatches: [u32; PASSES],
 }
 
 fn camera(distance: f32, width: u32, height: u32) -> bevy_particle_clouds::scene::SceneCamera {
@@ -128,7 +130,7 @@ fn measure(
     lod: Option<f32>,
     frames: usize,
     adapter: &mut String,
-) -> (Timing, [u32; PASSES]) {
+) -> (Timing, [u32; PASSES], [u32; PASSES]) {
     let mut b = Bench::new(scene);
     *adapter = b.adapter.clone();
     if let Some(pixels_per_voxel) = lod {
@@ -141,7 +143,11 @@ fn measure(
     b.touch_particles();
     let i = b.frame();
     let frame = &b.recorder.frames[i];
-    (timing, CloudPass::ALL.map(|p| frame.runs(p)))
+    (
+        timing,
+        CloudPass::ALL.map(|p| frame.runs(p)),
+        CloudPass::ALL.map(|p| frame.dispatches(p)),
+    )
 }
 
 pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {
@@ -150,7 +156,7 @@ pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {
     let mut rows = Vec::new();
     let mut run = |sweep, label: String, x: f64, scene: Scene, lod: Option<f32>| {
         eprintln!("benchmark: scale, {sweep}: {label}");
-        let (timing, runs) = measure(&scene, lod, frames, &mut adapter);
+        let (timing, runs, dispatches) = measure(&scene, lod, frames, &mut adapter);
         eprintln!(
             "benchmark: scale, {sweep}: {label}: GPU {:.1} ms (static {:.1}), wall {:.0} ms",
             timing.gpu_ms_total, timing.gpu_ms_static, timing.wall_ms
@@ -161,6 +167,7 @@ pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {
             x,
             timing,
             runs,
+            dispatches,
         });
     };
     let hd = (1280, 720);
@@ -196,33 +203,27 @@ pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {
 fn write_scale(args: &Args, adapter: &str, rows: &[ScaleRow]) -> Result<(), String> {
     let names: Vec<&str> = CloudPass::ALL.iter().map(|p| p.name()).collect();
     let mut csv = format!(
-        "adapter,sweep,label,x,{},gpu_ms_total,gpu_ms_static,wall_ms,wall_ms_static,{}\n",
-        names
-            .iter()
-            .map(|n| format!("gpu_ms_{n}"))
-            .collect::<Vec<_>>()
-            .join(","),
-        names
-            .iter()
-            .map(|n| format!("runs_{n}"))
-            .collect::<Vec<_>>()
-            .join(",")
+        "adapter,sweep,label,x,{},gpu_ms_total,gpu_ms_static,wall_ms,wall_ms_static,{},{}\n",
+        columns(&names, "gpu_ms"),
+        columns(&names, "runs"),
+        columns(&names, "dispatches"),
     );
     let mut md = format!(
         "Adapter: `{adapter}`. GPU ms per pass: median of {} frames that rerun every pass (the \
          particles touched); draw: a static frame's. Runs: how many times each pass ran in a \
-         re-lit frame (per cloud, per light, per scattering iteration, per view). Particles: \
-         640×360, radii ∝ count^(-1/3); clouds sweep: `volume_resolution` 16, 8 iterations; the \
-         others: default settings.\n\n\
-         | sweep | configuration | voxelize | shade | gather | scatter | sort + view volume | draw (static) | GPU total | wall | static wall | pass runs |\n\
-         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+         re-lit frame (per cloud, per light, per scattering iteration, per view); dispatches: the \
+         compute dispatches of that frame (shade, gather and scatter batch every cloud of a volume \
+         shape). Particles: 640×360, radii ∝ count^(-1/3); clouds sweep: `volume_resolution` 16, \
+         8 iterations; the others: default settings.\n\n\
+         | sweep | configuration | voxelize | shade | gather | scatter | sort + view volume | draw (static) | GPU total | wall | static wall | pass runs | dispatches |\n\
+         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
         args.frames()
     );
     for r in rows {
         let p = &r.timing.pass_ms;
         let _ = writeln!(
             csv,
-            "\"{adapter}\",\"{}\",\"{}\",{},{},{:.4},{:.4},{:.3},{:.3},{}",
+            "\"{adapter}\",\"{}\",\"{}\",{},{},{:.4},{:.4},{:.3},{:.3},{},{}",
             r.sweep,
             r.label,
             r.x,
@@ -234,15 +235,12 @@ fn write_scale(args: &Args, adapter: &str, rows: &[ScaleRow]) -> Result<(), Stri
             r.timing.gpu_ms_static,
             r.timing.wall_ms,
             r.timing.wall_ms_static,
-            r.runs
-                .iter()
-                .map(u32::to_string)
-                .collect::<Vec<_>>()
-                .join(",")
+            joined(&r.runs),
+            joined(&r.dispatches),
         );
         let _ = writeln!(
             md,
-            "| {} | {} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {} |",
+            "| {} | {} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {} | {} |",
             r.sweep,
             r.label,
             p[0],
@@ -254,7 +252,8 @@ fn write_scale(args: &Args, adapter: &str, rows: &[ScaleRow]) -> Result<(), Stri
             r.timing.gpu_ms_total,
             r.timing.wall_ms,
             r.timing.wall_ms_static,
-            r.runs.iter().sum::<u32>()
+            r.runs.iter().sum::<u32>(),
+            r.dispatches.iter().sum::<u32>()
         );
     }
     for (path, text) in [("scale.csv", &csv), ("scale.md", &md)] {
@@ -268,6 +267,24 @@ fn write_scale(args: &Args, adapter: &str, rows: &[ScaleRow]) -> Result<(), Stri
         args.out.display()
     );
     Ok(())
+}
+
+/// `prefix_voxelize,prefix_shade,…`: one CSV column per pass.
+fn columns(names: &[&str], prefix: &str) -> String {
+    names
+        .iter()
+        .map(|n| format!("{prefix}_{n}"))
+        .collect::<Vec<_>>()
+        .join(",")
+}
+
+/// Counts as CSV fields.
+fn joined(counts: &[u32]) -> String {
+    counts
+        .iter()
+        .map(u32::to_string)
+        .collect::<Vec<_>>()
+        .join(",")
 }
 
 /// `1.2M`, `38k`, `720`, `0.5`: an axis label.
@@ -324,6 +341,7 @@ pub(crate) fn replot_scale(args: &Args) -> Result<(), String> {
             x: number(&record, x)?,
             timing,
             runs: [0; PASSES],
+            dispatches: [0; PASSES],
         });
     }
     let png = args.out.join("scale.png");

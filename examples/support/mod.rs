@@ -276,6 +276,8 @@ pub struct HudLines;
 #[derive(Resource, Default, Clone, Debug)]
 pub struct PassCounts {
     pub last: [u32; PASSES],
+    /// Compute dispatches of the last frame, every pass together.
+    pub dispatches_last: u32,
     pub total: [u64; PASSES],
     /// Frames counted.
     pub frames: u64,
@@ -471,7 +473,13 @@ fn count_passes(
     counters: Res<CloudPassCounters>,
     mut counts: ResMut<PassCounts>,
     mut snapshot: Local<[u32; PASSES]>,
+    mut dispatched: Local<[u32; PASSES]>,
 ) {
+    counts.dispatches_last = counters
+        .dispatches_since(&mut dispatched)
+        .iter()
+        .map(|(_, n)| n)
+        .sum();
     let taken = counters.since(&mut snapshot);
     for (pass, n) in taken {
         counts.last[pass as usize] = n;
@@ -528,7 +536,11 @@ fn compose_hud(
         .iter()
         .map(|&p| format!("{} {}", p.name(), counts.last(p)))
         .collect();
-    s.push_str(&format!("runs last frame: {}\n", runs.join(", ")));
+    s.push_str(&format!(
+        "runs last frame: {} ({} compute dispatches)\n",
+        runs.join(", "),
+        counts.dispatches_last
+    ));
     let gpu: Vec<String> = CloudPass::ALL
         .iter()
         .map(|&p| {
