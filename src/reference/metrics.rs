@@ -63,9 +63,42 @@ pub fn mean_absolute_error(x: &[[f32; 4]], r: &[[f32; 4]]) -> f64 {
     sum / (3 * x.len()) as f64
 }
 
+/// The largest difference between two volumes (any flat arrays), relative to the largest value
+/// of the reference `r`: `max |x - r| / max |r|`. How the GPU volumes are compared with their
+/// CPU reference. Dimensionless.
+///
+/// Returns `0` when both are identical (even all zero) and `inf` when `r` is all zero but `x` is
+/// not.
+///
+/// # Panics
+/// If the volumes differ in size.
+pub fn max_relative_difference(x: &[f64], r: &[f64]) -> f64 {
+    assert_eq!(x.len(), r.len(), "volumes differ in size");
+    let scale = r.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let largest = x
+        .iter()
+        .zip(r)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    if largest == 0.0 { 0.0 } else { largest / scale }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn max_relative_difference_is_relative_to_the_largest_reference_value() {
+        assert_eq!(
+            max_relative_difference(&[1.0, 2.5, -4.0], &[1.0, 2.0, -4.0]),
+            0.125
+        );
+        assert_eq!(max_relative_difference(&[0.0; 3], &[0.0; 3]), 0.0);
+        assert_eq!(
+            max_relative_difference(&[0.0, 1.0], &[0.0; 2]),
+            f64::INFINITY
+        );
+    }
 
     #[test]
     fn identical_images_have_zero_error() {

@@ -11,7 +11,10 @@ use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
     CloudQualitySettings, LightSample, Medium, Particle, ParticleCloud, Particles, ScatterStencil,
     generators::SplitMix64,
-    reference::illumination::{LocalLight, illuminate},
+    reference::{
+        illumination::{LocalLight, illuminate},
+        metrics::max_relative_difference,
+    },
     render::{pools::VolumePools, volumes::CloudVolumes},
 };
 
@@ -27,7 +30,7 @@ struct Case {
     settings: CloudQualitySettings,
 }
 
-fn random_particles(seed: u64, count: usize) -> Vec<Particle> {
+pub(crate) fn random_particles(seed: u64, count: usize) -> Vec<Particle> {
     let mut rng = SplitMix64::new(seed);
     (0..count)
         .map(|_| Particle {
@@ -40,17 +43,6 @@ fn random_particles(seed: u64, count: usize) -> Vec<Particle> {
 
 fn random_direction(rng: &mut SplitMix64) -> Vec3 {
     rng.in_unit_ball().try_normalize().unwrap_or(Vec3::NEG_Y)
-}
-
-/// Largest difference relative to the largest reference value.
-fn relative_error(gpu: &[f64], cpu: &[f64]) -> f64 {
-    assert_eq!(gpu.len(), cpu.len());
-    let scale = cpu.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(1e-30);
-    gpu.iter()
-        .zip(cpu)
-        .map(|(g, c)| (g - c).abs())
-        .fold(0.0, f64::max)
-        / scale
 }
 
 fn rgb(bytes: &[u8]) -> Vec<f64> {
@@ -156,26 +148,29 @@ fn check(case: Case) {
     let mut errors = vec![
         (
             "fine density",
-            relative_error(&gpu_fine_density[..m3], &cpu.fine.rho),
+            max_relative_difference(&gpu_fine_density[..m3], &cpu.fine.rho),
         ),
-        ("density", relative_error(&gpu_density[..n3], &cpu.grid.rho)),
+        (
+            "density",
+            max_relative_difference(&gpu_density[..n3], &cpu.grid.rho),
+        ),
         (
             "optical depth",
-            relative_error(&gpu_depths[..m3 * cpu.lights.len()], &cpu_depths),
+            max_relative_difference(&gpu_depths[..m3 * cpu.lights.len()], &cpu_depths),
         ),
         (
             "source",
-            relative_error(&gpu_source[..3 * n3], &flat(&cpu.source)),
+            max_relative_difference(&gpu_source[..3 * n3], &flat(&cpu.source)),
         ),
         (
             "multiple",
-            relative_error(&gpu_multiple[..3 * n3], &flat(&cpu.multiple.total)),
+            max_relative_difference(&gpu_multiple[..3 * n3], &flat(&cpu.multiple.total)),
         ),
     ];
     if case.settings.scatter_iterations > 0 {
         errors.push((
             "order ratio",
-            relative_error(&gpu_ratio[..3], &cpu.multiple.ratio.to_array()),
+            max_relative_difference(&gpu_ratio[..3], &cpu.multiple.ratio.to_array()),
         ));
     }
     for (name, error) in errors {
