@@ -17,7 +17,10 @@
 //! With the sun still and the camera still, no cloud is re-lit: a frame only draws. With the
 //! camera flying and the sun still, clouds are not re-lit either: a level change waits for the
 //! next re-lighting. With the sun moving, the clouds take turns: at most `CloudRelightBudget`
-//! clouds are re-lit per frame, the others keep their previous lighting until their turn.
+//! clouds are re-lit per frame, the others keep their previous lighting until their turn, and a
+//! re-lit cloud restarts its scattering from its previous solution (`warm_scatter_iterations`,
+//! 4 iterations instead of the 8 of a full solve). Shade, gather and scatter run one dispatch
+//! each for all the clouds of a resolution (the HUD's dispatch count).
 
 mod support;
 

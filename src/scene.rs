@@ -937,6 +937,10 @@ mod tests {
             "settings.scatter_iterations is 5000; allowed is 0..=4096",
         ),
         (
+            |f| f.settings.warm_scatter_iterations = 1,
+            "settings.warm_scatter_iterations is 1; allowed is 0 (off) or 2..=4096",
+        ),
+        (
             |f| f.settings.forward_scattering = 2.0,
             "settings.forward_scattering is 2; it must lie in [0, 1]",
         ),

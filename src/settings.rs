@@ -64,6 +64,15 @@ pub struct CloudQualitySettings {
     /// albedo near 1 keep 20 % of their light in orders past 16, and the geometric estimate of
     /// those takes the shape of the last order, which is still too close to the lit side.
     pub scatter_iterations: u32,
+    /// Multiple-scattering iterations when only the lights changed since the last solve (a
+    /// moving sun): the scattering restarts from the solution the cloud holds, and computes the
+    /// correction's series in this many iterations, closed like `scatter_iterations`' series
+    /// (docs/illumination.md §4). The first frame the lights stay still, the full series settles
+    /// it. 0 = always the full series. Allowed: 0 or `2..=MAX_SCATTER_ITERATIONS`. Default 4: in
+    /// the benchmark, a sun that jumps 5° between solves gives an image within 0.0026 (relative
+    /// RMSE) of the full solve's, for 0.06–0.26 of its scattering cost on lavapipe (README,
+    /// "Warm restart under a moving sun").
+    pub warm_scatter_iterations: u32,
     /// Fraction `f` in `[0, 1]` of scattered light treated as continuing forward in the shading
     /// pass (the paper's forward scattering): light attenuates with `sigma_t * (1 - f * albedo)`.
     /// Default 0, which is exactly the isotropic model of docs/physics.md.
@@ -109,6 +118,7 @@ impl Default for CloudQualitySettings {
         Self {
             volume_resolution: 48,
             scatter_iterations: 32,
+            warm_scatter_iterations: 4,
             forward_scattering: 0.0,
             scatter_stencil: ScatterStencil::DiscreteOrdinates,
             light_supersampling: 3,
@@ -142,6 +152,8 @@ pub enum InvalidSettings {
     VolumeResolution(u32),
     /// `scatter_iterations` above `MAX_SCATTER_ITERATIONS`.
     ScatterIterations(u32),
+    /// `warm_scatter_iterations` 1 or above `MAX_SCATTER_ITERATIONS`.
+    WarmScatterIterations(u32),
     /// `forward_scattering` outside `[0, 1]` (or NaN).
     ForwardScattering(f32),
     /// `light_supersampling` outside `1..=MAX_LIGHT_SUPERSAMPLING`.
@@ -158,6 +170,7 @@ impl InvalidSettings {
         match self {
             Self::VolumeResolution(_) => "volume_resolution",
             Self::ScatterIterations(_) => "scatter_iterations",
+            Self::WarmScatterIterations(_) => "warm_scatter_iterations",
             Self::ForwardScattering(_) => "forward_scattering",
             Self::LightSupersampling(_) => "light_supersampling",
             Self::ChordSegments(_) => "chord_segments",
@@ -170,6 +183,7 @@ impl InvalidSettings {
         match self {
             Self::VolumeResolution(v)
             | Self::ScatterIterations(v)
+            | Self::WarmScatterIterations(v)
             | Self::LightSupersampling(v)
             | Self::ChordSegments(v) => v.to_string(),
             Self::ForwardScattering(v) | Self::CloudTargetScale(v) => v.to_string(),
@@ -183,6 +197,9 @@ impl InvalidSettings {
                 format!("allowed is {MIN_VOLUME_RESOLUTION}..={MAX_VOLUME_RESOLUTION}")
             }
             Self::ScatterIterations(_) => format!("allowed is 0..={MAX_SCATTER_ITERATIONS}"),
+            Self::WarmScatterIterations(_) => {
+                format!("allowed is 0 (off) or 2..={MAX_SCATTER_ITERATIONS}")
+            }
             Self::ForwardScattering(_) => "it must lie in [0, 1]".into(),
             Self::LightSupersampling(_) => format!("allowed is 1..={MAX_LIGHT_SUPERSAMPLING}"),
             Self::ChordSegments(_) => format!("allowed is 1..={MAX_CHORD_SEGMENTS}"),
@@ -201,6 +218,10 @@ impl CloudQualitySettings {
         }
         if self.scatter_iterations > MAX_SCATTER_ITERATIONS {
             return Err(InvalidSettings::ScatterIterations(self.scatter_iterations));
+        }
+        let warm = self.warm_scatter_iterations;
+        if warm == 1 || warm > MAX_SCATTER_ITERATIONS {
+            return Err(InvalidSettings::WarmScatterIterations(warm));
         }
         if !(0.0..=1.0).contains(&self.forward_scattering) {
             return Err(InvalidSettings::ForwardScattering(self.forward_scattering));

@@ -9,6 +9,7 @@
 //! cargo run --example benchmark -- --illumination [--out DIR]
 //! cargo run --example benchmark -- --voxelize [--out DIR]
 //! cargo run --example benchmark -- --scale [--out DIR]
+//! cargo run --example benchmark -- --warm-start [--scenes a,b] [--out DIR]
 //! cargo run --example benchmark -- --decompose [--scenes a,b] [--spp N] [--out DIR]
 //! ```
 //!
@@ -38,6 +39,7 @@ mod scale;
 mod scenes;
 mod sweep;
 mod voxelize;
+mod warm_start;
 
 use std::{
     collections::HashMap,
@@ -77,6 +79,7 @@ use scale::*;
 use scenes::*;
 use sweep::*;
 use voxelize::*;
+use warm_start::*;
 
 /// Where Debian's `fonts-dejavu-core` puts the font of the plot's labels.
 const DEFAULT_FONT: &str = "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf";
@@ -122,6 +125,10 @@ pub(crate) struct Args {
     /// The voxelize pass's cost against particle size (r/h from 1 to 64) instead of the sweep.
     #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target"])]
     pub(crate) voxelize: bool,
+    /// The scattering's warm restart under a moving sun instead of the sweep: its error against
+    /// the path tracer and its cost, per sun step and warm iteration count.
+    #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "voxelize", "scale"])]
+    pub(crate) warm_start: bool,
     /// Overrides every scene's reference samples per pixel.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     pub(crate) spp: Option<u32>,
@@ -214,6 +221,9 @@ fn run() -> Result<(), String> {
     }
     if args.voxelize {
         return voxelize_benchmark(&args);
+    }
+    if args.warm_start {
+        return warm_start_benchmark(&args);
     }
     if args.scale {
         return if args.replot {
@@ -518,6 +528,8 @@ fn replot(args: &Args) -> Result<(), String> {
             },
             // The sweep draws at full size; `--cloud-target` measures the scales.
             cloud_target_scale: 1.0,
+            // The sweep's frames are still; `--warm-start` measures the warm restart.
+            warm_scatter_iterations: 0,
         };
         let timing = Timing {
             gpu_ms_total: num(gpu),

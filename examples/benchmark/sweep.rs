@@ -7,6 +7,7 @@ use super::*;
 pub(crate) const PREVIOUS_DEFAULT: CloudQualitySettings = CloudQualitySettings {
     volume_resolution: 48,
     scatter_iterations: 16,
+    warm_scatter_iterations: 0,
     forward_scattering: 0.0,
     scatter_stencil: ScatterStencil::DiscreteOrdinates,
     light_supersampling: 2,

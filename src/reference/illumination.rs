@@ -726,14 +726,15 @@ fn paper_stencil(grid: &DensityGrid, k_local: f64, albedo: f64, s: &[DVec3]) -> 
 pub const MAX_ORDER_RATIO: f64 = 0.995;
 
 /// The per-order ratio of the last two orders, per channel:
-/// `lambda = sum rho S_M / sum rho S_{M-1}`, clamped to `[0, MAX_ORDER_RATIO]` (0 where the
-/// earlier order carries nothing).
+/// `lambda = sum rho |S_M| / sum rho |S_{M-1}|`, clamped to `[0, MAX_ORDER_RATIO]` (0 where the
+/// earlier order carries nothing). The orders of the full series are never negative; those of a
+/// warm restart's correction may be, and their absolute values keep the ratio from cancelling.
 pub fn order_ratio(grid: &DensityGrid, last: &[DVec3], before: &[DVec3]) -> DVec3 {
     let weighted = |s: &[DVec3]| {
         grid.rho
             .iter()
             .zip(s)
-            .fold(DVec3::ZERO, |acc, (rho, s)| acc + *s * *rho)
+            .fold(DVec3::ZERO, |acc, (rho, s)| acc + s.abs() * *rho)
     };
     let (num, den) = (weighted(last), weighted(before));
     let ratio = |a: f64, b: f64| {
@@ -775,10 +776,7 @@ pub fn scatter(
     let mut orders: Vec<Vec<DVec3>> = Vec::with_capacity(iterations as usize);
     for _ in 0..iterations {
         let previous = orders.last().map_or(s0, Vec::as_slice);
-        orders.push(match stencil {
-            ScatterStencil::DiscreteOrdinates => sweep(grid, k_local, albedo, previous),
-            ScatterStencil::Paper => paper_stencil(grid, k_local, albedo, previous),
-        });
+        orders.push(scatter_once(grid, k_local, albedo, stencil, previous));
     }
     let mut total = vec![DVec3::ZERO; s0.len()];
     for order in &orders {
@@ -801,6 +799,62 @@ pub fn scatter(
     MultipleScattering {
         orders,
         ratio,
+        total,
+    }
+}
+
+/// One iteration of `stencil`: `K s`.
+fn scatter_once(
+    grid: &DensityGrid,
+    k_local: f64,
+    albedo: f64,
+    stencil: ScatterStencil,
+    s: &[DVec3],
+) -> Vec<DVec3> {
+    match stencil {
+        ScatterStencil::DiscreteOrdinates => sweep(grid, k_local, albedo, s),
+        ScatterStencil::Paper => paper_stencil(grid, k_local, albedo, s),
+    }
+}
+
+/// The multiple scattering for the source `s0`, restarted from the solution `previous` (a warm
+/// restart, docs/illumination.md §4): since `S_m = K (s0 + S_m)`, the correction
+/// `W_0 = K (s0 + previous) - previous` and its series `W_k = K^k W_0` sum to `S_m - previous`.
+/// `iterations` orders in all (`W_0` the first), closed like [`scatter`]'s series:
+/// `total = max(previous + sum_k W_k + W_last lambda / (1 - lambda), 0)`. `orders` holds the
+/// `W_k`.
+///
+/// # Panics
+/// If `iterations < 2`, or `s0` and `previous` do not have one entry per voxel.
+pub fn scatter_warm(
+    grid: &DensityGrid,
+    k_local: f64,
+    albedo: f64,
+    stencil: ScatterStencil,
+    s0: &[DVec3],
+    previous: &[DVec3],
+    iterations: u32,
+) -> MultipleScattering {
+    assert!(
+        iterations >= 2,
+        "a warm restart takes at least 2 iterations"
+    );
+    assert_eq!(previous.len(), grid.len(), "one previous value per voxel");
+    let start: Vec<DVec3> = s0.iter().zip(previous).map(|(s, x)| *s + *x).collect();
+    let once = scatter_once(grid, k_local, albedo, stencil, &start);
+    let correction: Vec<DVec3> = once.iter().zip(previous).map(|(k, x)| *k - *x).collect();
+    let series = scatter(grid, k_local, albedo, stencil, &correction, iterations - 1);
+    // Clamped at 0 like the GPU's: the truncated correction may overshoot where the light fell.
+    let total = once
+        .iter()
+        .zip(&series.total)
+        .map(|(k, t)| (*k + *t).max(DVec3::ZERO))
+        .collect();
+    let mut orders = vec![correction];
+    orders.extend(series.orders);
+    MultipleScattering {
+        orders,
+        ratio: series.ratio,
         total,
     }
 }
@@ -1380,6 +1434,60 @@ mod tests {
             plain < 0.95 * converged,
             "the closure matters here: {plain} vs {converged}"
         );
+    }
+
+    #[test]
+    fn a_warm_restart_corrects_towards_the_new_solution() {
+        // The sun moves by 10 degrees over a thick, bright cloud. Restarted from the old
+        // solution, 4 iterations land far closer to the converged new solution than 4 from zero,
+        // or than the old solution; from zero, the warm restart is the plain series; from the
+        // converged solution, it stays.
+        let particles = random_cloud(40, 21);
+        let grid = voxelize(&particles, 12).unwrap();
+        let k = 4.0 / (grid.max() * grid.h);
+        let source = |direction: DVec3| {
+            let vol = shade(&grid, &inputs(k, 0.99, 0.0, 12), direction);
+            gather(&grid, &grid, &[(vol, DVec3::ONE)])
+        };
+        let (old, new) = (
+            source(DVec3::new(0.2, -1.0, 0.1)),
+            source(DVec3::new(0.38, -0.95, 0.1)),
+        );
+        let stencil = ScatterStencil::DiscreteOrdinates;
+        let converged = |s0: &[DVec3]| scatter(&grid, k, 0.99, stencil, s0, 400).total;
+        let (before, after) = (converged(&old), converged(&new));
+        let x = |v: &[DVec3]| v.iter().map(|s| s.x).collect::<Vec<_>>();
+        let error =
+            |m: &[DVec3]| crate::reference::metrics::max_relative_difference(&x(m), &x(&after));
+        let warm = scatter_warm(&grid, k, 0.99, stencil, &new, &before, 4);
+        let cold = scatter(&grid, k, 0.99, stencil, &new, 4);
+        assert!(
+            error(&warm.total) < 0.2 * error(&cold.total),
+            "warm {} vs cold {}",
+            error(&warm.total),
+            error(&cold.total)
+        );
+        // (Measured: warm 0.026, cold 0.30, the old solution 0.16 of the largest value.)
+        assert!(
+            error(&warm.total) < 0.2 * error(&before),
+            "warm {}, old solution {}",
+            error(&warm.total),
+            error(&before)
+        );
+        assert!(
+            error(&before) > 0.05,
+            "the sun's move matters: {}",
+            error(&before)
+        );
+
+        let zero = vec![DVec3::ZERO; grid.len()];
+        let from_zero = scatter_warm(&grid, k, 0.99, stencil, &new, &zero, 4);
+        assert!(error(&from_zero.total) > 0.0);
+        for (a, b) in from_zero.total.iter().zip(&cold.total) {
+            assert!((*a - *b).abs().max_element() <= 1e-12 * b.max_element().max(1e-300));
+        }
+        let stays = scatter_warm(&grid, k, 0.99, stencil, &new, &after, 2);
+        assert!(error(&stays.total) < 1e-3, "{}", error(&stays.total));
     }
 
     #[test]

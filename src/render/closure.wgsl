@@ -1,5 +1,6 @@
 // Closing the scattering series (docs/illumination.md §4): the orders past M are taken as
-// geometric with the per-channel ratio of the last two, lambda = sum rho S_M / sum rho S_{M-1},
+// geometric with the per-channel ratio of the last two, lambda = sum rho |S_M| / sum rho |S_{M-1}|
+// (the absolute values matter for a warm restart's correction, whose orders may be negative),
 // and S_M lambda / (1 - lambda) is added to the multiple-scattering volume. Every cloud of a
 // volume pool in one dispatch: z workgroup i closes slot `work[i]`.
 #import bevy_particle_clouds::types::{Slot, flat_invocation}
@@ -36,10 +37,10 @@ fn order_ratio(@builtin(local_invocation_index) i: u32, @builtin(workgroup_id) g
         let v = min(vec4(first) + vec4(0u, 1u, 2u, 3u), vec4(voxels - 1u));
         let inside = vec4<f32>(vec4(first) + vec4(0u, 1u, 2u, 3u) < vec4(voxels));
         let rho = vec4(densities[d + v.x], densities[d + v.y], densities[d + v.z], densities[d + v.w]) * inside;
-        numerator += rho.x * last[s + v.x].xyz + rho.y * last[s + v.y].xyz
-            + rho.z * last[s + v.z].xyz + rho.w * last[s + v.w].xyz;
-        denominator += rho.x * before[s + v.x].xyz + rho.y * before[s + v.y].xyz
-            + rho.z * before[s + v.z].xyz + rho.w * before[s + v.w].xyz;
+        numerator += rho.x * abs(last[s + v.x].xyz) + rho.y * abs(last[s + v.y].xyz)
+            + rho.z * abs(last[s + v.z].xyz) + rho.w * abs(last[s + v.w].xyz);
+        denominator += rho.x * abs(before[s + v.x].xyz) + rho.y * abs(before[s + v.y].xyz)
+            + rho.z * abs(before[s + v.z].xyz) + rho.w * abs(before[s + v.w].xyz);
     }
     numerators[i] = numerator;
     denominators[i] = denominator;
@@ -67,5 +68,7 @@ fn extrapolate(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgr
     }
     let lambda = ratio[slot.ratio].xyz;
     let i = slot.volume + v;
-    multiple[i] += vec4(last[i].xyz * (lambda / (1.0 - lambda)), 0.0);
+    // Never negative: the full series' orders are not; a warm restart's truncated correction may
+    // overshoot where the light fell.
+    multiple[i] = max(multiple[i] + vec4(last[i].xyz * (lambda / (1.0 - lambda)), 0.0), vec4(0.0));
 }

@@ -24,8 +24,8 @@ use super::{
     gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, record_stage},
     particles::GpuParticles,
     pipelines::{
-        ComputeStage, IlluminationPipelines, ReadyPipelines, SweepDirection, sweep_directions,
-        sweep_lines,
+        ComputeStage, IlluminationPipelines, ReadyPipelines, SweepDirection,
+        sweep_direction_offset, sweep_directions, sweep_lines,
     },
     plan::CloudIllumination,
     pools::{PoolId, VolumePool, VolumePools},
@@ -103,12 +103,35 @@ struct Batch {
     work: WorkList,
 }
 
-/// The scattering of a pool's clouds that share an iteration count and stencil.
+impl Batch {
+    /// The batch of `items`, with the bind group `bind` makes for their work list; `None`
+    /// without items.
+    fn new<T: bytemuck::Pod>(
+        device: &RenderDevice,
+        items: &[T],
+        bind: impl FnOnce(&WorkList) -> BindGroup,
+    ) -> Option<Self> {
+        if items.is_empty() {
+            return None;
+        }
+        let work = WorkList::new(device, items);
+        Some(Self {
+            group: bind(&work),
+            work,
+        })
+    }
+}
+
+/// The scattering of a pool's clouds that share an iteration count, a stencil and whether they
+/// restart warm.
 struct ScatterBatch {
     iterations: u32,
     sweep: bool,
-    /// The iterations' three order pairs: `S_0 → a`, `a → b`, `b → a`.
-    groups: [BindGroup; 3],
+    /// A warm restart from the solution `multiple` holds (docs/illumination.md §4).
+    warm: bool,
+    /// The iterations' three order pairs: `S_0 → a`, `a → b`, `b → a`; and `S_0 → b`, a warm
+    /// restart's start.
+    groups: [BindGroup; 4],
     /// The closure, reading the last two orders.
     closure: BindGroup,
     work: WorkList,
@@ -147,12 +170,12 @@ fn scatter_group(k: u32) -> usize {
 }
 
 /// What each pool's clouds run this frame: (slot, light) to shade, slots to gather, and slots
-/// to scatter per (iterations, stencil).
+/// to scatter per (iterations, stencil, warm restart).
 #[derive(Default)]
 struct PoolWork {
     shade: Vec<[u32; 2]>,
     gather: Vec<u32>,
-    scatter: HashMap<(u32, ScatterStencil), Vec<u32>>,
+    scatter: HashMap<(u32, ScatterStencil, bool), Vec<u32>>,
 }
 
 /// Makes the voxelize bind group of every cloud whose density is rebuilt, and the bind groups
@@ -204,16 +227,15 @@ pub(crate) fn prepare_illumination_bind_groups(
             w.gather.push(slot);
         }
         if let Some(iterations) = plan.scatter.filter(|&i| i > 0) {
-            let key = (iterations, plan.stencil);
+            let key = (iterations, plan.stencil, plan.warm);
             w.scatter.entry(key).or_default().push(slot);
         }
     }
     let mut batches = Vec::new();
     for (id, w) in work {
         let pool = &pools.0[&id];
-        let shade = (!w.shade.is_empty()).then(|| {
-            let work = WorkList::new(&device, &w.shade);
-            let group = bind(
+        let shade = Batch::new(&device, &w.shade, |work| {
+            bind(
                 &pipelines.shade,
                 &BindGroupEntries::sequential((
                     pool.slots.as_entire_binding(),
@@ -222,12 +244,10 @@ pub(crate) fn prepare_illumination_bind_groups(
                     pool.optical_depth.as_entire_binding(),
                     work.binding(),
                 )),
-            );
-            Batch { group, work }
+            )
         });
-        let gather = (!w.gather.is_empty()).then(|| {
-            let work = WorkList::new(&device, &w.gather);
-            let group = bind(
+        let gather = Batch::new(&device, &w.gather, |work| {
+            bind(
                 &pipelines.gather,
                 &BindGroupEntries::sequential((
                     pool.slots.as_entire_binding(),
@@ -237,16 +257,17 @@ pub(crate) fn prepare_illumination_bind_groups(
                     pool.source.as_entire_binding(),
                     work.binding(),
                 )),
-            );
-            Batch { group, work }
+            )
         });
         let scatter = w
             .scatter
             .into_iter()
-            .map(|((iterations, stencil), slots)| {
-                scatter_batch(
-                    &bind, &pipelines, pool, iterations, stencil, &device, &slots,
-                )
+            .map(|((iterations, stencil, warm), slots)| {
+                let work = WorkList::new(&device, &slots);
+                let mut batch = scatter_batch(&bind, &pipelines, pool, iterations, work);
+                batch.sweep = stencil == ScatterStencil::DiscreteOrdinates;
+                batch.warm = warm;
+                batch
             })
             .collect();
         let (n, m, _) = id.shape;
@@ -261,18 +282,16 @@ pub(crate) fn prepare_illumination_bind_groups(
     commands.insert_resource(IlluminationBatches(batches));
 }
 
-/// The bind groups and work list of `slots`' scattering, `iterations` of `stencil`, in `pool`.
+/// The bind groups of `iterations` of scattering for the slots of `work`, in `pool` (the
+/// discrete-ordinates stencil, full series: set `sweep` and `warm` for the others).
 fn scatter_batch(
     bind: &impl Fn(&ComputeStage, &[BindGroupEntry]) -> BindGroup,
     pipelines: &IlluminationPipelines,
     pool: &VolumePool,
     iterations: u32,
-    stencil: ScatterStencil,
-    device: &RenderDevice,
-    slots: &[u32],
+    work: WorkList,
 ) -> ScatterBatch {
-    let work = WorkList::new(device, slots);
-    let sweep = |k: u32| {
+    let pair = |from: &Buffer, to: &Buffer| {
         bind(
             &pipelines.sweep,
             &BindGroupEntries::sequential((
@@ -283,14 +302,20 @@ fn scatter_batch(
                     size: Some(SweepDirection::min_size()),
                 },
                 pool.densities.as_entire_binding(),
-                order(pool, k).as_entire_binding(),
-                order(pool, k + 1).as_entire_binding(),
+                from.as_entire_binding(),
+                to.as_entire_binding(),
                 pool.multiple.as_entire_binding(),
                 work.binding(),
             )),
         )
     };
-    let groups = [sweep(0), sweep(1), sweep(2)];
+    let sweep = |k: u32| pair(order(pool, k), order(pool, k + 1));
+    let groups = [
+        sweep(0),
+        sweep(1),
+        sweep(2),
+        pair(&pool.source, &pool.orders[1]),
+    ];
     let closure = bind(
         &pipelines.order_ratio,
         &BindGroupEntries::sequential((
@@ -305,7 +330,8 @@ fn scatter_batch(
     );
     ScatterBatch {
         iterations,
-        sweep: stencil == ScatterStencil::DiscreteOrdinates,
+        sweep: true,
+        warm: false,
         groups,
         closure,
         work,
@@ -451,9 +477,10 @@ pub(crate) fn illuminate_clouds(
         );
     }
 
-    // Multiple scattering (§4): the iterations, then the series' closure.
+    // Multiple scattering (§4): the iterations, then the series' closure. A warm restart starts
+    // from what `multiple` holds; the full series from zero.
     for (_, v, s, _) in &clouds {
-        if s.plan.scatter.is_some() || s.plan.unlit {
+        if (s.plan.scatter.is_some() && !s.plan.warm) || s.plan.unlit {
             let pool = pools.pool(&v.slot);
             let multiple = pool.volume(&pool.multiple, v.slot.index);
             ctx.command_encoder().clear_buffer(
@@ -489,31 +516,50 @@ pub(crate) fn illuminate_clouds(
 }
 
 /// Records a batch's scattering iterations (the discrete-ordinates `sweep`, else the paper's
-/// stencil) on its clouds' `n³` grids, and the closure (§4).
+/// stencil) on its clouds' `n³` grids, and the closure (§4). A warm restart's first iteration
+/// scatters `S_0` plus the solution held, and turns it into the correction's first order.
 fn scatter_batch_passes(
     pass: &mut StagePass,
     ready: &ReadyPipelines,
     batch: &ScatterBatch,
     n: u32,
 ) {
-    pass.set_pipeline(if batch.sweep {
+    let stencil = if batch.sweep {
         ready.sweep
     } else {
         ready.scatter_paper
-    });
+    };
     for (work, items) in batch.work.chunks() {
-        for k in 0..batch.iterations {
-            let group = &batch.groups[scatter_group(k)];
+        let iterate = |pass: &mut StagePass, group: &BindGroup, accumulate: bool| {
             if batch.sweep {
                 // One dispatch per direction pair: the lines of one direction partition the grid.
                 for (i, o) in sweep_directions().enumerate() {
-                    pass.set_bind_group(0, group, &[i as u32 * DYNAMIC_UNIFORM_STRIDE, work]);
+                    let direction = sweep_direction_offset(i, accumulate);
+                    pass.set_bind_group(0, group, &[direction, work]);
                     dispatch_linear(pass, sweep_lines(o, n), items);
                 }
             } else {
-                pass.set_bind_group(0, group, &[0, work]);
+                pass.set_bind_group(0, group, &[sweep_direction_offset(0, accumulate), work]);
                 dispatch_linear(pass, n.pow(3), items);
             }
+        };
+        let first = if batch.warm {
+            // S_0 + X → b, scattered into a without accumulating, then a = W_0 and multiple += W_0.
+            pass.set_pipeline(ready.warm_start);
+            pass.set_bind_group(0, &batch.groups[3], &[0, work]);
+            dispatch_linear(pass, n.pow(3), items);
+            pass.set_pipeline(stencil);
+            iterate(pass, &batch.groups[2], false);
+            pass.set_pipeline(ready.warm_correction);
+            pass.set_bind_group(0, &batch.groups[2], &[0, work]);
+            dispatch_linear(pass, n.pow(3), items);
+            1
+        } else {
+            0
+        };
+        pass.set_pipeline(stencil);
+        for k in first..batch.iterations {
+            iterate(pass, &batch.groups[scatter_group(k)], true);
         }
     }
     for (work, items) in batch.work.chunks() {

@@ -1,6 +1,10 @@
 //! Compute pipelines of the illumination passes, created once in `RenderStartup`.
 
-use super::{gpu::dynamic_uniform, shaders::CloudShaders, volumes::DensityLevels};
+use super::{
+    gpu::{DYNAMIC_UNIFORM_STRIDE, dynamic_uniform},
+    shaders::CloudShaders,
+    volumes::DensityLevels,
+};
 use bevy::{
     prelude::*,
     render::{
@@ -57,6 +61,15 @@ pub struct SweepDirection {
     pub o: IVec3,
     /// 1 for the first dispatch of an iteration (it overwrites `S_{n+1}`), else 0.
     pub first: u32,
+    /// 1 to add the iteration's order to `multiple`; 0 for a warm restart's first sweep.
+    pub accumulate: u32,
+}
+
+/// The dynamic offset of the `SweepDirection` of direction pair `index` (of
+/// [`sweep_directions`]), accumulating or not.
+pub fn sweep_direction_offset(index: usize, accumulate: bool) -> u32 {
+    let entry = index + if accumulate { 0 } else { 13 };
+    entry as u32 * DYNAMIC_UNIFORM_STRIDE
 }
 
 /// The 13 direction pairs of the sweep, each with its number of lattice lines in an `n³` grid:
@@ -95,11 +108,16 @@ pub struct IlluminationPipelines {
     pub sweep: ComputeStage,
     /// `scatter.wgsl`, `scatter_paper` (the paper's stencil; same layout as `sweep`).
     pub scatter_paper: ComputeStage,
+    /// `scatter.wgsl`, `warm_start` (a warm restart's start; same layout).
+    pub warm_start: ComputeStage,
+    /// `scatter.wgsl`, `warm_correction` (a warm restart's first order; same layout).
+    pub warm_correction: ComputeStage,
     /// `closure.wgsl`, `order_ratio`.
     pub order_ratio: ComputeStage,
     /// `closure.wgsl`, `extrapolate` (same layout as `order_ratio`).
     pub extrapolate: ComputeStage,
-    /// The 13 `SweepDirection`s, `DYNAMIC_UNIFORM_STRIDE` bytes apart (a dynamic uniform).
+    /// The 13 `SweepDirection`s accumulating, then not, `DYNAMIC_UNIFORM_STRIDE` bytes apart (a
+    /// dynamic uniform).
     pub sweep_directions: Buffer,
 }
 
@@ -117,6 +135,10 @@ pub struct ReadyPipelines<'a> {
     pub sweep: &'a ComputePipeline,
     /// The paper's stencil.
     pub scatter_paper: &'a ComputePipeline,
+    /// A warm restart's start.
+    pub warm_start: &'a ComputePipeline,
+    /// A warm restart's first order.
+    pub warm_correction: &'a ComputePipeline,
     /// The closure's ratio.
     pub order_ratio: &'a ComputePipeline,
     /// The closure's extrapolation.
@@ -133,21 +155,26 @@ impl IlluminationPipelines {
             gather: self.gather.get(cache)?,
             sweep: self.sweep.get(cache)?,
             scatter_paper: self.scatter_paper.get(cache)?,
+            warm_start: self.warm_start.get(cache)?,
+            warm_correction: self.warm_correction.get(cache)?,
             order_ratio: self.order_ratio.get(cache)?,
             extrapolate: self.extrapolate.get(cache)?,
         })
     }
 }
 
+/// The 13 directions accumulating, then the 13 not (see [`sweep_direction_offset`]).
 fn sweep_direction_buffer(device: &RenderDevice) -> Buffer {
-    dynamic_uniform(
-        device,
-        "particle_clouds_sweep_directions",
-        sweep_directions().enumerate().map(|(i, o)| SweepDirection {
-            o,
-            first: (i == 0) as u32,
-        }),
-    )
+    let entries = [1, 0].into_iter().flat_map(|accumulate| {
+        sweep_directions()
+            .enumerate()
+            .map(move |(i, o)| SweepDirection {
+                o,
+                first: (i == 0) as u32,
+                accumulate,
+            })
+    });
+    dynamic_uniform(device, "particle_clouds_sweep_directions", entries)
 }
 
 pub(crate) fn init_illumination_pipelines(
@@ -224,6 +251,8 @@ pub(crate) fn init_illumination_pipelines(
         gather: stage(&shaders.gather, "gather", &gather),
         sweep: stage(&shaders.scatter, "sweep", &scatter),
         scatter_paper: stage(&shaders.scatter, "scatter_paper", &scatter),
+        warm_start: stage(&shaders.scatter, "warm_start", &scatter),
+        warm_correction: stage(&shaders.scatter, "warm_correction", &scatter),
         order_ratio: stage(&shaders.closure, "order_ratio", &closure),
         extrapolate: stage(&shaders.closure, "extrapolate", &closure),
         sweep_directions: sweep_direction_buffer(&device),

@@ -25,6 +25,10 @@ pub struct StageKeys {
     pub gather: u64,
     /// Scatter: the gathered source, the medium and the scattering knobs.
     pub scatter: u64,
+    /// The scattering operator alone: the density, the medium and the scattering knobs, without
+    /// the source. When only the source changed (a light moved), the scattering may restart from
+    /// the solution the volumes hold.
+    pub medium: u64,
 }
 
 impl StageKeys {
@@ -63,18 +67,21 @@ impl StageKeys {
             .map(|(key, light)| (*key, bits(light.irradiance)))
             .collect();
         let gather = key_of((&gather_inputs, density, params.supersampling));
-        let scatter = key_of((
-            gather,
+        let medium = key_of((
+            density,
+            params.supersampling,
             params.k_local.to_bits(),
             params.albedo.to_bits(),
             settings.scatter_stencil,
             settings.scatter_iterations,
+            settings.warm_scatter_iterations,
         ));
         Self {
             density,
             lights: keys,
             gather,
-            scatter,
+            scatter: key_of((gather, medium)),
+            medium,
         }
     }
 }
@@ -94,6 +101,9 @@ pub struct WorkPlan {
     pub stencil: ScatterStencil,
     /// No light reaches the cloud: its multiple scattering is zeroed instead of computed.
     pub unlit: bool,
+    /// The scattering restarts from the solution the volumes hold (only the source changed):
+    /// `scatter` is then `warm_scatter_iterations` (docs/illumination.md §4).
+    pub warm: bool,
 }
 
 impl WorkPlan {
@@ -112,7 +122,21 @@ pub fn plan(cached: &StageKeys, now: &StageKeys, settings: &CloudQualitySettings
             ..default()
         };
     }
-    let changed = (now.scatter != cached.scatter).then_some(settings.scatter_iterations);
+    // Only the source changed (a light moved or changed colour), and the volumes hold a
+    // scattering solution of this medium to restart from.
+    let warm = settings.warm_scatter_iterations > 0
+        && settings.scatter_iterations > 0
+        && now.scatter != cached.scatter
+        && now.medium == cached.medium
+        && now.gather != cached.gather
+        && cached.gather != StageKeys::UNLIT
+        && cached.scatter != 0;
+    let iterations = if warm {
+        settings.warm_scatter_iterations
+    } else {
+        settings.scatter_iterations
+    };
+    let changed = (now.scatter != cached.scatter).then_some(iterations);
     WorkPlan {
         voxelize: now.density != cached.density,
         shade: (0..now.lights.len())
@@ -126,8 +150,12 @@ pub fn plan(cached: &StageKeys, now: &StageKeys, settings: &CloudQualitySettings
             default()
         },
         unlit: false,
+        warm,
     }
 }
+
+/// Marks the scatter key of a warm restart's solution.
+const WARM_RESTART: u64 = 0x5741_524d_5354_4152;
 
 /// A cloud's illumination state (render world component): the keys of what its volumes hold,
 /// this frame's plan, and whether a finished illumination exists.
@@ -153,6 +181,13 @@ impl CloudIllumination {
                 gather: StageKeys::UNLIT,
                 scatter: 0,
                 ..std::mem::take(&mut self.keys)
+            }
+        } else if self.plan.warm {
+            // A warm restart's solution is not the full solve's: the next frame with the same
+            // source settles it (its scatter key differs), and then nothing runs.
+            StageKeys {
+                scatter: now.scatter ^ WARM_RESTART,
+                ..now
             }
         } else {
             now
@@ -211,6 +246,7 @@ mod tests {
                 scatter: Some(settings.scatter_iterations),
                 stencil: settings.scatter_stencil,
                 unlit: false,
+                warm: false,
             }
         );
         // Nothing changed: nothing runs.
@@ -249,6 +285,50 @@ mod tests {
         // New particles: everything.
         let p = plan(&first, &keys(&two, 2, &settings), &settings);
         assert_eq!(p, all);
+    }
+
+    #[test]
+    fn a_moved_light_restarts_warm_and_a_still_one_settles_with_a_full_solve() {
+        let settings = CloudQualitySettings {
+            warm_scatter_iterations: 6,
+            ..default()
+        };
+        let mut state = CloudIllumination::default();
+        let lit = |w: Vec3| keys(&[light(w, 1.0, 0)], 1, &settings);
+        // The first solve is a full one.
+        state.update(lit(Vec3::X), &settings);
+        assert_eq!((state.plan.scatter, state.plan.warm), (Some(32), false));
+        // The light moves: shade, gather, and a warm restart.
+        state.update(lit(Vec3::new(1.0, 0.1, 0.0)), &settings);
+        assert_eq!(state.plan.shade, [0]);
+        assert_eq!((state.plan.scatter, state.plan.warm), (Some(6), true));
+        state.update(lit(Vec3::new(1.0, 0.2, 0.0)), &settings);
+        assert_eq!((state.plan.scatter, state.plan.warm), (Some(6), true));
+        // It stops: one full solve settles the series, then nothing runs.
+        state.update(lit(Vec3::new(1.0, 0.2, 0.0)), &settings);
+        assert_eq!(state.plan.shade, Vec::<usize>::new());
+        assert_eq!((state.plan.scatter, state.plan.warm), (Some(32), false));
+        state.update(lit(Vec3::new(1.0, 0.2, 0.0)), &settings);
+        assert!(state.plan.is_empty());
+        // A new medium (or density) restarts from zero, whatever the lights.
+        let thicker = |w: Vec3| {
+            let params = CloudParams {
+                k_local: 20.0,
+                ..params()
+            };
+            StageKeys::new(&params, &[light(w, 1.0, 0)], 1, &settings)
+        };
+        state.update(thicker(Vec3::Y), &settings);
+        assert_eq!((state.plan.scatter, state.plan.warm), (Some(32), false));
+        // Off (0): always the full solve.
+        let cold = CloudQualitySettings {
+            warm_scatter_iterations: 0,
+            ..default()
+        };
+        let mut state = CloudIllumination::default();
+        state.update(keys(&[light(Vec3::X, 1.0, 0)], 1, &cold), &cold);
+        state.update(keys(&[light(Vec3::Y, 1.0, 0)], 1, &cold), &cold);
+        assert_eq!((state.plan.scatter, state.plan.warm), (Some(32), false));
     }
 
     #[test]

@@ -4,10 +4,12 @@
 #import bevy_particle_clouds::types::{CloudParams, Slot, voxel_index, flat_invocation}
 
 // One direction pair (o, -o) of the discrete-ordinates sweep, o's first non-zero component
-// positive; `first` is 1 for the first of an iteration's 13 dispatches (it overwrites S_{n+1}).
+// positive; `first` is 1 for the first of an iteration's 13 dispatches (it overwrites S_{n+1});
+// `accumulate` is 0 for the first sweep of a warm restart, which leaves `multiple` alone.
 struct SweepDirection {
     o: vec3<i32>,
     first: u32,
+    accumulate: u32,
 }
 
 @group(0) @binding(0) var<storage, read> slots: array<Slot>;
@@ -76,7 +78,9 @@ fn deposit(voxel: u32, radiance: vec3<f32>, overwrite: bool) {
     } else {
         s_out[i] += share;
     }
-    multiple[i] += share;
+    if direction.accumulate != 0u {
+        multiple[i] += share;
+    }
 }
 
 // One invocation per lattice line of direction o: marches it against o (radiance arriving from
@@ -171,5 +175,35 @@ fn scatter_paper(@builtin(global_invocation_id) invocation: vec3<u32>, @builtin(
     let opacity = 1.0 - exp(-cloud.k_local * density(flat) * cloud.h);
     let s = sum * (cloud.albedo / 26.0 * opacity);
     s_out[slot.volume + flat] = vec4(s, 0.0);
-    multiple[slot.volume + flat] += vec4(s, 0.0);
+    if direction.accumulate != 0u {
+        multiple[slot.volume + flat] += vec4(s, 0.0);
+    }
+}
+
+// A warm restart (docs/illumination.md §4) from the solution X that `multiple` holds: its first
+// sweep scatters S_0 + X (written here into s_out, from S_0 in s_in) without accumulating.
+@compute @workgroup_size(#{LINEAR_WORKGROUP})
+fn warm_start(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    begin(id.z);
+    let v = flat_invocation(id, groups);
+    if v >= cloud.n * cloud.n * cloud.n {
+        return;
+    }
+    let i = slot.volume + v;
+    s_out[i] = s_in[i] + multiple[i];
+}
+
+// Then s_out holds K (S_0 + X): the correction W_0 = K (S_0 + X) - X becomes the series' first
+// order, and `multiple` becomes X + W_0.
+@compute @workgroup_size(#{LINEAR_WORKGROUP})
+fn warm_correction(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    begin(id.z);
+    let v = flat_invocation(id, groups);
+    if v >= cloud.n * cloud.n * cloud.n {
+        return;
+    }
+    let i = slot.volume + v;
+    let scattered = s_out[i];
+    s_out[i] = scattered - multiple[i];
+    multiple[i] = scattered;
 }

@@ -12,3 +12,4 @@ mod lod;
 mod plugin;
 mod shading_method;
 mod stress;
+mod warm_start;

@@ -1,0 +1,125 @@
+//! The warm restart of the scattering on the GPU against the f64 CPU reference: when only the
+//! light moves, the scattering restarts from the solution the volumes hold
+//! (`warm_scatter_iterations`), and the first frame the light stays still settles it with the
+//! full series.
+
+use bevy::prelude::*;
+use bevy_particle_clouds::headless::{self, FrameRecorder};
+use bevy_particle_clouds::{
+    CloudPass, CloudQualitySettings, Medium, ScatterStencil,
+    reference::{
+        illumination::{LocalLight, illuminate, scatter_warm},
+        metrics::max_relative_difference,
+    },
+    render::{pools::VolumePools, volumes::CloudVolumes},
+};
+
+use crate::{common, illumination::random_particles};
+
+/// As in the illumination tests: f32 storage and arbitrary summation order.
+const TOLERANCE: f64 = 2e-4;
+
+fn gpu_multiple(app: &mut App) -> Vec<f64> {
+    let range = common::with_render_world(app, |world| {
+        let volumes = world
+            .query::<&CloudVolumes>()
+            .single(world)
+            .expect("one cloud's volumes");
+        let pool = world.resource::<VolumePools>().pool(&volumes.slot);
+        pool.volume(&pool.multiple, volumes.slot.index)
+    });
+    let bytes = headless::read_buffer_range(app, &range).unwrap();
+    headless::floats(&bytes)
+        .chunks_exact(4)
+        .flat_map(|c| [c[0], c[1], c[2]])
+        .map(f64::from)
+        .collect()
+}
+
+fn flat(v: &[bevy::math::DVec3]) -> Vec<f64> {
+    v.iter().flat_map(|s| s.to_array()).collect()
+}
+
+#[test]
+fn a_moving_light_restarts_warm_and_a_still_one_settles() {
+    let particles = random_particles(3, 60);
+    let medium = Medium {
+        extinction: 8.0,
+        albedo: 0.95,
+    };
+    let settings = CloudQualitySettings {
+        warm_scatter_iterations: 3,
+        ..common::quality(16, 8)
+    };
+    let (a, b) = (Vec3::new(0.2, -1.0, 0.1), Vec3::new(0.5, -0.9, 0.1));
+    let irradiance = Vec3::new(1.0, 0.9, 0.8);
+
+    let mut app = common::headless_app();
+    let image = headless::float_target(&mut app, 16, 16);
+    let eye = Transform::from_xyz(0.0, 0.0, 6.0).looking_at(Vec3::ZERO, Vec3::Y);
+    headless::spawn_linear_camera(&mut app, image, eye, 60.0, Vec3::ZERO);
+    let light = headless::spawn_light(&mut app, a, irradiance);
+    headless::spawn_cloud(
+        &mut app,
+        particles.clone(),
+        medium,
+        settings,
+        Transform::IDENTITY,
+    );
+    let mut recorder = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut recorder, 1, 20).unwrap();
+
+    // The light turns: one frame shades, gathers and restarts warm (3 iterations).
+    *app.world_mut().get_mut::<Transform>(light).unwrap() =
+        Transform::default().looking_to(b, Vec3::Y);
+    let warm_frame = recorder.frame(&mut app).unwrap().clone();
+    assert_eq!(warm_frame.runs(CloudPass::Shade), 1);
+    assert_eq!(warm_frame.runs(CloudPass::Scatter), 3);
+    // The warm start, the not-accumulating sweep and the correction add 2 dispatches.
+    assert_eq!(warm_frame.dispatches(CloudPass::Scatter), 3 * 13 + 2 + 2);
+    let warm = gpu_multiple(&mut app);
+
+    let cpu = |direction: Vec3| {
+        let light = LocalLight {
+            direction: direction.as_dvec3(),
+            irradiance: irradiance.as_dvec3(),
+        };
+        illuminate(&particles, &medium, 1.0, &[light], &settings).unwrap()
+    };
+    let (before, after) = (cpu(a), cpu(b));
+    let restarted = scatter_warm(
+        &after.grid,
+        after.k_local,
+        after.albedo,
+        ScatterStencil::DiscreteOrdinates,
+        &after.source,
+        &before.multiple.total,
+        3,
+    );
+    let error = max_relative_difference(&warm, &flat(&restarted.total));
+    assert!(error <= TOLERANCE, "warm restart: GPU differs by {error:e}");
+    // It is not the full series' result (else this test could not tell them apart) ...
+    let full = flat(&after.multiple.total);
+    let apart = max_relative_difference(&flat(&restarted.total), &full);
+    assert!(
+        apart > 10.0 * TOLERANCE,
+        "warm and full differ by {apart:e} only"
+    );
+    // ... but far closer to it than where it started.
+    let moved = max_relative_difference(&flat(&before.multiple.total), &full);
+    assert!(apart < 0.25 * moved, "warm {apart:e}, start {moved:e}");
+
+    // The light stays: the full series settles it, then nothing runs.
+    let settle = recorder.frame(&mut app).unwrap().clone();
+    assert_eq!(
+        (
+            settle.runs(CloudPass::Shade),
+            settle.runs(CloudPass::Scatter)
+        ),
+        (0, 8)
+    );
+    let settled = gpu_multiple(&mut app);
+    let error = max_relative_difference(&settled, &full);
+    assert!(error <= TOLERANCE, "settled: GPU differs by {error:e}");
+    assert_eq!(recorder.frame(&mut app).unwrap().work(), 0);
+}
