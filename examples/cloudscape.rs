@@ -19,8 +19,8 @@
 //! next re-lighting. With the sun moving, the clouds take turns: at most `CloudRelightBudget`
 //! clouds are re-lit per frame, the others keep their previous lighting until their turn, and a
 //! re-lit cloud restarts its scattering from its previous solution (`warm_scatter_iterations`,
-//! 4 iterations instead of the 8 of a full solve). Shade, gather and scatter run one dispatch
-//! each for all the clouds of a resolution (the HUD's dispatch count).
+//! 4 iterations instead of the 8 of a full solve). Shade, gather and scatter take the same
+//! dispatches for all the clouds of a resolution (the on-screen dispatch count).
 
 mod support;
 
@@ -28,7 +28,7 @@ use std::process::ExitCode;
 
 use bevy::{platform::collections::HashMap, prelude::*};
 use bevy_particle_clouds::prelude::*;
-use support::{Example, Hud, HudLines, KeyLight, Options, OrbitCamera};
+use support::{Example, Hud, HudLines, KeyLight, Options, OrbitCamera, PassCounts};
 
 const EXAMPLE: Example = Example {
     title: "bevy_particle_clouds: a cloudscape",
@@ -204,7 +204,7 @@ fn describe(
         Res<CloudLevelOfDetail>,
         Res<CloudRelightBudget>,
     ),
-    quality: Res<DefaultCloudQuality>,
+    (quality, counts): (Res<DefaultCloudQuality>, Res<PassCounts>),
     sun: Query<&KeyLight>,
     clouds: Query<(&ParticleCloud, Option<&CloudLod>)>,
     particles: Res<Assets<Particles>>,
@@ -216,10 +216,11 @@ fn describe(
         .map(|p| p.particles.len())
         .sum();
     hud.lines.push(format!(
-        "{} clouds, {count} particles, at most {}^3 voxels, {} scatter iterations",
+        "{} clouds, {count} particles, at most {}^3 voxels, {} scatter iterations ({} warm)",
         clouds.iter().len(),
         quality.volume_resolution,
-        quality.scatter_iterations
+        quality.scatter_iterations,
+        quality.warm_scatter_iterations
     ));
     let mut levels: HashMap<u32, usize> = HashMap::default();
     for (_, l) in &clouds {
@@ -240,10 +241,14 @@ fn describe(
         "level of detail {mode}: {} (a change waits until the cloud is re-lit)",
         levels.join(", ")
     ));
-    hud.lines.push(match budget.0 {
+    let budget = match budget.0 {
         0 => "re-light budget: none (every cloud re-lit when the sun moves)".into(),
         n => format!("re-light budget: {n} clouds per frame (the others wait their turn)"),
-    });
+    };
+    hud.lines.push(format!(
+        "{budget}; {} compute dispatches last frame",
+        counts.dispatches_last
+    ));
     for light in &sun {
         hud.lines.push(format!(
             "{}, {}; camera {}",

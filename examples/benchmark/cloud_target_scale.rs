@@ -30,16 +30,9 @@ struct ScaleRow {
 }
 
 pub(crate) fn cloud_target_benchmark(args: &Args) -> Result<(), String> {
-    let chosen: Vec<&BenchScene> = SCENES
-        .iter()
-        .filter(|s| match &args.scenes {
-            Some(names) => names.iter().any(|n| n == s.name),
-            None => DEFAULT_SCENES.contains(&s.name),
-        })
-        .collect();
     let mut rows = Vec::new();
     let mut adapter = String::new();
-    for bench in chosen {
+    for bench in chosen_scenes(args, &DEFAULT_SCENES) {
         let scene = load_scene(bench)?;
         let reference = reference(&scene, bench, args.spp.unwrap_or(bench.spp), &args.out)?;
         let reference_image = reference.image.clone();

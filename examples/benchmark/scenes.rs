@@ -160,6 +160,17 @@ pub(crate) fn round_cloud() -> Vec<Particle> {
         .collect()
 }
 
+/// The scenes `--scenes` names, else `defaults`.
+pub(crate) fn chosen_scenes(args: &Args, defaults: &[&str]) -> Vec<&'static BenchScene> {
+    SCENES
+        .iter()
+        .filter(|s| match &args.scenes {
+            Some(names) => names.iter().any(|n| n == s.name),
+            None => defaults.contains(&s.name),
+        })
+        .collect()
+}
+
 pub(crate) fn scenes_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("benchmarks/scenes")
 }

@@ -51,16 +51,9 @@ fn scatter_ms(b: &Bench, first: usize) -> Option<f64> {
 }
 
 pub(crate) fn warm_start_benchmark(args: &Args) -> Result<(), String> {
-    let chosen: Vec<&BenchScene> = SCENES
-        .iter()
-        .filter(|s| match &args.scenes {
-            Some(names) => names.iter().any(|n| n == s.name),
-            None => DEFAULT_SCENES.contains(&s.name),
-        })
-        .collect();
     let mut rows = Vec::new();
     let mut adapter = String::new();
-    for bench in chosen {
+    for bench in chosen_scenes(args, &DEFAULT_SCENES) {
         let scene = load_scene(bench)?;
         let reference = reference(&scene, bench, args.spp.unwrap_or(bench.spp), &args.out)?;
         let error = |image: &LinearImage| {

@@ -536,11 +536,7 @@ fn compose_hud(
         .iter()
         .map(|&p| format!("{} {}", p.name(), counts.last(p)))
         .collect();
-    s.push_str(&format!(
-        "runs last frame: {} ({} compute dispatches)\n",
-        runs.join(", "),
-        counts.dispatches_last
-    ));
+    s.push_str(&format!("runs last frame: {}\n", runs.join(", ")));
     let gpu: Vec<String> = CloudPass::ALL
         .iter()
         .map(|&p| {

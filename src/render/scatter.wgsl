@@ -180,16 +180,27 @@ fn scatter_paper(@builtin(global_invocation_id) invocation: vec3<u32>, @builtin(
     }
 }
 
+const PAST_THE_GRID: u32 = 0xffffffffu;
+
+// The element of a one-voxel-per-invocation kernel's voxel in its slot's volumes, or
+// PAST_THE_GRID.
+fn slot_element(id: vec3<u32>, groups: vec3<u32>) -> u32 {
+    begin(id.z);
+    let v = flat_invocation(id, groups);
+    if v >= cloud.n * cloud.n * cloud.n {
+        return PAST_THE_GRID;
+    }
+    return slot.volume + v;
+}
+
 // A warm restart (docs/illumination.md §4) from the solution X that `multiple` holds: its first
 // sweep scatters S_0 + X (written here into s_out, from S_0 in s_in) without accumulating.
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn warm_start(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    begin(id.z);
-    let v = flat_invocation(id, groups);
-    if v >= cloud.n * cloud.n * cloud.n {
+    let i = slot_element(id, groups);
+    if i == PAST_THE_GRID {
         return;
     }
-    let i = slot.volume + v;
     s_out[i] = s_in[i] + multiple[i];
 }
 
@@ -197,12 +208,10 @@ fn warm_start(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgro
 // order, and `multiple` becomes X + W_0.
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn warm_correction(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    begin(id.z);
-    let v = flat_invocation(id, groups);
-    if v >= cloud.n * cloud.n * cloud.n {
+    let i = slot_element(id, groups);
+    if i == PAST_THE_GRID {
         return;
     }
-    let i = slot.volume + v;
     let scattered = s_out[i];
     s_out[i] = scattered - multiple[i];
     multiple[i] = scattered;
