@@ -374,6 +374,7 @@ pub(crate) fn prepare_billboard_bind_groups(
         let pool = pools.pool(&volumes.slot);
         let optical_depth = pool.optical_depth(volumes.slot.index);
         let multiple = pool.volume(&pool.multiple, volumes.slot.index);
+        let lights = pool.lights(volumes.slot.index);
         let layout = pipeline_cache.get_bind_group_layout(pipeline.cloud_layout(compositing));
         let world_from_local = Mat4::from(cloud.world_from_local);
         let params = DrawParams {
@@ -395,8 +396,8 @@ pub(crate) fn prepare_billboard_bind_groups(
             params.extinction.to_bits(),
             params.segments,
             gpu.buffer.id(),
-            [&volumes.params_buffer, &volumes.light_array].map(|b| b.id()),
-            [&optical_depth, &multiple].map(|r| (r.buffer.id(), r.offset)),
+            volumes.params_buffer.id(),
+            [&lights, &optical_depth, &multiple].map(|r| (r.buffer.id(), r.offset)),
             views,
             compositing,
         ));
@@ -416,7 +417,7 @@ pub(crate) fn prepare_billboard_bind_groups(
                     volumes.params_buffer.as_entire_binding(),
                     gpu.buffer.as_entire_binding(),
                     a.as_entire_binding(),
-                    volumes.light_array.as_entire_binding(),
+                    lights.binding(),
                     optical_depth.binding(),
                     multiple.binding(),
                 );

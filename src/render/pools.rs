@@ -72,6 +72,9 @@ struct SlotBytes {
     optical_depth: u64,
     /// One `n³` vec4 volume (`source`, each order, `multiple`).
     volume: u64,
+    /// Every light's `LightParams` (at least one: a binding of a runtime-sized array may not be
+    /// shorter).
+    lights: u64,
 }
 
 fn aligned(bytes: u64) -> u64 {
@@ -89,6 +92,7 @@ impl VolumeShape {
             fine_density,
             optical_depth: aligned((self.m as u64).pow(3) * 4 * self.lights.max(1) as u64),
             volume: aligned(voxels * 16),
+            lights: aligned(LightParams::min_size().get() * self.lights.max(1) as u64),
         }
     }
 
@@ -162,7 +166,7 @@ pub struct VolumePool {
     free: Arc<Mutex<Vec<u32>>>,
     /// `Slot` per slot.
     pub slots: Buffer,
-    /// `LightParams` per slot and light.
+    /// `LightParams` per slot and light, each slot's on a [`SLOT_ALIGNMENT`] boundary.
     pub lights: Buffer,
     /// f32 fine density levels and scattering-grid density per slot.
     pub densities: Buffer,
@@ -182,7 +186,6 @@ impl VolumePool {
     fn new(device: &RenderDevice, shape: VolumeShape, capacity: u32, max_slots: u32) -> Self {
         let b = shape.bytes();
         let c = capacity as u64;
-        let lights = LightParams::min_size().get() * shape.lights.max(1) as u64;
         Self {
             shape,
             capacity,
@@ -190,7 +193,7 @@ impl VolumePool {
             used: 0,
             free: Arc::default(),
             slots: storage(device, "particle_clouds_slots", Slot::min_size().get() * c),
-            lights: storage(device, "particle_clouds_pool_lights", lights * c),
+            lights: storage(device, "particle_clouds_pool_lights", b.lights * c),
             densities: storage(device, "particle_clouds_densities", b.densities * c),
             optical_depth: storage(device, "particle_clouds_optical_depth", b.optical_depth * c),
             source: storage(device, "particle_clouds_source", b.volume * c),
@@ -280,7 +283,7 @@ impl VolumePool {
             density: element(i * b.densities + b.density_at, 4),
             optical_depth: element(i * b.optical_depth, 4),
             volume: element(i * b.volume, 16),
-            lights: index * self.shape.lights,
+            lights: element(i * b.lights, LightParams::min_size().get()),
             ratio: index,
         }
     }
@@ -318,6 +321,13 @@ impl VolumePool {
         let b = self.shape.bytes();
         let size = (self.shape.n as u64).pow(3) * 16;
         Self::range(buffer, index, b.volume, 0, size)
+    }
+
+    /// Slot `index`'s `LightParams` (the billboards bind them).
+    pub fn lights(&self, index: u32) -> BufferRange {
+        let b = self.shape.bytes();
+        let size = LightParams::min_size().get() * self.shape.lights.max(1) as u64;
+        Self::range(&self.lights, index, b.lights, 0, size)
     }
 
     /// Slot `index`'s closure ratio.
@@ -383,13 +393,20 @@ mod tests {
             lights: 3,
         };
         let b = shape.bytes();
-        for bytes in [b.densities, b.density_at, b.optical_depth, b.volume] {
+        for bytes in [
+            b.densities,
+            b.density_at,
+            b.optical_depth,
+            b.volume,
+            b.lights,
+        ] {
             assert_eq!(bytes % SLOT_ALIGNMENT, 0, "{b:?}");
         }
         assert!(b.fine_density >= 1000 * 4 && b.density_at >= b.fine_density);
         assert!(b.densities - b.density_at >= 125 * 4);
         assert!(b.optical_depth >= 3 * 1000 * 4);
         assert!(b.volume >= 125 * 16);
+        assert!(b.lights >= 3 * LightParams::min_size().get());
     }
 
     #[test]

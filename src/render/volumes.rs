@@ -181,20 +181,8 @@ pub struct CloudVolumes {
     pub density_levels: Buffer,
     /// One f32 per particle: its kernel's sum over the fine voxel centres in its support (voxelize).
     pub kernel_sums: Buffer,
-    /// Every light's `LightParams`, a storage array (the billboards).
-    pub light_array: Buffer,
     /// Its slot in the pool of its shape.
     pub slot: PoolSlot,
-}
-
-/// The storage array of `count` lights' `LightParams` (at least one element: a binding of a
-/// runtime-sized array may not be shorter).
-fn light_array(device: &RenderDevice, count: u32) -> Buffer {
-    storage(
-        device,
-        "particle_clouds_lights",
-        LightParams::min_size().get() * count.max(1) as u64,
-    )
 }
 
 impl CloudVolumes {
@@ -237,7 +225,6 @@ impl CloudVolumes {
                 "particle_clouds_kernel_sums",
                 particle_count as u64 * 4,
             ),
-            light_array: light_array(device, shape.lights),
             slot,
         })
     }
@@ -450,10 +437,8 @@ fn plan_cloud(
         &storage_bytes(&[slot]),
     );
     if !light_params.is_empty() {
-        let bytes = storage_bytes(&light_params);
-        queue.write_buffer(&volumes.light_array, 0, &bytes);
         let first = slot.lights as u64 * LightParams::min_size().get();
-        queue.write_buffer(&pool.lights, first, &bytes);
+        queue.write_buffer(&pool.lights, first, &storage_bytes(&light_params));
     }
 }
 

@@ -20,7 +20,7 @@ use bevy_particle_clouds::{
 
 use crate::common;
 
-const TOLERANCE: f64 = 2e-4;
+pub(crate) const TOLERANCE: f64 = 2e-4;
 
 struct Case {
     particles: Vec<Particle>,
@@ -28,6 +28,11 @@ struct Case {
     lights: Vec<LightSample>,
     transform: Transform,
     settings: CloudQualitySettings,
+}
+
+/// A CPU volume of RGB as flat floats, like [`rgb`]'s.
+pub(crate) fn flat(v: &[bevy::math::DVec3]) -> Vec<f64> {
+    v.iter().flat_map(|c| c.to_array()).collect()
 }
 
 pub(crate) fn random_particles(seed: u64, count: usize) -> Vec<Particle> {
@@ -45,7 +50,8 @@ fn random_direction(rng: &mut SplitMix64) -> Vec3 {
     rng.in_unit_ball().try_normalize().unwrap_or(Vec3::NEG_Y)
 }
 
-fn rgb(bytes: &[u8]) -> Vec<f64> {
+/// The RGB of an RGBA f32 volume.
+pub(crate) fn rgb(bytes: &[u8]) -> Vec<f64> {
     headless::floats(bytes)
         .chunks_exact(4)
         .flat_map(|c| [c[0], c[1], c[2]])
@@ -136,7 +142,6 @@ fn check(case: Case) {
         &case.settings,
     )
     .expect("a cloud with density");
-    let flat = |v: &[bevy::math::DVec3]| v.iter().flat_map(|c| c.to_array()).collect::<Vec<f64>>();
 
     let n3 = (case.settings.volume_resolution as usize).pow(3);
     let m3 = (case.settings.light_resolution() as usize).pow(3);

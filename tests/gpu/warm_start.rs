@@ -14,10 +14,11 @@ use bevy_particle_clouds::{
     render::{pools::VolumePools, volumes::CloudVolumes},
 };
 
-use crate::{common, illumination::random_particles};
-
-/// As in the illumination tests: f32 storage and arbitrary summation order.
-const TOLERANCE: f64 = 2e-4;
+// The illumination tests' tolerance: f32 storage and arbitrary summation order.
+use crate::{
+    common,
+    illumination::{TOLERANCE, flat, random_particles, rgb},
+};
 
 fn gpu_multiple(app: &mut App) -> Vec<f64> {
     let range = common::with_render_world(app, |world| {
@@ -28,16 +29,7 @@ fn gpu_multiple(app: &mut App) -> Vec<f64> {
         let pool = world.resource::<VolumePools>().pool(&volumes.slot);
         pool.volume(&pool.multiple, volumes.slot.index)
     });
-    let bytes = headless::read_buffer_range(app, &range).unwrap();
-    headless::floats(&bytes)
-        .chunks_exact(4)
-        .flat_map(|c| [c[0], c[1], c[2]])
-        .map(f64::from)
-        .collect()
-}
-
-fn flat(v: &[bevy::math::DVec3]) -> Vec<f64> {
-    v.iter().flat_map(|s| s.to_array()).collect()
+    rgb(&headless::read_buffer_range(app, &range).unwrap())
 }
 
 #[test]
