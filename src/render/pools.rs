@@ -78,7 +78,27 @@ struct SlotBytes {
 }
 
 fn aligned(bytes: u64) -> u64 {
-    bytes.max(1).div_ceil(SLOT_ALIGNMENT) * SLOT_ALIGNMENT
+    aligned_to(bytes, SLOT_ALIGNMENT)
+}
+
+/// `bytes` (at least 1) rounded up to a multiple of `unit`.
+fn aligned_to(bytes: u64, unit: u64) -> u64 {
+    bytes.max(1).div_ceil(unit) * unit
+}
+
+/// The stride of the slots' `LightParams`: on [`SLOT_ALIGNMENT`] boundaries, and a whole number
+/// of `LightParams`, so that the element the passes index and the range the billboards bind
+/// start at the same byte.
+fn light_stride(lights: u32) -> u64 {
+    let size = LightParams::min_size().get();
+    let gcd = |mut a: u64, mut b: u64| {
+        while b != 0 {
+            (a, b) = (b, a % b);
+        }
+        a
+    };
+    let unit = SLOT_ALIGNMENT / gcd(SLOT_ALIGNMENT, size) * size;
+    aligned_to(size * lights.max(1) as u64, unit)
 }
 
 impl VolumeShape {
@@ -92,7 +112,7 @@ impl VolumeShape {
             fine_density,
             optical_depth: aligned((self.m as u64).pow(3) * 4 * self.lights.max(1) as u64),
             volume: aligned(voxels * 16),
-            lights: aligned(LightParams::min_size().get() * self.lights.max(1) as u64),
+            lights: light_stride(self.lights),
         }
     }
 
@@ -407,6 +427,8 @@ mod tests {
         assert!(b.optical_depth >= 3 * 1000 * 4);
         assert!(b.volume >= 125 * 16);
         assert!(b.lights >= 3 * LightParams::min_size().get());
+        // The passes index the lights by element, the billboards bind them by byte: the same place.
+        assert_eq!(b.lights % LightParams::min_size().get(), 0, "{b:?}");
     }
 
     #[test]
