@@ -30,7 +30,8 @@ pub enum ScatterStencil {
 #[reflect(Default, Debug, PartialEq)]
 pub enum Compositing {
     /// The paper's compositing: particles sorted back to front by centre depth (on the GPU, once
-    /// per view change) and blended whole over each other, each with its exact alpha. Exact for
+    /// per view change) and blended whole over each other, each with its exact alpha. The cloud is
+    /// drawn whole, ordered by its centre against other clouds. Exact for
     /// particles that do not overlap along a ray; optically thick particles that interpenetrate
     /// hide each other's light as whole discs, so it errs where they do (0.069 on the
     /// benchmark's `albedo_one` cloud, growing with the resolution), but it draws each particle
@@ -38,9 +39,10 @@ pub enum Compositing {
     Sorted,
     /// Every piece of a particle's chord is seen through the whole cloud's optical depth towards
     /// the camera, read from a per-view volume marched through the fine density grid once per view
-    /// change. Each particle's light is added and the background is multiplied by every particle's
-    /// transmittance, so no order is needed and interpenetrating particles hide each other's light
-    /// only where they overlap. The volume blurs the other particles' shadows by about a fine
+    /// change, and through the volumes of the other such clouds that overlap it on screen. Each
+    /// particle's light is added and the background is multiplied by every particle's
+    /// transmittance, so no order is needed: interpenetrating particles, and interpenetrating
+    /// clouds, hide each other's light only where they overlap. The volume blurs the other particles' shadows by about a fine
     /// voxel, so it wants a fine grid (`light_supersampling` 3) and 8 chord segments. The
     /// default: with those it is within the accuracy goals on every benchmark scene, where
     /// `Sorted` is not (README, "Accuracy").

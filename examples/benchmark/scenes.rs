@@ -80,6 +80,15 @@ pub(crate) const SCENES: &[BenchScene] = &[
         quick: true,
     },
     BenchScene {
+        name: "interleaved_clouds",
+        // Its second cloud reads paper_3100.ply, which `load_scene` writes from paper_3100.
+        particle_file: "cumulus.csv",
+        generate: cumulus_2000,
+        error_downsample: 2,
+        spp: 2048,
+        quick: false,
+    },
+    BenchScene {
         name: "paper_3100",
         particle_file: "paper_3100.ply",
         generate: paper_3100,
@@ -175,23 +184,38 @@ pub(crate) fn scenes_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("benchmarks/scenes")
 }
 
-/// Loads a benchmark scene, writing its particle file first when it is missing.
+/// Loads a benchmark scene, writing the particle files it reads first when they are missing.
 pub(crate) fn load_scene(bench: &BenchScene) -> Result<Scene, String> {
-    let dir = scenes_dir();
-    let particles = dir.join(bench.particle_file);
-    if !bench.particle_file.is_empty() && !particles.exists() {
-        let set = (bench.generate)();
-        let result = if bench.particle_file.ends_with(".ply") {
-            write_ply_binary(&particles, &set)
-        } else {
-            write_csv(&particles, &set)
-        };
-        result.map_err(|e| format!("cannot write {}: {}", particles.display(), e.detail()))?;
-        eprintln!(
-            "benchmark: generated {} ({} particles)",
-            particles.display(),
-            set.len()
-        );
+    let path = scenes_dir().join(format!("{}.ron", bench.name));
+    let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    // A scene may read another scene's particle file (named in quotes in its text).
+    let files = SCENES.iter().filter(|s| {
+        s.name == bench.name
+            || !s.particle_file.is_empty() && text.contains(&format!("\"{}\"", s.particle_file))
+    });
+    for source in files {
+        write_particle_file(source)?;
     }
-    Scene::load(&dir.join(format!("{}.ron", bench.name))).map_err(|e| e.to_string())
+    Scene::load(&path).map_err(|e| e.to_string())
+}
+
+/// Writes `bench`'s particle file when it is missing.
+fn write_particle_file(bench: &BenchScene) -> Result<(), String> {
+    let particles = scenes_dir().join(bench.particle_file);
+    if bench.particle_file.is_empty() || particles.exists() {
+        return Ok(());
+    }
+    let set = (bench.generate)();
+    let result = if bench.particle_file.ends_with(".ply") {
+        write_ply_binary(&particles, &set)
+    } else {
+        write_csv(&particles, &set)
+    };
+    result.map_err(|e| format!("cannot write {}: {}", particles.display(), e.detail()))?;
+    eprintln!(
+        "benchmark: generated {} ({} particles)",
+        particles.display(),
+        set.len()
+    );
+    Ok(())
 }

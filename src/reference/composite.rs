@@ -15,7 +15,9 @@
 //!   transmittance of the segments in front of it; particles are blended back to front.
 //!
 //! Clouds are composited in the order given (the caller orders them back to front, as Bevy's
-//! transparent phase does per entity).
+//! transparent phase does per entity), except that consecutive view-transmittance clouds make
+//! one layer: each particle's light is seen through the view volumes of all of them, so clouds
+//! that interpenetrate composite correctly in any order.
 
 use bevy::math::{DQuat, DVec3};
 use rayon::prelude::*;
@@ -272,26 +274,25 @@ fn segment_mean(a: DVec3, b: DVec3, tau: f64) -> DVec3 {
     DVec3::new(channel(a.x, b.x), channel(a.y, b.y), channel(a.z, b.z))
 }
 
-/// Light one particle adds along pixel ray `w` when seen through the cloud's view transmittance,
-/// and its own alpha: segment `k` of the chord adds
-/// `mean S * tau_k / tau_all * exp(-tau_view(a_k)) * (1 - exp(-tau_all))`, where `tau_all`, the
-/// segment's optical depth with every particle, is the view volume's (at least the particle's own
-/// `tau_k`).
+/// Light one particle adds along pixel ray `w` when seen through the view transmittance
+/// `view_depth` (the optical depth from the camera to a world point), and its own alpha: segment
+/// `k` of the chord adds `mean S * tau_k / tau_all * exp(-tau_view(a_k)) * (1 - exp(-tau_all))`,
+/// where `tau_all`, the segment's optical depth with every particle, is the view volumes' (at
+/// least the particle's own `tau_k`).
 fn particle_light_through_view(
     camera: &PinholeCamera,
     w: DVec3,
     bb: &Billboard,
     chord: &Chord,
     cloud: &BillboardCloud,
-    view: &ViewVolume,
+    view_depth: &dyn Fn(DVec3) -> f64,
 ) -> (DVec3, f64) {
     let at = |s: f64| camera.position + w * (chord.t_c + s);
     let scattered = |s: f64| (cloud.scattered)(cloud.world_from_local.local_point(at(s)));
     let (mut light, mut own) = (DVec3::ZERO, 0.0);
-    let (mut view_before, mut s_before) =
-        (view.optical_depth_at(at(chord.s0)), scattered(chord.s0));
+    let (mut view_before, mut s_before) = (view_depth(at(chord.s0)), scattered(chord.s0));
     for (_, b, tau) in segments(bb, chord, cloud) {
-        let view_after = view.optical_depth_at(at(b));
+        let view_after = view_depth(at(b));
         let s_after = scattered(b);
         let all = (view_after - view_before).max(tau);
         light += segment_mean(s_before, s_after, all)
@@ -303,43 +304,49 @@ fn particle_light_through_view(
 }
 
 /// Radiance of one pixel ray `w`; `clouds` holds only the billboards that may touch its row.
-fn shade_ray(
+fn shade_ray<'c>(
     camera: &PinholeCamera,
     w: DVec3,
     background: DVec3,
     objects: &[SceneObject],
-    clouds: &[(&SortedCloud, Vec<&Billboard>)],
+    clouds: &'c [(&'c SortedCloud<'c>, Vec<&'c Billboard>)],
     exposure: f64,
 ) -> DVec3 {
     let (mut colour, opaque_depth) = match nearest_object(objects, camera.position, w) {
         Some((t, i)) => (objects[i].color.as_dvec3(), t * w.dot(camera.forward)),
         None => (background, f64::INFINITY),
     };
-    for (sorted, billboards) in clouds {
-        let cloud = sorted.cloud;
-        let visible = billboards.iter().filter_map(|bb| {
+    let visible = |sorted: &'c SortedCloud, billboards: &'c [&'c Billboard]| {
+        billboards.iter().filter_map(move |bb| {
             let chord = chord(camera, w, bb)?;
             // Behind the opaque surface: the depth test fails.
-            (opaque_depth >= chord.depth).then_some((*bb, chord))
-        });
-        match &sorted.view {
-            Some(view) => {
-                let (mut light, mut transmittance) = (DVec3::ZERO, 1.0);
-                for (bb, chord) in visible {
-                    let (l, alpha) =
-                        particle_light_through_view(camera, w, bb, &chord, cloud, view);
-                    light += l;
-                    transmittance *= 1.0 - alpha;
-                }
-                colour = colour * transmittance + light * exposure;
-            }
-            None => {
-                for (bb, chord) in visible {
+            (opaque_depth >= chord.depth).then_some((*bb, chord, sorted.cloud))
+        })
+    };
+    // Consecutive clouds composited through their view volumes make one layer: each particle's
+    // light is seen through all their volumes, so their order does not matter.
+    for run in clouds.chunk_by(|a, b| a.0.view.is_some() && b.0.view.is_some()) {
+        let views: Vec<&ViewVolume> = run.iter().filter_map(|(s, _)| s.view.as_ref()).collect();
+        if views.is_empty() {
+            for (sorted, billboards) in run {
+                for (bb, chord, cloud) in visible(sorted, billboards) {
                     let (radiance, alpha) = particle_radiance(camera, w, bb, &chord, cloud);
                     colour = radiance * exposure + colour * (1.0 - alpha);
                 }
             }
+            continue;
         }
+        let view_depth = |x: DVec3| views.iter().map(|v| v.optical_depth_at(x)).sum::<f64>();
+        let (mut light, mut transmittance) = (DVec3::ZERO, 1.0);
+        for (sorted, billboards) in run {
+            for (bb, chord, cloud) in visible(sorted, billboards) {
+                let (l, alpha) =
+                    particle_light_through_view(camera, w, bb, &chord, cloud, &view_depth);
+                light += l;
+                transmittance *= 1.0 - alpha;
+            }
+        }
+        colour = colour * transmittance + light * exposure;
     }
     colour
 }

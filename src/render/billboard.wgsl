@@ -3,8 +3,9 @@
 // particle's kernel. The colour is the light scattered along that chord, cut into `segments`
 // pieces (PHYSICS.md; docs/illumination.md §5). Two compositings:
 // - VIEW_TRANSMITTANCE: `attenuate` multiplies what is behind by each particle's transmittance,
-//   then `emit` adds each particle's light, seen through the cloud's optical depth towards the
-//   camera (view_volume.wgsl); both are order-independent;
+//   then `emit` adds each particle's light, seen through the optical depth towards the camera of
+//   the cloud and of every cloud that may lie in front of it (view_volume.wgsl); both are
+//   order-independent, so clouds that overlap on screen draw all their `attenuate`s first;
 // - otherwise `fragment` blends particles whole, back to front in the sorted order.
 #import bevy_render::view::View
 //
@@ -48,8 +49,11 @@ struct DrawParams {
 // Multiple scattering S_m per voxel of the density grid.
 @group(1) @binding(6) var<storage, read> multiple: array<vec4<f32>>;
 #ifdef VIEW_TRANSMITTANCE
-// Optical depth from the camera at the view volume's nodes.
+// Optical depth from the camera at the nodes of every view volume of this view, each from its
+// `offset`; the volumes themselves; and the neighbour lists (indices into `view_volumes`).
 @group(1) @binding(7) var<storage, read> view_optical_depth: array<f32>;
+@group(1) @binding(8) var<storage, read> view_volumes: array<ViewVolumeParams>;
+@group(1) @binding(9) var<storage, read> neighbours: array<u32>;
 #endif
 
 struct VertexOutput {
@@ -210,18 +214,32 @@ fn local_at(c: Chord, s: f32) -> vec3<f32> {
 }
 
 #ifdef VIEW_TRANSMITTANCE
-// Optical depth from the camera to a world point: trilinear in the view volume, clamped to it.
-fn view_optical_depth_at(x: vec3<f32>) -> f32 {
-    let p = (view.view_from_world * vec4(x, 1.0)).xyz;
-    let n = view_volume.n;
-    let g = view_volume_coords(view_volume, p);
+// Optical depth from the camera to view-space point `p` through one view volume: trilinear,
+// clamped to the volume; none when `p` is in front of it (its first slice holds 0).
+fn optical_depth_through(volume: ViewVolumeParams, p: vec3<f32>) -> f32 {
+    if -p.z <= volume.depth.x {
+        return 0.0;
+    }
+    let n = volume.n;
+    let g = view_volume_coords(volume, p);
     let base = min(vec3<u32>(floor(g)), vec3(n - 2u));
     let f = g - vec3<f32>(base);
     var tau = 0.0;
     for (var corner = 0u; corner < 8u; corner++) {
         let o = vec3<u32>(corner & 1u, (corner >> 1u) & 1u, corner >> 2u);
         let w = select(1.0 - f, f, vec3<bool>(o));
-        tau += w.x * w.y * w.z * view_optical_depth[voxel_index(base + o, n)];
+        tau += w.x * w.y * w.z * view_optical_depth[volume.offset + voxel_index(base + o, n)];
+    }
+    return tau;
+}
+
+// Optical depth from the camera to a world point: through this cloud and every cloud that may
+// be in front of it (its neighbours, this cloud's own volume among them).
+fn view_optical_depth_at(x: vec3<f32>) -> f32 {
+    let p = (view.view_from_world * vec4(x, 1.0)).xyz;
+    var tau = 0.0;
+    for (var i = 0u; i < view_volume.neighbour_count; i++) {
+        tau += optical_depth_through(view_volumes[neighbours[view_volume.first_neighbour + i]], p);
     }
     return tau;
 }

@@ -482,7 +482,7 @@ fn draw_cloud_target(
         pass.set_render_pipeline(pipeline);
         let emit = emit.0.get(&pipeline_id);
         let emit = emit.and_then(|id| cache.get_render_pipeline(*id));
-        draw_billboards(&mut pass, group, gpu.count, emit);
+        draw_billboards(&mut pass, &[(group, gpu.count)], emit);
         drawn += 1;
     }
     drop(pass);

@@ -1,9 +1,11 @@
 //! The billboard draw in the `Transparent3d` phase (the paper's Algorithm 3): one phase item per
-//! cloud and view, instanced draws of a four-vertex strip per particle, depth test on (reverse
-//! Z), depth writes off. `Compositing::Sorted`: one draw in the sorted order, premultiplied-alpha
-//! blending. `Compositing::ViewTransmittance`: two order-independent draws, one multiplying what
-//! is behind by each particle's transmittance, one adding each particle's light (one draw into a
-//! cloud target, `cloud_target.rs`, which holds only clouds).
+//! cloud and view (per group of view-transmittance clouds that overlap on screen), instanced
+//! draws of a four-vertex strip per particle, depth test on (reverse Z), depth writes off.
+//! `Compositing::Sorted`: one draw in the sorted order, premultiplied-alpha blending.
+//! `Compositing::ViewTransmittance`: two order-independent draws, one multiplying what is behind
+//! by each particle's transmittance, one adding each particle's light, first for every cloud of
+//! the group, then for every cloud (one draw into a cloud target, `cloud_target.rs`, which holds
+//! only clouds).
 
 use bevy::{
     core_pipeline::core_3d::{CORE_3D_DEPTH_FORMAT, Transparent3d, TransparentSortingInfo3d},
@@ -11,7 +13,7 @@ use bevy::{
         query::ROQueryItem,
         system::{
             SystemParamItem,
-            lifetimeless::{Read, SRes},
+            lifetimeless::{Read, SQuery, SRes},
         },
     },
     platform::collections::HashMap,
@@ -53,7 +55,7 @@ use super::{
     pools::VolumePools,
     shaders::CloudShaders,
     sort::CloudSorts,
-    view_volume::CloudViewVolumes,
+    view_volume::{CloudViewVolumes, ViewVolumeAtlases},
     volumes::CloudVolumes,
 };
 use crate::{
@@ -88,7 +90,7 @@ pub struct BillboardPipeline {
     /// optical depths, multiple scattering.
     pub sorted_layout: BindGroupLayoutDescriptor,
     /// Group 1 through the view transmittance: the same with the view volume's uniform in place
-    /// of the order, and its optical depths last.
+    /// of the order, then the view's atlas: optical depths, volumes, neighbour lists.
     pub view_transmittance_layout: BindGroupLayoutDescriptor,
     shader: Handle<Shader>,
 }
@@ -128,6 +130,8 @@ pub(crate) fn init_billboard_pipeline(mut commands: Commands, shaders: Res<Cloud
                 uniform(),
                 read(),
                 uniform(),
+                read(),
+                read(),
                 read(),
                 read(),
                 read(),
@@ -312,26 +316,28 @@ pub struct CloudDrawBindGroups {
 #[derive(Resource)]
 pub struct BillboardViewBindGroup(BindGroup);
 
-/// Per view, the buffer that makes a cloud's group 1 differ between views: the sorted order, or
-/// the view volume's uniform and optical depths.
+/// Per view, the buffers that make a cloud's group 1 differ between views: the sorted order, or
+/// the view volume's uniform and the view's atlas (optical depths, volumes, neighbour lists).
 fn per_view_buffers<'a>(
     sorts: Option<&'a CloudSorts>,
     view_volumes: Option<&'a CloudViewVolumes>,
+    atlases: &'a ViewVolumeAtlases,
     compositing: Compositing,
-) -> Vec<(RetainedViewEntity, [&'a Buffer; 2])> {
+) -> Vec<(RetainedViewEntity, [&'a Buffer; 4])> {
     match compositing {
         Compositing::Sorted => sorts
             .into_iter()
             .flat_map(|s| &s.0)
-            .map(|(view, sort)| {
-                let order = sort.buffers.sorted_values();
-                (*view, [order, order])
-            })
+            .map(|(view, sort)| (*view, [sort.buffers.sorted_values(); 4]))
             .collect(),
         Compositing::ViewTransmittance => view_volumes
             .into_iter()
             .flat_map(|v| &v.0)
-            .map(|(view, volume)| (*view, [&volume.params, &volume.optical_depth]))
+            .filter_map(|(view, volume)| {
+                let atlas = atlases.0.get(view)?;
+                let buffers = [&atlas.optical_depth, &atlas.volumes, &atlas.neighbours];
+                Some((*view, [&volume.params, buffers[0], buffers[1], buffers[2]]))
+            })
             .collect(),
     }
 }
@@ -356,6 +362,7 @@ pub(crate) fn prepare_billboard_bind_groups(
     clouds: Query<BillboardSources>,
     particles: Res<RenderAssets<GpuParticles>>,
     pools: Res<VolumePools>,
+    atlases: Res<ViewVolumeAtlases>,
 ) {
     let Some(pipeline) = pipeline else { return };
     let Some(view_binding) = view_uniforms.uniforms.binding() else {
@@ -385,11 +392,11 @@ pub(crate) fn prepare_billboard_bind_groups(
             segments: cloud.settings.chord_segments,
             _padding: 0,
         };
-        let per_view = per_view_buffers(sorts, view_volumes, compositing);
+        let per_view = per_view_buffers(sorts, view_volumes, &atlases, compositing);
         // Order-independent over the views (a hash map's order is arbitrary).
         let views = per_view
             .iter()
-            .map(|(view, [a, b])| key_of((view, a.id(), b.id())))
+            .map(|(view, buffers)| key_of((view, buffers.map(|b| b.id()))))
             .fold(0, |a, h| a ^ h);
         let key = key_of((
             params.world_from_local.to_cols_array().map(f32::to_bits),
@@ -411,42 +418,46 @@ pub(crate) fn prepare_billboard_bind_groups(
         });
         let groups = per_view
             .into_iter()
-            .map(|(view, [a, b])| {
-                let shared = (
-                    params.as_entire_binding(),
-                    volumes.params_buffer.as_entire_binding(),
-                    gpu.buffer.as_entire_binding(),
-                    a.as_entire_binding(),
-                    lights.binding(),
-                    optical_depth.binding(),
-                    multiple.binding(),
-                );
-                let group = match compositing {
-                    Compositing::Sorted => device.create_bind_group(
-                        "particle_clouds_billboard_bind_group",
-                        &layout,
-                        &BindGroupEntries::sequential(shared),
-                    ),
-                    Compositing::ViewTransmittance => {
-                        let (p, c, g, a, l, o, m) = shared;
-                        device.create_bind_group(
+            .map(
+                |(view, [a, atlas_depth, atlas_volumes, atlas_neighbours])| {
+                    let shared = (
+                        params.as_entire_binding(),
+                        volumes.params_buffer.as_entire_binding(),
+                        gpu.buffer.as_entire_binding(),
+                        a.as_entire_binding(),
+                        lights.binding(),
+                        optical_depth.binding(),
+                        multiple.binding(),
+                    );
+                    let group = match compositing {
+                        Compositing::Sorted => device.create_bind_group(
                             "particle_clouds_billboard_bind_group",
                             &layout,
-                            &BindGroupEntries::sequential((
-                                p,
-                                c,
-                                g,
-                                a,
-                                l,
-                                o,
-                                m,
-                                b.as_entire_binding(),
-                            )),
-                        )
-                    }
-                };
-                (view, group)
-            })
+                            &BindGroupEntries::sequential(shared),
+                        ),
+                        Compositing::ViewTransmittance => {
+                            let (p, c, g, a, l, o, m) = shared;
+                            device.create_bind_group(
+                                "particle_clouds_billboard_bind_group",
+                                &layout,
+                                &BindGroupEntries::sequential((
+                                    p,
+                                    c,
+                                    g,
+                                    a,
+                                    l,
+                                    o,
+                                    m,
+                                    atlas_depth.as_entire_binding(),
+                                    atlas_volumes.as_entire_binding(),
+                                    atlas_neighbours.as_entire_binding(),
+                                )),
+                            )
+                        }
+                    };
+                    (view, group)
+                },
+            )
             .collect();
         commands.entity(entity).insert(CloudDrawBindGroups {
             key,
@@ -495,6 +506,7 @@ pub(crate) fn queue_cloud_billboards(
     views: Query<ViewToQueue>,
     clouds: Query<QueuedCloud>,
     particles: Res<RenderAssets<GpuParticles>>,
+    atlases: Res<ViewVolumeAtlases>,
 ) {
     let Some(pipeline) = pipeline else { return };
     let draw_function = draw_functions.read().id::<DrawCloudBillboards>();
@@ -532,6 +544,8 @@ pub(crate) fn queue_cloud_billboards(
         let here = &view.retained_view_entity;
         let view_from_world = view.world_from_view.affine().inverse();
         let mut into_target = Vec::new();
+        let mut groups = CloudGroups::default();
+        let group_of = atlases.0.get(here).map(|a| &a.groups);
         for &(render_entity, _) in &class.entities_cpu_culling {
             let Ok((cloud, illumination, sorts, view_volumes, main_entity)) =
                 clouds.get(render_entity)
@@ -565,27 +579,80 @@ pub(crate) fn queue_cloud_billboards(
                 into_target.push((z, render_entity, pipeline_id));
                 continue;
             }
-            phase.add_transient(Transparent3d {
-                sorting_info: TransparentSortingInfo3d::Sorted {
-                    mesh_center: centre,
-                    depth_bias: 0.0,
-                },
-                distance: 0.0,
-                pipeline: pipeline_id,
-                entity: (render_entity, *main_entity),
-                draw_function,
-                batch_range: 0..1,
-                extra_index: PhaseItemExtraIndex::None,
-                indexed: false,
-            });
+            let group = group_of.and_then(|g| g.get(&render_entity));
+            groups.add(
+                group.copied(),
+                (render_entity, *main_entity),
+                pipeline_id,
+                centre,
+            );
         }
         if cloud_target.is_some() {
             into_target.sort_by(|a, b| a.0.total_cmp(&b.0));
             let draws = into_target.into_iter().map(|(_, e, p)| (e, p)).collect();
             commands.entity(entity).insert(ViewCloudDraws(draws));
+            continue;
         }
+        let mut members = ViewCloudGroups::default();
+        for group in groups.0.into_values() {
+            let (leader, main_entity) = group.entities[0];
+            phase.add_transient(Transparent3d {
+                sorting_info: TransparentSortingInfo3d::Sorted {
+                    mesh_center: group.centre / group.entities.len() as f32,
+                    depth_bias: 0.0,
+                },
+                distance: 0.0,
+                pipeline: group.pipeline,
+                entity: (leader, main_entity),
+                draw_function,
+                batch_range: 0..1,
+                extra_index: PhaseItemExtraIndex::None,
+                indexed: false,
+            });
+            members
+                .0
+                .insert(leader, group.entities.into_iter().map(|e| e.0).collect());
+        }
+        commands.entity(entity).insert(members);
     }
 }
+
+/// The clouds of one view drawn as one `Transparent3d` item: the view-transmittance clouds that
+/// overlap on screen (one group of the view's atlas), or one other cloud.
+struct QueuedGroup {
+    entities: Vec<(Entity, MainEntity)>,
+    pipeline: CachedRenderPipelineId,
+    /// Sum of the members' world centres.
+    centre: Vec3,
+}
+
+/// A view's [`QueuedGroup`]s while they are queued, by atlas group (else alone).
+#[derive(Default)]
+struct CloudGroups(HashMap<(u32, Option<Entity>), QueuedGroup>);
+
+impl CloudGroups {
+    fn add(
+        &mut self,
+        group: Option<u32>,
+        entity: (Entity, MainEntity),
+        pipeline: CachedRenderPipelineId,
+        centre: Vec3,
+    ) {
+        let key = group.map_or((0, Some(entity.0)), |g| (g, None));
+        let queued = self.0.entry(key).or_insert(QueuedGroup {
+            entities: Vec::new(),
+            pipeline,
+            centre: Vec3::ZERO,
+        });
+        queued.entities.push(entity);
+        queued.centre += centre;
+    }
+}
+
+/// Per view drawn without a cloud target: the clouds each `Transparent3d` item draws, by the
+/// item's entity (the first of them).
+#[derive(Component, Default)]
+pub struct ViewCloudGroups(pub HashMap<Entity, Vec<Entity>>);
 
 /// The draw function of a cloud's `Transparent3d` item.
 pub type DrawCloudBillboards = (
@@ -614,24 +681,30 @@ impl<P: PhaseItem, const I: usize> RenderCommand<P> for SetBillboardViewBindGrou
     }
 }
 
-/// Binds the cloud's group for this view (group 1) and draws a four-vertex strip per particle;
-/// when given an `emit` pipeline (through the view transmittance into the view), a second time
-/// with it.
+/// Draws clouds' billboards, a four-vertex strip per particle, binding each cloud's group 1 for
+/// this view: every cloud once, then, given an `emit` pipeline (through the view transmittance
+/// into the view), every cloud again with it. So clouds that overlap on screen first all dim
+/// what is behind them, then all add their light, each seen through the others' view volumes.
 pub(crate) fn draw_billboards<'w>(
     pass: &mut TrackedRenderPass<'w>,
-    group: &'w BindGroup,
-    count: u32,
+    clouds: &[(&'w BindGroup, u32)],
     emit: Option<&'w RenderPipeline>,
 ) {
-    pass.set_bind_group(1, group, &[]);
-    pass.draw(0..4, 0..count);
+    let draw_all = |pass: &mut TrackedRenderPass<'w>| {
+        for &(group, count) in clouds {
+            pass.set_bind_group(1, group, &[]);
+            pass.draw(0..4, 0..count);
+        }
+    };
+    draw_all(pass);
     if let Some(emit) = emit {
         pass.set_render_pipeline(emit);
-        pass.draw(0..4, 0..count);
+        draw_all(pass);
     }
 }
 
-/// Binds the cloud's group for this view and draws its billboards ([`draw_billboards`]).
+/// Draws the clouds of one `Transparent3d` item ([`ViewCloudGroups`], else the item's own
+/// cloud) with [`draw_billboards`].
 pub struct DrawBillboards;
 
 impl<P: CachedRenderPipelinePhaseItem> RenderCommand<P> for DrawBillboards {
@@ -641,35 +714,43 @@ impl<P: CachedRenderPipelinePhaseItem> RenderCommand<P> for DrawBillboards {
         Option<SRes<DiagnosticsRecorder>>,
         SRes<PipelineCache>,
         SRes<BillboardEmitPipelines>,
+        SQuery<(Read<ExtractedCloud>, Read<CloudDrawBindGroups>)>,
     );
-    type ViewQuery = Read<ExtractedView>;
-    type ItemQuery = (Read<ExtractedCloud>, Read<CloudDrawBindGroups>);
+    type ViewQuery = (Read<ExtractedView>, Option<Read<ViewCloudGroups>>);
+    type ItemQuery = ();
 
     fn render<'w>(
         item: &P,
-        view: ROQueryItem<'w, '_, Self::ViewQuery>,
-        cloud: Option<ROQueryItem<'w, '_, Self::ItemQuery>>,
-        (particles, counters, recorder, cache, emit): SystemParamItem<'w, '_, Self::Param>,
+        (view, groups): ROQueryItem<'w, '_, Self::ViewQuery>,
+        _: Option<ROQueryItem<'w, '_, Self::ItemQuery>>,
+        (particles, counters, recorder, cache, emit, clouds): SystemParamItem<'w, '_, Self::Param>,
         pass: &mut TrackedRenderPass<'w>,
     ) -> RenderCommandResult {
-        let Some((cloud, groups)) = cloud else {
+        let alone = [item.entity()];
+        let members = groups
+            .and_then(|g| g.0.get(&item.entity()))
+            .map_or(&alone[..], Vec::as_slice);
+        let particles = particles.into_inner();
+        let draws: Vec<_> = members
+            .iter()
+            .filter_map(|&entity| {
+                let (cloud, groups) = clouds.get_inner(entity).ok()?;
+                let group = groups.groups.get(&view.retained_view_entity)?;
+                Some((group, particles.get(cloud.particles)?.count))
+            })
+            .collect();
+        if draws.is_empty() {
             return RenderCommandResult::Skip;
-        };
-        let Some(group) = groups.groups.get(&view.retained_view_entity) else {
-            return RenderCommandResult::Skip;
-        };
-        let Some(gpu) = particles.into_inner().get(cloud.particles) else {
-            return RenderCommandResult::Skip;
-        };
+        }
         // A timestamp span only: Bevy's own span around the transparent pass already holds the
         // pass's pipeline-statistics query, and those cannot nest.
         let recorder = recorder.map(|r| r.into_inner());
         let span = recorder.time_span(pass.wgpu_pass(), CloudPass::Draw.span_name());
         let emit = emit.into_inner().0.get(&item.cached_pipeline());
         let emit = emit.and_then(|id| cache.into_inner().get_render_pipeline(*id));
-        draw_billboards(pass, group, gpu.count, emit);
+        draw_billboards(pass, &draws, emit);
         span.end(pass.wgpu_pass());
-        counters.add(CloudPass::Draw, 1);
+        counters.add(CloudPass::Draw, draws.len() as u32);
         RenderCommandResult::Success
     }
 }

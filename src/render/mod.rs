@@ -180,6 +180,7 @@ pub(crate) fn finish(app: &mut App) {
     render_app
         .init_resource::<extract::ExtractedCloudLights>()
         .init_resource::<pools::VolumePools>()
+        .init_resource::<view_volume::ViewVolumeAtlases>()
         .init_resource::<SpecializedRenderPipelines<draw::BillboardPipeline>>()
         .init_resource::<draw::BillboardEmitPipelines>()
         .add_render_command::<Transparent3d, draw::DrawCloudBillboards>()

@@ -185,6 +185,13 @@ struct ViewVolumeParams {
     extinction: f32,
     // Rays per side and slices, n.
     n: u32,
+    // First element of this volume in its view's optical-depth buffer.
+    offset: u32,
+    // This volume's range in its view's neighbour list: the volumes (its own among them) whose
+    // clouds may lie in front of some point of this cloud (docs/illumination.md §5).
+    first_neighbour: u32,
+    neighbour_count: u32,
+    _padding: u32,
 }
 
 // Continuous node coordinates of view-space point `p` (view looks down -z), clamped to the volume.

@@ -3,6 +3,10 @@
 //! density grid along `m × m` view rays into `m` depth slices (`view_volume.wgsl`,
 //! docs/illumination.md §5). It runs only when the view, the cloud's transform or its density
 //! changed. The CPU reference is `reference::view_volume`.
+//!
+//! A view's volumes share one [`ViewVolumeAtlas`], with the lists of which clouds each cloud's
+//! billboards see through (the clouds that may lie in front of it) and the groups of clouds that
+//! overlap on screen, which `draw.rs` draws as one.
 
 use bevy::{
     platform::collections::HashMap,
@@ -23,16 +27,16 @@ use bevy::{
 
 use super::{
     extract::ExtractedCloud,
-    gpu::{record_stage, storage, uniform_bytes},
+    gpu::{record_stage, storage, storage_bytes, uniform_bytes},
     key_of,
     plan::CloudIllumination,
     pools::VolumePools,
     shaders::CloudShaders,
-    views_by_cloud,
     volumes::CloudVolumes,
     workgroups,
 };
 use crate::{
+    cloud::ParticleCloud,
     settings::Compositing,
     stats::{CloudPass, CloudPassCounters},
 };
@@ -50,6 +54,15 @@ pub struct ViewVolumeParams {
     pub extinction: f32,
     /// Rays per side and slices `n` (the fine grid's resolution).
     pub n: u32,
+    /// First element of this volume in its view's [`ViewVolumeAtlas::optical_depth`].
+    pub offset: u32,
+    /// First entry of this volume's neighbours in [`ViewVolumeAtlas::neighbours`].
+    pub first_neighbour: u32,
+    /// Its neighbours: the view volumes (its own among them) whose clouds may lie in front of
+    /// some point of this cloud. Its billboards see through all of them.
+    pub neighbour_count: u32,
+    /// Storage-array padding.
+    pub _padding: u32,
 }
 
 /// The march's compute pipeline.
@@ -92,13 +105,14 @@ pub(crate) fn init_view_volume_pipeline(
 /// The key of an unlit cloud's volume.
 const UNLIT: u64 = u64::MAX;
 
-/// One view's transmittance volume of one cloud.
+/// One view's transmittance volume of one cloud. Its optical depths live in the view's
+/// [`ViewVolumeAtlas`].
 pub struct ViewVolume {
     /// The `ViewVolumeParams` uniform (the march and the billboards).
     pub params: Buffer,
-    /// `n³` f32 optical depth from the camera, index `i + n (j + n k)`.
-    pub optical_depth: Buffer,
-    n: u32,
+    /// What `params` holds.
+    written: Option<ViewVolumeParams>,
+    /// Key of what the march reads and where it writes.
     key: u64,
     /// The volume must be marched this frame.
     pub pending: bool,
@@ -111,6 +125,184 @@ pub struct ViewVolume {
 /// Every view's transmittance volume of one cloud (render world component on the cloud).
 #[derive(Component, Default)]
 pub struct CloudViewVolumes(pub HashMap<RetainedViewEntity, ViewVolume>);
+
+/// Every transmittance volume of one view in shared buffers, so that a cloud's billboards can
+/// see through the clouds that overlap it (docs/illumination.md §5, "Overlapping clouds").
+pub struct ViewVolumeAtlas {
+    /// `f32` optical depths from the camera, each volume's `n³` from its `offset`.
+    pub optical_depth: Buffer,
+    /// Every volume's `ViewVolumeParams`, indexed by the neighbour lists.
+    pub volumes: Buffer,
+    /// The volumes' neighbour lists, concatenated: indices into `volumes`.
+    pub neighbours: Buffer,
+    /// The clouds and sizes `optical_depth` is laid out for, and their offsets.
+    layout: Vec<(Entity, u32, u32)>,
+    /// What `volumes` and `neighbours` hold.
+    written: u64,
+    /// Per cloud, its group: clouds that overlap on screen, directly or through others. A group
+    /// is drawn as one (docs/illumination.md §5).
+    pub groups: HashMap<Entity, u32>,
+}
+
+/// Every view's [`ViewVolumeAtlas`].
+#[derive(Resource, Default)]
+pub struct ViewVolumeAtlases(pub HashMap<RetainedViewEntity, ViewVolumeAtlas>);
+
+/// One cloud's volume in one view while the view's atlas is prepared.
+struct AtlasEntry {
+    entity: Entity,
+    params: ViewVolumeParams,
+    /// Key of the march's inputs (`UNLIT` for a zero volume).
+    key: u64,
+    /// The cloud is drawn this frame.
+    drawn: bool,
+}
+
+impl AtlasEntry {
+    /// Whether the volume has optical depths in the atlas: the cloud is lit. It is marched once
+    /// its illumination is ready, the frame before it is first drawn.
+    fn occupies(&self) -> bool {
+        self.key != UNLIT
+    }
+
+    /// Whether other clouds' billboards see through it: it is marched and drawn.
+    fn seen_through(&self) -> bool {
+        self.drawn && self.occupies()
+    }
+}
+
+/// Whether the tangent rectangles `(u0, u1, v0, v1)` of two volumes overlap.
+fn rects_overlap(a: Vec4, b: Vec4) -> bool {
+    a.x < b.y && b.x < a.y && a.z < b.w && b.z < a.w
+}
+
+/// Whether cloud `front` may lie in front of some point of cloud `behind` along a ray both
+/// cross: they overlap on screen and `front` begins before `behind` ends.
+fn may_hide(front: &ViewVolumeParams, behind: &ViewVolumeParams) -> bool {
+    rects_overlap(front.rect, behind.rect) && front.depth.x < behind.depth.y
+}
+
+/// Fills the neighbour range of each entry seen through and returns the lists; groups the
+/// entries by screen overlap (union-find), each entry's group the smallest index in it.
+fn link_neighbours(entries: &mut [AtlasEntry]) -> (Vec<u32>, Vec<u32>) {
+    let mut lists = Vec::new();
+    let mut group: Vec<u32> = (0..entries.len() as u32).collect();
+    fn root(group: &mut [u32], mut i: u32) -> u32 {
+        while group[i as usize] != i {
+            group[i as usize] = group[group[i as usize] as usize];
+            i = group[i as usize];
+        }
+        i
+    }
+    for i in 0..entries.len() {
+        if !entries[i].seen_through() {
+            continue;
+        }
+        let first = lists.len() as u32;
+        for j in 0..entries.len() {
+            let (a, b) = (&entries[j], &entries[i]);
+            if a.seen_through() && may_hide(&a.params, &b.params) {
+                lists.push(j as u32);
+            }
+            if a.seen_through() && rects_overlap(a.params.rect, b.params.rect) {
+                let (ri, rj) = (root(&mut group, i as u32), root(&mut group, j as u32));
+                group[ri.max(rj) as usize] = ri.min(rj);
+            }
+        }
+        entries[i].params.first_neighbour = first;
+        entries[i].params.neighbour_count = lists.len() as u32 - first;
+    }
+    let groups = (0..entries.len() as u32)
+        .map(|i| root(&mut group, i))
+        .collect();
+    (lists, groups)
+}
+
+impl ViewVolumeAtlas {
+    fn new(device: &RenderDevice) -> Self {
+        Self {
+            optical_depth: storage(device, "particle_clouds_view_optical_depth", 4),
+            volumes: storage(
+                device,
+                "particle_clouds_view_volumes",
+                ViewVolumeParams::min_size().get(),
+            ),
+            neighbours: storage(device, "particle_clouds_view_volume_neighbours", 4),
+            layout: Vec::new(),
+            written: 0,
+            groups: HashMap::default(),
+        }
+    }
+
+    /// Gives each occupying entry its offset: unchanged while the view sees the same clouds at
+    /// the same sizes; otherwise packed anew, growing the buffer by doubling (every volume is
+    /// then marched again, since its key holds its offset and the buffer).
+    fn lay_out(&mut self, device: &RenderDevice, entries: &mut [AtlasEntry]) {
+        let wanted: Vec<(Entity, u32)> = entries
+            .iter()
+            .filter(|e| e.occupies())
+            .map(|e| (e.entity, e.params.n))
+            .collect();
+        let same = wanted.len() == self.layout.len()
+            && wanted
+                .iter()
+                .zip(&self.layout)
+                .all(|(w, l)| *w == (l.0, l.1));
+        if !same {
+            let mut end = 0u64;
+            self.layout = wanted
+                .iter()
+                .map(|&(entity, n)| {
+                    let offset = end as u32;
+                    end += (n as u64).pow(3);
+                    (entity, n, offset)
+                })
+                .collect();
+            let capacity = self.optical_depth.size() / 4;
+            if end > capacity {
+                let size = end.next_power_of_two().max(capacity * 2) * 4;
+                self.optical_depth = storage(device, "particle_clouds_view_optical_depth", size);
+            }
+        }
+        let offsets: HashMap<Entity, u32> = self.layout.iter().map(|l| (l.0, l.2)).collect();
+        for entry in entries.iter_mut().filter(|e| e.occupies()) {
+            entry.params.offset = offsets[&entry.entity];
+            entry.key = key_of((entry.key, entry.params.offset, self.optical_depth.id()));
+        }
+    }
+
+    /// Writes every volume's params and the neighbour lists when they changed, growing their
+    /// buffers as needed.
+    fn write(
+        &mut self,
+        device: &RenderDevice,
+        queue: &RenderQueue,
+        entries: &[AtlasEntry],
+        lists: &[u32],
+    ) {
+        let params: Vec<ViewVolumeParams> = entries.iter().map(|e| e.params).collect();
+        let (params, lists) = (storage_bytes(&params), storage_bytes(lists));
+        let key = key_of((&params, &lists));
+        if key == self.written {
+            return;
+        }
+        self.written = key;
+        let fit = |buffer: &mut Buffer, label, bytes: &[u8]| {
+            if bytes.len() as u64 > buffer.size() {
+                *buffer = storage(device, label, (bytes.len() as u64).next_power_of_two());
+            }
+            if !bytes.is_empty() {
+                queue.write_buffer(buffer, 0, bytes);
+            }
+        };
+        fit(&mut self.volumes, "particle_clouds_view_volumes", &params);
+        fit(
+            &mut self.neighbours,
+            "particle_clouds_view_volume_neighbours",
+            &lists,
+        );
+    }
+}
 
 /// Tangent rectangle `(u0, u1, v0, v1)` and depth range of the cube of side `side` centred on
 /// `centre` (cloud-local) as seen from `view`, clipped to the view's frustum; `None` when nothing
@@ -161,64 +353,126 @@ fn view_bounds(
     (rect.x < rect.y && rect.z < rect.w).then_some((rect, Vec2::new(z0, farthest)))
 }
 
-/// Decides, per view and visible view-transmittance cloud, whether its volume must be marched.
+/// What a view's atlas is prepared from, per visible cloud.
+type VolumeSources = (
+    Entity,
+    &'static ExtractedCloud,
+    &'static CloudVolumes,
+    &'static CloudIllumination,
+    Option<&'static mut CloudViewVolumes>,
+);
+
+/// Per view: lays out its atlas, links each volume's neighbours and decides which volumes must
+/// be marched. A cloud's volumes of views that no longer see it are dropped.
 pub(crate) fn prepare_view_volumes(
     mut commands: Commands,
     views: Query<(&ExtractedView, &RenderVisibleEntities)>,
-    mut clouds: Query<(
-        &ExtractedCloud,
-        &CloudVolumes,
-        &CloudIllumination,
-        Option<&mut CloudViewVolumes>,
-    )>,
+    mut clouds: Query<VolumeSources>,
+    mut atlases: ResMut<ViewVolumeAtlases>,
     device: Res<RenderDevice>,
     queue: Res<RenderQueue>,
 ) {
-    for (entity, views) in views_by_cloud(views.iter()) {
-        let Ok((cloud, volumes, illumination, existing)) = clouds.get_mut(entity) else {
+    let mut fresh: HashMap<Entity, CloudViewVolumes> = HashMap::default();
+    let mut seen: HashMap<Entity, Vec<RetainedViewEntity>> = HashMap::default();
+    let mut live = Vec::new();
+    for (view, visible) in &views {
+        let Some(class) = visible.get::<ParticleCloud>() else {
             continue;
         };
-        if cloud.settings.compositing != Compositing::ViewTransmittance {
-            continue;
-        }
-        let mut fresh = CloudViewVolumes::default();
-        let is_fresh = existing.is_none();
-        let all = match existing {
-            Some(s) => s.into_inner(),
-            None => &mut fresh,
-        };
-        let retained: Vec<_> = views.iter().map(|v| v.retained_view_entity).collect();
-        all.0.retain(|k, _| retained.contains(k));
-        for view in views {
-            let density_key = illumination.keys.density;
-            let Some((params, key)) = view_params(cloud, volumes, density_key, view) else {
-                all.0.remove(&view.retained_view_entity);
+        let mut entries: Vec<AtlasEntry> = class
+            .entities_cpu_culling
+            .iter()
+            .filter_map(|&(entity, _)| atlas_entry(entity, clouds.get(entity).ok()?, view))
+            .collect();
+        entries.sort_by_key(|e| e.entity);
+        let here = view.retained_view_entity;
+        live.push(here);
+        let atlas = atlases
+            .0
+            .entry(here)
+            .or_insert_with(|| ViewVolumeAtlas::new(&device));
+        atlas.lay_out(&device, &mut entries);
+        let (lists, groups) = link_neighbours(&mut entries);
+        atlas.write(&device, &queue, &entries, &lists);
+        atlas.groups = entries
+            .iter()
+            .zip(groups)
+            .map(|(e, g)| (e.entity, g))
+            .collect();
+        for entry in &entries {
+            seen.entry(entry.entity).or_default().push(here);
+            let Ok((.., existing)) = clouds.get_mut(entry.entity) else {
                 continue;
             };
-            let volume = all
-                .0
-                .entry(view.retained_view_entity)
-                .or_insert_with(|| new_volume(&device, params.n));
-            if volume.n != params.n {
-                *volume = new_volume(&device, params.n);
-            }
-            if key != volume.key {
-                volume.key = key;
-                queue.write_buffer(&volume.params, 0, &uniform_bytes(&params));
-                // An unlit volume stays zero: nothing is scattered to be seen through it.
-                volume.pending = key != UNLIT;
-                volume.ready |= key == UNLIT;
-            }
+            let all = match existing {
+                Some(all) => all.into_inner(),
+                None => fresh.entry(entry.entity).or_default(),
+            };
+            let volume = all.0.entry(here).or_insert_with(|| new_volume(&device));
+            update_volume(volume, entry, &queue);
         }
-        if is_fresh {
-            commands.entity(entity).insert(fresh);
+    }
+    atlases.0.retain(|view, _| live.contains(view));
+    for (entity, .., existing) in &mut clouds {
+        if let Some(mut all) = existing {
+            let views = seen.get(&entity);
+            all.0
+                .retain(|view, _| views.is_some_and(|v| v.contains(view)));
         }
+    }
+    for (entity, all) in fresh {
+        commands.entity(entity).insert(all);
+    }
+}
+
+/// A view-transmittance cloud's entry in `view`'s atlas, or `None` when it is composited
+/// otherwise or not in front of the view.
+fn atlas_entry(
+    entity: Entity,
+    (_, cloud, volumes, illumination, _): (
+        Entity,
+        &ExtractedCloud,
+        &CloudVolumes,
+        &CloudIllumination,
+        Option<&CloudViewVolumes>,
+    ),
+    view: &ExtractedView,
+) -> Option<AtlasEntry> {
+    if cloud.settings.compositing != Compositing::ViewTransmittance {
+        return None;
+    }
+    let (params, key) = view_params(cloud, volumes, illumination.keys.density, view)?;
+    Some(AtlasEntry {
+        entity,
+        params,
+        key,
+        // As `queue_cloud_billboards` decides (illumination ready, some extinction).
+        drawn: illumination.ready && cloud.extinction > 0.0,
+    })
+}
+
+/// Writes a volume's uniform when it changed, and marks it pending when what its march reads or
+/// where it writes changed. An unlit volume is never marched: it is seen through by no one and
+/// lights nothing.
+fn update_volume(volume: &mut ViewVolume, entry: &AtlasEntry, queue: &RenderQueue) {
+    if volume.written != Some(entry.params) {
+        volume.written = Some(entry.params);
+        queue.write_buffer(&volume.params, 0, &uniform_bytes(&entry.params));
+    }
+    if entry.key == UNLIT {
+        volume.key = UNLIT;
+        volume.pending = false;
+        volume.ready = true;
+    } else if entry.key != volume.key {
+        volume.key = entry.key;
+        volume.pending = true;
     }
 }
 
 /// The uniform of one view's volume of `cloud` and the key of its inputs, or `None` when the cloud
 /// is not in front of the view. An unlit cloud scatters nothing, so it needs no optical depth
-/// towards the camera (and has no density grid): a zero volume of 2³ nodes, keyed `UNLIT`.
+/// towards the camera (and has no density grid): a volume of 2³ nodes and no neighbours, keyed
+/// `UNLIT`.
 fn view_params(
     cloud: &ExtractedCloud,
     volumes: &CloudVolumes,
@@ -245,6 +499,7 @@ fn view_params(
         depth,
         extinction: cloud.extinction,
         n: fine.n.max(2),
+        ..default()
     };
     let key = key_of((
         params.local_from_view.to_cols_array().map(f32::to_bits),
@@ -256,7 +511,7 @@ fn view_params(
     Some((params, key))
 }
 
-fn new_volume(device: &RenderDevice, n: u32) -> ViewVolume {
+fn new_volume(device: &RenderDevice) -> ViewVolume {
     ViewVolume {
         params: device.create_buffer(&BufferDescriptor {
             label: Some("particle_clouds_view_volume_params"),
@@ -264,12 +519,7 @@ fn new_volume(device: &RenderDevice, n: u32) -> ViewVolume {
             usage: BufferUsages::UNIFORM | BufferUsages::COPY_DST,
             mapped_at_creation: false,
         }),
-        optical_depth: storage(
-            device,
-            "particle_clouds_view_optical_depth",
-            n as u64 * n as u64 * n as u64 * 4,
-        ),
-        n,
+        written: None,
         key: 0,
         pending: false,
         ready: false,
@@ -282,6 +532,7 @@ pub(crate) fn prepare_view_volume_bind_groups(
     mut clouds: Query<(&CloudVolumes, &mut CloudViewVolumes)>,
     pipeline: Option<Res<ViewVolumePipeline>>,
     pools: Res<VolumePools>,
+    atlases: Res<ViewVolumeAtlases>,
     pipeline_cache: Res<PipelineCache>,
     device: Res<RenderDevice>,
 ) {
@@ -289,7 +540,10 @@ pub(crate) fn prepare_view_volume_bind_groups(
     let layout = pipeline_cache.get_bind_group_layout(&pipeline.layout);
     for (volumes, mut all) in &mut clouds {
         let fine_density = pools.pool(&volumes.slot).fine_density(volumes.slot.index);
-        for volume in all.0.values_mut().filter(|v| v.pending) {
+        for (view, volume) in all.0.iter_mut().filter(|(_, v)| v.pending) {
+            let Some(atlas) = atlases.0.get(view) else {
+                continue;
+            };
             volume.group = Some(device.create_bind_group(
                 "particle_clouds_view_volume_bind_group",
                 &layout,
@@ -297,7 +551,7 @@ pub(crate) fn prepare_view_volume_bind_groups(
                     volumes.fine_params_buffer.as_entire_binding(),
                     volume.params.as_entire_binding(),
                     fine_density.binding(),
-                    volume.optical_depth.as_entire_binding(),
+                    atlas.optical_depth.as_entire_binding(),
                 )),
             ));
         }
@@ -341,7 +595,8 @@ pub(crate) fn march_view_volumes(
                         continue;
                     };
                     pass.set_bind_group(0, &group, &[]);
-                    workgroups::dispatch_columns(pass, volume.n, 1);
+                    let n = volume.written.map_or(2, |p| p.n);
+                    workgroups::dispatch_columns(pass, n, 1);
                     volume.pending = false;
                     volume.ready = true;
                     runs += 1;
@@ -350,4 +605,55 @@ pub(crate) fn march_view_volumes(
             runs
         },
     );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn entry(index: u32, rect: Vec4, depth: Vec2, drawn: bool) -> AtlasEntry {
+        AtlasEntry {
+            entity: Entity::from_raw_u32(index).unwrap(),
+            params: ViewVolumeParams {
+                rect,
+                depth,
+                n: 4,
+                ..default()
+            },
+            key: index as u64,
+            drawn,
+        }
+    }
+
+    #[test]
+    fn a_cloud_sees_through_the_clouds_that_may_lie_in_front_of_it() {
+        let left = Vec4::new(-0.5, 0.0, -0.2, 0.2);
+        let middle = Vec4::new(-0.1, 0.3, -0.2, 0.2);
+        let right = Vec4::new(0.6, 0.9, -0.2, 0.2);
+        let mut entries = [
+            // 0 and 1 overlap on screen and in depth; 2 is wholly behind 1 on screen.
+            entry(0, left, Vec2::new(4.0, 6.0), true),
+            entry(1, middle, Vec2::new(5.0, 7.0), true),
+            entry(2, middle, Vec2::new(8.0, 9.0), true),
+            // Alone on screen.
+            entry(3, right, Vec2::new(4.0, 6.0), true),
+            // Overlaps 0 but is not drawn this frame: nobody sees through it.
+            entry(4, left, Vec2::new(1.0, 2.0), false),
+        ];
+        let (lists, groups) = link_neighbours(&mut entries);
+        let neighbours = |i: usize| {
+            let p = &entries[i].params;
+            let range =
+                p.first_neighbour as usize..(p.first_neighbour + p.neighbour_count) as usize;
+            lists[range].to_vec()
+        };
+        assert_eq!(neighbours(0), [0, 1]);
+        assert_eq!(neighbours(1), [0, 1]);
+        // 0 and 1 both begin before 2 ends; 2 begins after 1 ends, so 1 does not see through it.
+        assert_eq!(neighbours(2), [0, 1, 2]);
+        assert_eq!(neighbours(3), [3]);
+        assert_eq!(neighbours(4), [] as [u32; 0]);
+        // 0, 1 and 2 overlap on screen, directly or through 1: one group, drawn as one.
+        assert_eq!(groups, [0, 0, 0, 3, 4]);
+    }
 }

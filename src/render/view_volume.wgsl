@@ -1,7 +1,9 @@
 // View transmittance: a cloud's optical depth from the camera, marched through its fine density
 // grid along n x n view rays and stored at n view depths (docs/illumination.md §5). One
 // invocation per ray; tau_k = tau_{k-1} + K (rho_{k-1} + rho_k) / 2 * dz sqrt(1 + u^2 + v^2).
-// The billboards read it to see each piece of a particle through every particle in front of it.
+// The billboards read it to see each piece of a particle through every particle in front of it,
+// of this cloud and of the clouds that overlap it, so every view volume of a view sits in one
+// buffer, this one from `volume.offset`.
 #import bevy_particle_clouds::types::{CloudParams, ViewVolumeParams, voxel_index}
 #import bevy_particle_clouds::density::density_at
 
@@ -29,7 +31,7 @@ fn march(@builtin(global_invocation_id) id: vec3<u32>) {
         if k > 0u {
             tau += (before + here) * step;
         }
-        view_optical_depth[voxel_index(vec3(id.xy, k), n)] = tau;
+        view_optical_depth[volume.offset + voxel_index(vec3(id.xy, k), n)] = tau;
         before = here;
     }
 }

@@ -158,6 +158,11 @@ pub(crate) fn render(setup: &Setup) -> (App, SceneTarget, Render) {
 
 /// A headless app with the setup's camera, lights, objects and cloud.
 pub(crate) fn spawn(setup: &Setup) -> (App, SceneTarget) {
+    spawn_clouds(setup, &[setup.cloud()])
+}
+
+/// A headless app with the setup's camera, lights and objects, and these clouds.
+pub(crate) fn spawn_clouds(setup: &Setup, clouds: &[SetupCloud]) -> (App, SceneTarget) {
     let mut app = common::headless_app();
     let image = headless::float_target(&mut app, W, H);
     let camera =
@@ -168,43 +173,94 @@ pub(crate) fn spawn(setup: &Setup) -> (App, SceneTarget) {
     for object in &setup.objects {
         headless::spawn_object(&mut app, object.shape, object.translation, object.color);
     }
-    let handle = app
-        .world_mut()
-        .resource_mut::<Assets<Particles>>()
-        .add(Particles::new(setup.particles.clone()));
-    app.world_mut().spawn((
-        ParticleCloud::new(handle).with_medium(setup.medium),
-        setup.settings,
-        setup.transform,
-    ));
+    for cloud in clouds {
+        let handle = app
+            .world_mut()
+            .resource_mut::<Assets<Particles>>()
+            .add(Particles::new(cloud.particles.to_vec()));
+        app.world_mut().spawn((
+            ParticleCloud::new(handle).with_medium(cloud.medium),
+            setup.settings,
+            cloud.transform,
+        ));
+    }
     let target = SceneTarget {
         image,
         width: W,
         height: H,
         camera,
-        drawable_clouds: 1,
+        drawable_clouds: clouds.len() as u32,
     };
     (app, target)
 }
 
+/// One cloud of a scene: its particles, medium and transform.
+pub(crate) struct SetupCloud<'a> {
+    pub(crate) particles: &'a [Particle],
+    pub(crate) medium: Medium,
+    pub(crate) transform: Transform,
+}
+
+impl Setup {
+    /// The setup's own cloud.
+    pub(crate) fn cloud(&self) -> SetupCloud<'_> {
+        SetupCloud {
+            particles: &self.particles,
+            medium: self.medium,
+            transform: self.transform,
+        }
+    }
+}
+
 /// The CPU reference image of the same billboards.
 fn reference(setup: &Setup) -> Vec<[f32; 4]> {
-    let rotation = setup.transform.rotation.as_dquat();
-    let scale = setup.transform.scale.x as f64;
-    let lights: Vec<LocalLight> = setup
-        .lights
+    reference_of_clouds(setup, &[setup.cloud()])
+}
+
+/// The CPU reference image of these clouds' billboards with the setup's camera, lights and
+/// objects, composited in the order given.
+pub(crate) fn reference_of_clouds(setup: &Setup, clouds: &[SetupCloud]) -> Vec<[f32; 4]> {
+    let illuminations: Vec<_> = clouds
         .iter()
-        .map(|l| LocalLight::from_world(l, rotation))
+        .map(|cloud| {
+            let rotation = cloud.transform.rotation.as_dquat();
+            let lights: Vec<LocalLight> = setup
+                .lights
+                .iter()
+                .map(|l| LocalLight::from_world(l, rotation))
+                .collect();
+            let scale = cloud.transform.scale.x as f64;
+            illuminate(
+                cloud.particles,
+                &cloud.medium,
+                scale,
+                &lights,
+                &setup.settings,
+            )
+            .unwrap()
+        })
         .collect();
-    let illumination = illuminate(
-        &setup.particles,
-        &setup.medium,
-        scale,
-        &lights,
-        &setup.settings,
-    )
-    .unwrap();
-    let scattered = |x: DVec3| illumination.scattered_at(x);
+    let scattered: Vec<_> = illuminations
+        .iter()
+        .map(|i| move |x: DVec3| i.scattered_at(x))
+        .collect();
+    let billboards: Vec<BillboardCloud> = clouds
+        .iter()
+        .zip(&illuminations)
+        .zip(&scattered)
+        .map(|((cloud, illumination), scattered)| BillboardCloud {
+            particles: cloud.particles,
+            world_from_local: CloudPlacement {
+                translation: cloud.transform.translation.as_dvec3(),
+                rotation: cloud.transform.rotation.as_dquat(),
+                scale: cloud.transform.scale.x as f64,
+            },
+            medium: cloud.medium,
+            scattered,
+            segments: setup.settings.chord_segments,
+            compositing: BillboardCompositing::new(setup.settings.compositing, &illumination.fine),
+        })
+        .collect();
     let eye = setup.camera.translation;
     let camera = PinholeCamera::looking_at(
         eye.as_dvec3(),
@@ -214,23 +270,11 @@ fn reference(setup: &Setup) -> Vec<[f32; 4]> {
         W,
         H,
     );
-    let cloud = BillboardCloud {
-        particles: &setup.particles,
-        world_from_local: CloudPlacement {
-            translation: setup.transform.translation.as_dvec3(),
-            rotation,
-            scale,
-        },
-        medium: setup.medium,
-        scattered: &scattered,
-        segments: setup.settings.chord_segments,
-        compositing: BillboardCompositing::new(setup.settings.compositing, &illumination.fine),
-    };
     composite(
         &camera,
         setup.background.as_dvec3(),
         &setup.objects,
-        &[cloud],
+        &billboards,
         1.0,
     )
 }
@@ -267,7 +311,7 @@ pub(crate) fn cloud_setup(seed: u64, camera: Transform) -> Setup {
     }
 }
 
-fn assert_images_match(gpu: &LinearImage, cpu: &[[f32; 4]], what: &str) {
+pub(crate) fn assert_images_match(gpu: &LinearImage, cpu: &[[f32; 4]], what: &str) {
     let rgb = |p: &[[f32; 4]]| {
         p.iter()
             .map(|c| [c[0], c[1], c[2], 1.0])

@@ -9,6 +9,7 @@ mod draw;
 mod illumination;
 mod loader;
 mod lod;
+mod overlap;
 mod plugin;
 mod shading_method;
 mod stress;
