@@ -1,5 +1,5 @@
-// The density grid a march samples: shade (towards each light, every cloud of a pool) and
-// view_volume (towards the camera, one cloud) bind it at group 0, binding 2.
+// The density grids a march samples: shade (towards each light) and view_volume (towards the
+// camera), each over every cloud of a pool, bind the pool's densities at group 0, binding 2.
 #define_import_path bevy_particle_clouds::density
 #import bevy_particle_clouds::types::{CloudParams, grid_coords, zero_border_lookup, corner_weight, corner_voxel}
 

@@ -7,8 +7,8 @@ use bevy::{
     render::{
         diagnostic::{DiagnosticsRecorder, RecordDiagnostics},
         render_resource::{
-            BindGroup, Buffer, BufferDescriptor, BufferInitDescriptor, BufferUsages, ComputePass,
-            ComputePassDescriptor, ComputePipeline, ShaderType, encase,
+            BindGroup, Buffer, BufferBinding, BufferDescriptor, BufferInitDescriptor, BufferUsages,
+            ComputePass, ComputePassDescriptor, ComputePipeline, ShaderType, encase,
         },
         renderer::{RenderContext, RenderDevice},
     },
@@ -24,6 +24,60 @@ pub(crate) fn storage(device: &RenderDevice, label: &'static str, size: u64) -> 
         usage: BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC,
         mapped_at_creation: false,
     })
+}
+
+/// Work items per dispatch of a batched pass: the most z workgroups (65535) rounded down so that
+/// each chunk starts on a 256-byte dynamic offset for items of 4 or 8 bytes.
+pub const WORK_CHUNK: u32 = 65472;
+
+/// The work list of one batched pass: a slot, a (slot, light) pair or a (view volume, slot) pair
+/// per z workgroup, bound a chunk at a time with a dynamic offset.
+pub struct WorkList {
+    buffer: Buffer,
+    /// Items in the list.
+    pub items: u32,
+    item_bytes: u32,
+}
+
+impl WorkList {
+    /// A list of `items` (each a `u32`, or a `[u32; 2]`).
+    pub fn new<T: bytemuck::Pod>(device: &RenderDevice, items: &[T]) -> Self {
+        let item_bytes = size_of::<T>() as u32;
+        let count = items.len() as u32;
+        let mut bytes: Vec<u8> = bytemuck::cast_slice(items).to_vec();
+        // Every chunk's binding is as long as the first; the last is padded to it.
+        let last = count.saturating_sub(1) / WORK_CHUNK * WORK_CHUNK;
+        bytes.resize(((last + count.min(WORK_CHUNK)) * item_bytes) as usize, 0);
+        let buffer = device.create_buffer_with_data(&BufferInitDescriptor {
+            label: Some("particle_clouds_work"),
+            contents: &bytes,
+            usage: BufferUsages::STORAGE,
+        });
+        Self {
+            buffer,
+            items: count,
+            item_bytes,
+        }
+    }
+
+    /// The binding of one chunk (the dynamic offset picks which).
+    pub fn binding(&self) -> BufferBinding<'_> {
+        BufferBinding {
+            buffer: &self.buffer,
+            offset: 0,
+            size: std::num::NonZeroU64::new((self.items.min(WORK_CHUNK) * self.item_bytes) as u64),
+        }
+    }
+
+    /// Each chunk's dynamic offset and its number of items.
+    pub fn chunks(&self) -> impl Iterator<Item = (u32, u32)> + '_ {
+        (0..self.items).step_by(WORK_CHUNK as usize).map(|first| {
+            (
+                first * self.item_bytes,
+                (self.items - first).min(WORK_CHUNK),
+            )
+        })
+    }
 }
 
 /// A uniform buffer of `size` bytes, written with `RenderQueue::write_buffer`.

@@ -12,8 +12,8 @@ use bevy::{
     render::{
         render_asset::RenderAssets,
         render_resource::{
-            BindGroup, BindGroupEntries, BindGroupEntry, Buffer, BufferBinding,
-            BufferInitDescriptor, BufferUsages, PipelineCache, ShaderType,
+            BindGroup, BindGroupEntries, BindGroupEntry, Buffer, BufferBinding, PipelineCache,
+            ShaderType,
         },
         renderer::{RenderContext, RenderDevice},
     },
@@ -21,7 +21,7 @@ use bevy::{
 
 use super::{
     extract::ExtractedCloud,
-    gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, record_stage},
+    gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, WorkList, record_stage},
     particles::GpuParticles,
     pipelines::{
         ComputeStage, IlluminationPipelines, ReadyPipelines, SweepDirection,
@@ -43,58 +43,6 @@ use crate::{
 pub struct IlluminationBindGroups {
     /// Voxelize (all three of its entry points).
     voxelize: Option<BindGroup>,
-}
-
-/// Work items per dispatch of a batched pass: the most z workgroups (65535) rounded down so that
-/// each chunk starts on a 256-byte dynamic offset for items of 4 or 8 bytes.
-pub const WORK_CHUNK: u32 = 65472;
-
-/// The work list of one batched pass: a slot, or a (slot, light) pair, per z workgroup, bound a
-/// chunk at a time with a dynamic offset.
-pub struct WorkList {
-    buffer: Buffer,
-    items: u32,
-    item_bytes: u32,
-}
-
-impl WorkList {
-    /// A list of `items` (each a `u32`, or a `[u32; 2]`).
-    fn new<T: bytemuck::Pod>(device: &RenderDevice, items: &[T]) -> Self {
-        let item_bytes = size_of::<T>() as u32;
-        let count = items.len() as u32;
-        let mut bytes: Vec<u8> = bytemuck::cast_slice(items).to_vec();
-        // Every chunk's binding is as long as the first; the last is padded to it.
-        let last = count.saturating_sub(1) / WORK_CHUNK * WORK_CHUNK;
-        bytes.resize(((last + count.min(WORK_CHUNK)) * item_bytes) as usize, 0);
-        let buffer = device.create_buffer_with_data(&BufferInitDescriptor {
-            label: Some("particle_clouds_work"),
-            contents: &bytes,
-            usage: BufferUsages::STORAGE,
-        });
-        Self {
-            buffer,
-            items: count,
-            item_bytes,
-        }
-    }
-
-    fn binding(&self) -> BufferBinding<'_> {
-        BufferBinding {
-            buffer: &self.buffer,
-            offset: 0,
-            size: std::num::NonZeroU64::new((self.items.min(WORK_CHUNK) * self.item_bytes) as u64),
-        }
-    }
-
-    /// Each chunk's dynamic offset and its number of items.
-    fn chunks(&self) -> impl Iterator<Item = (u32, u32)> + '_ {
-        (0..self.items).step_by(WORK_CHUNK as usize).map(|first| {
-            (
-                first * self.item_bytes,
-                (self.items - first).min(WORK_CHUNK),
-            )
-        })
-    }
 }
 
 /// One batched pass over a pool: its bind group and work list.

@@ -209,7 +209,6 @@ pub(crate) fn finish(app: &mut App) {
                 (
                     illumination::prepare_illumination_bind_groups,
                     sort::prepare_sort_bind_groups,
-                    view_volume::prepare_view_volume_bind_groups,
                     draw::prepare_billboard_bind_groups,
                 )
                     .in_set(RenderSystems::PrepareBindGroups),

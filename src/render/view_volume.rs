@@ -16,9 +16,7 @@ use bevy::{
             BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer,
             BufferDescriptor, BufferUsages, CachedComputePipelineId, ComputePipelineDescriptor,
             PipelineCache, ShaderStages, ShaderType,
-            binding_types::{
-                storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer_sized,
-            },
+            binding_types::{storage_buffer_read_only_sized, storage_buffer_sized},
         },
         renderer::{RenderContext, RenderDevice, RenderQueue},
         view::{ExtractedView, RenderVisibleEntities, RetainedViewEntity},
@@ -27,10 +25,10 @@ use bevy::{
 
 use super::{
     extract::ExtractedCloud,
-    gpu::{record_stage, storage, storage_bytes, uniform_bytes},
+    gpu::{WorkList, record_stage, storage, storage_bytes, uniform_bytes},
     key_of,
     plan::CloudIllumination,
-    pools::VolumePools,
+    pools::{PoolId, VolumePools},
     shaders::CloudShaders,
     volumes::CloudVolumes,
     workgroups,
@@ -68,7 +66,8 @@ pub struct ViewVolumeParams {
 /// The march's compute pipeline.
 #[derive(Resource)]
 pub struct ViewVolumePipeline {
-    /// Fine `CloudParams`, `ViewVolumeParams`, fine density, view optical depth.
+    /// A pool's `Slot`s, an atlas's `ViewVolumeParams`, the pool's densities, the atlas's optical
+    /// depths, the work list.
     pub layout: BindGroupLayoutDescriptor,
     /// `march`.
     pub march: CachedComputePipelineId,
@@ -84,10 +83,11 @@ pub(crate) fn init_view_volume_pipeline(
         &BindGroupLayoutEntries::sequential(
             ShaderStages::COMPUTE,
             (
-                uniform_buffer_sized(false, None),
-                uniform_buffer_sized(false, None),
+                storage_buffer_read_only_sized(false, None),
+                storage_buffer_read_only_sized(false, None),
                 storage_buffer_read_only_sized(false, None),
                 storage_buffer_sized(false, None),
+                storage_buffer_read_only_sized(true, None),
             ),
         ),
     );
@@ -118,8 +118,8 @@ pub struct ViewVolume {
     pub pending: bool,
     /// The volume is valid and may be drawn with.
     pub ready: bool,
-    /// The march's bind group, made in `PrepareBindGroups` while the volume is pending.
-    group: Option<BindGroup>,
+    /// Its index in its view's atlas (`ViewVolumeAtlas::volumes`).
+    entry: u32,
 }
 
 /// Every view's transmittance volume of one cloud (render world component on the cloud).
@@ -234,36 +234,44 @@ impl ViewVolumeAtlas {
         }
     }
 
-    /// Gives each occupying entry its offset: unchanged while the view sees the same clouds at
-    /// the same sizes; otherwise packed anew, growing the buffer by doubling (every volume is
-    /// then marched again, since its key holds its offset and the buffer).
+    /// Gives each occupying entry its offset. A volume keeps its offset while its size holds, and
+    /// new volumes go after the last one kept; when they do not fit, every volume is packed anew,
+    /// the buffer growing by doubling if needed. A volume whose offset or buffer changed is
+    /// marched again, since its key holds both: so a cloud entering the view costs one march of
+    /// its own, not of every cloud.
     fn lay_out(&mut self, device: &RenderDevice, entries: &mut [AtlasEntry]) {
-        let wanted: Vec<(Entity, u32)> = entries
-            .iter()
-            .filter(|e| e.occupies())
-            .map(|e| (e.entity, e.params.n))
-            .collect();
-        let same = wanted.len() == self.layout.len()
-            && wanted
-                .iter()
-                .zip(&self.layout)
-                .all(|(w, l)| *w == (l.0, l.1));
-        if !same {
-            let mut end = 0u64;
-            self.layout = wanted
-                .iter()
-                .map(|&(entity, n)| {
-                    let offset = end as u32;
-                    end += (n as u64).pow(3);
-                    (entity, n, offset)
-                })
-                .collect();
-            let capacity = self.optical_depth.size() / 4;
-            if end > capacity {
-                let size = end.next_power_of_two().max(capacity * 2) * 4;
-                self.optical_depth = storage(device, "particle_clouds_view_optical_depth", size);
+        let previous: HashMap<Entity, (u32, u32)> =
+            self.layout.iter().map(|&(e, n, o)| (e, (n, o))).collect();
+        let (mut kept, mut placed) = (Vec::new(), Vec::new());
+        for entry in entries.iter().filter(|e| e.occupies()) {
+            match previous.get(&entry.entity) {
+                Some(&(n, offset)) if n == entry.params.n => kept.push((entry.entity, n, offset)),
+                _ => placed.push((entry.entity, entry.params.n)),
             }
         }
+        let size = |n: u32| (n as u64).pow(3);
+        let mut end = kept.iter().map(|&(_, n, o)| o as u64 + size(n)).max();
+        let needed: u64 = placed.iter().map(|&(_, n)| size(n)).sum();
+        let capacity = self.optical_depth.size() / 4;
+        if end.unwrap_or(0) + needed > capacity {
+            placed = kept
+                .drain(..)
+                .map(|(e, n, _)| (e, n))
+                .chain(placed)
+                .collect();
+            end = None;
+            let total: u64 = placed.iter().map(|&(_, n)| size(n)).sum();
+            if total > capacity {
+                let bytes = total.next_power_of_two().max(capacity * 2) * 4;
+                self.optical_depth = storage(device, "particle_clouds_view_optical_depth", bytes);
+            }
+        }
+        let mut end = end.unwrap_or(0);
+        for (entity, n) in placed {
+            kept.push((entity, n, end as u32));
+            end += size(n);
+        }
+        self.layout = kept;
         let offsets: HashMap<Entity, u32> = self.layout.iter().map(|l| (l.0, l.2)).collect();
         for entry in entries.iter_mut().filter(|e| e.occupies()) {
             entry.params.offset = offsets[&entry.entity];
@@ -399,7 +407,7 @@ pub(crate) fn prepare_view_volumes(
             .zip(groups)
             .map(|(e, g)| (e.entity, g))
             .collect();
-        for entry in &entries {
+        for (index, entry) in entries.iter().enumerate() {
             seen.entry(entry.entity).or_default().push(here);
             let Ok((.., existing)) = clouds.get_mut(entry.entity) else {
                 continue;
@@ -409,7 +417,7 @@ pub(crate) fn prepare_view_volumes(
                 None => fresh.entry(entry.entity).or_default(),
             };
             let volume = all.0.entry(here).or_insert_with(|| new_volume(&device));
-            update_volume(volume, entry, &queue);
+            update_volume(volume, index as u32, entry, &queue);
         }
     }
     atlases.0.retain(|view, _| live.contains(view));
@@ -454,7 +462,8 @@ fn atlas_entry(
 /// Writes a volume's uniform when it changed, and marks it pending when what its march reads or
 /// where it writes changed. An unlit volume is never marched: it is seen through by no one and
 /// lights nothing.
-fn update_volume(volume: &mut ViewVolume, entry: &AtlasEntry, queue: &RenderQueue) {
+fn update_volume(volume: &mut ViewVolume, index: u32, entry: &AtlasEntry, queue: &RenderQueue) {
+    volume.entry = index;
     if volume.written != Some(entry.params) {
         volume.written = Some(entry.params);
         queue.write_buffer(&volume.params, 0, &uniform_bytes(&entry.params));
@@ -523,60 +532,73 @@ fn new_volume(device: &RenderDevice) -> ViewVolume {
         key: 0,
         pending: false,
         ready: false,
-        group: None,
+        entry: 0,
     }
 }
 
-/// Makes the march's bind group of every pending view volume.
-pub(crate) fn prepare_view_volume_bind_groups(
-    mut clouds: Query<(&CloudVolumes, &mut CloudViewVolumes)>,
-    pipeline: Option<Res<ViewVolumePipeline>>,
-    pools: Res<VolumePools>,
-    atlases: Res<ViewVolumeAtlases>,
-    pipeline_cache: Res<PipelineCache>,
-    device: Res<RenderDevice>,
-) {
-    let Some(pipeline) = pipeline else { return };
-    let layout = pipeline_cache.get_bind_group_layout(&pipeline.layout);
-    for (volumes, mut all) in &mut clouds {
-        let fine_density = pools.pool(&volumes.slot).fine_density(volumes.slot.index);
-        for (view, volume) in all.0.iter_mut().filter(|(_, v)| v.pending) {
-            let Some(atlas) = atlases.0.get(view) else {
-                continue;
-            };
-            volume.group = Some(device.create_bind_group(
-                "particle_clouds_view_volume_bind_group",
-                &layout,
-                &BindGroupEntries::sequential((
-                    volumes.fine_params_buffer.as_entire_binding(),
-                    volume.params.as_entire_binding(),
-                    fine_density.binding(),
-                    atlas.optical_depth.as_entire_binding(),
-                )),
-            ));
-        }
-    }
+/// The pending volumes of one view whose clouds share a volume pool: marched in one dispatch.
+#[derive(Default)]
+struct MarchBatch {
+    /// `(atlas volume, slot)` per volume.
+    items: Vec<[u32; 2]>,
+    /// Rays per side (the pool's fine grid).
+    n: u32,
 }
 
-/// Marches every pending view volume whose cloud's density is ready (once per frame, after the
-/// illumination, before the cameras draw).
+/// Marches every pending view volume whose cloud's illumination is ready (once per frame, after
+/// the illumination, before the cameras draw): one dispatch per view and volume pool.
+#[allow(clippy::too_many_arguments)] // a render system's resources
 pub(crate) fn march_view_volumes(
     mut ctx: RenderContext,
-    mut clouds: Query<(&CloudIllumination, &mut CloudViewVolumes)>,
+    mut clouds: Query<(&CloudIllumination, &CloudVolumes, &mut CloudViewVolumes)>,
     pipeline: Option<Res<ViewVolumePipeline>>,
     pipeline_cache: Res<PipelineCache>,
+    atlases: Res<ViewVolumeAtlases>,
+    pools: Res<VolumePools>,
+    device: Res<RenderDevice>,
     counters: Res<CloudPassCounters>,
 ) {
     let Some(pipeline) = pipeline else { return };
-    let pending = |illumination: &CloudIllumination, all: &CloudViewVolumes| {
-        illumination.ready && all.0.values().any(|s| s.pending)
-    };
-    if !clouds.iter().any(|(i, all)| pending(i, all)) {
-        return;
-    }
     let Some(march) = pipeline_cache.get_compute_pipeline(pipeline.march) else {
         return;
     };
+    let mut batches: HashMap<(RetainedViewEntity, PoolId), MarchBatch> = HashMap::default();
+    for (illumination, volumes, mut all) in &mut clouds {
+        if !illumination.ready || !all.0.values().any(|v| v.pending) {
+            continue;
+        }
+        let n = volumes.fine_params.n.max(2);
+        for (view, volume) in all.0.iter_mut().filter(|(_, v)| v.pending) {
+            let batch = batches.entry((*view, volumes.slot.pool)).or_default();
+            batch.items.push([volume.entry, volumes.slot.index]);
+            batch.n = n;
+            volume.pending = false;
+            volume.ready = true;
+        }
+    }
+    if batches.is_empty() {
+        return;
+    }
+    let layout = pipeline_cache.get_bind_group_layout(&pipeline.layout);
+    let batches: Vec<(BindGroup, WorkList, u32)> = batches
+        .into_iter()
+        .filter_map(|((view, pool), batch)| {
+            let (atlas, pool) = (atlases.0.get(&view)?, pools.0.get(&pool)?);
+            let work = WorkList::new(&device, &batch.items);
+            let group = device.create_bind_group(
+                "particle_clouds_view_volume_bind_group",
+                &layout,
+                &BindGroupEntries::sequential((
+                    pool.slots.as_entire_binding(),
+                    atlas.volumes.as_entire_binding(),
+                    pool.densities.as_entire_binding(),
+                    atlas.optical_depth.as_entire_binding(),
+                    work.binding(),
+                )),
+            );
+            Some((group, work, batch.n))
+        })
+        .collect();
     let recorder = ctx.diagnostic_recorder();
     record_stage(
         &mut ctx,
@@ -585,24 +607,13 @@ pub(crate) fn march_view_volumes(
         CloudPass::ViewVolume,
         |pass| {
             pass.set_pipeline(march);
-            let mut runs = 0;
-            for (illumination, mut all) in &mut clouds {
-                if !illumination.ready {
-                    continue;
-                }
-                for volume in all.0.values_mut().filter(|s| s.pending) {
-                    let Some(group) = volume.group.take() else {
-                        continue;
-                    };
-                    pass.set_bind_group(0, &group, &[]);
-                    let n = volume.written.map_or(2, |p| p.n);
-                    workgroups::dispatch_columns(pass, n, 1);
-                    volume.pending = false;
-                    volume.ready = true;
-                    runs += 1;
+            for (group, work, n) in &batches {
+                for (offset, items) in work.chunks() {
+                    pass.set_bind_group(0, group, &[offset]);
+                    workgroups::dispatch_columns(pass, *n, items);
                 }
             }
-            runs
+            batches.iter().map(|(_, work, _)| work.items).sum()
         },
     );
 }

@@ -3,17 +3,24 @@
 // invocation per ray; tau_k = tau_{k-1} + K (rho_{k-1} + rho_k) / 2 * dz sqrt(1 + u^2 + v^2).
 // The billboards read it to see each piece of a particle through every particle in front of it,
 // of this cloud and of the clouds that overlap it, so every view volume of a view sits in one
-// buffer, this one from `volume.offset`.
-#import bevy_particle_clouds::types::{CloudParams, ViewVolumeParams, voxel_index}
+// buffer (the view's atlas), each from its `offset`.
+// Every volume of one view whose cloud is in one volume pool in one dispatch: z workgroup i
+// marches `work[i]`.
+#import bevy_particle_clouds::types::{Slot, ViewVolumeParams, voxel_index}
 #import bevy_particle_clouds::density::density_at
 
-// The cloud's fine grid (its density, this cloud's only, at binding 2).
-@group(0) @binding(0) var<uniform> cloud: CloudParams;
-@group(0) @binding(1) var<uniform> volume: ViewVolumeParams;
+// The pool's slots; the atlas's volumes; the pool's densities at binding 2 (density.wgsl).
+@group(0) @binding(0) var<storage, read> slots: array<Slot>;
+@group(0) @binding(1) var<storage, read> volumes: array<ViewVolumeParams>;
 @group(0) @binding(3) var<storage, read_write> view_optical_depth: array<f32>;
+// (atlas volume, slot) per z workgroup.
+@group(0) @binding(4) var<storage, read> work: array<vec2<u32>>;
 
 @compute @workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)
 fn march(@builtin(global_invocation_id) id: vec3<u32>) {
+    let item = work[id.z];
+    let volume = volumes[item.x];
+    let slot = slots[item.y];
     let n = volume.n;
     if id.x >= n || id.y >= n {
         return;
@@ -27,7 +34,7 @@ fn march(@builtin(global_invocation_id) id: vec3<u32>) {
     for (var k = 0u; k < n; k++) {
         let z = volume.depth.x + dz * f32(k);
         let local = (volume.local_from_view * vec4(uv * z, -z, 1.0)).xyz;
-        let here = density_at(cloud, 0u, local);
+        let here = density_at(slot.fine, slot.fine_density, local);
         if k > 0u {
             tau += (before + here) * step;
         }

@@ -28,13 +28,18 @@ fn spawn(app: &mut App, x: f32, variant: u32, resolution: u32) -> Entity {
     cloud
 }
 
-/// Runs and dispatches of the batched passes until the scene is steady (counted by `recorder`
-/// from where it stands).
-fn illuminate(app: &mut App, recorder: &mut FrameRecorder, clouds: u32) -> ([u32; 3], [u32; 3]) {
+/// Runs and dispatches of the batched passes (shade, gather, scatter, view volume) until the
+/// scene is steady (counted by `recorder` from where it stands).
+fn illuminate(app: &mut App, recorder: &mut FrameRecorder, clouds: u32) -> ([u32; 4], [u32; 4]) {
     let first = recorder.frames.len();
     headless::render_until_steady(app, recorder, clouds, 20).unwrap();
     let frames = &recorder.frames[first..];
-    let passes = [CloudPass::Shade, CloudPass::Gather, CloudPass::Scatter];
+    let passes = [
+        CloudPass::Shade,
+        CloudPass::Gather,
+        CloudPass::Scatter,
+        CloudPass::ViewVolume,
+    ];
     let sum = |f: &dyn Fn(&headless::FrameStats, CloudPass) -> u32| {
         passes.map(|p| frames.iter().map(|s| f(s, p)).sum())
     };
@@ -69,16 +74,17 @@ fn the_dispatches_stay_flat_in_clouds_of_one_shape() {
     let mut one = scene();
     spawn(&mut one, 0.0, 0, 12);
     let (runs_one, dispatches_one) = illuminate(&mut one, &mut FrameRecorder::default(), 1);
-    // One light, 3 iterations of 13 sweep directions, then the closure's two dispatches.
-    assert_eq!(runs_one, [1, 1, 3]);
-    assert_eq!(dispatches_one, [1, 1, 3 * 13 + 2]);
+    // One light, 3 iterations of 13 sweep directions, then the closure's two dispatches; one
+    // view volume.
+    assert_eq!(runs_one, [1, 1, 3, 1]);
+    assert_eq!(dispatches_one, [1, 1, 3 * 13 + 2, 1]);
 
     let mut six = scene();
     for i in 0..6 {
         spawn(&mut six, 3.0 * i as f32 - 7.5, i, 12);
     }
     let (runs_six, dispatches_six) = illuminate(&mut six, &mut FrameRecorder::default(), 6);
-    assert_eq!(runs_six, [6, 6, 18]);
+    assert_eq!(runs_six, [6, 6, 18, 6]);
     assert_eq!(dispatches_six, dispatches_one);
 
     // A second shape is a second pool: one more dispatch per pass, whatever its clouds.
@@ -92,7 +98,7 @@ fn the_dispatches_stay_flat_in_clouds_of_one_shape() {
         );
     }
     let (runs_mixed, dispatches_mixed) = illuminate(&mut mixed, &mut FrameRecorder::default(), 6);
-    assert_eq!(runs_mixed, [6, 6, 18]);
+    assert_eq!(runs_mixed, [6, 6, 18, 6]);
     assert_eq!(dispatches_mixed, dispatches_one.map(|d| 2 * d));
 }
 
@@ -131,7 +137,8 @@ fn a_growing_pool_keeps_what_its_clouds_hold() {
         spawn(&mut app, 3.0 * i as f32 - 2.0, 3 + i, 12);
     }
     let (runs, _) = illuminate(&mut app, &mut recorder, 4);
-    assert_eq!(runs, [3, 3, 9], "only the new clouds are lit");
+    // The view's atlas grows too, so the first cloud's view volume is marched again.
+    assert_eq!(runs, [3, 3, 9, 4], "only the new clouds are lit");
     let after = volumes_of(&mut app, first);
     assert_eq!(after, before);
 
@@ -146,6 +153,8 @@ fn a_growing_pool_keeps_what_its_clouds_hold() {
     app.world_mut().despawn(first);
     illuminate(&mut app, &mut recorder, 3);
     let next = spawn(&mut app, -6.0, 7, 12);
-    illuminate(&mut app, &mut recorder, 4);
+    let (runs, _) = illuminate(&mut app, &mut recorder, 4);
     assert_eq!(slot_of(&mut app, next), freed);
+    // Where the atlas has room, the other clouds' view volumes keep their places.
+    assert_eq!(runs, [1, 1, 3, 1], "only the new cloud is lit and marched");
 }
