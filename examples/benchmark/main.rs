@@ -101,7 +101,8 @@ pub(crate) struct Args {
     /// Where results, plots and cached references go.
     #[arg(long, default_value = "target/benchmark")]
     pub(crate) out: PathBuf,
-    /// Only these scenes (comma-separated names).
+    /// Only these scenes (comma-separated names); with --scale, only these sweeps (particles,
+    /// clouds, view).
     #[arg(long, value_delimiter = ',')]
     pub(crate) scenes: Option<Vec<String>>,
     /// Measured frames per setting (medians are reported).

@@ -154,7 +154,16 @@ pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {
     let frames = args.frames();
     let mut adapter = String::new();
     let mut rows = Vec::new();
-    let mut run = |sweep, label: String, x: f64, scene: Scene, lod: Option<f32>| {
+    // `--scenes` names the sweeps to run (`particles`, `clouds`, `view`); all by default.
+    let wanted = |sweep: &str| {
+        args.scenes
+            .as_ref()
+            .is_none_or(|names| names.iter().any(|n| sweep.starts_with(n.as_str())))
+    };
+    let mut run = |sweep: &'static str, label: String, x: f64, scene: Scene, lod: Option<f32>| {
+        if !wanted(sweep) {
+            return;
+        }
         eprintln!("benchmark: scale, {sweep}: {label}");
         let (timing, runs, dispatches) = measure(&scene, lod, frames, &mut adapter);
         eprintln!(

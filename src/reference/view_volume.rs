@@ -135,12 +135,17 @@ impl ViewVolume {
     }
 
     /// Optical depth from the camera to world point `x`: trilinear between nodes, clamped to the
-    /// volume (0 before its first slice, the full depth behind its last).
+    /// volume (0 before its first slice, the full depth behind its last), and 0 off its rectangle
+    /// of rays, whose edges only graze the cloud's cube (the view volume of another cloud is
+    /// looked up there).
     pub fn optical_depth_at(&self, x: DVec3) -> f64 {
         let p = x - self.eye;
         let z = p.dot(self.basis[2]);
         let (u, v) = (p.dot(self.basis[0]) / z, p.dot(self.basis[1]) / z);
         let r = &self.rect;
+        if z <= self.depth[0] || u < r[0] || u > r[1] || v < r[2] || v > r[3] {
+            return 0.0;
+        }
         let coords = [
             ((u - r[0]) / (r[1] - r[0]), self.n),
             ((v - r[2]) / (r[3] - r[2]), self.n),

@@ -214,12 +214,18 @@ fn local_at(c: Chord, s: f32) -> vec3<f32> {
 }
 
 #ifdef VIEW_TRANSMITTANCE
-// Optical depth from the camera to view-space point `p` through one view volume: trilinear,
-// clamped to the volume; none when `p` is in front of it (its first slice holds 0).
-fn optical_depth_through(volume: ViewVolumeParams, p: vec3<f32>) -> f32 {
-    if -p.z <= volume.depth.x {
+// Optical depth from the camera to view-space point `p` through view volume `k`: trilinear,
+// clamped to the volume. None in front of its first slice (which holds 0) or off its rectangle of
+// rays (whose edges only graze its cloud's cube): most neighbours of most pixels are skipped
+// after reading those two fields.
+fn optical_depth_through(k: u32, p: vec3<f32>) -> f32 {
+    let depth = -p.z;
+    let rect = view_volumes[k].rect;
+    let uv = p.xy / depth;
+    if depth <= view_volumes[k].depth.x || any(uv < rect.xz) || any(uv > rect.yw) {
         return 0.0;
     }
+    let volume = view_volumes[k];
     let n = volume.n;
     let g = view_volume_coords(volume, p);
     let base = min(vec3<u32>(floor(g)), vec3(n - 2u));
@@ -233,13 +239,74 @@ fn optical_depth_through(volume: ViewVolumeParams, p: vec3<f32>) -> f32 {
     return tau;
 }
 
-// Optical depth from the camera to a world point: through this cloud and every cloud that may
-// be in front of it (its neighbours, this cloud's own volume among them).
-fn view_optical_depth_at(x: vec3<f32>) -> f32 {
-    let p = (view.view_from_world * vec4(x, 1.0)).xyz;
+// Optical depth along the whole ray of tangent `uv` through view volume `k`: bilinear in its
+// last slice; none off its rectangle of rays.
+fn optical_depth_along(k: u32, uv: vec2<f32>) -> f32 {
+    let rect = view_volumes[k].rect;
+    if any(uv < rect.xz) || any(uv > rect.yw) {
+        return 0.0;
+    }
+    let n = view_volumes[k].n;
+    let first = view_volumes[k].offset;
+    let g = clamp((uv - rect.xz) / (rect.yw - rect.xz), vec2(0.0), vec2(1.0)) * f32(n - 1u);
+    let base = min(vec2<u32>(floor(g)), vec2(n - 2u));
+    let f = g - vec2<f32>(base);
     var tau = 0.0;
+    for (var corner = 0u; corner < 4u; corner++) {
+        let o = vec2<u32>(corner & 1u, corner >> 1u);
+        let w = select(1.0 - f, f, vec2<bool>(o));
+        tau += w.x * w.y * view_optical_depth[first + voxel_index(vec3(base + o, n - 1u), n)];
+    }
+    return tau;
+}
+
+// What the cloud's neighbours hold along one pixel's chord: `front`, the optical depth of those
+// wholly in front of the chord (their last slice before its near end: all of their depth along
+// the ray is in front of every point of it), and `mask`, bit i set for neighbour i < 32 that
+// overlaps the chord in depth and holds some optical depth along the ray (those past 32 are
+// always looked up). A column of nodes' optical depth grows with depth, so one that is 0 at the
+// last slice is 0 all along: what is left out adds exactly nothing. So each chord point looks up
+// only the clouds that interpenetrate it, and the others cost at most one bilinear read per pixel.
+struct RayNeighbours {
+    front: f32,
+    mask: u32,
+}
+
+fn neighbours_along(c: Chord) -> RayNeighbours {
+    let near = (view.view_from_world * vec4(world_at(c, c.s0), 1.0)).xyz;
+    let far = -(view.view_from_world * vec4(world_at(c, c.s1), 1.0)).z;
+    let uv = near.xy / -near.z;
+    var r = RayNeighbours(0.0, 0u);
+    for (var i = 0u; i < min(view_volume.neighbour_count, 32u); i++) {
+        let k = neighbours[view_volume.first_neighbour + i];
+        let depth = view_volumes[k].depth;
+        if depth.x >= far {
+            continue;
+        }
+        let along = optical_depth_along(k, uv);
+        if along <= 0.0 {
+            continue;
+        }
+        if depth.y <= -near.z {
+            r.front += along;
+        } else {
+            r.mask |= 1u << i;
+        }
+    }
+    return r;
+}
+
+// Optical depth from the camera to a world point of a chord: through this cloud and every cloud
+// that may be in front of it (its neighbours, this cloud's own volume among them), as
+// `neighbours_along` sorted them for the chord.
+fn view_optical_depth_at(x: vec3<f32>, r: RayNeighbours) -> f32 {
+    let p = (view.view_from_world * vec4(x, 1.0)).xyz;
+    var tau = r.front;
     for (var i = 0u; i < view_volume.neighbour_count; i++) {
-        tau += optical_depth_through(view_volumes[neighbours[view_volume.first_neighbour + i]], p);
+        if i < 32u && (r.mask & (1u << i)) == 0u {
+            continue;
+        }
+        tau += optical_depth_through(neighbours[view_volume.first_neighbour + i], p);
     }
     return tau;
 }
@@ -315,13 +382,14 @@ fn emitted(c: Chord) -> vec3<f32> {
     let ds = (c.s1 - c.s0) / f32(params.segments);
     var light = vec3(0.0);
     var own_before = 0.0;
-    var view_before = view_optical_depth_at(world_at(c, c.s0));
+    let ray = neighbours_along(c);
+    var view_before = view_optical_depth_at(world_at(c, c.s0), ray);
     var s_before = scattered_at(local_at(c, c.s0));
     for (var k = 1u; k <= params.segments; k++) {
         let end = c.s0 + ds * f32(k);
         let own_after = own_depth(c, end);
         let tau = max(own_after - own_before, 0.0);
-        let view_after = view_optical_depth_at(world_at(c, end));
+        let view_after = view_optical_depth_at(world_at(c, end), ray);
         let s_after = scattered_at(local_at(c, end));
         let all = max(view_after - view_before, tau);
         light += segment_mean(s_before, s_after, all) * (tau * exp(-view_before) * mean_attenuation(all));

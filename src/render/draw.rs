@@ -55,7 +55,8 @@ use super::{
     pools::VolumePools,
     shaders::CloudShaders,
     sort::CloudSorts,
-    view_volume::{CloudViewVolumes, ViewVolumeAtlases},
+    view_atlas::ViewVolumeAtlases,
+    view_volume::CloudViewVolumes,
     volumes::CloudVolumes,
 };
 use crate::{

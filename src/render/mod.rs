@@ -11,6 +11,7 @@
 //! | `illumination.rs` | voxelize, then shade, gather, scatter batched per pool (the `RenderGraph` schedule) |
 //! | `sort.rs` | per-view GPU radix sort of the particles (`Compositing::Sorted`) |
 //! | `view_volume.rs` | per-view optical depth from the camera (`Compositing::ViewTransmittance`) |
+//! | `view_atlas.rs` | a view's volumes in shared buffers; which clouds each cloud sees through |
 //! | `draw.rs` | the billboard draw in `Transparent3d` |
 //! | `cloud_target.rs` | the paper's §4: billboards into a reduced-resolution target, upsampled by depth |
 //! | `workgroups.rs` | workgroup sizes and dispatches, shared with the WGSL as shader defs |
@@ -29,6 +30,7 @@ pub mod plan;
 pub mod pools;
 pub mod shaders;
 pub mod sort;
+pub mod view_atlas;
 pub mod view_volume;
 pub mod volumes;
 pub mod workgroups;
@@ -180,7 +182,7 @@ pub(crate) fn finish(app: &mut App) {
     render_app
         .init_resource::<extract::ExtractedCloudLights>()
         .init_resource::<pools::VolumePools>()
-        .init_resource::<view_volume::ViewVolumeAtlases>()
+        .init_resource::<view_atlas::ViewVolumeAtlases>()
         .init_resource::<SpecializedRenderPipelines<draw::BillboardPipeline>>()
         .init_resource::<draw::BillboardEmitPipelines>()
         .add_render_command::<Transparent3d, draw::DrawCloudBillboards>()

@@ -4,9 +4,9 @@
 //! docs/illumination.md §5). It runs only when the view, the cloud's transform or its density
 //! changed. The CPU reference is `reference::view_volume`.
 //!
-//! A view's volumes share one [`ViewVolumeAtlas`], with the lists of which clouds each cloud's
-//! billboards see through (the clouds that may lie in front of it) and the groups of clouds that
-//! overlap on screen, which `draw.rs` draws as one.
+//! A view's volumes share one [`ViewVolumeAtlas`] (`view_atlas.rs`), with the lists of which
+//! clouds each cloud's billboards see through (the clouds that may lie in front of it) and the
+//! groups of clouds that overlap on screen, which `draw.rs` draws as one.
 
 use bevy::{
     platform::collections::HashMap,
@@ -25,11 +25,12 @@ use bevy::{
 
 use super::{
     extract::ExtractedCloud,
-    gpu::{WorkList, record_stage, storage, storage_bytes, uniform_bytes},
+    gpu::{WorkList, record_stage, uniform_bytes},
     key_of,
     plan::CloudIllumination,
     pools::{PoolId, VolumePools},
     shaders::CloudShaders,
+    view_atlas::{AtlasEntry, ViewVolumeAtlas, ViewVolumeAtlases, link_neighbours},
     volumes::CloudVolumes,
     workgroups,
 };
@@ -103,7 +104,7 @@ pub(crate) fn init_view_volume_pipeline(
 }
 
 /// The key of an unlit cloud's volume.
-const UNLIT: u64 = u64::MAX;
+pub(crate) const UNLIT: u64 = u64::MAX;
 
 /// One view's transmittance volume of one cloud. Its optical depths live in the view's
 /// [`ViewVolumeAtlas`].
@@ -125,192 +126,6 @@ pub struct ViewVolume {
 /// Every view's transmittance volume of one cloud (render world component on the cloud).
 #[derive(Component, Default)]
 pub struct CloudViewVolumes(pub HashMap<RetainedViewEntity, ViewVolume>);
-
-/// Every transmittance volume of one view in shared buffers, so that a cloud's billboards can
-/// see through the clouds that overlap it (docs/illumination.md §5, "Overlapping clouds").
-pub struct ViewVolumeAtlas {
-    /// `f32` optical depths from the camera, each volume's `n³` from its `offset`.
-    pub optical_depth: Buffer,
-    /// Every volume's `ViewVolumeParams`, indexed by the neighbour lists.
-    pub volumes: Buffer,
-    /// The volumes' neighbour lists, concatenated: indices into `volumes`.
-    pub neighbours: Buffer,
-    /// The clouds and sizes `optical_depth` is laid out for, and their offsets.
-    layout: Vec<(Entity, u32, u32)>,
-    /// What `volumes` and `neighbours` hold.
-    written: u64,
-    /// Per cloud, its group: clouds that overlap on screen, directly or through others. A group
-    /// is drawn as one (docs/illumination.md §5).
-    pub groups: HashMap<Entity, u32>,
-}
-
-/// Every view's [`ViewVolumeAtlas`].
-#[derive(Resource, Default)]
-pub struct ViewVolumeAtlases(pub HashMap<RetainedViewEntity, ViewVolumeAtlas>);
-
-/// One cloud's volume in one view while the view's atlas is prepared.
-struct AtlasEntry {
-    entity: Entity,
-    params: ViewVolumeParams,
-    /// Key of the march's inputs (`UNLIT` for a zero volume).
-    key: u64,
-    /// The cloud is drawn this frame.
-    drawn: bool,
-}
-
-impl AtlasEntry {
-    /// Whether the volume has optical depths in the atlas: the cloud is lit. It is marched once
-    /// its illumination is ready, the frame before it is first drawn.
-    fn occupies(&self) -> bool {
-        self.key != UNLIT
-    }
-
-    /// Whether other clouds' billboards see through it: it is marched and drawn.
-    fn seen_through(&self) -> bool {
-        self.drawn && self.occupies()
-    }
-}
-
-/// Whether the tangent rectangles `(u0, u1, v0, v1)` of two volumes overlap.
-fn rects_overlap(a: Vec4, b: Vec4) -> bool {
-    a.x < b.y && b.x < a.y && a.z < b.w && b.z < a.w
-}
-
-/// Whether cloud `front` may lie in front of some point of cloud `behind` along a ray both
-/// cross: they overlap on screen and `front` begins before `behind` ends.
-fn may_hide(front: &ViewVolumeParams, behind: &ViewVolumeParams) -> bool {
-    rects_overlap(front.rect, behind.rect) && front.depth.x < behind.depth.y
-}
-
-/// Fills the neighbour range of each entry seen through and returns the lists; groups the
-/// entries by screen overlap (union-find), each entry's group the smallest index in it.
-fn link_neighbours(entries: &mut [AtlasEntry]) -> (Vec<u32>, Vec<u32>) {
-    let mut lists = Vec::new();
-    let mut group: Vec<u32> = (0..entries.len() as u32).collect();
-    fn root(group: &mut [u32], mut i: u32) -> u32 {
-        while group[i as usize] != i {
-            group[i as usize] = group[group[i as usize] as usize];
-            i = group[i as usize];
-        }
-        i
-    }
-    for i in 0..entries.len() {
-        if !entries[i].seen_through() {
-            continue;
-        }
-        let first = lists.len() as u32;
-        for j in 0..entries.len() {
-            let (a, b) = (&entries[j], &entries[i]);
-            if a.seen_through() && may_hide(&a.params, &b.params) {
-                lists.push(j as u32);
-            }
-            if a.seen_through() && rects_overlap(a.params.rect, b.params.rect) {
-                let (ri, rj) = (root(&mut group, i as u32), root(&mut group, j as u32));
-                group[ri.max(rj) as usize] = ri.min(rj);
-            }
-        }
-        entries[i].params.first_neighbour = first;
-        entries[i].params.neighbour_count = lists.len() as u32 - first;
-    }
-    let groups = (0..entries.len() as u32)
-        .map(|i| root(&mut group, i))
-        .collect();
-    (lists, groups)
-}
-
-impl ViewVolumeAtlas {
-    fn new(device: &RenderDevice) -> Self {
-        Self {
-            optical_depth: storage(device, "particle_clouds_view_optical_depth", 4),
-            volumes: storage(
-                device,
-                "particle_clouds_view_volumes",
-                ViewVolumeParams::min_size().get(),
-            ),
-            neighbours: storage(device, "particle_clouds_view_volume_neighbours", 4),
-            layout: Vec::new(),
-            written: 0,
-            groups: HashMap::default(),
-        }
-    }
-
-    /// Gives each occupying entry its offset. A volume keeps its offset while its size holds, and
-    /// new volumes go after the last one kept; when they do not fit, every volume is packed anew,
-    /// the buffer growing by doubling if needed. A volume whose offset or buffer changed is
-    /// marched again, since its key holds both: so a cloud entering the view costs one march of
-    /// its own, not of every cloud.
-    fn lay_out(&mut self, device: &RenderDevice, entries: &mut [AtlasEntry]) {
-        let previous: HashMap<Entity, (u32, u32)> =
-            self.layout.iter().map(|&(e, n, o)| (e, (n, o))).collect();
-        let (mut kept, mut placed) = (Vec::new(), Vec::new());
-        for entry in entries.iter().filter(|e| e.occupies()) {
-            match previous.get(&entry.entity) {
-                Some(&(n, offset)) if n == entry.params.n => kept.push((entry.entity, n, offset)),
-                _ => placed.push((entry.entity, entry.params.n)),
-            }
-        }
-        let size = |n: u32| (n as u64).pow(3);
-        let mut end = kept.iter().map(|&(_, n, o)| o as u64 + size(n)).max();
-        let needed: u64 = placed.iter().map(|&(_, n)| size(n)).sum();
-        let capacity = self.optical_depth.size() / 4;
-        if end.unwrap_or(0) + needed > capacity {
-            placed = kept
-                .drain(..)
-                .map(|(e, n, _)| (e, n))
-                .chain(placed)
-                .collect();
-            end = None;
-            let total: u64 = placed.iter().map(|&(_, n)| size(n)).sum();
-            if total > capacity {
-                let bytes = total.next_power_of_two().max(capacity * 2) * 4;
-                self.optical_depth = storage(device, "particle_clouds_view_optical_depth", bytes);
-            }
-        }
-        let mut end = end.unwrap_or(0);
-        for (entity, n) in placed {
-            kept.push((entity, n, end as u32));
-            end += size(n);
-        }
-        self.layout = kept;
-        let offsets: HashMap<Entity, u32> = self.layout.iter().map(|l| (l.0, l.2)).collect();
-        for entry in entries.iter_mut().filter(|e| e.occupies()) {
-            entry.params.offset = offsets[&entry.entity];
-            entry.key = key_of((entry.key, entry.params.offset, self.optical_depth.id()));
-        }
-    }
-
-    /// Writes every volume's params and the neighbour lists when they changed, growing their
-    /// buffers as needed.
-    fn write(
-        &mut self,
-        device: &RenderDevice,
-        queue: &RenderQueue,
-        entries: &[AtlasEntry],
-        lists: &[u32],
-    ) {
-        let params: Vec<ViewVolumeParams> = entries.iter().map(|e| e.params).collect();
-        let (params, lists) = (storage_bytes(&params), storage_bytes(lists));
-        let key = key_of((&params, &lists));
-        if key == self.written {
-            return;
-        }
-        self.written = key;
-        let fit = |buffer: &mut Buffer, label, bytes: &[u8]| {
-            if bytes.len() as u64 > buffer.size() {
-                *buffer = storage(device, label, (bytes.len() as u64).next_power_of_two());
-            }
-            if !bytes.is_empty() {
-                queue.write_buffer(buffer, 0, bytes);
-            }
-        };
-        fit(&mut self.volumes, "particle_clouds_view_volumes", &params);
-        fit(
-            &mut self.neighbours,
-            "particle_clouds_view_volume_neighbours",
-            &lists,
-        );
-    }
-}
 
 /// Tangent rectangle `(u0, u1, v0, v1)` and depth range of the cube of side `side` centred on
 /// `centre` (cloud-local) as seen from `view`, clipped to the view's frustum; `None` when nothing
@@ -616,55 +431,4 @@ pub(crate) fn march_view_volumes(
             batches.iter().map(|(_, work, _)| work.items).sum()
         },
     );
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn entry(index: u32, rect: Vec4, depth: Vec2, drawn: bool) -> AtlasEntry {
-        AtlasEntry {
-            entity: Entity::from_raw_u32(index).unwrap(),
-            params: ViewVolumeParams {
-                rect,
-                depth,
-                n: 4,
-                ..default()
-            },
-            key: index as u64,
-            drawn,
-        }
-    }
-
-    #[test]
-    fn a_cloud_sees_through_the_clouds_that_may_lie_in_front_of_it() {
-        let left = Vec4::new(-0.5, 0.0, -0.2, 0.2);
-        let middle = Vec4::new(-0.1, 0.3, -0.2, 0.2);
-        let right = Vec4::new(0.6, 0.9, -0.2, 0.2);
-        let mut entries = [
-            // 0 and 1 overlap on screen and in depth; 2 is wholly behind 1 on screen.
-            entry(0, left, Vec2::new(4.0, 6.0), true),
-            entry(1, middle, Vec2::new(5.0, 7.0), true),
-            entry(2, middle, Vec2::new(8.0, 9.0), true),
-            // Alone on screen.
-            entry(3, right, Vec2::new(4.0, 6.0), true),
-            // Overlaps 0 but is not drawn this frame: nobody sees through it.
-            entry(4, left, Vec2::new(1.0, 2.0), false),
-        ];
-        let (lists, groups) = link_neighbours(&mut entries);
-        let neighbours = |i: usize| {
-            let p = &entries[i].params;
-            let range =
-                p.first_neighbour as usize..(p.first_neighbour + p.neighbour_count) as usize;
-            lists[range].to_vec()
-        };
-        assert_eq!(neighbours(0), [0, 1]);
-        assert_eq!(neighbours(1), [0, 1]);
-        // 0 and 1 both begin before 2 ends; 2 begins after 1 ends, so 1 does not see through it.
-        assert_eq!(neighbours(2), [0, 1, 2]);
-        assert_eq!(neighbours(3), [3]);
-        assert_eq!(neighbours(4), [] as [u32; 0]);
-        // 0, 1 and 2 overlap on screen, directly or through 1: one group, drawn as one.
-        assert_eq!(groups, [0, 0, 0, 3, 4]);
-    }
 }

@@ -84,3 +84,25 @@ fn interpenetrating_clouds_in_a_half_size_cloud_target_stay_close_to_the_referen
     eprintln!("half-size cloud target: relative RMSE {error:e} against the full-size reference");
     assert!(error < 0.05, "relative RMSE {error}");
 }
+
+#[test]
+fn a_cloud_wholly_behind_another_is_seen_through_it_in_either_order() {
+    // Apart in depth, one behind the other on screen: each pixel of the far cloud sees the near
+    // one's whole optical depth along its ray (`RayNeighbours::front` in billboard.wgsl).
+    let (setup, particles) = interleaved();
+    let apart = |particles| {
+        let [mut bright, mut dark] = clouds(particles);
+        bright.transform.translation = Vec3::new(-0.2, 0.0, -1.4);
+        dark.transform.translation = Vec3::new(0.3, 0.1, 1.3);
+        [bright, dark]
+    };
+    let cpu = reference_of_clouds(&setup, &apart(&particles));
+    let [bright, dark] = apart(&particles);
+    for (order, clouds) in [
+        ("far first", apart(&particles)),
+        ("near first", [dark, bright]),
+    ] {
+        let gpu = render(&setup, &clouds);
+        assert_images_match(&gpu, &cpu, order);
+    }
+}
