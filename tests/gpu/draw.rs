@@ -14,8 +14,7 @@ use bevy::{
 };
 use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
-    CloudPass, CloudQualitySettings, Compositing, LightSample, Medium, Particle, ParticleCloud,
-    Particles,
+    CloudPass, CloudQualitySettings, Compositing, LightSample, Medium, Particle,
     generators::SplitMix64,
     image_io::LinearImage,
     reference::{
@@ -173,16 +172,8 @@ pub(crate) fn spawn_clouds(setup: &Setup, clouds: &[SetupCloud]) -> (App, SceneT
     for object in &setup.objects {
         headless::spawn_object(&mut app, object.shape, object.translation, object.color);
     }
-    for cloud in clouds {
-        let handle = app
-            .world_mut()
-            .resource_mut::<Assets<Particles>>()
-            .add(Particles::new(cloud.particles.to_vec()));
-        app.world_mut().spawn((
-            ParticleCloud::new(handle).with_medium(cloud.medium),
-            setup.settings,
-            cloud.transform,
-        ));
+    for c in clouds {
+        common::spawn_cloud(&mut app, c.particles, c.medium, setup.settings, c.transform);
     }
     let target = SceneTarget {
         image,
@@ -195,6 +186,7 @@ pub(crate) fn spawn_clouds(setup: &Setup, clouds: &[SetupCloud]) -> (App, SceneT
 }
 
 /// One cloud of a scene: its particles, medium and transform.
+#[derive(Clone, Copy)]
 pub(crate) struct SetupCloud<'a> {
     pub(crate) particles: &'a [Particle],
     pub(crate) medium: Medium,

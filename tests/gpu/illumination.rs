@@ -9,7 +9,7 @@
 use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
-    CloudQualitySettings, LightSample, Medium, Particle, ParticleCloud, Particles, ScatterStencil,
+    CloudQualitySettings, LightSample, Medium, Particle, ScatterStencil,
     generators::SplitMix64,
     reference::{
         illumination::{LocalLight, illuminate},
@@ -73,15 +73,13 @@ fn check(case: Case) {
     for light in &case.lights {
         headless::spawn_light(&mut app, light.direction, light.irradiance);
     }
-    let handle = app
-        .world_mut()
-        .resource_mut::<Assets<Particles>>()
-        .add(Particles::new(case.particles.clone()));
-    app.world_mut().spawn((
-        ParticleCloud::new(handle).with_medium(case.medium),
+    common::spawn_cloud(
+        &mut app,
+        &case.particles,
+        case.medium,
         case.settings,
         case.transform,
-    ));
+    );
     let target = SceneTarget {
         image,
         width: 16,

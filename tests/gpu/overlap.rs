@@ -53,18 +53,19 @@ fn render(setup: &Setup, clouds: &[SetupCloud]) -> LinearImage {
     headless::capture(&mut app, &mut frames, &target.image).unwrap()
 }
 
+/// Renders two clouds in the order given and reversed: both images must equal the CPU
+/// reference.
+fn assert_either_order_matches(setup: &Setup, [a, b]: [SetupCloud; 2], orders: [&str; 2]) {
+    let cpu = reference_of_clouds(setup, &[a, b]);
+    for (order, clouds) in orders.into_iter().zip([[a, b], [b, a]]) {
+        assert_images_match(&render(setup, &clouds), &cpu, order);
+    }
+}
+
 #[test]
 fn interpenetrating_clouds_equal_the_cpu_reference_in_either_order() {
     let (setup, particles) = interleaved();
-    let cpu = reference_of_clouds(&setup, &clouds(&particles));
-    let [bright, dark] = clouds(&particles);
-    for (order, clouds) in [
-        ("bright first", clouds(&particles)),
-        ("dark first", [dark, bright]),
-    ] {
-        let gpu = render(&setup, &clouds);
-        assert_images_match(&gpu, &cpu, order);
-    }
+    assert_either_order_matches(&setup, clouds(&particles), ["bright first", "dark first"]);
 }
 
 #[test]
@@ -90,19 +91,8 @@ fn a_cloud_wholly_behind_another_is_seen_through_it_in_either_order() {
     // Apart in depth, one behind the other on screen: each pixel of the far cloud sees the near
     // one's whole optical depth along its ray (`RayNeighbours::front` in billboard.wgsl).
     let (setup, particles) = interleaved();
-    let apart = |particles| {
-        let [mut bright, mut dark] = clouds(particles);
-        bright.transform.translation = Vec3::new(-0.2, 0.0, -1.4);
-        dark.transform.translation = Vec3::new(0.3, 0.1, 1.3);
-        [bright, dark]
-    };
-    let cpu = reference_of_clouds(&setup, &apart(&particles));
-    let [bright, dark] = apart(&particles);
-    for (order, clouds) in [
-        ("far first", apart(&particles)),
-        ("near first", [dark, bright]),
-    ] {
-        let gpu = render(&setup, &clouds);
-        assert_images_match(&gpu, &cpu, order);
-    }
+    let [mut bright, mut dark] = clouds(&particles);
+    bright.transform.translation = Vec3::new(-0.2, 0.0, -1.4);
+    dark.transform.translation = Vec3::new(0.3, 0.1, 1.3);
+    assert_either_order_matches(&setup, [bright, dark], ["far first", "near first"]);
 }

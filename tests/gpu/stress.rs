@@ -63,14 +63,13 @@ fn render(case: &Case) -> (LinearImage, u32) {
     for light in &case.lights {
         headless::spawn_light(&mut app, light.direction, light.irradiance);
     }
-    let handle = app
-        .world_mut()
-        .resource_mut::<Assets<Particles>>()
-        .add(Particles::new(case.particles.clone()));
-    app.world_mut().spawn((
-        ParticleCloud::new(handle).with_medium(case.medium),
+    common::spawn_cloud(
+        &mut app,
+        &case.particles,
+        case.medium,
         case.settings,
-    ));
+        Transform::IDENTITY,
+    );
     let target = SceneTarget {
         image,
         width: 32,
