@@ -7,9 +7,7 @@ use bevy::{
     prelude::*,
     render::{RenderApp, error_handler::RenderErrorHandler, settings::Backends},
 };
-use bevy_particle_clouds::{
-    CloudQualitySettings, Medium, Particle, ParticleCloud, Particles, headless,
-};
+use bevy_particle_clouds::{CloudQualitySettings, headless};
 
 /// What to do when no adapter exists: say how to get one (tests fail, never skip).
 pub const NO_ADAPTER: &str = "no Vulkan adapter found: install Mesa's software driver with \
@@ -53,25 +51,4 @@ pub fn quality(volume_resolution: u32, scatter_iterations: u32) -> CloudQualityS
 /// Runs a closure on the render world.
 pub fn with_render_world<R>(app: &mut App, f: impl FnOnce(&mut World) -> R) -> R {
     f(app.sub_app_mut(RenderApp).world_mut())
-}
-
-/// Spawns a cloud of `particles` with `medium`, `settings` and `transform`.
-pub fn spawn_cloud(
-    app: &mut App,
-    particles: &[Particle],
-    medium: Medium,
-    settings: CloudQualitySettings,
-    transform: Transform,
-) -> Entity {
-    let handle = app
-        .world_mut()
-        .resource_mut::<Assets<Particles>>()
-        .add(Particles::new(particles.to_vec()));
-    app.world_mut()
-        .spawn((
-            ParticleCloud::new(handle).with_medium(medium),
-            settings,
-            transform,
-        ))
-        .id()
 }

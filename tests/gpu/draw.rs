@@ -173,7 +173,13 @@ pub(crate) fn spawn_clouds(setup: &Setup, clouds: &[SetupCloud]) -> (App, SceneT
         headless::spawn_object(&mut app, object.shape, object.translation, object.color);
     }
     for c in clouds {
-        common::spawn_cloud(&mut app, c.particles, c.medium, setup.settings, c.transform);
+        headless::spawn_cloud(
+            &mut app,
+            c.particles.to_vec(),
+            c.medium,
+            setup.settings,
+            c.transform,
+        );
     }
     let target = SceneTarget {
         image,

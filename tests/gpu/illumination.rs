@@ -73,9 +73,9 @@ fn check(case: Case) {
     for light in &case.lights {
         headless::spawn_light(&mut app, light.direction, light.irradiance);
     }
-    common::spawn_cloud(
+    headless::spawn_cloud(
         &mut app,
-        &case.particles,
+        case.particles.clone(),
         case.medium,
         case.settings,
         case.transform,

@@ -63,9 +63,9 @@ fn render(case: &Case) -> (LinearImage, u32) {
     for light in &case.lights {
         headless::spawn_light(&mut app, light.direction, light.irradiance);
     }
-    common::spawn_cloud(
+    headless::spawn_cloud(
         &mut app,
-        &case.particles,
+        case.particles.clone(),
         case.medium,
         case.settings,
         Transform::IDENTITY,
