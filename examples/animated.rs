@@ -127,6 +127,7 @@ fn setup(
         ParticleCloud::new(handle.clone()).with_medium(Medium {
             extinction: 6.0,
             albedo: 0.99,
+            ..Default::default()
         }),
         CloudQualitySettings {
             volume_resolution: 48,
@@ -148,6 +149,7 @@ fn setup(
         ParticleCloud::new(still).with_medium(Medium {
             extinction: 9.0,
             albedo: 0.99,
+            ..Default::default()
         }),
         CloudQualitySettings {
             volume_resolution: 48,

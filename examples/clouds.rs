@@ -82,6 +82,7 @@ fn setup(
             ParticleCloud::new(handle).with_medium(Medium {
                 extinction: 20.0 / size,
                 albedo: 0.99,
+                ..Default::default()
             }),
             Transform::from_translation(position).with_rotation(Quat::from_rotation_y(angle)),
         ));

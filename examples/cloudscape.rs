@@ -118,6 +118,7 @@ fn spawn_clouds(
             ParticleCloud::new(handle).with_medium(Medium {
                 extinction: 20.0 / size,
                 albedo: 0.99,
+                ..Default::default()
             }),
             Transform::from_xyz(at.x, 70.0 + 40.0 * rng.next_f32(), at.y).with_rotation(
                 Quat::from_rotation_y(rng.next_f32() * std::f32::consts::TAU),

@@ -51,6 +51,7 @@ fn setup(mut commands: Commands, mut particles: ResMut<Assets<Particles>>) {
         ParticleCloud::new(cloud).with_medium(Medium {
             extinction: 8.0,
             albedo: 0.99,
+            ..Default::default()
         }),
         CloudQualitySettings {
             volume_resolution: 64,

@@ -107,6 +107,7 @@ fn default_scene() -> Scene {
             medium: Medium {
                 extinction: 8.0,
                 albedo: 0.99,
+                ..Default::default()
             },
             particles: generators::cumulus(2.5, 3000, 7).particles,
         }],

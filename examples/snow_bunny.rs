@@ -101,6 +101,7 @@ fn setup(
         ParticleCloud::new(big).with_medium(Medium {
             extinction: 1.5,
             albedo: 0.99,
+            ..Default::default()
         }),
         CloudQualitySettings {
             volume_resolution: 128,
@@ -115,6 +116,7 @@ fn setup(
         ParticleCloud::new(small).with_medium(Medium {
             extinction: 12.0,
             albedo: 0.99,
+            ..Default::default()
         }),
         CloudQualitySettings {
             volume_resolution: 48,

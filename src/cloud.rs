@@ -51,8 +51,8 @@ impl Particles {
 
 /// A participating medium made of particles: a cloud, smoke, fog, snow.
 ///
-/// Lit by every [`DirectionalLight`] (without [`NotCloudLight`]), self-shadowed, with isotropic
-/// multiple scattering. Quality knobs: [`CloudQualitySettings`](crate::CloudQualitySettings) on the
+/// Lit by every [`DirectionalLight`] (without [`NotCloudLight`]), self-shadowed, multiply
+/// scattered. Quality knobs: [`CloudQualitySettings`](crate::CloudQualitySettings) on the
 /// same entity, else the [`DefaultCloudQuality`](crate::DefaultCloudQuality) resource.
 ///
 /// The [`Transform`] may rotate, translate and scale uniformly (a non-uniform scale uses its
@@ -68,6 +68,10 @@ pub struct ParticleCloud {
     pub extinction: f32,
     /// Single-scattering albedo in `[0, 1]`. Default 0.99.
     pub albedo: f32,
+    /// Henyey–Greenstein anisotropy `g` in `(-1, 1)`: the mean cosine of the scattering angle
+    /// (dimensionless). `0` (the default) scatters isotropically; `g > 0` scatters forward, so the
+    /// cloud's edges glow with the sun behind it (water clouds: about 0.85).
+    pub anisotropy: f32,
 }
 
 impl Default for ParticleCloud {
@@ -77,13 +81,15 @@ impl Default for ParticleCloud {
 }
 
 impl ParticleCloud {
-    /// A cloud of the given particles with the default medium (extinction 10 /m, albedo 0.99).
+    /// A cloud of the given particles with the default medium (extinction 10 /m, albedo 0.99,
+    /// isotropic).
     pub fn new(particles: Handle<Particles>) -> Self {
         let medium = Medium::default();
         Self {
             particles,
             extinction: medium.extinction,
             albedo: medium.albedo,
+            anisotropy: medium.anisotropy,
         }
     }
 
@@ -91,6 +97,7 @@ impl ParticleCloud {
     pub fn with_medium(mut self, medium: Medium) -> Self {
         self.extinction = medium.extinction;
         self.albedo = medium.albedo;
+        self.anisotropy = medium.anisotropy;
         self
     }
 
@@ -99,6 +106,7 @@ impl ParticleCloud {
         Medium {
             extinction: self.extinction,
             albedo: self.albedo,
+            anisotropy: self.anisotropy,
         }
     }
 }

@@ -36,14 +36,20 @@ pub struct Medium {
     pub extinction: f32,
     /// Single-scattering albedo `omega` in `[0, 1]`: the fraction of extinction that scatters.
     pub albedo: f32,
+    /// Henyey–Greenstein anisotropy `g` in `(-1, 1)` (dimensionless): the mean cosine of the
+    /// scattering angle. `0` scatters isotropically; `g > 0` scatters forward, so a cloud lit from
+    /// behind glows at its edges (the silver lining). Optional in scene files, default 0.
+    #[serde(default)]
+    pub anisotropy: f32,
 }
 
 impl Default for Medium {
-    /// A bright cumulus-like medium: 10 /m at density 1, albedo 0.99.
+    /// A bright cumulus-like medium: 10 /m at density 1, albedo 0.99, isotropic.
     fn default() -> Self {
         Self {
             extinction: 10.0,
             albedo: 0.99,
+            anisotropy: 0.0,
         }
     }
 }
@@ -81,6 +87,9 @@ pub enum InvalidMedium {
     #[error("`albedo` is {0}; it must lie in [0, 1]")]
     /// The medium's albedo lies outside `[0, 1]`.
     Albedo(f32),
+    #[error("`anisotropy` is {0}; it must lie in (-1, 1)")]
+    /// The medium's Henyey–Greenstein `g` lies outside `(-1, 1)`.
+    Anisotropy(f32),
 }
 
 impl Particle {
@@ -114,6 +123,12 @@ impl Particle {
 }
 
 impl Medium {
+    /// The fraction of its optical depth that the light's beam keeps for single scattering:
+    /// `1 - albedo g²` (docs/illumination.md §5). 1 for an isotropic medium.
+    pub fn single_scattering_depth_scale(&self) -> f64 {
+        single_scattering_depth_scale(self.albedo as f64, self.anisotropy as f64)
+    }
+
     /// Checks the medium against docs/physics.md.
     pub fn validate(&self) -> Result<(), InvalidMedium> {
         if !(self.extinction.is_finite() && self.extinction >= 0.0) {
@@ -122,8 +137,21 @@ impl Medium {
         if !(0.0..=1.0).contains(&self.albedo) {
             return Err(InvalidMedium::Albedo(self.albedo));
         }
+        if !(self.anisotropy > -1.0 && self.anisotropy < 1.0) {
+            return Err(InvalidMedium::Anisotropy(self.anisotropy));
+        }
         Ok(())
     }
+}
+
+/// The fraction of its optical depth that a light's beam keeps in a Henyey–Greenstein medium of
+/// anisotropy `g` and albedo `albedo`, as single scattering sees it: `1 - albedo g²`. The
+/// δ-Eddington truncation (Joseph, Wiscombe & Weinman 1976) takes the fraction `g²` of the
+/// scattering as not scattered at all (it stays in the forward peak), so light that scattered a
+/// few times at small angles still lights a point as if it came straight from the light.
+/// Exactly 1 for `g = 0`.
+pub fn single_scattering_depth_scale(albedo: f64, g: f64) -> f64 {
+    1.0 - albedo * g * g
 }
 
 /// Validates a whole cloud: the medium first, then every particle.

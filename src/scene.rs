@@ -283,6 +283,11 @@ fn medium_error(cloud: usize, error: InvalidMedium, note: &str) -> SceneError {
         InvalidMedium::Albedo(value) => {
             invalid(format!("{p}.medium.albedo"), value, "it must lie in [0, 1]")
         }
+        InvalidMedium::Anisotropy(value) => invalid(
+            format!("{p}.medium.anisotropy"),
+            value,
+            "it must lie in (-1, 1)",
+        ),
     }
 }
 
@@ -664,7 +669,8 @@ mod tests {
                 translation: Vec3::ZERO,
                 medium: Medium {
                     extinction: 10.0,
-                    albedo: 0.99
+                    albedo: 0.99,
+                    ..Default::default()
                 },
                 particles: vec![
                     Particle {
@@ -713,10 +719,14 @@ mod tests {
             s.clouds[0].medium,
             Medium {
                 extinction: 10.0,
-                albedo: 1.0
+                albedo: 1.0,
+                anisotropy: 0.0,
             }
         );
         assert!(s.clouds[0].particles.is_empty());
+        let text = MINIMAL.replace("albedo: 1)", "albedo: 1, anisotropy: 0.7)");
+        let s = Scene::from_ron_str(&text, here()).unwrap();
+        assert_eq!(s.clouds[0].medium.anisotropy, 0.7);
         // a sphere object and the non-default stencil parse too
         let text = MINIMAL.replace(
             "\n)",
@@ -850,6 +860,14 @@ mod tests {
         (
             |f| cloud0(f).medium.albedo = f32::NAN,
             "clouds[0].medium.albedo is NaN; it must lie in [0, 1]",
+        ),
+        (
+            |f| cloud0(f).medium.anisotropy = 1.0,
+            "clouds[0].medium.anisotropy is 1; it must lie in (-1, 1)",
+        ),
+        (
+            |f| cloud0(f).medium.anisotropy = f32::NAN,
+            "clouds[0].medium.anisotropy is NaN; it must lie in (-1, 1)",
         ),
         (
             |f| cloud0(f).medium.extinction = -1.0,

@@ -13,16 +13,15 @@
 //!   transmittance towards each light at every shading point), so only the billboard
 //!   approximation (chord segments, particles composited whole in sorted order) is left.
 
-use std::{f64::consts::PI, fmt::Write};
+use std::fmt::Write;
 
-use bevy::math::DVec3;
 use bevy_particle_clouds::{
     CloudQualitySettings,
     image_io::LinearImage,
     reference::{
-        composite::composite_scene_cloud,
+        composite::{ScatteredLight, composite_scene_cloud},
         illumination::{
-            CloudIllumination, DensityGrid, illuminate_scene_cloud, single_scattering_at,
+            CloudIllumination, DensityGrid, illuminate_scene_cloud, single_scattering_towards,
         },
         metrics::relative_rmse,
         path_tracer::{Lighting, ParticleMedia, PathTracerSettings, noise_level, render_orders},
@@ -65,7 +64,7 @@ fn sum(images: &[LinearImage]) -> LinearImage {
 /// The real-time image of the light a field of `albedo S` scatters, box-filtered by `factor`.
 fn billboards(
     scene: &Scene,
-    scattered: &(dyn Fn(DVec3) -> DVec3 + Sync),
+    scattered: ScatteredLight,
     settings: &CloudQualitySettings,
     fine: &DensityGrid,
     factor: u32,
@@ -93,7 +92,7 @@ fn real_time_orders(
     let grid = &ill.grid;
     let mut images = vec![billboards(
         scene,
-        &|x| single_scattering_at(&ill.lights, x) * albedo,
+        &|x, ray| single_scattering_towards(&ill.lights, x, (albedo, ill.anisotropy), ray) * albedo,
         settings,
         &ill.fine,
         factor,
@@ -101,7 +100,7 @@ fn real_time_orders(
     for order in &ill.multiple.orders {
         images.push(billboards(
             scene,
-            &|x| grid.sample_clamped(order, x) * albedo,
+            &|x, _| grid.sample_clamped(order, x) * albedo,
             settings,
             &ill.fine,
             factor,
@@ -113,7 +112,7 @@ fn real_time_orders(
     }
     images.push(billboards(
         scene,
-        &|x| grid.sample_clamped(&tail, x) * albedo,
+        &|x, _| grid.sample_clamped(&tail, x) * albedo,
         settings,
         &ill.fine,
         factor,
@@ -130,10 +129,7 @@ fn parts(scene: &Scene, settings: &CloudQualitySettings, factor: u32, spp: u32) 
     let albedo = ill.albedo;
     let exact_single = billboards(
         scene,
-        &|x| {
-            lighting.direct_irradiance(&media, x + cloud.translation.as_dvec3())
-                * (albedo / (4.0 * PI))
-        },
+        &|x, ray| lighting.in_scattered(&media, x + cloud.translation.as_dvec3(), ray) * albedo,
         settings,
         &ill.fine,
         factor,

@@ -85,6 +85,7 @@ fn cumulus(count: usize) -> ResolvedCloud {
         medium: Medium {
             extinction: 2.0,
             albedo: 0.95,
+            ..Default::default()
         },
         particles: particles.particles,
     }
@@ -114,6 +115,7 @@ fn puffs(clouds: usize) -> Vec<ResolvedCloud> {
                 medium: Medium {
                     extinction: 2.5,
                     albedo: 0.95,
+                    ..Default::default()
                 },
                 particles,
             }

@@ -54,6 +54,7 @@ fn scene(q: f32, settings: CloudQualitySettings) -> Scene {
             medium: bevy_particle_clouds::Medium {
                 extinction: 2.0,
                 albedo: 0.9,
+                ..Default::default()
             },
             particles,
         }],

@@ -60,11 +60,17 @@ impl CloudPlacement {
     pub fn local_point(&self, world: DVec3) -> DVec3 {
         self.rotation.inverse() * (world - self.translation) / self.scale
     }
+
+    /// Local direction of a world unit direction (unit).
+    pub fn local_direction(&self, world: DVec3) -> DVec3 {
+        self.rotation.inverse() * world
+    }
 }
 
-/// What a cloud scatters towards the camera at a cloud-local point: `albedo * S(x)`, radiance in
-/// the units of `E` (e.g. [`CloudIllumination::scattered_at`](crate::reference::illumination::CloudIllumination::scattered_at)).
-pub type ScatteredLight<'a> = &'a (dyn Fn(DVec3) -> DVec3 + Sync);
+/// What a cloud scatters towards the camera at a cloud-local point, given the view ray's unit
+/// direction in cloud-local space: `albedo * S(x, w)`, radiance in the units of `E` (e.g.
+/// [`CloudIllumination::scattered_at`](crate::reference::illumination::CloudIllumination::scattered_at)).
+pub type ScatteredLight<'a> = &'a (dyn Fn(DVec3, DVec3) -> DVec3 + Sync);
 
 /// One cloud as the compositor draws it.
 #[derive(Clone, Copy)]
@@ -232,11 +238,12 @@ fn particle_radiance(
     cloud: &BillboardCloud,
 ) -> (DVec3, f64) {
     let (mut colour, mut transmittance) = (DVec3::ZERO, 1.0);
+    let ray = cloud.world_from_local.local_direction(w);
     for (a, b, tau) in segments(bb, chord, cloud) {
         let x = camera.position + w * (chord.t_c + 0.5 * (a + b));
         let opacity = -(-tau).exp_m1();
-        colour +=
-            (cloud.scattered)(cloud.world_from_local.local_point(x)) * (transmittance * opacity);
+        colour += (cloud.scattered)(cloud.world_from_local.local_point(x), ray)
+            * (transmittance * opacity);
         transmittance *= 1.0 - opacity;
     }
     (colour, 1.0 - transmittance)
@@ -288,7 +295,8 @@ fn particle_light_through_view(
     view_depth: &dyn Fn(DVec3) -> f64,
 ) -> (DVec3, f64) {
     let at = |s: f64| camera.position + w * (chord.t_c + s);
-    let scattered = |s: f64| (cloud.scattered)(cloud.world_from_local.local_point(at(s)));
+    let ray = cloud.world_from_local.local_direction(w);
+    let scattered = |s: f64| (cloud.scattered)(cloud.world_from_local.local_point(at(s)), ray);
     let (mut light, mut own) = (DVec3::ZERO, 0.0);
     let (mut view_before, mut s_before) = (view_depth(at(chord.s0)), scattered(chord.s0));
     for (_, b, tau) in segments(bb, chord, cloud) {
@@ -476,6 +484,7 @@ mod tests {
             medium: Medium {
                 extinction,
                 albedo: 1.0,
+                ..Default::default()
             },
             scattered,
             segments: 4,
@@ -483,7 +492,7 @@ mod tests {
         }
     }
 
-    const WHITE: ScatteredLight = &|_| DVec3::ONE;
+    const WHITE: ScatteredLight = &|_, _| DVec3::ONE;
 
     #[test]
     fn single_particle_face_on_has_beer_lambert_alpha() {
@@ -491,7 +500,7 @@ mod tests {
         // Local particle r = 0.5 scaled by 2 into the world: R = 1.
         let particles = [particle(DVec3::new(0.0, 0.0, -1.5), 0.5, 1.5)];
         let colours = [DVec3::new(0.5, 1.0, 2.0)];
-        let uniform = |_| colours[0];
+        let uniform = |_, _| colours[0];
         let mut c = cloud(&particles, &uniform, 0.8);
         c.world_from_local = CloudPlacement {
             translation: DVec3::new(0.0, 0.0, -2.0),
@@ -551,7 +560,7 @@ mod tests {
         let near = particle(DVec3::new(0.1, 0.0, -3.0), 0.8, 0.7);
         let far = particle(DVec3::new(-0.1, 0.05, -6.0), 1.5, 1.2);
         let (near_colour, far_colour) = (DVec3::new(1.0, 0.0, 0.0), DVec3::new(0.0, 0.0, 1.0));
-        let field = |x: DVec3| if x.z > -4.5 { near_colour } else { far_colour };
+        let field = |x: DVec3, _: DVec3| if x.z > -4.5 { near_colour } else { far_colour };
         let background = DVec3::new(0.0, 0.3, 0.0);
         let draw = |particles: &[Particle]| {
             let mut c = cloud(particles, &field, 1.3);
@@ -586,7 +595,7 @@ mod tests {
         let cam = camera();
         let (k, eta, r) = (3.0, 1.0, 1.0);
         let particles = [particle(DVec3::new(0.0, 0.0, -5.0), r as f32, eta as f32)];
-        let field = |x: DVec3| DVec3::splat(-4.0 - x.z); // 0 at the front (z = -4), 2 at the back
+        let field = |x: DVec3, _: DVec3| DVec3::splat(-4.0 - x.z); // 0 at the front (z = -4), 2 at the back
         let steps = 100_000;
         let ds = 2.0 * r / steps as f64;
         let (mut exact, mut t) = (0.0, 1.0);
@@ -710,7 +719,7 @@ mod tests {
                 )
             })
             .collect();
-        let field = |x: DVec3| DVec3::new(x.x.sin() + 1.0, x.y.cos() + 1.0, x.z * x.z);
+        let field = |x: DVec3, _: DVec3| DVec3::new(x.x.sin() + 1.0, x.y.cos() + 1.0, x.z * x.z);
         let mut c = cloud(&particles, &field, 3.0);
         c.world_from_local = CloudPlacement {
             translation: DVec3::new(0.2, 0.0, -0.5),
@@ -761,7 +770,7 @@ mod tests {
         // Alone, a particle's light is its own chord's (the sorted compositing is exact then);
         // the view volume only blurs its own density, less the finer its grid.
         let particles = [particle(DVec3::new(0.1, 0.0, -4.0), 1.0, 1.2)];
-        let field = |x: DVec3| DVec3::new(1.0, 0.5, 0.25) * (2.0 * (x.x + 1.0)).exp();
+        let field = |x: DVec3, _: DVec3| DVec3::new(1.0, 0.5, 0.25) * (2.0 * (x.x + 1.0)).exp();
         let mut c = cloud(&particles, &field, 1.5);
         c.segments = 16;
         let exact = composite(&camera(), DVec3::ZERO, &[], &[c], 1.0);
@@ -776,7 +785,7 @@ mod tests {
         let (coarse, fine) = (error(32), error(128));
         assert!(fine < 0.02 && fine < coarse, "{coarse} -> {fine}");
         // The background is dimmed by exactly the particle's own transmittance.
-        let dark = |_: DVec3| DVec3::ZERO;
+        let dark = |_: DVec3, _: DVec3| DVec3::ZERO;
         let image = through_view(&particles, &dark, 32, 4, background);
         let w = camera().pixel_ray(W / 2, H / 2);
         let c = particles[0].position.as_dvec3();

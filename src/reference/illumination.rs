@@ -15,9 +15,10 @@ use bevy::math::{DQuat, DVec3};
 use rayon::prelude::*;
 
 use crate::math::{
-    density_level, density_level_sizes, kernel_u2, level_kernel_radius, light_basis,
+    density_level, density_level_sizes, henyey_greenstein, kernel_u2, level_kernel_radius,
+    light_basis,
 };
-use crate::particle::{LightSample, Medium, Particle};
+use crate::particle::{LightSample, Medium, Particle, single_scattering_depth_scale};
 use crate::settings::{CloudQualitySettings, ScatterStencil};
 
 // ---------------------------------------------------------------------------------------------
@@ -563,11 +564,30 @@ pub fn shade_brute_force(
 // ---------------------------------------------------------------------------------------------
 
 /// Single scattering `S_1(p) = (1 / 4 pi) sum_l E_l exp(-tau_l(p))` at local point `p`, straight
-/// from the lights' volumes (each `(volume, irradiance E)`); units of `E` per steradian.
+/// from the lights' volumes (each `(volume, irradiance E)`); units of `E` per steradian. The
+/// isotropic medium's, seen from any direction.
 pub fn single_scattering_at(lights: &[(LightVolume, DVec3)], p: DVec3) -> DVec3 {
     lights.iter().fold(DVec3::ZERO, |acc, (vol, e)| {
         acc + *e * vol.transmittance_at(p)
     }) / (4.0 * PI)
+}
+
+/// Single scattering towards the camera at local point `p` of a medium of albedo `albedo` and
+/// anisotropy `g` (section 5): `S_1(p, w) = sum_l p_HG(g, d_l . (-w)) E_l exp(-c tau_l(p))`,
+/// `w` the unit local direction of the view ray (from the camera), `d_l` the light's travel
+/// direction and `c = 1 - albedo g²` ([`single_scattering_depth_scale`]).
+/// [`single_scattering_at`] for `g = 0`.
+pub fn single_scattering_towards(
+    lights: &[(LightVolume, DVec3)],
+    p: DVec3,
+    (albedo, g): (f64, f64),
+    ray: DVec3,
+) -> DVec3 {
+    let scale = single_scattering_depth_scale(albedo, g);
+    lights.iter().fold(DVec3::ZERO, |acc, (vol, e)| {
+        let phase = henyey_greenstein(g, -vol.basis[2].dot(ray));
+        acc + *e * ((-vol.optical_depth_at(p) * scale).exp() * phase)
+    })
 }
 
 /// The multiple-scattering source `S_0` of every voxel of `grid` (contract section 3): the
@@ -916,6 +936,8 @@ pub struct CloudIllumination {
     pub k_local: f64,
     /// The medium's albedo used.
     pub albedo: f64,
+    /// The medium's Henyey–Greenstein `g`.
+    pub anisotropy: f64,
     /// Each shaded light's volume with its irradiance (section 2), in input order; lights with zero
     /// irradiance or zero direction are left out.
     pub lights: Vec<(LightVolume, DVec3)>,
@@ -965,6 +987,7 @@ pub fn illuminate(
         fine,
         k_local: inputs.k_local,
         albedo: inputs.albedo,
+        anisotropy: medium.anisotropy as f64,
         lights,
         source,
         multiple,
@@ -988,12 +1011,15 @@ pub fn illuminate_scene_cloud(
 }
 
 impl CloudIllumination {
-    /// What a particle scatters towards the camera at local point `p` (section 5):
-    /// `albedo (S_1(p) + S_m(p))`, `S_1` from the light volumes and `S_m` the multiple
-    /// scattering, trilinear and clamped to the edge. Radiance in the units of `E`.
-    pub fn scattered_at(&self, p: DVec3) -> DVec3 {
+    /// What a particle scatters towards the camera at local point `p` along the view ray's unit
+    /// local direction `ray` (section 5): `albedo (S_1(p, ray) + S_m(p))`, `S_1` from the light
+    /// volumes with the phase function towards the camera and `S_m` the multiple scattering,
+    /// trilinear and clamped to the edge. Radiance in the units of `E`.
+    pub fn scattered_at(&self, p: DVec3, ray: DVec3) -> DVec3 {
         let multiple = self.grid.sample_clamped(&self.multiple.total, p);
-        (single_scattering_at(&self.lights, p) + multiple) * self.albedo
+        let medium = (self.albedo, self.anisotropy);
+        let single = single_scattering_towards(&self.lights, p, medium, ray);
+        (single + multiple) * self.albedo
     }
 }
 
@@ -1588,6 +1614,7 @@ mod tests {
         let medium = Medium {
             extinction: 0.0,
             albedo: 0.8,
+            ..Default::default()
         };
         let lights = [
             LocalLight {
@@ -1630,7 +1657,7 @@ mod tests {
         assert!(ill.multiple.total.iter().all(|m| *m == DVec3::ZERO));
         for idx in [0, 77, 511] {
             let x = ill.grid.voxel_centre_linear(idx);
-            assert!((ill.scattered_at(x) - expected * ill.albedo).length() < 1e-15);
+            assert!((ill.scattered_at(x, DVec3::Z) - expected * ill.albedo).length() < 1e-15);
         }
     }
 
@@ -1646,7 +1673,7 @@ mod tests {
         let ill = illuminate(&particles, &medium, 1.0, &[], &settings).unwrap();
         assert!(ill.lights.is_empty());
         assert!(ill.multiple.total.iter().all(|a| *a == DVec3::ZERO));
-        assert_eq!(ill.scattered_at(DVec3::ZERO), DVec3::ZERO);
+        assert_eq!(ill.scattered_at(DVec3::ZERO, DVec3::Z), DVec3::ZERO);
     }
 
     #[test]
@@ -1670,6 +1697,7 @@ mod tests {
         let medium = Medium {
             extinction: 5.0,
             albedo: 0.7,
+            ..Default::default()
         };
         let settings = CloudQualitySettings {
             volume_resolution: 8,
@@ -1691,12 +1719,65 @@ mod tests {
         let x = ill.grid.voxel_centre(3, 4, 5);
         let expected =
             (single_scattering_at(&ill.lights, x) + ill.multiple.total[idx]) * ill.albedo;
-        assert!((ill.scattered_at(x) - expected).length() < 1e-12 * expected.length());
+        assert!((ill.scattered_at(x, DVec3::X) - expected).length() < 1e-12 * expected.length());
         assert!(
             ill.multiple
                 .total
                 .iter()
                 .all(|a| a.is_finite() && a.min_element() >= 0.0)
         );
+    }
+
+    /// A Henyey–Greenstein medium: single scattering takes the phase function towards the
+    /// camera (forward: the camera looks into the light) and sees the optical depths `1 - albedo
+    /// g²` times; the multiple scattering is the isotropic one of the same medium. `g = 0` is the
+    /// isotropic medium exactly.
+    #[test]
+    fn anisotropic_medium_scatters_once_with_its_phase_function_and_then_isotropically() {
+        let particles = random_cloud(12, 4);
+        let medium = Medium {
+            extinction: 6.0,
+            albedo: 0.9,
+            anisotropy: 0.7,
+        };
+        let settings = CloudQualitySettings {
+            volume_resolution: 8,
+            scatter_iterations: 5,
+            ..Default::default()
+        };
+        let light = LocalLight {
+            direction: DVec3::new(0.3, -1.0, 0.2).normalize(),
+            irradiance: DVec3::new(1.0, 0.9, 0.8),
+        };
+        let ill = illuminate(&particles, &medium, 1.0, &[light], &settings).unwrap();
+        let x = ill.grid.voxel_centre(4, 3, 4);
+        let multiple = ill.grid.sample_clamped(&ill.multiple.total, x);
+        let scale = 1.0 - ill.albedo * ill.anisotropy * ill.anisotropy;
+        assert!((scale - (1.0 - 0.9 * 0.49)).abs() < 1e-6);
+        let (vol, e) = &ill.lights[0];
+        let beam = *e * (-vol.optical_depth_at(x) * scale).exp();
+        for (ray, cos) in [(-light.direction, 1.0), (light.direction, -1.0)] {
+            let expected = (beam * henyey_greenstein(ill.anisotropy, cos) + multiple) * ill.albedo;
+            let got = ill.scattered_at(x, ray);
+            assert!(
+                (got - expected).length() < 1e-12 * expected.length(),
+                "cos {cos}: {got} against {expected}"
+            );
+        }
+        assert!(
+            ill.scattered_at(x, -light.direction).x > 10.0 * ill.scattered_at(x, light.direction).x
+        );
+        let isotropic = Medium {
+            anisotropy: 0.0,
+            ..medium
+        };
+        let iso = illuminate(&particles, &isotropic, 1.0, &[light], &settings).unwrap();
+        assert_eq!(iso.source, ill.source);
+        assert_eq!(iso.multiple.total, ill.multiple.total);
+        for ray in [DVec3::X, -light.direction] {
+            let expected = (single_scattering_at(&iso.lights, x) + multiple) * iso.albedo;
+            assert!((iso.scattered_at(x, ray) - expected).length() < 1e-15 * expected.length());
+        }
+        assert_eq!(single_scattering_depth_scale(0.9, 0.0), 1.0);
     }
 }

@@ -7,7 +7,8 @@
 //! S = (1/4π) ( Σ_l E_l T_l(x) + ∫ L(x, w') dw' )
 //! ```
 //!
-//! with the exact particle kernel, isotropic scattering, all scattering orders, opaque unlit objects
+//! with the exact particle kernel, Henyey–Greenstein scattering (isotropic by default), all
+//! scattering orders, opaque unlit objects
 //! ending rays (camera, scattered and shadow rays alike) and the constant background radiance seen by
 //! every ray that escapes.
 //!
@@ -18,14 +19,19 @@
 //!   cell; rays walk the grid with a 3D DDA. A real collision at `x` happens with density
 //!   `T(0,t) σ_t(x_t)`, so weighting by `σ_s/σ_t` turns it into an estimate of the first integral.
 //! - **Next-event estimation** at every real collision: each directional light adds
-//!   `(σ_s/σ_t) · E_l T_l(x) / 4π`. `T_l` is computed *exactly*: the optical depth of one particle
+//!   `(σ_s/σ_t) · E_l T_l(x) p(x, cos θ_l)`, `p` the phase function of the media at `x` (where
+//!   clouds of different anisotropies overlap, the mixture of theirs weighted by their `σ_s`) and
+//!   `θ_l` the angle between the light's travel direction and the way back along the path.
+//!   `T_l` is computed *exactly*: the optical depth of one particle
 //!   along a straight segment is a polynomial integral, so summing it over the particles of the cells
 //!   the shadow ray crosses gives `T_l` without noise ([`Media::optical_depth`]). Shadow rays hitting
 //!   an opaque object carry nothing (objects are unlit and block the light, which comes from infinity).
 //!   [`transmittance`] (ratio tracking) is the stochastic alternative, kept for media without a
 //!   closed form and for tests.
-//! - **Multiple scattering**: the `∫ L dw' / 4π` term is estimated by continuing the path in a
-//!   uniformly sampled direction (pdf `1/4π`, so the weight is 1). Russian roulette with survival
+//! - **Multiple scattering**: the `∫ p L dw'` term is estimated by continuing the path in a
+//!   direction sampled from the phase function itself (so the weight is 1): uniformly for the
+//!   isotropic medium, by inverting the Henyey–Greenstein distribution otherwise, the component
+//!   of a mixture chosen in proportion to its `σ_s`. Russian roulette with survival
 //!   probability `σ_s/σ_t` replaces the albedo weight, so every path has weight 1 and ends by
 //!   absorption, by escaping (adding `L_background`) or by hitting an object (adding its `color`).
 //!   Directional lights are delta distributions: an escaping ray never "sees" them, so there is no
@@ -45,14 +51,11 @@ use std::sync::{
 use bevy::math::DVec3;
 use rayon::prelude::*;
 
-use crate::math::{SplitMix64, kernel_u2};
+use crate::math::{INV_4PI, SplitMix64, henyey_greenstein, kernel_u2};
 use crate::reference::camera::PinholeCamera;
 use crate::reference::geometry::{box_interval, nearest_object};
 use crate::reference::metrics::relative_rmse;
 use crate::scene::{ResolvedCloud, Scene, SceneObject};
-
-/// `1 / 4π`: the isotropic phase function, per steradian.
-const INV_4PI: f64 = 0.25 * std::f64::consts::FRAC_1_PI;
 
 /// Safety cap on real scattering events per path. It is the only source of bias: paths are cut
 /// after this many events. With Russian roulette on the albedo a path of albedo `ω < 1` has
@@ -144,6 +147,18 @@ pub trait Media: Sync {
 
     /// Exact optical depth `∫_0^t_max σ_t(origin + t dir) dt` (dimensionless); `t_max` may be `∞`.
     fn optical_depth(&self, origin: DVec3, dir: DVec3, t_max: f64) -> f64;
+
+    /// The phase function (per steradian) at `x`, where `σ_s > 0`, at the cosine between the
+    /// light's travel direction and the scattered direction. Isotropic unless overridden.
+    fn phase(&self, _x: DVec3, _cos_theta: f64) -> f64 {
+        INV_4PI
+    }
+
+    /// A direction scattered at `x` from the travel direction `dir` (unit), with the phase
+    /// function at `x` as its pdf. Uniform unless overridden.
+    fn scatter_direction(&self, _x: DVec3, _dir: DVec3, rng: &mut SplitMix64) -> DVec3 {
+        rng.unit_sphere()
+    }
 }
 
 /// One particle as the tracer stores it: world centre and precomputed constants.
@@ -159,6 +174,8 @@ struct TracedParticle {
     extinction_peak: f64,
     /// `σ_s` at the centre: `ω K η`, 1/m.
     scattering_peak: f64,
+    /// Henyey–Greenstein `g` of its cloud's medium.
+    anisotropy: f64,
 }
 
 impl TracedParticle {
@@ -219,6 +236,9 @@ pub struct ParticleMedia {
     /// Particles of cell `c`: `cell_particles[cell_start[c]..cell_start[c + 1]]`.
     cell_start: Vec<u32>,
     cell_particles: Vec<u32>,
+    /// The anisotropy every particle shares, when they do (the common case: then the phase
+    /// function needs no lookup).
+    uniform_anisotropy: Option<f64>,
 }
 
 /// Largest number of grid cells; the cell size grows to respect it.
@@ -244,6 +264,7 @@ impl ParticleMedia {
             .flat_map(|cloud| {
                 let k = cloud.medium.extinction as f64;
                 let omega = cloud.medium.albedo as f64;
+                let anisotropy = cloud.medium.anisotropy as f64;
                 let offset = cloud.translation.as_dvec3();
                 cloud.particles.iter().map(move |p| {
                     let r = p.radius as f64;
@@ -254,6 +275,7 @@ impl ParticleMedia {
                         inv_r2: 1.0 / (r * r),
                         extinction_peak: peak,
                         scattering_peak: omega * peak,
+                        anisotropy,
                     }
                 })
             })
@@ -283,8 +305,14 @@ impl ParticleMedia {
                 majorant: Vec::new(),
                 cell_start: vec![0],
                 cell_particles: Vec::new(),
+                uniform_anisotropy: Some(0.0),
             };
         }
+        let first = particles[0].anisotropy;
+        let uniform_anisotropy = particles
+            .iter()
+            .all(|p| p.anisotropy == first)
+            .then_some(first);
         let (lo, hi) = particles
             .iter()
             .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), p| {
@@ -301,6 +329,7 @@ impl ParticleMedia {
             majorant: vec![0.0; dims[0] * dims[1] * dims[2]],
             cell_start: Vec::new(),
             cell_particles: Vec::new(),
+            uniform_anisotropy,
         };
         media.fill_cells();
         media
@@ -387,6 +416,17 @@ impl ParticleMedia {
             return 0.0;
         }
         self.majorant[self.linear(self.cell_of(x))]
+    }
+
+    /// The particles of the cell holding `x` (none outside the grid).
+    fn particles_near(&self, x: DVec3) -> impl Iterator<Item = &TracedParticle> {
+        let inside = !self.particles.is_empty() && x.cmpge(self.lo).all() && x.cmple(self.hi).all();
+        let list = if inside {
+            self.cell_list(self.linear(self.cell_of(x)))
+        } else {
+            &[]
+        };
+        list.iter().map(|&i| &self.particles[i as usize])
     }
 
     fn cell_coefficients(&self, cell: usize, x: DVec3) -> Coefficients {
@@ -494,6 +534,46 @@ impl Media for ParticleMedia {
 
     fn coefficients(&self, x: DVec3, segment: &Segment) -> Coefficients {
         self.cell_coefficients(segment.cell as usize, x)
+    }
+
+    /// The `σ_s`-weighted mixture of the particles' phase functions at `x`.
+    fn phase(&self, x: DVec3, cos_theta: f64) -> f64 {
+        if let Some(g) = self.uniform_anisotropy {
+            return henyey_greenstein(g, cos_theta);
+        }
+        let (mut weighted, mut scattering) = (0.0, 0.0);
+        for p in self.particles_near(x) {
+            let s = p.coefficients(x).1;
+            weighted += s * henyey_greenstein(p.anisotropy, cos_theta);
+            scattering += s;
+        }
+        if scattering > 0.0 {
+            weighted / scattering
+        } else {
+            INV_4PI
+        }
+    }
+
+    /// Picks the scattering particle in proportion to its `σ_s` at `x`, then samples its
+    /// phase function: exactly the mixture's pdf.
+    fn scatter_direction(&self, x: DVec3, dir: DVec3, rng: &mut SplitMix64) -> DVec3 {
+        if let Some(g) = self.uniform_anisotropy {
+            return rng.henyey_greenstein(g, dir);
+        }
+        let total: f64 = self.particles_near(x).map(|p| p.coefficients(x).1).sum();
+        let mut pick = rng.next_f64() * total;
+        let mut g = 0.0;
+        for p in self.particles_near(x) {
+            let s = p.coefficients(x).1;
+            if s > 0.0 {
+                g = p.anisotropy;
+                pick -= s;
+                if pick < 0.0 {
+                    break;
+                }
+            }
+        }
+        rng.henyey_greenstein(g, dir)
     }
 
     /// Exact: every particle contributes the polynomial integral of its kernel over the part of
@@ -626,13 +706,29 @@ impl Lighting {
     /// `Σ_l E_l T_l(x)`: unscattered irradiance at `x` from all lights, with exact transmittance.
     /// An object anywhere on the shadow ray blocks the light entirely.
     pub fn direct_irradiance<M: Media>(&self, media: &M, x: DVec3) -> DVec3 {
+        self.single_scattering(media, x, |_| 1.0)
+    }
+
+    /// `Σ_l p(cos θ_l) E_l T_l(x)`: the unscattered light of every light scattered at `x`
+    /// towards `-dir` (`dir` the unit direction the path arrived along), per unit `σ_s`.
+    pub fn in_scattered<M: Media>(&self, media: &M, x: DVec3, dir: DVec3) -> DVec3 {
+        // The light travels along -to_light and leaves along -dir: cos θ = to_light · dir.
+        self.single_scattering(media, x, |to_light| media.phase(x, to_light.dot(dir)))
+    }
+
+    fn single_scattering<M: Media>(
+        &self,
+        media: &M,
+        x: DVec3,
+        phase: impl Fn(DVec3) -> f64,
+    ) -> DVec3 {
         let mut e = DVec3::ZERO;
         for light in &self.lights {
             if nearest_object(&self.objects, x, light.to_light).is_some() {
                 continue;
             }
             let tau = media.optical_depth(x, light.to_light, f64::INFINITY);
-            e += light.irradiance * (-tau).exp();
+            e += light.irradiance * ((-tau).exp() * phase(light.to_light));
         }
         e
     }
@@ -693,14 +789,13 @@ pub fn radiance_by_order<M: Media>(
         // σ_s/σ_t: a real collision was accepted with probability σ_t/majorant > 0, so σ_t > 0.
         let albedo = c.scattering / c.extinction;
         events += 1;
-        orders[(events as usize).min(last)] +=
-            lighting.direct_irradiance(media, x) * (albedo * INV_4PI);
+        orders[(events as usize).min(last)] += lighting.in_scattered(media, x, d) * albedo;
         // Russian roulette on the albedo: survivors keep weight 1.
         if events >= max_scatter_events || rng.next_f64() >= albedo {
             return;
         }
+        d = media.scatter_direction(x, d, rng);
         o = x;
-        d = rng.unit_sphere();
     }
 }
 
@@ -840,7 +935,11 @@ mod tests {
     ) -> ResolvedCloud {
         ResolvedCloud {
             translation,
-            medium: Medium { extinction, albedo },
+            medium: Medium {
+                extinction,
+                albedo,
+                ..Default::default()
+            },
             particles,
         }
     }
@@ -1165,17 +1264,25 @@ mod tests {
     }
 
     /// Single scattering (paths cut after one event) of one large particle, against nested
-    /// Simpson quadrature of `B T(0,∞) + ∫ T(0,t) σ_s E/(4π) T_light dt` with the exact kernel.
+    /// Simpson quadrature of `B T(0,∞) + ∫ T(0,t) σ_s E p(cos θ) T_light dt` with the exact
+    /// kernel, isotropic and Henyey–Greenstein forward and backward.
     #[test]
     fn single_scattering_matches_quadrature() {
+        for g in [0.0, 0.7, -0.4] {
+            single_scattering_matches_quadrature_for(g);
+        }
+    }
+
+    fn single_scattering_matches_quadrature_for(g: f64) {
         let (k, eta, r, omega) = (1.2f32 as f64, 1.0, 1.0, 0.8f32 as f64);
         let centre = DVec3::new(0.1, 0.0, -0.2).as_vec3().as_dvec3();
-        let clouds = vec![cloud(
+        let mut clouds = vec![cloud(
             centre.as_vec3(),
             k as f32,
             omega as f32,
             vec![particle(0.0, 0.0, 0.0, r as f32, eta as f32)],
         )];
+        clouds[0].medium.anisotropy = g as f32;
         let media = ParticleMedia::new(&clouds);
         let light = LightSample {
             direction: Vec3::new(-0.3, -1.0, -0.2),
@@ -1207,7 +1314,7 @@ mod tests {
                 let x = eye + dir * t;
                 let t_cam = (-tau(eye + dir * ta, dir, t - ta)).exp();
                 let t_light = (-tau(x, to_light, 2.0 * r)).exp();
-                t_cam * omega * sigma_t(x) / (4.0 * std::f64::consts::PI) * t_light
+                t_cam * omega * sigma_t(x) * henyey_greenstein(g, to_light.dot(dir)) * t_light
             });
             let t_total = (-particle_optical_depth(k, eta, r, b2.sqrt())).exp();
             let expected =
@@ -1217,7 +1324,7 @@ mod tests {
                 .map(|_| radiance(&media, &lighting, eye, dir, 1, &mut rng))
                 .collect();
             assert_close(
-                "single scattering",
+                &format!("single scattering, g {g}"),
                 mean_and_error(&samples),
                 expected,
                 4.5,
@@ -1312,17 +1419,27 @@ mod tests {
     /// uniformly random rotation of a spherical Fibonacci set, `E = 4π B / N` each, estimate the
     /// environment's unscattered irradiance without bias. Along a ray, the lights version (black
     /// background) must then give the environment version minus the directly transmitted
-    /// `B T(0,∞)`. This checks next-event estimation (`1/4π`, exact `T_l`) against the
-    /// multiple-scattering continuation and escapes, at all orders (albedo 0.9, τ up to ~2).
+    /// `B T(0,∞)`. This checks next-event estimation (the phase function, exact `T_l`) against
+    /// the multiple-scattering continuation (directions sampled from the phase function) and
+    /// escapes, at all orders (albedo 0.9, τ up to ~2): isotropic, and a mixture of a forward and
+    /// a backward Henyey–Greenstein cloud in the same place.
     #[test]
     fn environment_equals_many_lights() {
-        let (k, r) = (2.0, 1.0);
-        let clouds = vec![cloud(
-            Vec3::ZERO,
-            k as f32,
-            0.9,
-            vec![particle(0.0, 0.0, 0.0, r as f32, 1.0)],
-        )];
+        let ball = |g: f32, density: f32| {
+            let mut c = cloud(
+                Vec3::ZERO,
+                2.0,
+                0.9,
+                vec![particle(0.0, 0.0, 0.0, 1.0, density)],
+            );
+            c.medium.anisotropy = g;
+            c
+        };
+        assert_environment_equals_many_lights(vec![ball(0.0, 1.0)], 60);
+        assert_environment_equals_many_lights(vec![ball(0.7, 0.5), ball(-0.4, 0.5)], 70);
+    }
+
+    fn assert_environment_equals_many_lights(clouds: Vec<ResolvedCloud>, seed: u64) {
         let background = DVec3::new(1.0, 0.6, 0.3);
         let env = scene(clouds, vec![], background.as_vec3(), vec![], (1, 1));
         let media = ParticleMedia::from_scene(&env);
@@ -1368,9 +1485,8 @@ mod tests {
         let n = 100_000;
         for (j, b) in [0.0, 0.5, 0.85].into_iter().enumerate() {
             let dir = (DVec3::new(b, 0.0, 0.0) - eye).normalize();
-            let b_line = eye.cross(dir).length();
-            let t_direct = (-particle_optical_depth(k, 1.0, r, b_line)).exp();
-            let mut rng = SplitMix64::mixed(60 + j as u64);
+            let t_direct = (-media.optical_depth(eye, dir, f64::INFINITY)).exp();
+            let mut rng = SplitMix64::mixed(seed + j as u64);
             let env_samples: Vec<DVec3> = (0..n)
                 .map(|_| {
                     radiance(

@@ -12,7 +12,7 @@
 // CLOUD_TARGET: drawn into the view's reduced-resolution cloud target, which has no depth
 // attachment; each fragment is depth-tested here against the view pixel its texel stands for
 // (cloud_target.wgsl enlarges the target onto the view).
-#import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, ViewVolumeParams, CloudTargetParams, PI, grid_coords, light_coords, clamped_lookup, clamped_corner, corner_weight, opacity, voxel_index, view_volume_coords, cloud_target_depth_pixel}
+#import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, ViewVolumeParams, CloudTargetParams, grid_coords, henyey_greenstein, light_coords, clamped_lookup, clamped_corner, corner_weight, opacity, voxel_index, view_volume_coords, cloud_target_depth_pixel}
 
 struct DrawParams {
     world_from_local: mat4x4<f32>,
@@ -128,8 +128,11 @@ fn chord_integral(s: f32, q: f32, r: f32) -> f32 {
     return r * (q * q * x - 2.0 * q * x * x * x / 3.0 + x * x * x * x * x / 5.0);
 }
 
-// S_1 at a cloud-local point, straight from the light volumes (as gather.wgsl computes it).
-fn single_scattering_at(p: vec3<f32>) -> vec3<f32> {
+// S_1 at a cloud-local point towards the camera, straight from the light volumes: each light's
+// share weighted by the phase function between its travel direction and -ray, `ray` the view
+// ray's cloud-local unit direction, its beam through `single_depth_scale` of the optical depth
+// (1 for an isotropic medium; docs/illumination.md §5).
+fn single_scattering_at(p: vec3<f32>, ray: vec3<f32>) -> vec3<f32> {
     var sum = vec3(0.0);
     for (var l = 0u; l < cloud.light_count; l++) {
         let light = lights[l];
@@ -138,19 +141,25 @@ fn single_scattering_at(p: vec3<f32>) -> vec3<f32> {
         for (var corner = 0u; corner < 8u; corner++) {
             tau += corner_weight(t, corner) * optical_depth[light.offset + clamped_corner(t, corner, cloud.light_n)];
         }
-        sum += light.irradiance * exp(-tau);
+        let phase = henyey_greenstein(cloud.anisotropy, -dot(light.w, ray));
+        sum += light.irradiance * (exp(-tau * cloud.single_depth_scale) * phase);
     }
-    return sum / (4.0 * PI);
+    return sum;
 }
 
-// albedo (S_1 + S_m) at a cloud-local point.
-fn scattered_at(p: vec3<f32>) -> vec3<f32> {
+// albedo (S_1 + S_m) at a cloud-local point, seen along `ray`.
+fn scattered_at(p: vec3<f32>, ray: vec3<f32>) -> vec3<f32> {
     let t = clamped_lookup(grid_coords(cloud, p), cloud.n);
     var s_m = vec3(0.0);
     for (var corner = 0u; corner < 8u; corner++) {
         s_m += corner_weight(t, corner) * multiple[clamped_corner(t, corner, cloud.n)].xyz;
     }
-    return cloud.albedo * (single_scattering_at(p) + s_m);
+    return cloud.albedo * (single_scattering_at(p, ray) + s_m);
+}
+
+// The chord's ray direction in cloud-local space (unit).
+fn local_ray(c: Chord) -> vec3<f32> {
+    return normalize((params.local_from_world * vec4(c.w, 0.0)).xyz);
 }
 
 // The visible part of a pixel's ray through a particle: s runs along the unit ray w from the
@@ -384,13 +393,14 @@ fn emitted(c: Chord) -> vec3<f32> {
     var own_before = 0.0;
     let ray = neighbours_along(c);
     var view_before = view_optical_depth_at(world_at(c, c.s0), ray);
-    var s_before = scattered_at(local_at(c, c.s0));
+    let direction = local_ray(c);
+    var s_before = scattered_at(local_at(c, c.s0), direction);
     for (var k = 1u; k <= params.segments; k++) {
         let end = c.s0 + ds * f32(k);
         let own_after = own_depth(c, end);
         let tau = max(own_after - own_before, 0.0);
         let view_after = view_optical_depth_at(world_at(c, end), ray);
-        let s_after = scattered_at(local_at(c, end));
+        let s_after = scattered_at(local_at(c, end), direction);
         let all = max(view_after - view_before, tau);
         light += segment_mean(s_before, s_after, all) * (tau * exp(-view_before) * mean_attenuation(all));
         own_before = own_after;
@@ -412,11 +422,12 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     var colour = vec3(0.0);
     var transmittance = 1.0;
     var depth_before = 0.0;
+    let direction = local_ray(c);
     for (var k = 1u; k <= params.segments; k++) {
         let end = c.s0 + ds * f32(k);
         let depth_after = own_depth(c, end);
         let segment = opacity(max(depth_after - depth_before, 0.0));
-        colour += transmittance * segment * scattered_at(local_at(c, end - 0.5 * ds));
+        colour += transmittance * segment * scattered_at(local_at(c, end - 0.5 * ds), direction);
         transmittance *= 1.0 - segment;
         depth_before = depth_after;
     }

@@ -512,12 +512,14 @@ mod tests {
             particles: AssetId::default(),
             extinction: 1.0,
             albedo: 1.0,
+            anisotropy: 0.0,
             world_from_local: default(),
             settings: CloudQualitySettings {
                 cloud_target_scale: scale,
                 ..default()
             },
             lod_resolution: 48,
+            lod_enabled: false,
             visible: true,
         }
     }

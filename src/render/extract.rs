@@ -24,6 +24,8 @@ pub struct ExtractedCloud {
     pub extinction: f32,
     /// Single-scattering albedo in `[0, 1]`.
     pub albedo: f32,
+    /// Henyey–Greenstein anisotropy `g` in `(-1, 1)`.
+    pub anisotropy: f32,
     /// World from cloud-local; the scale used for optical lengths is its largest factor.
     pub world_from_local: Affine3A,
     /// The cloud's quality knobs (its component, else the default resource).
@@ -31,6 +33,9 @@ pub struct ExtractedCloud {
     /// The volume resolution its level of detail asks for (`settings.volume_resolution` when
     /// level of detail is off); the renderer moves to it when the cloud is next re-lit.
     pub lod_resolution: u32,
+    /// Whether `lod_resolution` comes from the level of detail (the `CloudLevelOfDetail`
+    /// resource is enabled and the cloud has a `CloudLod`): only its changes wait for a re-light.
+    pub lod_enabled: bool,
     /// Visible in at least one view: only such clouds do illumination work.
     pub visible: bool,
 }
@@ -133,9 +138,11 @@ pub(crate) fn extract_clouds(
                     particles: cloud.particles.id(),
                     extinction: cloud.extinction,
                     albedo: cloud.albedo,
+                    anisotropy: cloud.anisotropy,
                     world_from_local: transform.affine(),
                     settings,
                     lod_resolution,
+                    lod_enabled: lod.is_some() && level_of_detail.enabled(),
                     visible: visibility.get(),
                 });
             }

@@ -35,6 +35,12 @@ struct CloudParams {
     supersampling: u32,
     // Rows per axis of the largest particle's support in the fine grid (the voxelize dispatch).
     rows: u32,
+    // Henyey-Greenstein g of the single scattering towards the camera.
+    anisotropy: f32,
+    // The fraction of the shaded optical depths the single scattering sees: 1 - albedo g^2
+    // (docs/illumination.md §5).
+    single_depth_scale: f32,
+    _padding: vec2<u32>,
 }
 
 struct LightParams {
@@ -162,6 +168,13 @@ fn light_coords(cloud: CloudParams, light: LightParams, p: vec3<f32>) -> vec3<f3
 fn clamped_corner(t: Trilinear, corner: u32, n: u32) -> u32 {
     let o = vec3<u32>(corner & 1u, (corner >> 1u) & 1u, corner >> 2u);
     return voxel_index(min(vec3<u32>(t.base) + o, vec3(n - 1u)), n);
+}
+
+// The Henyey-Greenstein phase function (1/sr) of anisotropy g at the cosine between the light's
+// travel direction and the scattered direction; 1 / (4 pi) for g = 0.
+fn henyey_greenstein(g: f32, cos_theta: f32) -> f32 {
+    let d = 1.0 + g * g - 2.0 * g * cos_theta;
+    return (1.0 - g * g) / (4.0 * PI * d * sqrt(d));
 }
 
 // Opacity 1 - exp(-tau), without f32 cancellation for thin segments (series below 0.02).

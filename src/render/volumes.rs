@@ -25,6 +25,7 @@ use crate::math::{
     LEVEL_KERNEL_NARROWING, MAX_DENSITY_LEVELS, MAX_RADIUS_IN_LEVEL_VOXELS, density_level,
     density_level_sizes, light_basis,
 };
+use crate::particle::single_scattering_depth_scale;
 use crate::settings::CloudRelightBudget;
 
 /// Mirror of `CloudParams` in `types.wgsl`.
@@ -54,6 +55,13 @@ pub struct CloudParams {
     pub supersampling: u32,
     /// Rows per axis of the largest particle's support on its density level (at most 33): the voxelize dispatch is particles × rows × rows.
     pub rows: u32,
+    /// Henyey–Greenstein anisotropy `g` of the single scattering towards the camera.
+    pub anisotropy: f32,
+    /// The fraction of the shaded optical depths the single scattering sees, `1 - albedo g²`
+    /// ([`single_scattering_depth_scale`]).
+    pub single_depth_scale: f32,
+    /// Unused: pads the struct to 16 bytes.
+    pub _padding: UVec2,
 }
 
 /// Mirror of `DensityLevels` in `types.wgsl`: the density levels of a fine grid
@@ -468,7 +476,7 @@ fn light_params(
 /// The volume resolution a cloud is illuminated at this frame: the one its level of detail asks
 /// for, once its volumes must be re-lit anyway (new particles, or a light that moved) or when it
 /// has none yet; until then the one its volumes hold, so a level change never pops on a still
-/// sky (docs/illumination.md §7).
+/// sky (docs/illumination.md §7). Without level of detail, the settings' resolution at once.
 fn held_resolution(
     cloud: &ExtractedCloud,
     held: Option<(&CloudVolumes, &CloudIllumination)>,
@@ -481,7 +489,7 @@ fn held_resolution(
         return wanted;
     };
     let n = volumes.params.n;
-    if n == wanted || !state.ready || lights.0.is_empty() {
+    if n == wanted || !cloud.lod_enabled || !state.ready || lights.0.is_empty() {
         return wanted;
     }
     let now = frame_keys(&at_resolution(cloud, n), gpu, bounds, lights);
@@ -575,6 +583,12 @@ fn cloud_params(
         forward_scattering: cloud.settings.forward_scattering,
         supersampling: cloud.settings.supersampling(),
         rows: support_rows(bounds, cloud.settings.light_resolution()),
+        anisotropy: cloud.anisotropy,
+        single_depth_scale: single_scattering_depth_scale(
+            cloud.albedo as f64,
+            cloud.anisotropy as f64,
+        ) as f32,
+        _padding: UVec2::ZERO,
     }
 }
 

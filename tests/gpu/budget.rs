@@ -30,6 +30,7 @@ fn three_clouds(budget: u32) -> (App, Entity) {
             Medium {
                 extinction: 3.0,
                 albedo: 0.9,
+                ..Default::default()
             },
             common::quality(12, 4),
             Transform::from_xyz(x, 0.0, 0.0),

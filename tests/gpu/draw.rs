@@ -240,7 +240,7 @@ pub(crate) fn reference_of_clouds(setup: &Setup, clouds: &[SetupCloud]) -> Vec<[
         .collect();
     let scattered: Vec<_> = illuminations
         .iter()
-        .map(|i| move |x: DVec3| i.scattered_at(x))
+        .map(|i| move |x: DVec3, ray: DVec3| i.scattered_at(x, ray))
         .collect();
     let billboards: Vec<BillboardCloud> = clouds
         .iter()
@@ -290,6 +290,7 @@ pub(crate) fn cloud_setup(seed: u64, camera: Transform) -> Setup {
         medium: Medium {
             extinction: 4.0,
             albedo: 0.95,
+            ..Default::default()
         },
         transform: Transform::from_xyz(0.1, 0.0, 0.0).with_rotation(Quat::from_rotation_y(0.4)),
         lights: vec![
@@ -354,6 +355,27 @@ fn a_cloud_image_equals_the_cpu_billboard_reference() {
     }
 }
 
+/// A Henyey–Greenstein cloud seen with its brighter light behind it (forward scattering, the
+/// silver lining) and from the side of its lights (backward), both compositings.
+#[test]
+fn an_anisotropic_cloud_equals_the_cpu_billboard_reference() {
+    let into_the_light = Transform::from_xyz(-3.6, -2.2, -1.1).looking_at(Vec3::ZERO, Vec3::Y);
+    let from_the_light = Transform::from_xyz(3.6, 2.2, 1.1).looking_at(Vec3::ZERO, Vec3::Y);
+    for (g, camera) in [(0.8, into_the_light), (-0.5, from_the_light)] {
+        for compositing in COMPOSITINGS {
+            let mut setup = cloud_setup(23, camera);
+            setup.medium.anisotropy = g;
+            setup.settings.compositing = compositing;
+            let (_, _, gpu) = render(&setup);
+            assert_images_match(
+                &gpu.image,
+                &reference(&setup),
+                &format!("g {g}, {compositing:?}"),
+            );
+        }
+    }
+}
+
 #[test]
 fn two_overlapping_particles_composite_alike_from_either_side_in_either_order() {
     // A lit particle and a shadowed one behind it along the light: different colours.
@@ -377,6 +399,7 @@ fn two_overlapping_particles_composite_alike_from_either_side_in_either_order() 
                 medium: Medium {
                     extinction: 3.0,
                     albedo: 1.0,
+                    ..Default::default()
                 },
                 transform: Transform::IDENTITY,
                 lights: vec![LightSample {

@@ -195,6 +195,7 @@ fn one_light_straight_down() {
         medium: Medium {
             extinction: 6.0,
             albedo: 0.9,
+            ..Default::default()
         },
         lights: vec![LightSample {
             direction: Vec3::NEG_Y,
@@ -213,6 +214,7 @@ fn three_lights_along_axes_on_a_rotated_scaled_cloud() {
         medium: Medium {
             extinction: 3.0,
             albedo: 0.99,
+            ..Default::default()
         },
         lights: vec![
             LightSample {
@@ -243,6 +245,7 @@ fn eight_random_lights_with_the_paper_stencil() {
         medium: Medium {
             extinction: 10.0,
             albedo: 0.8,
+            ..Default::default()
         },
         lights: (0..8)
             .map(|i| LightSample {
@@ -265,6 +268,7 @@ fn forward_scattering_supersampling_3_and_a_light_along_the_view() {
         medium: Medium {
             extinction: 5.0,
             albedo: 0.95,
+            ..Default::default()
         },
         lights: vec![LightSample {
             direction: Vec3::NEG_Z,
@@ -286,6 +290,7 @@ fn thick_cloud_at_albedo_one_with_many_iterations_and_no_supersampling() {
         medium: Medium {
             extinction: 20.0,
             albedo: 1.0,
+            ..Default::default()
         },
         lights: vec![LightSample {
             direction: Vec3::new(0.3, -1.0, 0.2),
@@ -314,6 +319,7 @@ fn one_particle_filling_a_fine_grid_of_256_cubed() {
         medium: Medium {
             extinction: 6.0,
             albedo: 0.9,
+            ..Default::default()
         },
         lights: vec![LightSample {
             direction: Vec3::new(0.3, -1.0, 0.2),
@@ -342,6 +348,7 @@ fn large_particles_on_coarse_density_levels_of_odd_sizes() {
         medium: Medium {
             extinction: 2.0,
             albedo: 0.9,
+            ..Default::default()
         },
         lights: vec![LightSample {
             direction: Vec3::new(-0.4, -1.0, 0.3),

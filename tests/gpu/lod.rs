@@ -100,3 +100,25 @@ fn level_of_detail_is_off_by_default() {
     assert!(app.world().get::<CloudLod>(cloud).is_none());
     assert_eq!(held(&mut app), 32);
 }
+
+/// Without level of detail, a new `volume_resolution` on a still cloud applies at once: only
+/// the level of detail's own changes wait for a re-light. (The benchmark's sweeps captured the
+/// previous setting's image while it waited too.)
+#[test]
+fn a_new_volume_resolution_applies_at_once_without_level_of_detail() {
+    let mut app = common::headless_app();
+    let image = headless::float_target(&mut app, 64, 48);
+    let near = Transform::from_xyz(0.0, 0.0, 6.0).looking_at(Vec3::ZERO, Vec3::Y);
+    headless::spawn_linear_camera(&mut app, image, near, 40.0, Vec3::ZERO);
+    headless::spawn_light(&mut app, Vec3::NEG_Y, Vec3::ONE);
+    let cloud = spawn_cloud(&mut app);
+    let mut recorder = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut recorder, 1, 20).unwrap();
+    assert_eq!(held(&mut app), 32);
+    app.world_mut()
+        .entity_mut(cloud)
+        .insert(common::quality(16, 4));
+    let voxelized = frames(&mut app, &mut recorder, 3);
+    assert_eq!(held(&mut app), 16);
+    assert_eq!(voxelized, 1, "voxelized once at the new resolution");
+}

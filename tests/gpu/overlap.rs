@@ -31,6 +31,7 @@ fn clouds(particles: &[Vec<Particle>; 2]) -> [SetupCloud<'_>; 2] {
             medium: Medium {
                 extinction: 4.0,
                 albedo: 0.95,
+                ..Default::default()
             },
             transform: Transform::from_xyz(-0.25, 0.0, -0.35),
         },
@@ -39,6 +40,7 @@ fn clouds(particles: &[Vec<Particle>; 2]) -> [SetupCloud<'_>; 2] {
             medium: Medium {
                 extinction: 4.0,
                 albedo: 0.15,
+                ..Default::default()
             },
             transform: Transform::from_xyz(0.25, 0.1, 0.35)
                 .with_rotation(Quat::from_rotation_y(0.7)),

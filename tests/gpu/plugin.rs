@@ -57,6 +57,7 @@ pub(crate) fn small_cloud(app: &mut App, albedo: f32, translation: Vec3) -> Enti
         Medium {
             extinction: 4.0,
             albedo,
+            ..Default::default()
         },
         common::quality(16, 4),
         Transform::from_translation(translation),

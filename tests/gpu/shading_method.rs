@@ -62,6 +62,7 @@ fn render(
         ParticleCloud::new(handle).with_medium(Medium {
             extinction: 12.0,
             albedo: 0.95,
+            ..Default::default()
         }),
         settings,
         Transform::IDENTITY,

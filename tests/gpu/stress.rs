@@ -31,6 +31,7 @@ impl Case {
             medium: Medium {
                 extinction: 5.0,
                 albedo: 0.9,
+                ..Default::default()
             },
             lights: vec![LightSample {
                 direction: Vec3::new(-0.4, -1.0, -0.3),
@@ -118,6 +119,7 @@ fn albedo_one_with_a_thousand_iterations_stays_bounded() {
     case.medium = Medium {
         extinction: 20.0,
         albedo: 1.0,
+        ..Default::default()
     };
     case.settings = common::quality(16, 1000);
     let (image, drawn) = assert_bounded(&case, "albedo 1");
@@ -170,6 +172,7 @@ fn tiny_and_huge_particles() {
             medium: Medium {
                 extinction: 1e-3,
                 albedo: 0.9,
+                ..Default::default()
             },
             ..huge
         },
@@ -343,6 +346,7 @@ fn invalid_values_through_the_api_are_refused_and_others_render() {
         Medium {
             extinction: 1.0,
             albedo: 2.0,
+            ..Default::default()
         },
         0.0,
     );
@@ -352,6 +356,7 @@ fn invalid_values_through_the_api_are_refused_and_others_render() {
         Medium {
             extinction: f32::INFINITY,
             albedo: 0.5,
+            ..Default::default()
         },
         1.0,
     );
@@ -361,6 +366,7 @@ fn invalid_values_through_the_api_are_refused_and_others_render() {
         Medium {
             extinction: 1.0,
             albedo: 0.5,
+            ..Default::default()
         },
         2.0,
     );

@@ -38,6 +38,7 @@ fn a_moving_light_restarts_warm_and_a_still_one_settles() {
     let medium = Medium {
         extinction: 8.0,
         albedo: 0.95,
+        ..Default::default()
     };
     let settings = CloudQualitySettings {
         warm_scatter_iterations: 3,
