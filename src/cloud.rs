@@ -111,6 +111,56 @@ impl ParticleCloud {
     }
 }
 
+/// The sky that lights every cloud: a uniform radiance arriving from every direction
+/// (docs/physics.md, "Transport"), `color` (linear) × `brightness`, in the units of a
+/// `DirectionalLight`'s illuminance per steradian (cd/m² for lux), like Bevy's `AmbientLight`.
+/// It enters the multiple-scattering grid from every side, so the clouds take the sky's colour
+/// in their shadows. Default: black (off, and it then costs nothing). A value that is negative or
+/// not finite is refused with a warning and the sky taken as black.
+///
+/// Bevy's `AmbientLight` is not used: it lights meshes per camera and defaults to non-black,
+/// while a cloud's illumination is shared by every camera. To light clouds and meshes alike,
+/// give both the same colour and brightness.
+#[derive(Resource, Clone, Copy, Debug, PartialEq, Reflect)]
+#[reflect(Resource, Default, Debug, PartialEq)]
+pub struct CloudSkyLight {
+    /// The sky's colour.
+    pub color: Color,
+    /// Multiplies `color`: radiance in cd/m² (the units of `E` per steradian). Default 0.
+    pub brightness: f32,
+}
+
+impl Default for CloudSkyLight {
+    fn default() -> Self {
+        Self {
+            color: Color::WHITE,
+            brightness: 0.0,
+        }
+    }
+}
+
+impl CloudSkyLight {
+    /// A sky of linear RGB radiance `radiance`.
+    pub fn from_radiance(radiance: Vec3) -> Self {
+        Self {
+            color: Color::LinearRgba(LinearRgba::rgb(radiance.x, radiance.y, radiance.z)),
+            brightness: 1.0,
+        }
+    }
+
+    /// Linear RGB radiance, or why it is refused.
+    pub fn radiance(&self) -> Result<Vec3, String> {
+        let radiance = self.color.to_linear().to_vec3() * self.brightness;
+        if radiance.is_finite() && radiance.min_element() >= 0.0 {
+            Ok(radiance)
+        } else {
+            Err(format!(
+                "`CloudSkyLight` radiance is {radiance}; every component must be finite and >= 0"
+            ))
+        }
+    }
+}
+
 /// Put on a [`DirectionalLight`] to keep it from lighting particle clouds.
 #[derive(Component, Clone, Copy, Debug, Default, Reflect)]
 #[reflect(Component, Default, Debug)]

@@ -42,8 +42,8 @@ use bevy::{
 };
 
 use crate::{
-    CloudPass, CloudPassCounters, CloudQualitySettings, Medium, PASSES, Particle, ParticleCloud,
-    ParticleCloudsPlugin, Particles,
+    CloudPass, CloudPassCounters, CloudQualitySettings, CloudSkyLight, Medium, PASSES, Particle,
+    ParticleCloud, ParticleCloudsPlugin, Particles,
     linear_image::LinearImage,
     scene::{ObjectShape, Scene},
 };
@@ -183,7 +183,8 @@ pub fn spawn_light(app: &mut App, direction: Vec3, irradiance: Vec3) -> Entity {
         .id()
 }
 
-/// Spawns everything of a scene file and returns its target.
+/// Spawns everything of a scene file and returns its target; its background also lights the
+/// clouds ([`CloudSkyLight`]).
 pub fn spawn_scene(app: &mut App, scene: &Scene) -> SceneTarget {
     let camera = &scene.camera;
     let image = float_target(app, camera.width, camera.height);
@@ -199,6 +200,8 @@ pub fn spawn_scene(app: &mut App, scene: &Scene) -> SceneTarget {
     for light in &scene.lights {
         spawn_light(app, light.direction, light.irradiance);
     }
+    // The background is a uniform sky that lights the clouds (docs/physics.md).
+    app.insert_resource(CloudSkyLight::from_radiance(scene.background));
     let mut drawable_clouds = 0;
     for cloud in &scene.clouds {
         if cloud.medium.extinction > 0.0 && cloud.particles.iter().any(|p| p.density > 0.0) {

@@ -68,7 +68,9 @@ pub mod stats;
 
 use bevy::prelude::*;
 
-pub use cloud::{CloudSystems, InvalidCloud, NotCloudLight, ParticleCloud, Particles};
+pub use cloud::{
+    CloudSkyLight, CloudSystems, InvalidCloud, NotCloudLight, ParticleCloud, Particles,
+};
 pub use lod::{CloudLevelOfDetail, CloudLod};
 pub use particle::{LightSample, Medium, Particle};
 pub use settings::{
@@ -99,6 +101,8 @@ impl Plugin for ParticleCloudsPlugin {
             .register_type::<ParticleCloud>()
             .register_type::<Particles>()
             .register_type::<NotCloudLight>()
+            .register_type::<CloudSkyLight>()
+            .init_resource::<CloudSkyLight>()
             .register_type::<CloudQualitySettings>()
             .register_type::<CloudTargetScale>()
             .register_type::<DefaultCloudQuality>()

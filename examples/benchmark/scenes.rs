@@ -72,6 +72,14 @@ pub(crate) const SCENES: &[BenchScene] = &[
         quick: true,
     },
     BenchScene {
+        name: "cumulus_sky",
+        particle_file: "cumulus.csv",
+        generate: cumulus_2000,
+        error_downsample: 2,
+        spp: 2048,
+        quick: true,
+    },
+    BenchScene {
         name: "two_lights",
         particle_file: "two_lights.csv",
         generate: round_cloud,

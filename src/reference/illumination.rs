@@ -671,6 +671,7 @@ fn sweep_direction(
     albedo: f64,
     o: [i64; 3],
     s: &[DVec3],
+    sky: DVec3,
 ) -> Vec<DVec3> {
     let n = grid.n as i64;
     let step = grid.h * ((o[0] * o[0] + o[1] * o[1] + o[2] * o[2]) as f64).sqrt();
@@ -688,7 +689,8 @@ fn sweep_direction(
                     .iter()
                     .all(|&c| (0..n).contains(&c))
                     .then(|| grid.index(u[0] as usize, u[1] as usize, u[2] as usize));
-                let (rho_u, s_u, i_u) = upwind.map_or((0.0, DVec3::ZERO, DVec3::ZERO), |j| {
+                // Outside the grid: no medium, and the sky's radiance arriving.
+                let (rho_u, s_u, i_u) = upwind.map_or((0.0, DVec3::ZERO, sky), |j| {
                     (grid.rho[j], s[j], radiance[j])
                 });
                 let tau = k_local * (grid.rho[idx] + rho_u) * 0.5 * step;
@@ -701,11 +703,12 @@ fn sweep_direction(
     radiance
 }
 
-/// One discrete-ordinates iteration: `S_{n+1}(v) = sum_o I_o(v) / 26`.
-fn sweep(grid: &DensityGrid, k_local: f64, albedo: f64, s: &[DVec3]) -> Vec<DVec3> {
+/// One discrete-ordinates iteration: `S_{n+1}(v) = sum_o I_o(v) / 26`, the radiance `sky`
+/// entering the grid from outside.
+fn sweep(grid: &DensityGrid, k_local: f64, albedo: f64, s: &[DVec3], sky: DVec3) -> Vec<DVec3> {
     lattice_directions()
         .into_par_iter()
-        .map(|o| sweep_direction(grid, k_local, albedo, o, s))
+        .map(|o| sweep_direction(grid, k_local, albedo, o, s, sky))
         .reduce(
             || vec![DVec3::ZERO; s.len()],
             |mut a, b| {
@@ -783,7 +786,8 @@ pub struct MultipleScattering {
 }
 
 /// Iterates the stencil `iterations` times from `s0` (one entry per voxel; units of `E` per
-/// steradian) and closes the series. `k_local` in 1/local metre, `albedo` in [0, 1].
+/// steradian) and closes the series. `k_local` in 1/local metre, `albedo` in [0, 1]. A black
+/// sky: [`scatter_under_sky`].
 pub fn scatter(
     grid: &DensityGrid,
     k_local: f64,
@@ -792,11 +796,30 @@ pub fn scatter(
     s0: &[DVec3],
     iterations: u32,
 ) -> MultipleScattering {
+    scatter_under_sky(grid, k_local, albedo, stencil, s0, DVec3::ZERO, iterations)
+}
+
+/// [`scatter`] under a uniform sky of radiance `sky` (section 4): the first iteration's sweeps
+/// take it as the radiance entering the grid, so `S_1 = K S_0` plus the sky's single scattering,
+/// and the sky's light is scattered on by the later orders. The paper's stencil has no boundary:
+/// it ignores the sky.
+pub fn scatter_under_sky(
+    grid: &DensityGrid,
+    k_local: f64,
+    albedo: f64,
+    stencil: ScatterStencil,
+    s0: &[DVec3],
+    sky: DVec3,
+    iterations: u32,
+) -> MultipleScattering {
     assert_eq!(s0.len(), grid.len(), "s0 must have one entry per voxel");
     let mut orders: Vec<Vec<DVec3>> = Vec::with_capacity(iterations as usize);
-    for _ in 0..iterations {
+    for k in 0..iterations {
         let previous = orders.last().map_or(s0, Vec::as_slice);
-        orders.push(scatter_once(grid, k_local, albedo, stencil, previous));
+        let entering = if k == 0 { sky } else { DVec3::ZERO };
+        orders.push(scatter_once(
+            grid, k_local, albedo, stencil, previous, entering,
+        ));
     }
     let mut total = vec![DVec3::ZERO; s0.len()];
     for order in &orders {
@@ -823,16 +846,17 @@ pub fn scatter(
     }
 }
 
-/// One iteration of `stencil`: `K s`.
+/// One iteration of `stencil`: `K s`, with the radiance `sky` entering the grid (the sweep only).
 fn scatter_once(
     grid: &DensityGrid,
     k_local: f64,
     albedo: f64,
     stencil: ScatterStencil,
     s: &[DVec3],
+    sky: DVec3,
 ) -> Vec<DVec3> {
     match stencil {
-        ScatterStencil::DiscreteOrdinates => sweep(grid, k_local, albedo, s),
+        ScatterStencil::DiscreteOrdinates => sweep(grid, k_local, albedo, s, sky),
         ScatterStencil::Paper => paper_stencil(grid, k_local, albedo, s),
     }
 }
@@ -855,13 +879,38 @@ pub fn scatter_warm(
     previous: &[DVec3],
     iterations: u32,
 ) -> MultipleScattering {
+    scatter_warm_under_sky(
+        grid,
+        k_local,
+        albedo,
+        stencil,
+        s0,
+        previous,
+        DVec3::ZERO,
+        iterations,
+    )
+}
+
+/// [`scatter_warm`] under a uniform sky of radiance `sky`: the first sweep, `K (s0 + previous)`,
+/// takes it in, as [`scatter_under_sky`]'s first iteration does.
+#[allow(clippy::too_many_arguments)]
+pub fn scatter_warm_under_sky(
+    grid: &DensityGrid,
+    k_local: f64,
+    albedo: f64,
+    stencil: ScatterStencil,
+    s0: &[DVec3],
+    previous: &[DVec3],
+    sky: DVec3,
+    iterations: u32,
+) -> MultipleScattering {
     assert!(
         iterations >= 2,
         "a warm restart takes at least 2 iterations"
     );
     assert_eq!(previous.len(), grid.len(), "one previous value per voxel");
     let start: Vec<DVec3> = s0.iter().zip(previous).map(|(s, x)| *s + *x).collect();
-    let once = scatter_once(grid, k_local, albedo, stencil, &start);
+    let once = scatter_once(grid, k_local, albedo, stencil, &start, sky);
     let correction: Vec<DVec3> = once.iter().zip(previous).map(|(k, x)| *k - *x).collect();
     let series = scatter(grid, k_local, albedo, stencil, &correction, iterations - 1);
     // Clamped at 0 like the GPU's: the truncated correction may overshoot where the light fell.
@@ -947,17 +996,37 @@ pub struct CloudIllumination {
     pub multiple: MultipleScattering,
 }
 
-/// Runs every stage of the contract for one cloud.
-///
-/// `scale`: the cloud's uniform world scale `s > 0` (so `K_local = medium.extinction * s`);
-/// `lights_local`: directions already in local space (see [`LocalLight::from_world`]). Lights with
-/// zero irradiance, or a zero / non-finite direction, are skipped. Returns `None` when no particle
-/// has `density > 0`. With no lights everything is zero; with zero extinction `T = 1` everywhere.
+/// [`illuminate_under_sky`] under a black sky.
 pub fn illuminate(
     particles: &[Particle],
     medium: &Medium,
     scale: f64,
     lights_local: &[LocalLight],
+    settings: &CloudQualitySettings,
+) -> Option<CloudIllumination> {
+    illuminate_under_sky(
+        particles,
+        medium,
+        scale,
+        lights_local,
+        DVec3::ZERO,
+        settings,
+    )
+}
+
+/// Runs every stage of the contract for one cloud, under a uniform sky of radiance `sky` (linear
+/// RGB, the units of `E` per steradian; section 4).
+///
+/// `scale`: the cloud's uniform world scale `s > 0` (so `K_local = medium.extinction * s`);
+/// `lights_local`: directions already in local space (see [`LocalLight::from_world`]). Lights with
+/// zero irradiance, or a zero / non-finite direction, are skipped. Returns `None` when no particle
+/// has `density > 0`. With no lights everything is zero; with zero extinction `T = 1` everywhere.
+pub fn illuminate_under_sky(
+    particles: &[Particle],
+    medium: &Medium,
+    scale: f64,
+    lights_local: &[LocalLight],
+    sky: DVec3,
     settings: &CloudQualitySettings,
 ) -> Option<CloudIllumination> {
     let fine = voxelize(particles, settings.light_resolution() as usize)?;
@@ -974,12 +1043,13 @@ pub fn illuminate(
         .map(|l| (shade(&fine, &inputs, l.direction), l.irradiance))
         .collect();
     let source = gather(&grid, &fine, &lights);
-    let multiple = scatter(
+    let multiple = scatter_under_sky(
         &grid,
         inputs.k_local,
         inputs.albedo,
         settings.scatter_stencil,
         &source,
+        sky,
         settings.scatter_iterations,
     );
     Some(CloudIllumination {
@@ -994,8 +1064,9 @@ pub fn illuminate(
     })
 }
 
-/// [`illuminate`] for cloud `index` of `scene` with the scene's lights (scene clouds are
-/// translated only, so local and world directions agree).
+/// [`illuminate_under_sky`] for cloud `index` of `scene` with the scene's lights and its
+/// background as the sky (scene clouds are translated only, so local and world directions
+/// agree).
 pub fn illuminate_scene_cloud(
     scene: &crate::scene::Scene,
     index: usize,
@@ -1007,7 +1078,8 @@ pub fn illuminate_scene_cloud(
         .iter()
         .map(|l| LocalLight::from_world(l, DQuat::IDENTITY))
         .collect();
-    illuminate(&cloud.particles, &cloud.medium, 1.0, &lights, settings)
+    let sky = scene.background.as_dvec3();
+    illuminate_under_sky(&cloud.particles, &cloud.medium, 1.0, &lights, sky, settings)
 }
 
 impl CloudIllumination {
@@ -1424,7 +1496,7 @@ mod tests {
             .map(|i| DVec3::splat(2.0 + grid.voxel_centre_linear(i).dot(gradient)))
             .collect();
         for o in [[1, 0, 0], [0, -1, 1], [-1, 1, 1]] {
-            let radiance = sweep_direction(&grid, sigma, albedo, o, &s);
+            let radiance = sweep_direction(&grid, sigma, albedo, o, &s, DVec3::ZERO);
             let d = DVec3::new(o[0] as f64, o[1] as f64, o[2] as f64).normalize();
             // the centre: 12 steps (optical depth >= 18) from every edge
             let v = grid.index(n / 2, n / 2, n / 2);

@@ -10,7 +10,9 @@ use bevy::{
 };
 
 use crate::{
-    cloud::{InvalidCloud, NotCloudLight, ParticleCloud, Particles, ParticlesValidity},
+    cloud::{
+        CloudSkyLight, InvalidCloud, NotCloudLight, ParticleCloud, Particles, ParticlesValidity,
+    },
     lod::{CloudLevelOfDetail, CloudLod},
     settings::{CloudQualitySettings, DefaultCloudQuality},
 };
@@ -68,9 +70,22 @@ pub struct CloudLight {
     pub irradiance: Vec3,
 }
 
-/// Every directional light that lights clouds this frame (non-zero irradiance, not opted out).
+/// Every directional light that lights clouds this frame (non-zero irradiance, not opted out),
+/// and the sky's radiance.
 #[derive(Resource, Clone, Debug, Default)]
-pub struct ExtractedCloudLights(pub Vec<CloudLight>);
+pub struct ExtractedCloudLights {
+    /// The directional lights.
+    pub lights: Vec<CloudLight>,
+    /// Linear RGB radiance of the sky ([`CloudSkyLight`]), black when refused.
+    pub sky: Vec3,
+}
+
+impl ExtractedCloudLights {
+    /// Whether anything lights the clouds.
+    pub fn any(&self) -> bool {
+        !self.lights.is_empty() || self.sky.max_element() > 0.0
+    }
+}
 
 /// Remembers which clouds were refused and why, so each problem is reported once.
 #[derive(Default)]
@@ -168,8 +183,23 @@ fn validate(
 pub(crate) fn extract_cloud_lights(
     mut lights: ResMut<ExtractedCloudLights>,
     query: Extract<Query<MainWorldLight, Without<NotCloudLight>>>,
+    sky: Extract<Res<CloudSkyLight>>,
+    mut refused_sky: Local<Option<String>>,
 ) {
-    lights.0.clear();
+    lights.sky = match sky.radiance() {
+        Ok(radiance) => {
+            *refused_sky = None;
+            radiance
+        }
+        Err(problem) => {
+            if refused_sky.as_ref() != Some(&problem) {
+                warn!("{problem}; the clouds are lit as under a black sky");
+                *refused_sky = Some(problem);
+            }
+            Vec3::ZERO
+        }
+    };
+    lights.lights.clear();
     for (entity, light, transform, visibility) in &query {
         let irradiance = light.color.to_linear().to_vec3() * light.illuminance;
         let direction = transform.forward().as_vec3();
@@ -181,7 +211,7 @@ pub(crate) fn extract_cloud_lights(
         {
             continue;
         }
-        lights.0.push(CloudLight {
+        lights.lights.push(CloudLight {
             entity,
             direction,
             irradiance,

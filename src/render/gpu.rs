@@ -118,7 +118,7 @@ pub(crate) fn dynamic_uniform<T: ShaderType + encase::internal::WriteInto>(
     device.create_buffer_with_data(&BufferInitDescriptor {
         label: Some(label),
         contents: &bytes,
-        usage: BufferUsages::UNIFORM,
+        usage: BufferUsages::UNIFORM | BufferUsages::COPY_DST,
     })
 }
 

@@ -478,16 +478,18 @@ fn scatter_batch_passes(
         ready.scatter_paper
     };
     for (work, items) in batch.work.chunks() {
-        let iterate = |pass: &mut StagePass, group: &BindGroup, accumulate: bool| {
+        // The sky enters the grid in the first iteration of the series (§4).
+        let iterate = |pass: &mut StagePass, group: &BindGroup, accumulate: bool, sky: bool| {
             if batch.sweep {
                 // One dispatch per direction pair: the lines of one direction partition the grid.
                 for (i, o) in sweep_directions().enumerate() {
-                    let direction = sweep_direction_offset(i, accumulate);
+                    let direction = sweep_direction_offset(i, accumulate, sky);
                     pass.set_bind_group(0, group, &[direction, work]);
                     dispatch_linear(pass, sweep_lines(o, n), items);
                 }
             } else {
-                pass.set_bind_group(0, group, &[sweep_direction_offset(0, accumulate), work]);
+                let direction = sweep_direction_offset(0, accumulate, sky);
+                pass.set_bind_group(0, group, &[direction, work]);
                 dispatch_linear(pass, n.pow(3), items);
             }
         };
@@ -497,7 +499,7 @@ fn scatter_batch_passes(
             pass.set_bind_group(0, &batch.groups[3], &[0, work]);
             dispatch_linear(pass, n.pow(3), items);
             pass.set_pipeline(stencil);
-            iterate(pass, &batch.groups[2], false);
+            iterate(pass, &batch.groups[2], false, true);
             pass.set_pipeline(ready.warm_correction);
             pass.set_bind_group(0, &batch.groups[2], &[0, work]);
             dispatch_linear(pass, n.pow(3), items);
@@ -507,7 +509,7 @@ fn scatter_batch_passes(
         };
         pass.set_pipeline(stencil);
         for k in first..batch.iterations {
-            iterate(pass, &batch.groups[scatter_group(k)], true);
+            iterate(pass, &batch.groups[scatter_group(k)], true, k == 0);
         }
     }
     for (work, items) in batch.work.chunks() {

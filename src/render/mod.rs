@@ -208,6 +208,7 @@ pub(crate) fn finish(app: &mut App) {
                 )
                     .chain()
                     .in_set(RenderSystems::PrepareResources),
+                pipelines::write_sweep_sky.in_set(RenderSystems::PrepareResources),
                 (
                     illumination::prepare_illumination_bind_groups,
                     sort::prepare_sort_bind_groups,

@@ -1,7 +1,8 @@
 //! Compute pipelines of the illumination passes, created once in `RenderStartup`.
 
 use super::{
-    gpu::{DYNAMIC_UNIFORM_STRIDE, dynamic_uniform},
+    extract::ExtractedCloudLights,
+    gpu::{DYNAMIC_UNIFORM_STRIDE, dynamic_uniform, uniform_bytes},
     shaders::CloudShaders,
     volumes::DensityLevels,
 };
@@ -16,7 +17,7 @@ use bevy::{
                 uniform_buffer_sized,
             },
         },
-        renderer::RenderDevice,
+        renderer::{RenderDevice, RenderQueue},
     },
     shader::Shader,
 };
@@ -63,14 +64,20 @@ pub struct SweepDirection {
     pub first: u32,
     /// 1 to add the iteration's order to `multiple`; 0 for a warm restart's first sweep.
     pub accumulate: u32,
+    /// Linear RGB radiance entering the grid from outside: the sky's for the sweeps of an
+    /// iteration that brings the sky in (docs/illumination.md §4), else 0.
+    pub sky: Vec3,
 }
 
 /// The dynamic offset of the `SweepDirection` of direction pair `index` (of
-/// [`sweep_directions`]), accumulating or not.
-pub fn sweep_direction_offset(index: usize, accumulate: bool) -> u32 {
-    let entry = index + if accumulate { 0 } else { 13 };
-    entry as u32 * DYNAMIC_UNIFORM_STRIDE
+/// [`sweep_directions`]), accumulating or not, bringing the sky in or not.
+pub fn sweep_direction_offset(index: usize, accumulate: bool, sky: bool) -> u32 {
+    let set = 2 * (!accumulate as usize) + (!sky as usize);
+    (set * 13 + index) as u32 * DYNAMIC_UNIFORM_STRIDE
 }
+
+/// The sets of [`sweep_direction_offset`] that bring the sky in.
+const SKY_SETS: [usize; 2] = [0, 2];
 
 /// The 13 direction pairs of the sweep, each with its number of lattice lines in an `n³` grid:
 /// `n^(3-k) (2n-1)^(k-1)` for `k` non-zero components.
@@ -116,9 +123,12 @@ pub struct IlluminationPipelines {
     pub order_ratio: ComputeStage,
     /// `closure.wgsl`, `extrapolate` (same layout as `order_ratio`).
     pub extrapolate: ComputeStage,
-    /// The 13 `SweepDirection`s accumulating, then not, `DYNAMIC_UNIFORM_STRIDE` bytes apart (a
-    /// dynamic uniform).
+    /// The 13 `SweepDirection`s accumulating with and without the sky, then not accumulating,
+    /// `DYNAMIC_UNIFORM_STRIDE` bytes apart (a dynamic uniform; [`write_sweep_sky`] writes the
+    /// sky into them).
     pub sweep_directions: Buffer,
+    /// The sky radiance the sweep directions hold.
+    pub sweep_sky: Vec3,
 }
 
 /// The compiled pipelines of every illumination pass (brute-force shading aside).
@@ -163,18 +173,42 @@ impl IlluminationPipelines {
     }
 }
 
-/// The 13 directions accumulating, then the 13 not (see [`sweep_direction_offset`]).
-fn sweep_direction_buffer(device: &RenderDevice) -> Buffer {
-    let entries = [1, 0].into_iter().flat_map(|accumulate| {
+/// The 13 directions in each of the four sets of [`sweep_direction_offset`], with the sky
+/// radiance `sky` in the sets that bring it in.
+fn sweep_direction_entries(sky: Vec3) -> impl Iterator<Item = SweepDirection> {
+    (0..4).flat_map(move |set| {
         sweep_directions()
             .enumerate()
             .map(move |(i, o)| SweepDirection {
                 o,
                 first: (i == 0) as u32,
-                accumulate,
+                accumulate: (set < 2) as u32,
+                sky: if SKY_SETS.contains(&set) {
+                    sky
+                } else {
+                    Vec3::ZERO
+                },
             })
-    });
-    dynamic_uniform(device, "particle_clouds_sweep_directions", entries)
+    })
+}
+
+/// Writes the sky's radiance into the sweep directions when it changed.
+pub(crate) fn write_sweep_sky(
+    mut pipelines: ResMut<IlluminationPipelines>,
+    lights: Res<ExtractedCloudLights>,
+    queue: Res<RenderQueue>,
+) {
+    if pipelines.sweep_sky == lights.sky {
+        return;
+    }
+    pipelines.sweep_sky = lights.sky;
+    for (i, entry) in sweep_direction_entries(lights.sky).enumerate() {
+        queue.write_buffer(
+            &pipelines.sweep_directions,
+            i as u64 * DYNAMIC_UNIFORM_STRIDE as u64,
+            &uniform_bytes(&entry),
+        );
+    }
 }
 
 pub(crate) fn init_illumination_pipelines(
@@ -255,7 +289,12 @@ pub(crate) fn init_illumination_pipelines(
         warm_correction: stage(&shaders.scatter, "warm_correction", &scatter),
         order_ratio: stage(&shaders.closure, "order_ratio", &closure),
         extrapolate: stage(&shaders.closure, "extrapolate", &closure),
-        sweep_directions: sweep_direction_buffer(&device),
+        sweep_directions: dynamic_uniform(
+            &device,
+            "particle_clouds_sweep_directions",
+            sweep_direction_entries(Vec3::ZERO),
+        ),
+        sweep_sky: Vec3::ZERO,
     });
 }
 

@@ -20,10 +20,10 @@ pub struct StageKeys {
     pub density: u64,
     /// Shade, per light slot: the density, the light's local direction and the extinction.
     pub lights: Vec<u64>,
-    /// Gather: every light's shaded volume and irradiance. [`StageKeys::UNLIT`] when no light
-    /// reaches the cloud.
+    /// Gather: every light's shaded volume and irradiance. [`StageKeys::UNLIT`] when neither a
+    /// light nor the sky reaches the cloud.
     pub gather: u64,
-    /// Scatter: the gathered source, the medium and the scattering knobs.
+    /// Scatter: the gathered source, the sky, the medium and the scattering knobs.
     pub scatter: u64,
     /// The scattering operator alone: the density, the medium and the scattering knobs, without
     /// the source. When only the source changed (a light moved), the scattering may restart from
@@ -32,18 +32,20 @@ pub struct StageKeys {
 }
 
 impl StageKeys {
-    /// The gather key of a cloud that no light reaches.
+    /// The gather key of a cloud that neither a light nor the sky reaches.
     pub const UNLIT: u64 = 1;
 
     /// This frame's keys of a cloud with the uniform `params`, its lights' uniforms `lights` (in
-    /// slot order), its particles' upload `generation` and its `settings`.
+    /// slot order), the sky's radiance `sky`, its particles' upload `generation` and its
+    /// `settings`.
     pub fn new(
         params: &CloudParams,
         lights: &[LightParams],
+        sky: Vec3,
         generation: u64,
         settings: &CloudQualitySettings,
     ) -> Self {
-        if lights.is_empty() {
+        if lights.is_empty() && sky.max_element() <= 0.0 {
             return Self {
                 gather: Self::UNLIT,
                 ..default()
@@ -80,7 +82,7 @@ impl StageKeys {
             density,
             lights: keys,
             gather,
-            scatter: key_of((gather, medium)),
+            scatter: key_of((gather, medium, bits(sky))),
             medium,
         }
     }
@@ -228,7 +230,7 @@ mod tests {
     }
 
     fn keys(lights: &[LightParams], generation: u64, settings: &CloudQualitySettings) -> StageKeys {
-        StageKeys::new(&params(), lights, generation, settings)
+        StageKeys::new(&params(), lights, Vec3::ZERO, generation, settings)
     }
 
     #[test]
@@ -316,7 +318,7 @@ mod tests {
                 k_local: 20.0,
                 ..params()
             };
-            StageKeys::new(&params, &[light(w, 1.0, 0)], 1, &settings)
+            StageKeys::new(&params, &[light(w, 1.0, 0)], Vec3::ZERO, 1, &settings)
         };
         state.update(thicker(Vec3::Y), &settings);
         assert_eq!((state.plan.scatter, state.plan.warm), (Some(32), false));

@@ -5,11 +5,14 @@
 
 // One direction pair (o, -o) of the discrete-ordinates sweep, o's first non-zero component
 // positive; `first` is 1 for the first of an iteration's 13 dispatches (it overwrites S_{n+1});
-// `accumulate` is 0 for the first sweep of a warm restart, which leaves `multiple` alone.
+// `accumulate` is 0 for the first sweep of a warm restart, which leaves `multiple` alone; `sky`
+// is the radiance entering the grid from outside: the sky's in the first iteration of a series
+// (so S_1 = K S_0 + the sky's single scattering), else 0.
 struct SweepDirection {
     o: vec3<i32>,
     first: u32,
     accumulate: u32,
+    sky: vec3<f32>,
 }
 
 @group(0) @binding(0) var<storage, read> slots: array<Slot>;
@@ -122,8 +125,8 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
     }
     let flip = o < vec3(0);
     let half_step = 0.5 * cloud.h * length(vec3<f32>(o));
-    // Against o: radiance arriving from the +o side, zero entering the grid.
-    var radiance = vec3(0.0);
+    // Against o: radiance arriving from the +o side, `sky` entering the grid.
+    var radiance = direction.sky;
     var rho_up = 0.0;
     var s_up = vec3(0.0);
     for (var t = t1 - 1; t >= t0; t--) {
@@ -136,7 +139,7 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
         s_up = s;
     }
     // Along o: radiance arriving from the -o side.
-    radiance = vec3(0.0);
+    radiance = direction.sky;
     rho_up = 0.0;
     s_up = vec3(0.0);
     for (var t = t0; t < t1; t++) {

@@ -40,7 +40,9 @@ struct CloudParams {
     // The fraction of the shaded optical depths the single scattering sees: 1 - albedo g^2
     // (docs/illumination.md §5).
     single_depth_scale: f32,
-    _padding: vec2<u32>,
+    // 1 when a light or the sky reaches the cloud.
+    lit: u32,
+    _padding: u32,
 }
 
 struct LightParams {

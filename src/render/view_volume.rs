@@ -294,7 +294,7 @@ fn update_volume(volume: &mut ViewVolume, index: u32, entry: &AtlasEntry, queue:
 }
 
 /// The uniform of one view's volume of `cloud` and the key of its inputs, or `None` when the cloud
-/// is not in front of the view. An unlit cloud scatters nothing, so it needs no optical depth
+/// is not in front of the view. An unlit cloud (no light, no sky) scatters nothing, so it needs no optical depth
 /// towards the camera (and has no density grid): a volume of 2³ nodes and no neighbours, keyed
 /// `UNLIT`.
 fn view_params(
@@ -303,7 +303,7 @@ fn view_params(
     density_key: u64,
     view: &ExtractedView,
 ) -> Option<(ViewVolumeParams, u64)> {
-    if volumes.params.light_count == 0 {
+    if volumes.params.lit == 0 {
         let params = ViewVolumeParams {
             rect: Vec4::new(0.0, 1.0, 0.0, 1.0),
             depth: Vec2::new(0.0, 1.0),

@@ -60,8 +60,10 @@ pub struct CloudParams {
     /// The fraction of the shaded optical depths the single scattering sees, `1 - albedo g²`
     /// ([`single_scattering_depth_scale`]).
     pub single_depth_scale: f32,
+    /// 1 when a light or the sky reaches the cloud, else 0 (it only absorbs).
+    pub lit: u32,
     /// Unused: pads the struct to 16 bytes.
-    pub _padding: UVec2,
+    pub _padding: u32,
 }
 
 /// Mirror of `DensityLevels` in `types.wgsl`: the density levels of a fine grid
@@ -286,7 +288,7 @@ pub(crate) fn prepare_cloud_volumes(
         let shape = VolumeShape {
             n: cloud.settings.volume_resolution,
             m: cloud.settings.light_resolution(),
-            lights: lights.0.len() as u32,
+            lights: lights.lights.len() as u32,
         };
         if !cloud.visible || cloud.extinction <= 0.0 {
             continue; // cached volumes stay; no work for clouds nobody sees or that are transparent
@@ -370,7 +372,7 @@ fn deferred_by_budget(
         let shape = VolumeShape {
             n: cloud.settings.volume_resolution,
             m: cloud.settings.light_resolution(),
-            lights: lights.0.len() as u32,
+            lights: lights.lights.len() as u32,
         };
         // A cloud whose level of detail changes (its volumes no longer fit) waits its turn like
         // any other; only one never illuminated cannot wait.
@@ -415,12 +417,18 @@ fn plan_cloud(
     pool: &VolumePool,
     queue: &RenderQueue,
 ) {
-    let params = cloud_params(cloud, gpu, bounds, lights.0.len());
+    let params = cloud_params(cloud, gpu, bounds, lights);
     // Slot i shades the i-th light (none: the cloud only absorbs, and the plan zeroes its
     // multiple scattering once).
     let light_params = light_params(&params, cloud, lights);
     state.update(
-        StageKeys::new(&params, &light_params, gpu.generation, &cloud.settings),
+        StageKeys::new(
+            &params,
+            &light_params,
+            lights.sky,
+            gpu.generation,
+            &cloud.settings,
+        ),
         &cloud.settings,
     );
     if state.plan.is_empty() {
@@ -459,7 +467,7 @@ fn light_params(
 ) -> Vec<LightParams> {
     let to_local = cloud.rotation().inverse();
     lights
-        .0
+        .lights
         .iter()
         .zip(0..)
         .map(|(l, i)| {
@@ -489,7 +497,7 @@ fn held_resolution(
         return wanted;
     };
     let n = volumes.params.n;
-    if n == wanted || !cloud.lod_enabled || !state.ready || lights.0.is_empty() {
+    if n == wanted || !cloud.lod_enabled || !state.ready || !lights.any() {
         return wanted;
     }
     let now = frame_keys(&at_resolution(cloud, n), gpu, bounds, lights);
@@ -504,10 +512,11 @@ fn frame_keys(
     bounds: CloudBounds,
     lights: &ExtractedCloudLights,
 ) -> StageKeys {
-    let params = cloud_params(cloud, gpu, bounds, lights.0.len());
+    let params = cloud_params(cloud, gpu, bounds, lights);
     StageKeys::new(
         &params,
         &light_params(&params, cloud, lights),
+        lights.sky,
         gpu.generation,
         &cloud.settings,
     )
@@ -567,14 +576,14 @@ fn cloud_params(
     cloud: &ExtractedCloud,
     gpu: &GpuParticles,
     bounds: CloudBounds,
-    light_count: usize,
+    lights: &ExtractedCloudLights,
 ) -> CloudParams {
     let n = cloud.settings.volume_resolution;
     CloudParams {
         n,
         particle_count: gpu.count,
         light_n: cloud.settings.light_resolution(),
-        light_count: light_count as u32,
+        light_count: lights.lights.len() as u32,
         grid_origin: bounds.centre - bounds.side * 0.5,
         h: bounds.side / n as f32,
         grid_centre: bounds.centre,
@@ -588,7 +597,8 @@ fn cloud_params(
             cloud.albedo as f64,
             cloud.anisotropy as f64,
         ) as f32,
-        _padding: UVec2::ZERO,
+        lit: lights.any() as u32,
+        _padding: 0,
     }
 }
 

@@ -14,13 +14,13 @@ use bevy::{
 };
 use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
-    CloudPass, CloudQualitySettings, Compositing, LightSample, Medium, Particle,
+    CloudPass, CloudQualitySettings, CloudSkyLight, Compositing, LightSample, Medium, Particle,
     generators::SplitMix64,
     image_io::LinearImage,
     reference::{
         camera::PinholeCamera,
         composite::{BillboardCloud, BillboardCompositing, CloudPlacement, composite},
-        illumination::{LocalLight, illuminate},
+        illumination::{LocalLight, illuminate_under_sky},
         metrics::relative_rmse,
     },
     render::gpu::StagePass,
@@ -143,6 +143,8 @@ pub(crate) struct Setup {
     pub(crate) objects: Vec<SceneObject>,
     pub(crate) camera: Transform,
     pub(crate) background: Vec3,
+    /// The sky's radiance ([`CloudSkyLight`]): black but in the sky tests.
+    pub(crate) sky: Vec3,
     pub(crate) settings: CloudQualitySettings,
 }
 
@@ -163,6 +165,7 @@ pub(crate) fn spawn(setup: &Setup) -> (App, SceneTarget) {
 /// A headless app with the setup's camera, lights and objects, and these clouds.
 pub(crate) fn spawn_clouds(setup: &Setup, clouds: &[SetupCloud]) -> (App, SceneTarget) {
     let mut app = common::headless_app();
+    app.insert_resource(CloudSkyLight::from_radiance(setup.sky));
     let image = headless::float_target(&mut app, W, H);
     let camera =
         headless::spawn_linear_camera(&mut app, image.clone(), setup.camera, FOV, setup.background);
@@ -211,7 +214,7 @@ impl Setup {
 }
 
 /// The CPU reference image of the same billboards.
-fn reference(setup: &Setup) -> Vec<[f32; 4]> {
+pub(crate) fn reference(setup: &Setup) -> Vec<[f32; 4]> {
     reference_of_clouds(setup, &[setup.cloud()])
 }
 
@@ -228,11 +231,12 @@ pub(crate) fn reference_of_clouds(setup: &Setup, clouds: &[SetupCloud]) -> Vec<[
                 .map(|l| LocalLight::from_world(l, rotation))
                 .collect();
             let scale = cloud.transform.scale.x as f64;
-            illuminate(
+            illuminate_under_sky(
                 cloud.particles,
                 &cloud.medium,
                 scale,
                 &lights,
+                setup.sky.as_dvec3(),
                 &setup.settings,
             )
             .unwrap()
@@ -306,6 +310,7 @@ pub(crate) fn cloud_setup(seed: u64, camera: Transform) -> Setup {
         objects: vec![],
         camera,
         background: Vec3::new(0.05, 0.1, 0.2),
+        sky: Vec3::ZERO,
         settings: common::quality(16, 4),
     }
 }
@@ -409,6 +414,7 @@ fn two_overlapping_particles_composite_alike_from_either_side_in_either_order() 
                 objects: vec![],
                 camera: Transform::from_translation(eye).looking_at(Vec3::ZERO, Vec3::Y),
                 background: Vec3::ZERO,
+                sky: Vec3::ZERO,
                 settings: common::quality(16, 2),
             };
             setup.settings.compositing = compositing;

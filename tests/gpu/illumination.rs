@@ -9,10 +9,10 @@
 use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
-    CloudQualitySettings, LightSample, Medium, Particle, ScatterStencil,
+    CloudQualitySettings, CloudSkyLight, LightSample, Medium, Particle, ScatterStencil,
     generators::SplitMix64,
     reference::{
-        illumination::{LocalLight, illuminate},
+        illumination::{LocalLight, illuminate_under_sky},
         metrics::max_relative_difference,
     },
     render::{pools::VolumePools, volumes::CloudVolumes},
@@ -59,8 +59,10 @@ pub(crate) fn rgb(bytes: &[u8]) -> Vec<f64> {
         .collect()
 }
 
-fn check(case: Case) {
+/// The GPU volumes of `case` under a sky of radiance `sky` against the CPU reference.
+fn check(case: Case, sky: Vec3) {
     let mut app = common::headless_app();
+    app.insert_resource(CloudSkyLight::from_radiance(sky));
     let image = headless::float_target(&mut app, 16, 16);
     let camera = headless::spawn_linear_camera(
         &mut app,
@@ -132,11 +134,12 @@ fn check(case: Case) {
         .map(|l| LocalLight::from_world(l, rotation))
         .collect();
     let scale = case.transform.scale.max_element() as f64;
-    let cpu = illuminate(
+    let cpu = illuminate_under_sky(
         &case.particles,
         &case.medium,
         scale,
         &lights,
+        sky.as_dvec3(),
         &case.settings,
     )
     .expect("a cloud with density");
@@ -190,119 +193,158 @@ fn check(case: Case) {
 
 #[test]
 fn one_light_straight_down() {
-    check(Case {
-        particles: random_particles(1, 60),
+    check(
+        Case {
+            particles: random_particles(1, 60),
+            medium: Medium {
+                extinction: 6.0,
+                albedo: 0.9,
+                ..Default::default()
+            },
+            lights: vec![LightSample {
+                direction: Vec3::NEG_Y,
+                irradiance: Vec3::new(1.0, 0.9, 0.8),
+            }],
+            transform: Transform::IDENTITY,
+            settings: common::quality(16, 4),
+        },
+        Vec3::ZERO,
+    );
+}
+
+/// The sky enters the grid in the first iteration of the series: with a light, and alone (a
+/// cloud no directional light reaches is still lit).
+#[test]
+fn a_sky_lights_the_cloud_with_and_without_a_light() {
+    let case = |lights: Vec<LightSample>| Case {
+        particles: random_particles(3, 60),
         medium: Medium {
             extinction: 6.0,
             albedo: 0.9,
             ..Default::default()
         },
-        lights: vec![LightSample {
-            direction: Vec3::NEG_Y,
-            irradiance: Vec3::new(1.0, 0.9, 0.8),
-        }],
-        transform: Transform::IDENTITY,
+        lights,
+        transform: Transform::from_rotation(Quat::from_rotation_y(0.3)),
         settings: common::quality(16, 4),
-    });
+    };
+    let sun = LightSample {
+        direction: Vec3::new(0.3, -1.0, 0.2),
+        irradiance: Vec3::new(1.0, 0.9, 0.8),
+    };
+    let sky = Vec3::new(0.2, 0.3, 0.5);
+    check(case(vec![sun]), sky);
+    check(case(vec![]), sky);
 }
 
 #[test]
 fn three_lights_along_axes_on_a_rotated_scaled_cloud() {
     let mut rng = SplitMix64::new(7);
-    check(Case {
-        particles: random_particles(2, 120),
-        medium: Medium {
-            extinction: 3.0,
-            albedo: 0.99,
-            ..Default::default()
+    check(
+        Case {
+            particles: random_particles(2, 120),
+            medium: Medium {
+                extinction: 3.0,
+                albedo: 0.99,
+                ..Default::default()
+            },
+            lights: vec![
+                LightSample {
+                    direction: Vec3::X,
+                    irradiance: Vec3::new(0.2, 0.4, 1.0),
+                },
+                LightSample {
+                    direction: Vec3::NEG_Z,
+                    irradiance: Vec3::new(1.0, 0.3, 0.2),
+                },
+                LightSample {
+                    direction: random_direction(&mut rng),
+                    irradiance: Vec3::splat(0.5),
+                },
+            ],
+            transform: Transform::from_xyz(0.5, -0.2, 0.3)
+                .with_rotation(Quat::from_euler(EulerRot::YXZ, 0.7, -0.3, 0.2))
+                .with_scale(Vec3::splat(1.5)),
+            settings: common::quality(24, 6),
         },
-        lights: vec![
-            LightSample {
-                direction: Vec3::X,
-                irradiance: Vec3::new(0.2, 0.4, 1.0),
-            },
-            LightSample {
-                direction: Vec3::NEG_Z,
-                irradiance: Vec3::new(1.0, 0.3, 0.2),
-            },
-            LightSample {
-                direction: random_direction(&mut rng),
-                irradiance: Vec3::splat(0.5),
-            },
-        ],
-        transform: Transform::from_xyz(0.5, -0.2, 0.3)
-            .with_rotation(Quat::from_euler(EulerRot::YXZ, 0.7, -0.3, 0.2))
-            .with_scale(Vec3::splat(1.5)),
-        settings: common::quality(24, 6),
-    });
+        Vec3::ZERO,
+    );
 }
 
 #[test]
 fn eight_random_lights_with_the_paper_stencil() {
     let mut rng = SplitMix64::new(11);
-    check(Case {
-        particles: random_particles(3, 40),
-        medium: Medium {
-            extinction: 10.0,
-            albedo: 0.8,
-            ..Default::default()
+    check(
+        Case {
+            particles: random_particles(3, 40),
+            medium: Medium {
+                extinction: 10.0,
+                albedo: 0.8,
+                ..Default::default()
+            },
+            lights: (0..8)
+                .map(|i| LightSample {
+                    direction: random_direction(&mut rng),
+                    irradiance: Vec3::splat(0.1 + 0.1 * i as f32),
+                })
+                .collect(),
+            transform: Transform::IDENTITY,
+            settings: CloudQualitySettings {
+                scatter_stencil: ScatterStencil::Paper,
+                ..common::quality(8, 3)
+            },
         },
-        lights: (0..8)
-            .map(|i| LightSample {
-                direction: random_direction(&mut rng),
-                irradiance: Vec3::splat(0.1 + 0.1 * i as f32),
-            })
-            .collect(),
-        transform: Transform::IDENTITY,
-        settings: CloudQualitySettings {
-            scatter_stencil: ScatterStencil::Paper,
-            ..common::quality(8, 3)
-        },
-    });
+        Vec3::ZERO,
+    );
 }
 
 #[test]
 fn forward_scattering_supersampling_3_and_a_light_along_the_view() {
-    check(Case {
-        particles: random_particles(4, 80),
-        medium: Medium {
-            extinction: 5.0,
-            albedo: 0.95,
-            ..Default::default()
+    check(
+        Case {
+            particles: random_particles(4, 80),
+            medium: Medium {
+                extinction: 5.0,
+                albedo: 0.95,
+                ..Default::default()
+            },
+            lights: vec![LightSample {
+                direction: Vec3::NEG_Z,
+                irradiance: Vec3::ONE,
+            }],
+            transform: Transform::IDENTITY,
+            settings: CloudQualitySettings {
+                forward_scattering: 0.5,
+                light_supersampling: 3,
+                ..common::quality(20, 2)
+            },
         },
-        lights: vec![LightSample {
-            direction: Vec3::NEG_Z,
-            irradiance: Vec3::ONE,
-        }],
-        transform: Transform::IDENTITY,
-        settings: CloudQualitySettings {
-            forward_scattering: 0.5,
-            light_supersampling: 3,
-            ..common::quality(20, 2)
-        },
-    });
+        Vec3::ZERO,
+    );
 }
 
 #[test]
 fn thick_cloud_at_albedo_one_with_many_iterations_and_no_supersampling() {
-    check(Case {
-        particles: random_particles(5, 90),
-        medium: Medium {
-            extinction: 20.0,
-            albedo: 1.0,
-            ..Default::default()
+    check(
+        Case {
+            particles: random_particles(5, 90),
+            medium: Medium {
+                extinction: 20.0,
+                albedo: 1.0,
+                ..Default::default()
+            },
+            lights: vec![LightSample {
+                direction: Vec3::new(0.3, -1.0, 0.2),
+                irradiance: Vec3::new(1.0, 0.9, 0.8),
+            }],
+            transform: Transform::from_rotation(Quat::from_rotation_z(0.3))
+                .with_scale(Vec3::splat(0.7)),
+            settings: CloudQualitySettings {
+                light_supersampling: 1,
+                ..common::quality(20, 24)
+            },
         },
-        lights: vec![LightSample {
-            direction: Vec3::new(0.3, -1.0, 0.2),
-            irradiance: Vec3::new(1.0, 0.9, 0.8),
-        }],
-        transform: Transform::from_rotation(Quat::from_rotation_z(0.3))
-            .with_scale(Vec3::splat(0.7)),
-        settings: CloudQualitySettings {
-            light_supersampling: 1,
-            ..common::quality(20, 24)
-        },
-    });
+        Vec3::ZERO,
+    );
 }
 
 #[test]
@@ -310,24 +352,27 @@ fn one_particle_filling_a_fine_grid_of_256_cubed() {
     // Every voxel of the grid in one particle's support, 256³ fine voxels, 128³ scattering
     // voxels: voxelize splits the support into rows and the closure's sums stay short, so no
     // invocation loops past what software rasterisers allow (lavapipe stops at 65535 iterations).
-    check(Case {
-        particles: vec![Particle {
-            position: Vec3::ZERO,
-            radius: 1.0,
-            density: 1.0,
-        }],
-        medium: Medium {
-            extinction: 6.0,
-            albedo: 0.9,
-            ..Default::default()
+    check(
+        Case {
+            particles: vec![Particle {
+                position: Vec3::ZERO,
+                radius: 1.0,
+                density: 1.0,
+            }],
+            medium: Medium {
+                extinction: 6.0,
+                albedo: 0.9,
+                ..Default::default()
+            },
+            lights: vec![LightSample {
+                direction: Vec3::new(0.3, -1.0, 0.2),
+                irradiance: Vec3::new(1.0, 0.9, 0.8),
+            }],
+            transform: Transform::IDENTITY,
+            settings: common::quality(128, 2),
         },
-        lights: vec![LightSample {
-            direction: Vec3::new(0.3, -1.0, 0.2),
-            irradiance: Vec3::new(1.0, 0.9, 0.8),
-        }],
-        transform: Transform::IDENTITY,
-        settings: common::quality(128, 2),
-    });
+        Vec3::ZERO,
+    );
 }
 
 #[test]
@@ -343,21 +388,24 @@ fn large_particles_on_coarse_density_levels_of_odd_sizes() {
             density: 0.2 + rng.next_f32(),
         })
         .collect();
-    check(Case {
-        particles,
-        medium: Medium {
-            extinction: 2.0,
-            albedo: 0.9,
-            ..Default::default()
+    check(
+        Case {
+            particles,
+            medium: Medium {
+                extinction: 2.0,
+                albedo: 0.9,
+                ..Default::default()
+            },
+            lights: vec![LightSample {
+                direction: Vec3::new(-0.4, -1.0, 0.3),
+                irradiance: Vec3::ONE,
+            }],
+            transform: Transform::IDENTITY,
+            settings: CloudQualitySettings {
+                light_supersampling: 3,
+                ..common::quality(45, 2)
+            },
         },
-        lights: vec![LightSample {
-            direction: Vec3::new(-0.4, -1.0, 0.3),
-            irradiance: Vec3::ONE,
-        }],
-        transform: Transform::IDENTITY,
-        settings: CloudQualitySettings {
-            light_supersampling: 3,
-            ..common::quality(45, 2)
-        },
-    });
+        Vec3::ZERO,
+    );
 }

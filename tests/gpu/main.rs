@@ -12,5 +12,6 @@ mod lod;
 mod overlap;
 mod plugin;
 mod shading_method;
+mod sky;
 mod stress;
 mod warm_start;
