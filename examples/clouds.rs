@@ -4,7 +4,12 @@
 //! cargo run --example clouds                         # a window
 //! cargo run --example clouds -- --frames 120         # exits after 120 frames (CI, under Xvfb)
 //! cargo run --example clouds -- --screenshot clouds.png [--size 800x450]   # headless picture
+//! cargo run --example clouds -- --sun 200,12 --screenshot backlit.png   # the sun behind a cloud
 //! ```
+//!
+//! The clouds scatter forward (Henyey–Greenstein g = 0.6), so with the sun behind one (turn it
+//! with the arrow keys, or start there with `--sun`) its thin edges glow: the silver lining. A
+//! blue sky lights them too (`CloudSkyLight`), which tints their shadowed sides.
 //!
 //! Controls: arrow keys turn the sun (azimuth, elevation); drag with the left mouse button or
 //! A/D/W/S to orbit; wheel or +/- to zoom; [ and ] change the multiple-scattering iterations,
@@ -38,12 +43,31 @@ const EXAMPLE: Example = Example {
 struct Args {
     #[command(flatten)]
     common: Options,
+    /// The sun's azimuth and elevation to start with, degrees (the azimuth from +X around +Y, of
+    /// the direction the light comes from; elevation in -90..=90).
+    #[arg(long, value_name = "AZ,EL", value_parser = parse_sun, default_value = "30,25")]
+    sun: (f32, f32),
 }
+
+fn parse_sun(text: &str) -> Result<(f32, f32), String> {
+    text.split_once(',')
+        .and_then(|(a, e)| Some((a.trim().parse::<f32>().ok()?, e.trim().parse::<f32>().ok()?)))
+        .filter(|(a, e)| a.is_finite() && (-90.0..=90.0).contains(e))
+        .map(|(a, e)| (a.to_radians(), e.to_radians()))
+        .ok_or(format!(
+            "--sun is {text}; it must be AZ,EL in degrees, the elevation in -90..=90"
+        ))
+}
+
+/// The sun the scene starts with (radians).
+#[derive(Resource)]
+struct StartingSun((f32, f32));
 
 fn main() -> ExitCode {
     let args: Args = support::parse_args();
     let options = args.common;
     support::run(EXAMPLE, options, |app| {
+        app.insert_resource(StartingSun(args.sun));
         app.insert_resource(DefaultCloudQuality(CloudQualitySettings {
             volume_resolution: 48,
             scatter_iterations: 8,
@@ -56,6 +80,7 @@ fn main() -> ExitCode {
 
 fn setup(
     mut commands: Commands,
+    sun: Res<StartingSun>,
     mut particles: ResMut<Assets<Particles>>,
     mut meshes: ResMut<Assets<Mesh>>,
     mut materials: ResMut<Assets<StandardMaterial>>,
@@ -82,7 +107,7 @@ fn setup(
             ParticleCloud::new(handle).with_medium(Medium {
                 extinction: 20.0 / size,
                 albedo: 0.99,
-                ..Default::default()
+                anisotropy: 0.6,
             }),
             Transform::from_translation(position).with_rotation(Quat::from_rotation_y(angle)),
         ));
@@ -93,13 +118,12 @@ fn setup(
         yaw: 0.3,
         pitch: 0.12,
     };
-    let sun = (30f32.to_radians(), 25f32.to_radians());
     support::spawn_outdoor(
         &mut commands,
         &mut meshes,
         &mut materials,
         1000.0,
-        sun,
+        sun.0,
         orbit,
     );
 }

@@ -82,9 +82,9 @@ pub use stats::{CloudPass, CloudPassCounters, PASSES};
 /// Everything a Bevy user needs.
 pub mod prelude {
     pub use crate::{
-        CloudLevelOfDetail, CloudLod, CloudQualitySettings, CloudRelightBudget, CloudSystems,
-        CloudTargetScale, Compositing, DefaultCloudQuality, Medium, NotCloudLight, Particle,
-        ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil, generators,
+        CloudLevelOfDetail, CloudLod, CloudQualitySettings, CloudRelightBudget, CloudSkyLight,
+        CloudSystems, CloudTargetScale, Compositing, DefaultCloudQuality, Medium, NotCloudLight,
+        Particle, ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil, generators,
     };
 }
 

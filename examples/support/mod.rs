@@ -30,8 +30,8 @@ use bevy::{
     },
 };
 use bevy_particle_clouds::{
-    CloudPass, CloudPassCounters, CloudTargetScale, PASSES, ParticleCloud, ParticleCloudsPlugin,
-    Particles,
+    CloudPass, CloudPassCounters, CloudSkyLight, CloudTargetScale, PASSES, ParticleCloud,
+    ParticleCloudsPlugin, Particles,
     headless::{self, FrameRecorder},
     image_io,
 };
@@ -205,10 +205,19 @@ pub fn key_light(key: KeyLight, color: Color, illuminance: f32) -> impl Bundle {
 /// Sun illuminance of the outdoor examples, lux.
 pub const SUN_LUX: f32 = 10_000.0;
 
+/// The outdoor examples' sky colour as displayed (the camera's clear colour, not exposed).
+const SKY_COLOR: Vec3 = Vec3::new(0.22, 0.38, 0.75);
+
+/// The sky's radiance that lights clouds and meshes, cd/m²: half of what the exposure
+/// (1 / 750) would show as `SKY_COLOR`, about 1/35 of the sun's illuminance per steradian, as in
+/// a clear sky.
+const SKY_NITS: f32 = 375.0;
+
 /// The outdoor set of the sky examples: a green ground plane `ground` metres across, a sun of
-/// [`SUN_LUX`] turned with the arrow keys from `azimuth` and `elevation` (radians), and the
-/// camera on `orbit` (exposure ev100 9.3, blue sky), drawing its clouds at half its size as a game
-/// would.
+/// [`SUN_LUX`] turned with the arrow keys from `azimuth` and `elevation` (radians), a blue sky
+/// that lights the clouds (`CloudSkyLight`) and, with the same radiance, the meshes (Bevy's
+/// `GlobalAmbientLight`), and the camera on `orbit` (exposure ev100 9.3), drawing its clouds at
+/// half its size as a game would.
 pub fn spawn_outdoor(
     commands: &mut Commands,
     meshes: &mut Assets<Mesh>,
@@ -238,10 +247,17 @@ pub fn spawn_outdoor(
         Color::linear_rgb(1.0, 0.95, 0.85),
         SUN_LUX,
     ));
-    commands.spawn((
-        camera(orbit, 9.3, Color::linear_rgb(0.22, 0.38, 0.75)),
-        CloudTargetScale(0.5),
-    ));
+    let sky = Color::linear_rgb(SKY_COLOR.x, SKY_COLOR.y, SKY_COLOR.z);
+    commands.insert_resource(CloudSkyLight {
+        color: sky,
+        brightness: SKY_NITS,
+    });
+    commands.insert_resource(GlobalAmbientLight {
+        color: sky,
+        brightness: SKY_NITS,
+        ..default()
+    });
+    commands.spawn((camera(orbit, 9.3, sky), CloudTargetScale(0.5)));
 }
 
 /// A large lit ground plane of `size` metres and linear albedo `color`, at `y = 0`.
