@@ -1,7 +1,8 @@
 //! # bevy_particle_clouds
 //!
 //! Participating media — clouds, smoke, fog, snow — made of particles, rendered by Bevy on the GPU:
-//! lit by any number of directional lights, self-shadowed, with isotropic multiple scattering.
+//! lit by any number of directional lights and a sky ([`CloudSkyLight`]), self-shadowed, with
+//! multiple scattering; the medium scatters isotropically or forward ([`Medium::anisotropy`]).
 //! It follows Remes, Umenhoffer and Szécsi, *GPU based particle rendering system for isotropic
 //! participating media*: per cloud the particles' density is voxelized, each light shades a
 //! light-aligned volume slice by slice, the lights are gathered into one illumination volume,
@@ -15,6 +16,8 @@
 //! fn setup(mut commands: Commands, mut particles: ResMut<Assets<Particles>>) {
 //!     let cumulus = particles.add(generators::cumulus(1.5, 400, 7));
 //!     commands.spawn((ParticleCloud::new(cumulus), Transform::from_xyz(0.0, 2.0, 0.0)));
+//!     // A blue sky that lights the clouds (black, and free, by default).
+//!     commands.insert_resource(CloudSkyLight { color: Color::srgb(0.5, 0.7, 1.0), brightness: 400.0 });
 //!     commands.spawn((
 //!         DirectionalLight { illuminance: 10_000.0, ..default() },
 //!         Transform::from_xyz(1.0, 1.0, 0.5).looking_at(Vec3::ZERO, Vec3::Y),

@@ -2,7 +2,7 @@
 //! multiple-scattering grid from every side in the first iteration of the series.
 
 use bevy::prelude::*;
-use bevy_particle_clouds::{Medium, reference::metrics::relative_rmse};
+use bevy_particle_clouds::{CloudPass, Medium, reference::metrics::relative_rmse};
 
 use crate::draw::{Setup, assert_images_match, cloud_setup, reference, render};
 
@@ -74,4 +74,33 @@ fn an_albedo_one_cloud_under_a_uniform_sky_almost_vanishes() {
         darkening > 10.0 * error,
         "albedo 0.5 hardly darkens: {darkening}"
     );
+}
+
+/// The sky costs no pass: illuminating a cloud takes exactly the dispatches under a blue sky that
+/// it takes under a black one (the sky is a value in the sweep's uniform).
+#[test]
+fn the_sky_adds_no_dispatch() {
+    let dispatches = |sky: Vec3| {
+        let mut setup = sky_setup(0.9);
+        setup.lights = cloud_setup(21, setup.camera).lights;
+        setup.sky = sky;
+        let (_, _, render) = render(&setup);
+        [
+            CloudPass::Voxelize,
+            CloudPass::Shade,
+            CloudPass::Gather,
+            CloudPass::Scatter,
+        ]
+        .map(|pass| {
+            render
+                .frames
+                .frames
+                .iter()
+                .map(|f| f.dispatches(pass))
+                .sum::<u32>()
+        })
+    };
+    let (black, blue) = (dispatches(Vec3::ZERO), dispatches(SKY));
+    assert!(black.iter().sum::<u32>() > 0);
+    assert_eq!(black, blue, "dispatches per pass, black sky against blue");
 }
