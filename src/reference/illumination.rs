@@ -866,35 +866,13 @@ fn scatter_once(
 /// `W_0 = K (s0 + previous) - previous` and its series `W_k = K^k W_0` sum to `S_m - previous`.
 /// `iterations` orders in all (`W_0` the first), closed like [`scatter`]'s series:
 /// `total = max(previous + sum_k W_k + W_last lambda / (1 - lambda), 0)`. `orders` holds the
-/// `W_k`.
+/// `W_k`. Under a sky of radiance `sky` (black: `DVec3::ZERO`), the first sweep
+/// `K (s0 + previous)` takes it in, as [`scatter_under_sky`]'s first iteration does.
 ///
 /// # Panics
 /// If `iterations < 2`, or `s0` and `previous` do not have one entry per voxel.
-pub fn scatter_warm(
-    grid: &DensityGrid,
-    k_local: f64,
-    albedo: f64,
-    stencil: ScatterStencil,
-    s0: &[DVec3],
-    previous: &[DVec3],
-    iterations: u32,
-) -> MultipleScattering {
-    scatter_warm_under_sky(
-        grid,
-        k_local,
-        albedo,
-        stencil,
-        s0,
-        previous,
-        DVec3::ZERO,
-        iterations,
-    )
-}
-
-/// [`scatter_warm`] under a uniform sky of radiance `sky`: the first sweep, `K (s0 + previous)`,
-/// takes it in, as [`scatter_under_sky`]'s first iteration does.
 #[allow(clippy::too_many_arguments)]
-pub fn scatter_warm_under_sky(
+pub fn scatter_warm(
     grid: &DensityGrid,
     k_local: f64,
     albedo: f64,
@@ -1557,7 +1535,7 @@ mod tests {
         let x = |v: &[DVec3]| v.iter().map(|s| s.x).collect::<Vec<_>>();
         let error =
             |m: &[DVec3]| crate::reference::metrics::max_relative_difference(&x(m), &x(&after));
-        let warm = scatter_warm(&grid, k, 0.99, stencil, &new, &before, 4);
+        let warm = scatter_warm(&grid, k, 0.99, stencil, &new, &before, DVec3::ZERO, 4);
         let cold = scatter(&grid, k, 0.99, stencil, &new, 4);
         assert!(
             error(&warm.total) < 0.2 * error(&cold.total),
@@ -1579,12 +1557,12 @@ mod tests {
         );
 
         let zero = vec![DVec3::ZERO; grid.len()];
-        let from_zero = scatter_warm(&grid, k, 0.99, stencil, &new, &zero, 4);
+        let from_zero = scatter_warm(&grid, k, 0.99, stencil, &new, &zero, DVec3::ZERO, 4);
         assert!(error(&from_zero.total) > 0.0);
         for (a, b) in from_zero.total.iter().zip(&cold.total) {
             assert!((*a - *b).abs().max_element() <= 1e-12 * b.max_element().max(1e-300));
         }
-        let stays = scatter_warm(&grid, k, 0.99, stencil, &new, &after, 2);
+        let stays = scatter_warm(&grid, k, 0.99, stencil, &new, &after, DVec3::ZERO, 2);
         assert!(error(&stays.total) < 1e-3, "{}", error(&stays.total));
     }
 

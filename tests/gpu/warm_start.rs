@@ -8,7 +8,7 @@ use bevy_particle_clouds::headless::{self, FrameRecorder};
 use bevy_particle_clouds::{
     CloudPass, CloudQualitySettings, CloudSkyLight, Medium, ScatterStencil,
     reference::{
-        illumination::{LocalLight, illuminate_under_sky, scatter_warm_under_sky},
+        illumination::{LocalLight, illuminate_under_sky, scatter_warm},
         metrics::max_relative_difference,
     },
     render::{pools::VolumePools, volumes::CloudVolumes},
@@ -94,7 +94,7 @@ fn check_warm_restart(sky: Vec3) {
         .unwrap()
     };
     let (before, after) = (cpu(a), cpu(b));
-    let restarted = scatter_warm_under_sky(
+    let restarted = scatter_warm(
         &after.grid,
         after.k_local,
         after.albedo,
