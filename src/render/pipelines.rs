@@ -76,9 +76,6 @@ pub fn sweep_direction_offset(index: usize, accumulate: bool, sky: bool) -> u32 
     (set * 13 + index) as u32 * DYNAMIC_UNIFORM_STRIDE
 }
 
-/// The sets of [`sweep_direction_offset`] that bring the sky in.
-const SKY_SETS: [usize; 2] = [0, 2];
-
 /// The 13 direction pairs of the sweep, each with its number of lattice lines in an `n³` grid:
 /// `n^(3-k) (2n-1)^(k-1)` for `k` non-zero components.
 pub fn sweep_directions() -> impl Iterator<Item = IVec3> {
@@ -123,9 +120,9 @@ pub struct IlluminationPipelines {
     pub order_ratio: ComputeStage,
     /// `closure.wgsl`, `extrapolate` (same layout as `order_ratio`).
     pub extrapolate: ComputeStage,
-    /// The 13 `SweepDirection`s accumulating with and without the sky, then not accumulating,
-    /// `DYNAMIC_UNIFORM_STRIDE` bytes apart (a dynamic uniform; [`write_sweep_sky`] writes the
-    /// sky into them).
+    /// The 13 `SweepDirection`s in each of the four sets of [`sweep_direction_offset`]
+    /// (accumulating or not, bringing the sky in or not), `DYNAMIC_UNIFORM_STRIDE` bytes apart (a
+    /// dynamic uniform; [`write_sweep_sky`] writes the sky into them).
     pub sweep_directions: Buffer,
     /// The sky radiance the sweep directions hold.
     pub sweep_sky: Vec3,
@@ -182,12 +179,9 @@ fn sweep_direction_entries(sky: Vec3) -> impl Iterator<Item = SweepDirection> {
             .map(move |(i, o)| SweepDirection {
                 o,
                 first: (i == 0) as u32,
+                // The inverse of `sweep_direction_offset`'s set.
                 accumulate: (set < 2) as u32,
-                sky: if SKY_SETS.contains(&set) {
-                    sky
-                } else {
-                    Vec3::ZERO
-                },
+                sky: if set % 2 == 0 { sky } else { Vec3::ZERO },
             })
     })
 }
@@ -315,6 +309,26 @@ mod tests {
             let lines = sweep_lines(o, n);
             let moving = o.abs().element_sum();
             assert_eq!(lines, [25, 45, 81][moving as usize - 1], "{o}");
+        }
+    }
+
+    /// Every offset the passes ask for finds the entry it means: its direction, whether it
+    /// accumulates, and the sky only where it brings it in.
+    #[test]
+    fn every_sweep_direction_offset_finds_its_entry() {
+        let sky = Vec3::new(0.1, 0.2, 0.3);
+        let entries: Vec<SweepDirection> = sweep_direction_entries(sky).collect();
+        for (i, o) in sweep_directions().enumerate() {
+            for accumulate in [true, false] {
+                for brings_sky in [true, false] {
+                    let offset = sweep_direction_offset(i, accumulate, brings_sky);
+                    let entry = entries[(offset / DYNAMIC_UNIFORM_STRIDE) as usize];
+                    assert_eq!(entry.o, o);
+                    assert_eq!(entry.first, (i == 0) as u32);
+                    assert_eq!(entry.accumulate, accumulate as u32);
+                    assert_eq!(entry.sky, if brings_sky { sky } else { Vec3::ZERO });
+                }
+            }
         }
     }
 }
