@@ -87,9 +87,10 @@ impl ExtractedCloudLights {
     }
 }
 
-/// Remembers which clouds were refused and why, so each problem is reported once.
+/// Remembers which clouds were refused and why (the message: a NaN in a problem never equals
+/// itself), so each problem is reported once.
 #[derive(Default)]
-pub(crate) struct RefusedClouds(HashMap<Entity, InvalidCloud>);
+pub(crate) struct RefusedClouds(HashMap<Entity, String>);
 
 /// A cloud as the main world has it.
 type MainWorldCloud = (
@@ -139,6 +140,7 @@ pub(crate) fn extract_clouds(
         let mut target = commands.entity(render_entity);
         match verdict.err() {
             Some(problem) => {
+                let problem = problem.to_string();
                 if refused.0.get(&entity) != Some(&problem) {
                     let label =
                         name.map_or_else(|| format!("{entity}"), |n| format!("{entity} ({n})"));

@@ -9,8 +9,8 @@ use std::f32::consts::PI;
 use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
-    CloudPass, CloudQualitySettings, LightSample, Medium, Particle, ParticleCloud, Particles,
-    generators, image_io::LinearImage,
+    CloudPass, CloudQualitySettings, CloudSkyLight, LightSample, Medium, Particle, ParticleCloud,
+    Particles, generators, image_io::LinearImage,
 };
 
 use crate::common;
@@ -301,7 +301,7 @@ fn invalid_values_through_the_api_are_refused_and_others_render() {
     let image = headless::float_target(&mut app, 16, 16);
     headless::spawn_linear_camera(
         &mut app,
-        image,
+        image.clone(),
         Transform::from_xyz(0.0, 0.0, 8.0).looking_at(Vec3::ZERO, Vec3::Y),
         60.0,
         BACKGROUND,
@@ -366,10 +366,22 @@ fn invalid_values_through_the_api_are_refused_and_others_render() {
         Medium {
             extinction: 1.0,
             albedo: 0.5,
+            anisotropy: 1.0,
+        },
+        3.0,
+    );
+    spawn(
+        &mut app,
+        vec![good],
+        Medium {
+            extinction: 1.0,
+            albedo: 0.5,
             ..Default::default()
         },
         2.0,
     );
+    // A sky that is not finite is refused (taken as black): the valid cloud still renders.
+    app.insert_resource(CloudSkyLight::from_radiance(Vec3::new(0.1, f32::NAN, -1.0)));
     let mut frames = FrameRecorder::default();
     for _ in 0..5 {
         frames.frame(&mut app).unwrap();
@@ -378,5 +390,10 @@ fn invalid_values_through_the_api_are_refused_and_others_render() {
         frames.frames.last().unwrap().runs(CloudPass::Draw),
         1,
         "only the valid cloud is drawn"
+    );
+    let shot = headless::capture(&mut app, &mut frames, &image).unwrap();
+    assert!(
+        shot.pixels.iter().flatten().all(|v| v.is_finite()),
+        "a refused sky leaves no NaN"
     );
 }
