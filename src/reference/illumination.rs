@@ -19,6 +19,7 @@ use crate::math::{
     light_basis,
 };
 use crate::particle::{LightSample, Medium, Particle, single_scattering_depth_scale};
+use crate::reference::composite::CloudPlacement;
 use crate::settings::{CloudQualitySettings, ScatterStencil};
 
 // ---------------------------------------------------------------------------------------------
@@ -447,6 +448,20 @@ impl LightVolume {
     /// Transmittance `exp(-tau)` towards the light at local point `p`.
     pub fn transmittance_at(&self, p: DVec3) -> f64 {
         (-self.optical_depth_at(p)).exp()
+    }
+
+    /// The optical depth this cloud casts on a point `p` of another cloud (in this cloud's local
+    /// space; contract section 2, "Clouds shadow each other"): 0 beside the box (across the
+    /// light) and before it (towards the light), where the light's column holds none of this
+    /// cloud; inside and past the box, [`optical_depth_at`](Self::optical_depth_at), whose
+    /// clamp carries the last slice (the whole column) on past the box.
+    pub fn cast_depth_at(&self, p: DVec3) -> f64 {
+        let g = (self.light_coords(p) + self.half_extents) / self.voxel_size() - 0.5;
+        let edge = self.n as f64 - 0.5;
+        if g.x < -0.5 || g.x > edge || g.y < -0.5 || g.y > edge || g.z < -0.5 {
+            return 0.0;
+        }
+        self.optical_depth_at(p)
     }
 }
 
@@ -1007,6 +1022,126 @@ pub fn illuminate_under_sky(
     sky: DVec3,
     settings: &CloudQualitySettings,
 ) -> Option<CloudIllumination> {
+    shade_cloud(particles, medium, scale, lights_local, settings)
+        .map(|shaded| shaded.finish(sky, settings))
+}
+
+/// One of several clouds illuminated together ([`illuminate_clouds_under_sky`]).
+#[derive(Clone, Copy)]
+pub struct PlacedCloud<'a> {
+    /// Particles in cloud-local space.
+    pub particles: &'a [Particle],
+    /// The cloud's medium.
+    pub medium: Medium,
+    /// Its transform: lights are taken to its local space, and other clouds' points too.
+    pub placement: CloudPlacement,
+    /// Its quality knobs (clouds may differ, as in a game).
+    pub settings: CloudQualitySettings,
+}
+
+/// Runs every stage of the contract for clouds that shadow each other, under the world `lights`
+/// and a uniform sky `sky`, each cloud at its own settings: each cloud's light volumes take,
+/// beside its own optical depth, the optical depth every other cloud casts on it (section 2,
+/// [`LightVolume::cast_depth_at`]), before its single and multiple scattering are gathered and
+/// scattered. One entry per cloud, `None` for a cloud without density. A cloud alone is
+/// [`illuminate_under_sky`] exactly.
+pub fn illuminate_clouds_under_sky(
+    clouds: &[PlacedCloud],
+    lights: &[LightSample],
+    sky: DVec3,
+) -> Vec<Option<CloudIllumination>> {
+    let mut shaded: Vec<Option<ShadedCloud>> = clouds
+        .iter()
+        .map(|cloud| {
+            let rotation = cloud.placement.rotation;
+            let local: Vec<LocalLight> = lights
+                .iter()
+                .map(|l| LocalLight::from_world(l, rotation))
+                .collect();
+            let scale = cloud.placement.scale;
+            shade_cloud(
+                cloud.particles,
+                &cloud.medium,
+                scale,
+                &local,
+                &cloud.settings,
+            )
+        })
+        .collect();
+    let placements: Vec<CloudPlacement> = clouds.iter().map(|c| c.placement).collect();
+    cast_shadows(&mut shaded, &placements);
+    shaded
+        .into_iter()
+        .zip(clouds)
+        .map(|(s, cloud)| s.map(|s| s.finish(sky, &cloud.settings)))
+        .collect()
+}
+
+/// Adds to every cloud's light volumes the optical depth the other clouds cast on it (contract
+/// section 2): at each voxel centre `p` of cloud `a`'s volume of light `l`,
+/// `tau += sum_b cast_b,l(p)` over the other clouds `b`, with [`LightVolume::cast_depth_at`] of
+/// `b`'s *own* volume of light `l` at `p` taken to `b`'s local space. Optical depths add along a
+/// line, so this is the optical depth of all the clouds, each sampled on its own light box. The
+/// clouds' light lists must match (the same lights in the same order), as the scene's lights do.
+fn cast_shadows(clouds: &mut [Option<ShadedCloud>], placements: &[CloudPlacement]) {
+    let own: Vec<Option<Vec<LightVolume>>> = clouds
+        .iter()
+        .map(|c| {
+            c.as_ref()
+                .map(|c| c.lights.iter().map(|(v, _)| v.clone()).collect())
+        })
+        .collect();
+    for (a, cloud) in clouds.iter_mut().enumerate() {
+        let Some(cloud) = cloud else { continue };
+        for (l, (volume, _)) in cloud.lights.iter_mut().enumerate() {
+            let casters: Vec<(&LightVolume, &CloudPlacement)> = own
+                .iter()
+                .zip(placements)
+                .enumerate()
+                .filter(|&(b, _)| b != a)
+                .filter_map(|(_, (volumes, placement))| {
+                    Some((volumes.as_ref()?.get(l)?, placement))
+                })
+                .collect();
+            if casters.is_empty() {
+                continue;
+            }
+            let receiver = own[a].as_ref().map(|v| &v[l]).expect("a shaded cloud");
+            let n = receiver.n;
+            volume
+                .optical_depth
+                .par_iter_mut()
+                .enumerate()
+                .for_each(|(idx, tau)| {
+                    let (i, j, k) = unravel(idx, n);
+                    let world = placements[a].world_point(receiver.voxel_centre(i, j, k));
+                    *tau += casters
+                        .iter()
+                        .map(|(v, placement)| v.cast_depth_at(placement.local_point(world)))
+                        .sum::<f64>();
+                });
+        }
+    }
+}
+
+/// A cloud's density grids and light volumes (sections 1 and 2), before the other clouds cast
+/// their shadows on it and its scattering is gathered.
+struct ShadedCloud {
+    fine: DensityGrid,
+    grid: DensityGrid,
+    inputs: ShadeInputs,
+    anisotropy: f64,
+    lights: Vec<(LightVolume, DVec3)>,
+}
+
+/// Sections 1 and 2 for one cloud (see [`illuminate_under_sky`] for the arguments).
+fn shade_cloud(
+    particles: &[Particle],
+    medium: &Medium,
+    scale: f64,
+    lights_local: &[LocalLight],
+    settings: &CloudQualitySettings,
+) -> Option<ShadedCloud> {
     let fine = voxelize(particles, settings.light_resolution() as usize)?;
     let grid = fine.downsample(settings.supersampling() as usize);
     let inputs = ShadeInputs {
@@ -1015,49 +1150,76 @@ pub fn illuminate_under_sky(
         forward_scattering: settings.forward_scattering as f64,
         resolution: settings.light_resolution() as usize,
     };
-    let lights: Vec<(LightVolume, DVec3)> = lights_local
+    let lights = lights_local
         .iter()
         .filter(|l| l.irradiance != DVec3::ZERO && l.direction.try_normalize().is_some())
         .map(|l| (shade(&fine, &inputs, l.direction), l.irradiance))
         .collect();
-    let source = gather(&grid, &fine, &lights);
-    let multiple = scatter_under_sky(
-        &grid,
-        inputs.k_local,
-        inputs.albedo,
-        settings.scatter_stencil,
-        &source,
-        sky,
-        settings.scatter_iterations,
-    );
-    Some(CloudIllumination {
-        grid,
+    Some(ShadedCloud {
         fine,
-        k_local: inputs.k_local,
-        albedo: inputs.albedo,
+        grid,
+        inputs,
         anisotropy: medium.anisotropy as f64,
         lights,
-        source,
-        multiple,
     })
 }
 
-/// [`illuminate_under_sky`] for cloud `index` of `scene` with the scene's lights and its
-/// background as the sky (scene clouds are translated only, so local and world directions
-/// agree).
+impl ShadedCloud {
+    /// Sections 3 and 4: the source gathered from the light volumes, and its multiple scattering
+    /// under the sky `sky`.
+    fn finish(self, sky: DVec3, settings: &CloudQualitySettings) -> CloudIllumination {
+        let source = gather(&self.grid, &self.fine, &self.lights);
+        let multiple = scatter_under_sky(
+            &self.grid,
+            self.inputs.k_local,
+            self.inputs.albedo,
+            settings.scatter_stencil,
+            &source,
+            sky,
+            settings.scatter_iterations,
+        );
+        CloudIllumination {
+            grid: self.grid,
+            fine: self.fine,
+            k_local: self.inputs.k_local,
+            albedo: self.inputs.albedo,
+            anisotropy: self.anisotropy,
+            lights: self.lights,
+            source,
+            multiple,
+        }
+    }
+}
+
+/// Cloud `index` of `scene` as [`illuminate_clouds_under_sky`] illuminates it among the scene's
+/// other clouds (their shadows included), with the scene's lights and its background as the sky.
+/// Scene clouds are translated only, so local and world directions agree.
 pub fn illuminate_scene_cloud(
     scene: &crate::scene::Scene,
     index: usize,
     settings: &CloudQualitySettings,
 ) -> Option<CloudIllumination> {
-    let cloud = &scene.clouds[index];
-    let lights: Vec<LocalLight> = scene
-        .lights
+    illuminate_scene(scene, settings).swap_remove(index)
+}
+
+/// Every cloud of `scene`, illuminated together ([`illuminate_clouds_under_sky`]), with the
+/// scene's lights and its background as the sky.
+pub fn illuminate_scene(
+    scene: &crate::scene::Scene,
+    settings: &CloudQualitySettings,
+) -> Vec<Option<CloudIllumination>> {
+    let clouds: Vec<PlacedCloud> = scene
+        .clouds
         .iter()
-        .map(|l| LocalLight::from_world(l, DQuat::IDENTITY))
+        .map(|c| PlacedCloud {
+            particles: &c.particles,
+            medium: c.medium,
+            placement: CloudPlacement::at(c.translation.as_dvec3()),
+            settings: *settings,
+        })
         .collect();
     let sky = scene.background.as_dvec3();
-    illuminate_under_sky(&cloud.particles, &cloud.medium, 1.0, &lights, sky, settings)
+    illuminate_clouds_under_sky(&clouds, &scene.lights, sky)
 }
 
 impl CloudIllumination {

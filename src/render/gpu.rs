@@ -133,6 +133,19 @@ pub fn storage_bytes<T: ShaderType + encase::internal::WriteInto + encase::Shade
     buffer.into_inner()
 }
 
+/// A read-only storage buffer holding `values` (at least one: bindings may not be empty).
+pub(crate) fn storage_init<T: ShaderType + encase::internal::WriteInto + encase::ShaderSize>(
+    device: &RenderDevice,
+    label: &'static str,
+    values: &[T],
+) -> Buffer {
+    device.create_buffer_with_data(&BufferInitDescriptor {
+        label: Some(label),
+        contents: &storage_bytes(values),
+        usage: BufferUsages::STORAGE,
+    })
+}
+
 /// A stage's compute pass, counting its dispatches.
 pub struct StagePass<'p, 'a> {
     pass: &'p mut ComputePass<'a>,

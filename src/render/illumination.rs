@@ -20,8 +20,9 @@ use bevy::{
 };
 
 use super::{
+    cast::{CastItem, Caster},
     extract::ExtractedCloud,
-    gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, WorkList, record_stage},
+    gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, WorkList, record_stage, storage_init},
     particles::GpuParticles,
     pipelines::{
         ComputeStage, IlluminationPipelines, ReadyPipelines, SweepDirection,
@@ -91,6 +92,8 @@ struct PoolBatches {
     n: u32,
     m: u32,
     shade: Option<Batch>,
+    /// Other clouds' shadows, one batch per pool their casters lie in (first casts first).
+    cast: Vec<Batch>,
     gather: Option<Batch>,
     scatter: Vec<ScatterBatch>,
 }
@@ -117,11 +120,13 @@ fn scatter_group(k: u32) -> usize {
     }
 }
 
-/// What each pool's clouds run this frame: (slot, light) to shade, slots to gather, and slots
-/// to scatter per (iterations, stencil, warm restart).
+/// What each pool's clouds run this frame: (slot, light) to shade, light volumes to cast on per
+/// pool their casters lie in, slots to gather, and slots to scatter per (iterations, stencil,
+/// warm restart).
 #[derive(Default)]
 struct PoolWork {
     shade: Vec<[u32; 2]>,
+    cast: HashMap<PoolId, CastWork>,
     gather: Vec<u32>,
     scatter: HashMap<(u32, ScatterStencil, bool), Vec<u32>>,
 }
@@ -143,6 +148,8 @@ pub(crate) fn prepare_illumination_bind_groups(
         device.create_bind_group(None, &layout, entries)
     };
     let mut work: HashMap<PoolId, PoolWork> = HashMap::default();
+    let placed: HashMap<Entity, (&ExtractedCloud, &CloudVolumes)> =
+        clouds.iter().map(|(e, c, v, _)| (e, (c, v))).collect();
     for (entity, cloud, v, state) in &clouds {
         let plan = &state.plan;
         let Some(gpu) = particles.get(cloud.particles).filter(|_| !plan.is_empty()) else {
@@ -171,6 +178,10 @@ pub(crate) fn prepare_illumination_bind_groups(
         let slot = v.slot.index;
         let w = work.entry(v.slot.pool).or_default();
         w.shade.extend(plan.shade.iter().map(|&l| [slot, l as u32]));
+        for &l in &plan.cast {
+            let casters = state.casters.get(l).map_or(&[][..], Vec::as_slice);
+            add_casts(&mut w.cast, (cloud, v), l as u32, casters, &placed, &pools);
+        }
         if plan.gather {
             w.gather.push(slot);
         }
@@ -190,10 +201,36 @@ pub(crate) fn prepare_illumination_bind_groups(
                     pool.lights.as_entire_binding(),
                     pool.densities.as_entire_binding(),
                     pool.optical_depth.as_entire_binding(),
+                    pool.own_depth.as_entire_binding(),
                     work.binding(),
                 )),
             )
         });
+        let mut casts: Vec<_> = w.cast.into_iter().collect();
+        casts.sort_by_key(|(caster_pool, _)| *caster_pool);
+        let cast = casts
+            .into_iter()
+            .filter_map(|(caster_pool, mut c)| {
+                if c.casters.is_empty() {
+                    c.casters.push(Caster::default()); // a binding may not be empty
+                }
+                let casters = storage_init(&device, "particle_clouds_casters", &c.casters);
+                Batch::new(&device, &c.items, |work| {
+                    bind(
+                        &pipelines.cast,
+                        &BindGroupEntries::sequential((
+                            pool.slots.as_entire_binding(),
+                            pool.lights.as_entire_binding(),
+                            pool.own_depth.as_entire_binding(),
+                            pool.optical_depth.as_entire_binding(),
+                            casters.as_entire_binding(),
+                            pools.0[&caster_pool].own_depth.as_entire_binding(),
+                            work.binding(),
+                        )),
+                    )
+                })
+            })
+            .collect();
         let gather = Batch::new(&device, &w.gather, |work| {
             bind(
                 &pipelines.gather,
@@ -223,11 +260,67 @@ pub(crate) fn prepare_illumination_bind_groups(
             n,
             m,
             shade,
+            cast,
             gather,
             scatter,
         });
     }
     commands.insert_resource(IlluminationBatches(batches));
+}
+
+/// The cast work of one receivers' pool whose casters lie in one pool: the light volumes to
+/// rebuild, and their casters.
+#[derive(Default)]
+struct CastWork {
+    items: Vec<CastItem>,
+    casters: Vec<Caster>,
+}
+
+/// Adds the cast of light slot `light` of `receiver` (its cloud and volumes) by `casters` (render
+/// entities, found in `placed`) to `work`, one item per pool the casters lie in: the first
+/// (in pool order, the order the dispatches run) rebuilds the volume from its own optical
+/// depth, the others add to it. Without casters, one item in the receiver's own pool resets
+/// the volume to its own optical depth (its casters have gone).
+fn add_casts(
+    work: &mut HashMap<PoolId, CastWork>,
+    (receiver, volumes): (&ExtractedCloud, &CloudVolumes),
+    light: u32,
+    casters: &[Entity],
+    placed: &HashMap<Entity, (&ExtractedCloud, &CloudVolumes)>,
+    pools: &VolumePools,
+) {
+    let mut by_pool: HashMap<PoolId, Vec<Caster>> = HashMap::default();
+    for (cloud, v) in casters.iter().filter_map(|e| placed.get(e)) {
+        let Some(params) = v.lights.get(light as usize) else {
+            continue;
+        };
+        let first = pools.pool(&v.slot).optical_depth(v.slot.index).offset / 4;
+        by_pool.entry(v.slot.pool).or_default().push(Caster::new(
+            params,
+            v.params.grid_centre,
+            &cloud.world_from_local,
+            &receiver.world_from_local,
+            first as u32 + params.offset,
+            v.params.light_n,
+        ));
+    }
+    if by_pool.is_empty() {
+        by_pool.insert(volumes.slot.pool, Vec::new());
+    }
+    let mut by_pool: Vec<_> = by_pool.into_iter().collect();
+    by_pool.sort_by_key(|(pool, _)| *pool);
+    for (i, (pool, casters)) in by_pool.into_iter().enumerate() {
+        let w = work.entry(pool).or_default();
+        w.items.push(CastItem {
+            slot: volumes.slot.index,
+            light,
+            first_caster: w.casters.len() as u32,
+            casters: casters.len() as u32,
+            accumulate: (i > 0) as u32,
+            ..default()
+        });
+        w.casters.extend(casters);
+    }
 }
 
 /// The bind groups of `iterations` of scattering for the slots of `work`, in `pool` (the
@@ -374,8 +467,13 @@ pub(crate) fn illuminate_clouds(
 
     // Shade (§2): one column per invocation, marching slice by slice away from the light (or, with
     // `ShadingMethod::BruteForce`, one voxel per invocation marching all the way to the light).
-    // Every (cloud, light) of a pool in one dispatch.
-    if batches.0.iter().any(|b| b.shade.is_some()) {
+    // Every (cloud, light) of a pool in one dispatch. Then the casts, in the same stage: their
+    // dispatches count as shade's, their runs do not (a run is a light shaded).
+    if batches
+        .0
+        .iter()
+        .any(|b| b.shade.is_some() || !b.cast.is_empty())
+    {
         record_stage(
             &mut ctx,
             recorder.as_deref(),
@@ -395,6 +493,16 @@ pub(crate) fn illuminate_clouds(
                         }
                     }
                     runs += batch.work.items;
+                }
+                // Other clouds' shadows (§2), once every cloud's own optical depth is shaded.
+                pass.set_pipeline(ready.cast);
+                for b in &batches.0 {
+                    for batch in &b.cast {
+                        for (offset, items) in batch.work.chunks() {
+                            pass.set_bind_group(0, &batch.group, &[offset]);
+                            dispatch_linear(pass, b.m.pow(3), items);
+                        }
+                    }
                 }
                 runs
             },

@@ -6,6 +6,7 @@
 //! | `particles.rs` | the `Particles` asset on the GPU |
 //! | `volumes.rs` | per-cloud GPU volumes, sized and filled with uniforms in a prepare system |
 //! | `pools.rs` | the volumes of every cloud of one shape packed into shared buffers, one slot per cloud |
+//! | `cast.rs` | who casts a shadow on whom: each cloud's light volumes take the other clouds' optical depth |
 //! | `plan.rs` | which stages rerun this frame: cache keys per stage, a pure planning function |
 //! | `pipelines.rs` | compute pipelines of the illumination passes |
 //! | `illumination.rs` | voxelize, then shade, gather, scatter batched per pool (the `RenderGraph` schedule) |
@@ -19,6 +20,7 @@
 //! | `shaders.rs` | the WGSL beside each stage (`*.wgsl`), embedded |
 
 pub mod budget;
+pub mod cast;
 pub mod cloud_target;
 pub mod draw;
 pub mod extract;

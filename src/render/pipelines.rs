@@ -106,6 +106,8 @@ pub struct IlluminationPipelines {
     pub shade: ComputeStage,
     /// `shade.wgsl`, `shade_brute_force` (benchmarks).
     pub shade_brute_force: ComputeStage,
+    /// `cast.wgsl`, `cast_shadows`: other clouds' shadows added to the light volumes.
+    pub cast: ComputeStage,
     /// `gather.wgsl`, `gather`.
     pub gather: ComputeStage,
     /// `scatter.wgsl`, `sweep` (the discrete-ordinates stencil).
@@ -136,6 +138,8 @@ pub struct ReadyPipelines<'a> {
     pub voxelize: &'a ComputePipeline,
     /// Voxelize's level upsampling.
     pub upsample: &'a ComputePipeline,
+    /// Cast.
+    pub cast: &'a ComputePipeline,
     /// Gather.
     pub gather: &'a ComputePipeline,
     /// Sweep.
@@ -159,6 +163,7 @@ impl IlluminationPipelines {
             kernel_sums: self.kernel_sums.get(cache)?,
             voxelize: self.voxelize.get(cache)?,
             upsample: self.upsample.get(cache)?,
+            cast: self.cast.get(cache)?,
             gather: self.gather.get(cache)?,
             sweep: self.sweep.get(cache)?,
             scatter_paper: self.scatter_paper.get(cache)?,
@@ -233,7 +238,14 @@ pub(crate) fn init_illumination_pipelines(
         "particle_clouds_shade_layout",
         &BindGroupLayoutEntries::sequential(
             ShaderStages::COMPUTE,
-            (read(), read(), read(), write(), work()),
+            (read(), read(), read(), write(), write(), work()),
+        ),
+    );
+    let cast = BindGroupLayoutDescriptor::new(
+        "particle_clouds_cast_layout",
+        &BindGroupLayoutEntries::sequential(
+            ShaderStages::COMPUTE,
+            (read(), read(), read(), write(), read(), read(), work()),
         ),
     );
     let gather = BindGroupLayoutDescriptor::new(
@@ -276,6 +288,7 @@ pub(crate) fn init_illumination_pipelines(
         upsample: stage(&shaders.voxelize, "upsample", &voxelize),
         shade: stage(&shaders.shade, "shade", &shade),
         shade_brute_force: stage(&shaders.shade, "shade_brute_force", &shade),
+        cast: stage(&shaders.cast, "cast_shadows", &cast),
         gather: stage(&shaders.gather, "gather", &gather),
         sweep: stage(&shaders.scatter, "sweep", &scatter),
         scatter_paper: stage(&shaders.scatter, "scatter_paper", &scatter),

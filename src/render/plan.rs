@@ -20,7 +20,11 @@ pub struct StageKeys {
     pub density: u64,
     /// Shade, per light slot: the density, the light's local direction and the extinction.
     pub lights: Vec<u64>,
-    /// Gather: every light's shaded volume and irradiance. [`StageKeys::UNLIT`] when neither a
+    /// Cast, per light slot: the light's own volume (its shade key) and the volumes of the clouds
+    /// that cast their shadow on this one along it, with where they lie relative to it; the shade
+    /// key itself when no cloud does (docs/illumination.md §2).
+    pub casts: Vec<u64>,
+    /// Gather: every light's shadowed volume and irradiance. [`StageKeys::UNLIT`] when neither a
     /// light nor the sky reaches the cloud.
     pub gather: u64,
     /// Scatter: the gathered source, the sky, the medium and the scattering knobs.
@@ -36,11 +40,13 @@ impl StageKeys {
     pub const UNLIT: u64 = 1;
 
     /// This frame's keys of a cloud with the uniform `params`, its lights' uniforms `lights` (in
-    /// slot order), the sky's radiance `sky`, its particles' upload `generation` and its
-    /// `settings`.
+    /// slot order), the key of what other clouds cast on it along each light (`casters[i]`: 0, or
+    /// missing, when none does; [`cast`](super::cast)), the sky's radiance `sky`, its particles'
+    /// upload `generation` and its `settings`.
     pub fn new(
         params: &CloudParams,
         lights: &[LightParams],
+        casters: &[u64],
         sky: Vec3,
         generation: u64,
         settings: &CloudQualitySettings,
@@ -63,7 +69,15 @@ impl StageKeys {
             ))
         };
         let keys: Vec<u64> = lights.iter().map(shade).collect();
-        let gather_inputs: Vec<_> = keys
+        let casts: Vec<u64> = keys
+            .iter()
+            .enumerate()
+            .map(|(i, &own)| match casters.get(i).copied().unwrap_or(0) {
+                0 => own,
+                cast => key_of((own, cast)),
+            })
+            .collect();
+        let gather_inputs: Vec<_> = casts
             .iter()
             .zip(lights)
             .map(|(key, light)| (*key, bits(light.irradiance)))
@@ -81,6 +95,7 @@ impl StageKeys {
         Self {
             density,
             lights: keys,
+            casts,
             gather,
             scatter: key_of((gather, medium, bits(sky))),
             medium,
@@ -95,6 +110,9 @@ pub struct WorkPlan {
     pub voxelize: bool,
     /// Light slots to shade.
     pub shade: Vec<usize>,
+    /// Light slots whose volume is rebuilt from its own optical depth and what other clouds cast
+    /// on it: those whose casters changed, and every shaded one that has casters.
+    pub cast: Vec<usize>,
     /// Gather every light into the scattering source `S_0`.
     pub gather: bool,
     /// Restart the multiple scattering from `S_0`: this many iterations, then the closure.
@@ -139,11 +157,19 @@ pub fn plan(cached: &StageKeys, now: &StageKeys, settings: &CloudQualitySettings
         settings.scatter_iterations
     };
     let changed = (now.scatter != cached.scatter).then_some(iterations);
+    let shade: Vec<usize> = (0..now.lights.len())
+        .filter(|&i| cached.lights.get(i) != Some(&now.lights[i]))
+        .collect();
+    // Shade writes a light's own optical depth into the volume gather reads too: only a volume
+    // with casters, or one whose casters changed without a re-shade, needs the cast.
+    let cast = (0..now.casts.len())
+        .filter(|&i| cached.casts.get(i) != Some(&now.casts[i]))
+        .filter(|&i| now.casts[i] != now.lights[i] || !shade.contains(&i))
+        .collect();
     WorkPlan {
         voxelize: now.density != cached.density,
-        shade: (0..now.lights.len())
-            .filter(|&i| cached.lights.get(i) != Some(&now.lights[i]))
-            .collect(),
+        shade,
+        cast,
         gather: now.gather != cached.gather,
         scatter: changed,
         stencil: if changed.is_some() {
@@ -171,6 +197,9 @@ pub struct CloudIllumination {
     pub ready: bool,
     /// Frames its pending work has been put off by the re-light budget.
     pub waited: u32,
+    /// Per light slot, the clouds (render entities) that cast their shadow on this one this
+    /// frame, for the cast pass.
+    pub casters: Vec<Vec<Entity>>,
 }
 
 impl CloudIllumination {
@@ -230,7 +259,7 @@ mod tests {
     }
 
     fn keys(lights: &[LightParams], generation: u64, settings: &CloudQualitySettings) -> StageKeys {
-        StageKeys::new(&params(), lights, Vec3::ZERO, generation, settings)
+        StageKeys::new(&params(), lights, &[], Vec3::ZERO, generation, settings)
     }
 
     #[test]
@@ -244,6 +273,7 @@ mod tests {
             WorkPlan {
                 voxelize: true,
                 shade: vec![0, 1],
+                cast: vec![],
                 gather: true,
                 scatter: Some(settings.scatter_iterations),
                 stencil: settings.scatter_stencil,
@@ -318,7 +348,7 @@ mod tests {
                 k_local: 20.0,
                 ..params()
             };
-            StageKeys::new(&params, &[light(w, 1.0, 0)], Vec3::ZERO, 1, &settings)
+            StageKeys::new(&params, &[light(w, 1.0, 0)], &[], Vec3::ZERO, 1, &settings)
         };
         state.update(thicker(Vec3::Y), &settings);
         assert_eq!((state.plan.scatter, state.plan.warm), (Some(32), false));
@@ -331,6 +361,38 @@ mod tests {
         state.update(keys(&[light(Vec3::X, 1.0, 0)], 1, &cold), &cold);
         state.update(keys(&[light(Vec3::Y, 1.0, 0)], 1, &cold), &cold);
         assert_eq!((state.plan.scatter, state.plan.warm), (Some(32), false));
+    }
+
+    #[test]
+    fn another_clouds_shadow_recasts_without_reshading() {
+        let settings = CloudQualitySettings::default();
+        let two = [light(Vec3::X, 1.0, 0), light(Vec3::Y, 2.0, 1)];
+        let cast = |casts: &[u64]| StageKeys::new(&params(), &two, casts, Vec3::ZERO, 1, &settings);
+        let mut state = CloudIllumination::default();
+        // The first frame: both shaded; light 1 has casters, so it is cast too.
+        state.update(cast(&[0, 7]), &settings);
+        assert_eq!(
+            (state.plan.shade.clone(), state.plan.cast.clone()),
+            (vec![0, 1], vec![1])
+        );
+        state.update(cast(&[0, 7]), &settings);
+        assert!(state.plan.is_empty());
+        // A caster moved: light 1 is cast again (not shaded), then gather and scatter.
+        state.update(cast(&[0, 8]), &settings);
+        let p = state.plan.clone();
+        assert_eq!(
+            (p.voxelize, p.shade, p.cast, p.gather),
+            (false, vec![], vec![1], true)
+        );
+        assert!(p.scatter.is_some());
+        // Its casters gone: cast once more, to its own optical depth.
+        state.update(cast(&[0, 0]), &settings);
+        assert_eq!(
+            (state.plan.shade.clone(), state.plan.cast.clone()),
+            (vec![], vec![1])
+        );
+        // No caster: the keys are those of a cloud alone.
+        assert_eq!(cast(&[]), cast(&[0, 0]));
     }
 
     #[test]

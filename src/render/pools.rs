@@ -190,8 +190,11 @@ pub struct VolumePool {
     pub lights: Buffer,
     /// f32 fine density levels and scattering-grid density per slot.
     pub densities: Buffer,
-    /// f32 optical depth of every light volume per slot.
+    /// f32 optical depth of every light volume per slot: its own and other clouds' shadows
+    /// (gather and the billboards read it).
     pub optical_depth: Buffer,
+    /// The same, the cloud's own optical depth only (other clouds' casts read it; same layout).
+    pub own_depth: Buffer,
     /// vec4 multiple-scattering source `S_0` per slot.
     pub source: Buffer,
     /// vec4 ping-pong scattering orders per slot.
@@ -216,6 +219,7 @@ impl VolumePool {
             lights: storage(device, "particle_clouds_pool_lights", b.lights * c),
             densities: storage(device, "particle_clouds_densities", b.densities * c),
             optical_depth: storage(device, "particle_clouds_optical_depth", b.optical_depth * c),
+            own_depth: storage(device, "particle_clouds_own_depth", b.optical_depth * c),
             source: storage(device, "particle_clouds_source", b.volume * c),
             orders: [
                 storage(device, "particle_clouds_order_a", b.volume * c),
@@ -226,12 +230,13 @@ impl VolumePool {
         }
     }
 
-    fn buffers(&self) -> [&Buffer; 9] {
+    fn buffers(&self) -> [&Buffer; 10] {
         [
             &self.slots,
             &self.lights,
             &self.densities,
             &self.optical_depth,
+            &self.own_depth,
             &self.source,
             &self.orders[0],
             &self.orders[1],

@@ -2,15 +2,19 @@
 // incrementally slice by slice (the paper's Algorithm 4; docs/illumination.md §2). One invocation
 // per column along the light; each slice is the previous one plus this step's optical depth.
 // Every (cloud, light) of a volume pool in one dispatch: z workgroup i shades `work[i]`.
-#import bevy_particle_clouds::types::{LightParams, Slot, voxel_index, flat_invocation}
+// The cloud's own optical depth goes to `own_depth`, which other clouds' casts read, and to
+// `optical_depth`, which gather and the billboards read (cast.wgsl adds other clouds' shadows).
+#import bevy_particle_clouds::types::{LightParams, Slot, voxel_index, flat_invocation, light_voxel_centre}
 #import bevy_particle_clouds::density::density_at
 
 @group(0) @binding(0) var<storage, read> slots: array<Slot>;
 @group(0) @binding(1) var<storage, read> lights: array<LightParams>;
 // Every light volume of every slot; a light's starts at slot.optical_depth + light.offset.
 @group(0) @binding(3) var<storage, read_write> optical_depth: array<f32>;
+// The same, never shadowed by other clouds.
+@group(0) @binding(4) var<storage, read_write> own_depth: array<f32>;
 // (slot, light) per z workgroup.
-@group(0) @binding(4) var<storage, read> work: array<vec2<u32>>;
+@group(0) @binding(5) var<storage, read> work: array<vec2<u32>>;
 
 var<private> slot: Slot;
 var<private> light: LightParams;
@@ -21,19 +25,15 @@ fn begin(item: u32) {
     light = lights[slot.lights + w.y];
 }
 
-// Centre of light-volume voxel (a, b, c) in cloud-local space.
-fn light_voxel_centre(v: vec3<u32>) -> vec3<f32> {
-    let h = vec3(light.h_u, light.h_v, light.h_w);
-    let xi = -light.half_extents + (vec3<f32>(v) + 0.5) * h;
-    return slot.fine.grid_centre + xi.x * light.u + xi.y * light.v + xi.z * light.w;
-}
-
 fn sigma_at(v: vec3<u32>) -> f32 {
-    return light.sigma_scale * density_at(slot.fine, slot.fine_density, light_voxel_centre(v));
+    let p = light_voxel_centre(slot.fine, light, v);
+    return light.sigma_scale * density_at(slot.fine, slot.fine_density, p);
 }
 
 fn store(v: vec3<u32>, tau: f32) {
-    optical_depth[slot.optical_depth + light.offset + voxel_index(v, slot.fine.n)] = tau;
+    let i = slot.optical_depth + light.offset + voxel_index(v, slot.fine.n);
+    optical_depth[i] = tau;
+    own_depth[i] = tau;
 }
 
 @compute @workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)

@@ -20,6 +20,8 @@ pub struct CloudShaders {
     pub density: Handle<Shader>,
     /// `shade.wgsl`.
     pub shade: Handle<Shader>,
+    /// `cast.wgsl`.
+    pub cast: Handle<Shader>,
     /// `gather.wgsl`.
     pub gather: Handle<Shader>,
     /// `scatter.wgsl`.
@@ -43,6 +45,7 @@ impl CloudShaders {
         embedded_asset!(app, "voxelize.wgsl");
         embedded_asset!(app, "density.wgsl");
         embedded_asset!(app, "shade.wgsl");
+        embedded_asset!(app, "cast.wgsl");
         embedded_asset!(app, "gather.wgsl");
         embedded_asset!(app, "scatter.wgsl");
         embedded_asset!(app, "closure.wgsl");
@@ -55,6 +58,7 @@ impl CloudShaders {
             voxelize: load_embedded_asset!(&*app, "voxelize.wgsl"),
             density: load_embedded_asset!(&*app, "density.wgsl"),
             shade: load_embedded_asset!(&*app, "shade.wgsl"),
+            cast: load_embedded_asset!(&*app, "cast.wgsl"),
             gather: load_embedded_asset!(&*app, "gather.wgsl"),
             scatter: load_embedded_asset!(&*app, "scatter.wgsl"),
             closure: load_embedded_asset!(&*app, "closure.wgsl"),

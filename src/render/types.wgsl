@@ -166,6 +166,13 @@ fn light_coords(cloud: CloudParams, light: LightParams, p: vec3<f32>) -> vec3<f3
     return (xi + light.half_extents) / vec3(light.h_u, light.h_v, light.h_w) - 0.5;
 }
 
+// Centre of voxel `v` of a light's box (centred on the fine grid's cube) in cloud-local space.
+fn light_voxel_centre(fine: CloudParams, light: LightParams, v: vec3<u32>) -> vec3<f32> {
+    let h = vec3(light.h_u, light.h_v, light.h_w);
+    let xi = -light.half_extents + (vec3<f32>(v) + 0.5) * h;
+    return fine.grid_centre + xi.x * light.u + xi.y * light.v + xi.z * light.w;
+}
+
 // Linear index of corner `corner` of a clamped lookup in an n^3 volume.
 fn clamped_corner(t: Trilinear, corner: u32, n: u32) -> u32 {
     let o = vec3<u32>(corner & 1u, (corner >> 1u) & 1u, corner >> 2u);

@@ -4,7 +4,7 @@
 //! directions change) and scale only changes the extinction.
 
 use bevy::{
-    platform::collections::HashSet,
+    platform::collections::{HashMap, HashSet},
     prelude::*,
     render::{
         render_asset::RenderAssets,
@@ -15,6 +15,7 @@ use bevy::{
 
 use super::{
     budget::{RelightCandidate, relit_this_frame},
+    cast::{CastingCloud, CloudSphere, casters_of, casts_on},
     extract::{ExtractedCloud, ExtractedCloudLights},
     gpu::{dynamic_uniform, storage, storage_bytes, uniform, uniform_bytes},
     particles::{CloudBounds, GpuParticles},
@@ -191,6 +192,9 @@ pub struct CloudVolumes {
     pub density_levels: Buffer,
     /// One f32 per particle: its kernel's sum over the fine voxel centres in its support (voxelize).
     pub kernel_sums: Buffer,
+    /// Its lights' uniforms as its light volumes were last shaded (the cast reads them when
+    /// this cloud shadows another).
+    pub lights: Vec<LightParams>,
     /// Its slot in the pool of its shape.
     pub slot: PoolSlot,
 }
@@ -235,6 +239,7 @@ impl CloudVolumes {
                 "particle_clouds_kernel_sums",
                 particle_count as u64 * 4,
             ),
+            lights: Vec::new(),
             slot,
         })
     }
@@ -257,7 +262,10 @@ impl CloudVolumes {
 /// workgroup along x, where at most 65535 fit.
 pub const MAX_PARTICLES: u32 = 65535 * 64;
 
-/// Decides each visible cloud's work for this frame and writes the uniforms it needs.
+/// Decides the work of each cloud that is seen or shadows one that is, and writes the uniforms it
+/// needs. Planned in two steps, since a cloud's light volumes take the shadows of others
+/// ([`cast`](super::cast)): first every cloud's own stages (and which of them the re-light budget
+/// defers), then what each is cast, from the light volumes the others will hold.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn prepare_cloud_volumes(
     mut commands: Commands,
@@ -270,29 +278,37 @@ pub(crate) fn prepare_cloud_volumes(
     queue: Res<RenderQueue>,
 ) {
     let budget = budget.map_or(0, |b| b.0);
-    let deferred = deferred_by_budget(&clouds, &lights, &particles, budget);
+    let frames = cloud_frames(&clouds, &lights, &particles);
+    let deferred = deferred_by_budget(&clouds, &frames, &lights, &particles, budget);
+    // What each cloud's own light volumes will hold after this frame: a deferred cloud keeps
+    // what it has.
+    let casting = casting_clouds(&frames, |entity, frame| {
+        let held = clouds.get(entity).ok().and_then(|(.., state)| state);
+        match held {
+            Some(state) if deferred.contains(&entity) => state.keys.lights.clone(),
+            _ => frame.keys.lights.clone(),
+        }
+    });
+    let directions: Vec<Vec3> = lights.lights.iter().map(|l| l.direction).collect();
     let max_binding = device.limits().max_storage_buffer_binding_size;
     pools.release_empty();
     for (entity, cloud, volumes, state) in &mut clouds {
         let Some(gpu) = particles.get(cloud.particles) else {
             continue;
         };
-        let Some(bounds) = gpu.bounds else {
+        if gpu.bounds.is_none() {
             commands
                 .entity(entity)
                 .remove::<(CloudVolumes, CloudIllumination)>();
             continue;
-        };
-        let held = volumes.as_deref().zip(state.as_deref());
-        let cloud = &at_resolution(cloud, held_resolution(cloud, held, gpu, bounds, &lights));
-        let shape = VolumeShape {
-            n: cloud.settings.volume_resolution,
-            m: cloud.settings.light_resolution(),
-            lights: lights.lights.len() as u32,
-        };
-        if !cloud.visible || cloud.extinction <= 0.0 {
-            continue; // cached volumes stay; no work for clouds nobody sees or that are transparent
         }
+        // No work for clouds nobody sees nor shadows one that is seen, or that are transparent:
+        // their cached volumes stay.
+        let Some(frame) = frames.get(&entity).filter(|f| f.needed) else {
+            continue;
+        };
+        let (cloud, bounds, shape) = (&frame.cloud, frame.bounds, frame.shape);
+        let casts = casters_of(&casting[&entity], casting.values(), &directions);
         match (volumes, state) {
             (Some(_), Some(mut state)) if deferred.contains(&entity) => {
                 // Its turn comes later: it draws with what its volumes hold.
@@ -301,9 +317,14 @@ pub(crate) fn prepare_cloud_volumes(
             }
             (Some(mut v), Some(mut state)) if v.fits(shape, gpu.count) => {
                 let pool = pools.pool(&v.slot);
-                plan_cloud(
-                    &mut v, &mut state, cloud, gpu, bounds, &lights, pool, &queue,
-                );
+                let frame = PlannedFrame {
+                    cloud,
+                    gpu,
+                    bounds,
+                    lights: &lights,
+                    casts,
+                };
+                plan_cloud(&mut v, &mut state, frame, pool, &queue);
                 state.waited = 0;
             }
             _ => {
@@ -327,9 +348,14 @@ pub(crate) fn prepare_cloud_volumes(
                 };
                 let mut state = CloudIllumination::default();
                 let pool = pools.pool(&v.slot);
-                plan_cloud(
-                    &mut v, &mut state, cloud, gpu, bounds, &lights, pool, &queue,
-                );
+                let frame = PlannedFrame {
+                    cloud,
+                    gpu,
+                    bounds,
+                    lights: &lights,
+                    casts,
+                };
+                plan_cloud(&mut v, &mut state, frame, pool, &queue);
                 commands.entity(entity).insert((v, state));
             }
         }
@@ -344,27 +370,33 @@ type PreparedCloud = (
     Option<&'static mut CloudIllumination>,
 );
 
-/// The visible clouds whose pending illumination work waits for a later frame under the
-/// re-light `budget` (none when it is 0): every cloud whose stage keys changed is a candidate,
-/// and [`relit_this_frame`] picks those that go now.
-fn deferred_by_budget(
+/// A cloud with particles and extinction, as this frame illuminates it.
+struct CloudFrame {
+    /// The cloud at the resolution it is illuminated at this frame (its level of detail's, or
+    /// the one its volumes hold).
+    cloud: ExtractedCloud,
+    bounds: CloudBounds,
+    shape: VolumeShape,
+    /// Its bounding sphere in the world.
+    sphere: CloudSphere,
+    /// Seen in a view, or casting its shadow on a cloud that is: it must be illuminated.
+    needed: bool,
+    /// This frame's stage keys, without what other clouds cast on it.
+    keys: StageKeys,
+}
+
+/// Every cloud that has particles and extinction, as this frame illuminates it.
+fn cloud_frames(
     clouds: &Query<PreparedCloud>,
     lights: &ExtractedCloudLights,
     particles: &RenderAssets<GpuParticles>,
-    budget: u32,
-) -> HashSet<Entity> {
-    if budget == 0 {
-        return HashSet::default();
-    }
-    let mut candidates = Vec::new();
+) -> HashMap<Entity, CloudFrame> {
+    let mut frames: HashMap<Entity, CloudFrame> = HashMap::default();
     for (entity, cloud, volumes, state) in clouds {
         let Some(gpu) = particles.get(cloud.particles) else {
             continue;
         };
-        let Some(bounds) = gpu
-            .bounds
-            .filter(|_| cloud.visible && cloud.extinction > 0.0)
-        else {
+        let Some(bounds) = gpu.bounds.filter(|_| cloud.extinction > 0.0) else {
             continue;
         };
         let held = volumes.zip(state);
@@ -374,17 +406,85 @@ fn deferred_by_budget(
             m: cloud.settings.light_resolution(),
             lights: lights.lights.len() as u32,
         };
+        let frame = CloudFrame {
+            sphere: CloudSphere::new(bounds, &cloud.world_from_local, cloud.scale()),
+            needed: cloud.visible,
+            keys: frame_keys(&cloud, gpu, bounds, lights, &[]),
+            cloud,
+            bounds,
+            shape,
+        };
+        frames.insert(entity, frame);
+    }
+    // A cloud nobody sees is still illuminated when it shadows one that is seen.
+    let seen: Vec<CloudSphere> = frames
+        .values()
+        .filter(|f| f.needed)
+        .map(|f| f.sphere)
+        .collect();
+    for frame in frames.values_mut().filter(|f| !f.needed) {
+        frame.needed = lights.lights.iter().any(|light| {
+            let d = light.direction;
+            seen.iter()
+                .any(|&receiver| casts_on(d, receiver, frame.sphere))
+        });
+    }
+    frames
+}
+
+/// The clouds of `frames` that must be illuminated, as the cast sees them, each with the shade
+/// keys `shade_keys` gives it.
+fn casting_clouds(
+    frames: &HashMap<Entity, CloudFrame>,
+    shade_keys: impl Fn(Entity, &CloudFrame) -> Vec<u64>,
+) -> HashMap<Entity, CastingCloud> {
+    frames
+        .iter()
+        .filter(|(_, f)| f.needed)
+        .map(|(&entity, f)| {
+            let cloud = CastingCloud {
+                entity,
+                sphere: f.sphere,
+                world_from_local: f.cloud.world_from_local,
+                shade_keys: shade_keys(entity, f),
+            };
+            (entity, cloud)
+        })
+        .collect()
+}
+
+/// The needed clouds whose pending illumination work waits for a later frame under the
+/// re-light `budget` (none when it is 0): every cloud whose stage keys changed is a candidate,
+/// and [`relit_this_frame`] picks those that go now. What other clouds cast on a candidate is
+/// judged as if they were all re-lit.
+fn deferred_by_budget(
+    clouds: &Query<PreparedCloud>,
+    frames: &HashMap<Entity, CloudFrame>,
+    lights: &ExtractedCloudLights,
+    particles: &RenderAssets<GpuParticles>,
+    budget: u32,
+) -> HashSet<Entity> {
+    if budget == 0 {
+        return HashSet::default();
+    }
+    let casting = casting_clouds(frames, |_, f| f.keys.lights.clone());
+    let directions: Vec<Vec3> = lights.lights.iter().map(|l| l.direction).collect();
+    let mut candidates = Vec::new();
+    for (entity, cloud, volumes, state) in clouds {
+        let (Some(frame), Some(gpu)) = (frames.get(&entity), particles.get(cloud.particles)) else {
+            continue;
+        };
+        if !frame.needed {
+            continue;
+        }
         // A cloud whose level of detail changes (its volumes no longer fit) waits its turn like
         // any other; only one never illuminated cannot wait.
-        match held {
+        match volumes.zip(state) {
             Some((v, s)) if s.ready => {
-                let pending = !v.fits(shape, gpu.count)
-                    || !plan(
-                        &s.keys,
-                        &frame_keys(&cloud, gpu, bounds, lights),
-                        &cloud.settings,
-                    )
-                    .is_empty();
+                let (_, casts) = casters_of(&casting[&entity], casting.values(), &directions);
+                let keys = frame_keys(&frame.cloud, gpu, frame.bounds, lights, &casts);
+                let pending = !v.fits(frame.shape, gpu.count)
+                    || !plan(&s.keys, &keys, &frame.cloud.settings).is_empty();
                 if pending {
                     candidates.push(RelightCandidate {
                         entity,
@@ -405,18 +505,31 @@ fn deferred_by_budget(
     pending.difference(&relit).copied().collect()
 }
 
+/// What [`plan_cloud`] plans from: the cloud, its particles and grid, the lights, and per light
+/// slot the clouds casting on it with the key of what they cast ([`casters_of`]).
+struct PlannedFrame<'a> {
+    cloud: &'a ExtractedCloud,
+    gpu: &'a GpuParticles,
+    bounds: CloudBounds,
+    lights: &'a ExtractedCloudLights,
+    casts: (Vec<Vec<Entity>>, Vec<u64>),
+}
+
 /// Plans the cloud's stages and writes the uniforms they read: its own, and its slot's in `pool`.
-#[allow(clippy::too_many_arguments)]
 fn plan_cloud(
     volumes: &mut CloudVolumes,
     state: &mut CloudIllumination,
-    cloud: &ExtractedCloud,
-    gpu: &GpuParticles,
-    bounds: CloudBounds,
-    lights: &ExtractedCloudLights,
+    frame: PlannedFrame,
     pool: &VolumePool,
     queue: &RenderQueue,
 ) {
+    let PlannedFrame {
+        cloud,
+        gpu,
+        bounds,
+        lights,
+        casts: (casters, cast_keys),
+    } = frame;
     let params = cloud_params(cloud, gpu, bounds, lights);
     // Slot i shades the i-th light (none: the cloud only absorbs, and the plan zeroes its
     // multiple scattering once).
@@ -425,12 +538,14 @@ fn plan_cloud(
         StageKeys::new(
             &params,
             &light_params,
+            &cast_keys,
             lights.sky,
             gpu.generation,
             &cloud.settings,
         ),
         &cloud.settings,
     );
+    state.casters = casters;
     if state.plan.is_empty() {
         return;
     }
@@ -456,6 +571,7 @@ fn plan_cloud(
         let first = slot.lights as u64 * LightParams::min_size().get();
         queue.write_buffer(&pool.lights, first, &storage_bytes(&light_params));
     }
+    volumes.lights = light_params;
 }
 
 /// Every light's uniform for a cloud of uniform `params`, slot `i` shading the `i`-th light in
@@ -500,22 +616,25 @@ fn held_resolution(
     if n == wanted || !cloud.lod_enabled || !state.ready || !lights.any() {
         return wanted;
     }
-    let now = frame_keys(&at_resolution(cloud, n), gpu, bounds, lights);
+    let now = frame_keys(&at_resolution(cloud, n), gpu, bounds, lights, &[]);
     let relit = now.density != state.keys.density || now.lights != state.keys.lights;
     if relit { wanted } else { n }
 }
 
-/// This frame's stage keys of `cloud` (at its settings' resolution).
+/// This frame's stage keys of `cloud` (at its settings' resolution), other clouds casting on it
+/// what `casts` keys (per light slot; empty: none).
 fn frame_keys(
     cloud: &ExtractedCloud,
     gpu: &GpuParticles,
     bounds: CloudBounds,
     lights: &ExtractedCloudLights,
+    casts: &[u64],
 ) -> StageKeys {
     let params = cloud_params(cloud, gpu, bounds, lights);
     StageKeys::new(
         &params,
         &light_params(&params, cloud, lights),
+        casts,
         lights.sky,
         gpu.generation,
         &cloud.settings,

@@ -9,13 +9,14 @@ use bevy_particle_clouds::{CloudPass, reference::metrics::max_relative_differenc
 
 use crate::{common, plugin::small_cloud};
 
-/// A camera and one light looking at clouds along x.
+/// A camera and one light looking at clouds along x, the light across the row (so that no cloud
+/// shadows another: `shadows.rs` tests that).
 fn scene() -> App {
     let mut app = common::headless_app();
     let image = headless::float_target(&mut app, 64, 32);
     let eye = Transform::from_xyz(0.0, 0.0, 24.0).looking_at(Vec3::ZERO, Vec3::Y);
     headless::spawn_linear_camera(&mut app, image, eye, 40.0, Vec3::ZERO);
-    headless::spawn_light(&mut app, Vec3::new(-1.0, -1.0, -0.4), Vec3::ONE);
+    headless::spawn_light(&mut app, Vec3::new(0.0, -1.0, -0.4), Vec3::ONE);
     app
 }
 
@@ -111,8 +112,8 @@ fn a_cloud_lit_beside_others_has_the_volumes_it_has_alone() {
 
     let mut together = scene();
     let mut clouds = Vec::new();
-    for i in 0..4 {
-        clouds.push(spawn(&mut together, 3.0 * i as f32 - 6.0, 5 - i, 12));
+    for (i, x) in [-8.0, -4.0, 4.0, 8.0].into_iter().enumerate() {
+        clouds.push(spawn(&mut together, x, 5 - i as u32, 12));
     }
     let cloud = spawn(&mut together, 0.0, 2, 12);
     illuminate(&mut together, &mut FrameRecorder::default(), 5);

@@ -8,14 +8,15 @@ use bevy_particle_clouds::{CloudPass, Medium, Particle};
 
 use crate::common;
 
-/// Three small clouds side by side, a light, and the light's entity.
+/// Three small clouds side by side, a light across the row (no cloud shadows another), and the
+/// light's entity.
 fn three_clouds(budget: u32) -> (App, Entity) {
     let mut app = common::headless_app();
     app.insert_resource(CloudRelightBudget(budget));
     let image = headless::float_target(&mut app, 64, 32);
     let eye = Transform::from_xyz(0.0, 0.0, 14.0).looking_at(Vec3::ZERO, Vec3::Y);
     headless::spawn_linear_camera(&mut app, image, eye, 40.0, Vec3::ZERO);
-    let light = headless::spawn_light(&mut app, Vec3::new(-1.0, -1.0, -0.4), Vec3::ONE);
+    let light = headless::spawn_light(&mut app, Vec3::new(0.0, -1.0, -0.4), Vec3::ONE);
     for x in [-4.0, 0.0, 4.0] {
         let particles = (0..12)
             .map(|i| Particle {

@@ -20,7 +20,7 @@ use bevy_particle_clouds::{
     reference::{
         camera::PinholeCamera,
         composite::{BillboardCloud, BillboardCompositing, CloudPlacement, composite},
-        illumination::{LocalLight, illuminate_under_sky},
+        illumination::{PlacedCloud, illuminate_clouds_under_sky},
         metrics::relative_rmse,
     },
     render::gpu::StagePass,
@@ -180,7 +180,7 @@ pub(crate) fn spawn_clouds(setup: &Setup, clouds: &[SetupCloud]) -> (App, SceneT
             &mut app,
             c.particles.to_vec(),
             c.medium,
-            setup.settings,
+            c.settings.unwrap_or(setup.settings),
             c.transform,
         );
     }
@@ -194,12 +194,14 @@ pub(crate) fn spawn_clouds(setup: &Setup, clouds: &[SetupCloud]) -> (App, SceneT
     (app, target)
 }
 
-/// One cloud of a scene: its particles, medium and transform.
+/// One cloud of a scene: its particles, medium and transform, and its own quality settings
+/// (else the setup's).
 #[derive(Clone, Copy)]
 pub(crate) struct SetupCloud<'a> {
     pub(crate) particles: &'a [Particle],
     pub(crate) medium: Medium,
     pub(crate) transform: Transform,
+    pub(crate) settings: Option<CloudQualitySettings>,
 }
 
 impl Setup {
@@ -209,6 +211,7 @@ impl Setup {
             particles: &self.particles,
             medium: self.medium,
             transform: self.transform,
+            settings: None,
         }
     }
 }
@@ -221,26 +224,19 @@ pub(crate) fn reference(setup: &Setup) -> Vec<[f32; 4]> {
 /// The CPU reference image of these clouds' billboards with the setup's camera, lights and
 /// objects, composited in the order given.
 pub(crate) fn reference_of_clouds(setup: &Setup, clouds: &[SetupCloud]) -> Vec<[f32; 4]> {
-    let illuminations: Vec<_> = clouds
+    let placed: Vec<PlacedCloud> = clouds
         .iter()
-        .map(|cloud| {
-            let rotation = cloud.transform.rotation.as_dquat();
-            let lights: Vec<LocalLight> = setup
-                .lights
-                .iter()
-                .map(|l| LocalLight::from_world(l, rotation))
-                .collect();
-            let scale = cloud.transform.scale.x as f64;
-            illuminate_under_sky(
-                cloud.particles,
-                &cloud.medium,
-                scale,
-                &lights,
-                setup.sky.as_dvec3(),
-                &setup.settings,
-            )
-            .unwrap()
+        .map(|cloud| PlacedCloud {
+            particles: cloud.particles,
+            medium: cloud.medium,
+            placement: placement(&cloud.transform),
+            settings: cloud.settings.unwrap_or(setup.settings),
         })
+        .collect();
+    let sky = setup.sky.as_dvec3();
+    let illuminations: Vec<_> = illuminate_clouds_under_sky(&placed, &setup.lights, sky)
+        .into_iter()
+        .map(|i| i.expect("a cloud with density"))
         .collect();
     let scattered: Vec<_> = illuminations
         .iter()
@@ -252,11 +248,7 @@ pub(crate) fn reference_of_clouds(setup: &Setup, clouds: &[SetupCloud]) -> Vec<[
         .zip(&scattered)
         .map(|((cloud, illumination), scattered)| BillboardCloud {
             particles: cloud.particles,
-            world_from_local: CloudPlacement {
-                translation: cloud.transform.translation.as_dvec3(),
-                rotation: cloud.transform.rotation.as_dquat(),
-                scale: cloud.transform.scale.x as f64,
-            },
+            world_from_local: placement(&cloud.transform),
             medium: cloud.medium,
             scattered,
             segments: setup.settings.chord_segments,
@@ -279,6 +271,15 @@ pub(crate) fn reference_of_clouds(setup: &Setup, clouds: &[SetupCloud]) -> Vec<[
         &billboards,
         1.0,
     )
+}
+
+/// A cloud's `Transform` (uniform scale) as the CPU reference places clouds.
+fn placement(transform: &Transform) -> CloudPlacement {
+    CloudPlacement {
+        translation: transform.translation.as_dvec3(),
+        rotation: transform.rotation.as_dquat(),
+        scale: transform.scale.x as f64,
+    }
 }
 
 pub(crate) fn cloud_setup(seed: u64, camera: Transform) -> Setup {

@@ -12,6 +12,7 @@ mod lod;
 mod overlap;
 mod plugin;
 mod shading_method;
+mod shadows;
 mod sky;
 mod stress;
 mod warm_start;

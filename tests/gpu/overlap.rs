@@ -34,6 +34,7 @@ fn clouds(particles: &[Vec<Particle>; 2]) -> [SetupCloud<'_>; 2] {
                 ..Default::default()
             },
             transform: Transform::from_xyz(-0.25, 0.0, -0.35),
+            settings: None,
         },
         SetupCloud {
             particles: &particles[1],
@@ -44,6 +45,7 @@ fn clouds(particles: &[Vec<Particle>; 2]) -> [SetupCloud<'_>; 2] {
             },
             transform: Transform::from_xyz(0.25, 0.1, 0.35)
                 .with_rotation(Quat::from_rotation_y(0.7)),
+            settings: None,
         },
     ]
 }

@@ -423,7 +423,8 @@ fn render_layers_hide_clouds_from_cameras_on_other_layers() {
         Transform::from_xyz(0.0, 0.0, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
     );
     headless::spawn_light(&mut app, Vec3::NEG_Y, Vec3::ONE);
-    let hidden = small_cloud(&mut app, 0.9, Vec3::ZERO);
+    // Beside the seen cloud, not above it: a cloud that shadows a seen one is illuminated.
+    let hidden = small_cloud(&mut app, 0.9, Vec3::new(-2.5, 0.0, 0.0));
     app.world_mut()
         .entity_mut(hidden)
         .insert(RenderLayers::layer(1));

@@ -1,0 +1,252 @@
+//! Clouds shadow each other (docs/illumination.md §2, "Clouds shadow each other"). Optical depths
+//! add along a line, so the optical depth towards a light through every cloud is the sum of each
+//! cloud's own, each sampled on its own light box. Shade writes a cloud's own optical depth twice:
+//! into `own_depth`, which other clouds read, and into `optical_depth`, which gather and the
+//! billboards read. The cast pass then rebuilds `optical_depth` of a cloud that others shadow as
+//! its own plus, at each voxel centre, every caster's own volume looked up there.
+//!
+//! This file decides who casts on whom (a pure function of the clouds' bounding spheres, tested
+//! on the CPU), keys what a cloud is cast (so a still sky casts nothing twice), and holds the GPU
+//! types of `cast.wgsl`.
+
+use bevy::{math::Affine3A, prelude::*, render::render_resource::ShaderType};
+use bytemuck::{Pod, Zeroable};
+
+use super::{key_of, particles::CloudBounds, volumes::LightParams};
+
+/// A cloud's bounding sphere in the world: it holds the cloud's density cube, and so every light
+/// box of it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CloudSphere {
+    /// World centre, metres.
+    pub centre: Vec3,
+    /// World radius, metres.
+    pub radius: f32,
+}
+
+impl CloudSphere {
+    /// The sphere around the density cube `bounds` (cloud-local) of a cloud placed by
+    /// `world_from_local`, whose largest scale factor is `scale`.
+    pub fn new(bounds: CloudBounds, world_from_local: &Affine3A, scale: f32) -> Self {
+        Self {
+            centre: world_from_local.transform_point3(bounds.centre),
+            radius: 0.5 * 3f32.sqrt() * bounds.side * scale,
+        }
+    }
+}
+
+/// Whether `caster` may shadow some point of `receiver` under a light travelling along the unit
+/// direction `d`: their columns along the light overlap, and the caster does not lie wholly past
+/// the receiver. Conservative: a caster that passes holds nothing along a receiver's column or
+/// lies past it adds exactly 0 in the cast (`cast_depth` in `cast.wgsl`).
+pub fn casts_on(d: Vec3, receiver: CloudSphere, caster: CloudSphere) -> bool {
+    let offset = caster.centre - receiver.centre;
+    let along = offset.dot(d);
+    let across = (offset - along * d).length();
+    let reach = receiver.radius + caster.radius;
+    across < reach && along < reach
+}
+
+/// A cloud as the cast sees it: where it is and what its own light volumes hold.
+#[derive(Clone, Debug)]
+pub struct CastingCloud {
+    /// Its render entity.
+    pub entity: Entity,
+    /// Its bounding sphere.
+    pub sphere: CloudSphere,
+    /// World from cloud-local.
+    pub world_from_local: Affine3A,
+    /// The shade key of each of its light volumes ([`StageKeys::lights`](super::plan::StageKeys)).
+    pub shade_keys: Vec<u64>,
+}
+
+/// Per light slot, the clouds of `clouds` that cast their shadow on `receiver` under the light
+/// travelling along `directions[l]`, and the key of what they cast: their entities, their own
+/// volumes' keys and where they lie relative to the receiver (0 when none casts).
+pub fn casters_of<'a>(
+    receiver: &CastingCloud,
+    clouds: impl IntoIterator<Item = &'a CastingCloud> + Clone,
+    directions: &[Vec3],
+) -> (Vec<Vec<Entity>>, Vec<u64>) {
+    directions
+        .iter()
+        .enumerate()
+        .map(|(l, &d)| {
+            let mut casters: Vec<&CastingCloud> = clouds
+                .clone()
+                .into_iter()
+                .filter(|c| c.entity != receiver.entity && c.shade_keys.len() > l)
+                .filter(|c| casts_on(d, receiver.sphere, c.sphere))
+                .collect();
+            // The key must not depend on the order the clouds come in.
+            casters.sort_by_key(|c| c.entity);
+            if casters.is_empty() {
+                return (Vec::new(), 0);
+            }
+            let bits = |a: Affine3A| a.to_cols_array().map(f32::to_bits);
+            let placed: Vec<_> = casters
+                .iter()
+                .map(|c| {
+                    let relative = c.world_from_local.inverse() * receiver.world_from_local;
+                    (c.entity, c.shade_keys[l], bits(relative))
+                })
+                .collect();
+            (casters.iter().map(|c| c.entity).collect(), key_of(placed))
+        })
+        .unzip()
+}
+
+/// Mirror of `Caster` in `cast.wgsl`: one cloud casting its shadow on another along one light.
+#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
+pub struct Caster {
+    /// The caster's continuous light-box voxel coordinates (voxel `i`'s centre at `i`) of a
+    /// receiver-local point.
+    pub coords_from_receiver: Mat4,
+    /// First element of the caster's own light volume in its pool's `own_depth`.
+    pub first: u32,
+    /// Voxels per side of that volume.
+    pub n: u32,
+    /// Unused: pads the struct to 16 bytes.
+    pub _padding: UVec2,
+}
+
+impl Caster {
+    /// The caster of the light volume `light` (with `first` and `n` as above) of a cloud whose
+    /// density cube is centred on `grid_centre`, placed by `caster_world_from_local`, on a
+    /// receiver placed by `receiver_world_from_local`.
+    pub fn new(
+        light: &LightParams,
+        grid_centre: Vec3,
+        caster_world_from_local: &Affine3A,
+        receiver_world_from_local: &Affine3A,
+        first: u32,
+        n: u32,
+    ) -> Self {
+        // g = ((x - C) . axis + e) / h - 0.5 per axis of the light box (docs/illumination.md §2).
+        let h = Vec3::new(light.h_u, light.h_v, light.h_w);
+        let axes = [light.u, light.v, light.w];
+        let rows = Mat3::from_cols(axes[0] / h.x, axes[1] / h.y, axes[2] / h.z).transpose();
+        let offset = (light.half_extents - Vec3::from(axes.map(|a| a.dot(grid_centre)))) / h - 0.5;
+        let coords = Affine3A::from_mat3_translation(rows, offset);
+        let relative = caster_world_from_local.inverse() * *receiver_world_from_local;
+        Self {
+            coords_from_receiver: Mat4::from(coords * relative),
+            first,
+            n,
+            _padding: UVec2::ZERO,
+        }
+    }
+}
+
+/// A work item of the cast pass (`CastItem` in `cast.wgsl`): one light volume of one slot, and
+/// its casters that lie in the pool the dispatch binds.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
+#[repr(C)]
+pub struct CastItem {
+    /// The receiver's slot in its pool.
+    pub slot: u32,
+    /// The light slot.
+    pub light: u32,
+    /// Its first caster in the dispatch's caster array.
+    pub first_caster: u32,
+    /// Its casters in that array.
+    pub casters: u32,
+    /// 0: the volume becomes its own optical depth plus these casters' (the first dispatch that
+    /// casts on it this frame); 1: these casters are added to it (a later one, for casters in
+    /// another pool).
+    pub accumulate: u32,
+    /// Unused: pads the item to 32 bytes (work lists are bound in 256-byte chunks).
+    pub _padding: [u32; 3],
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sphere(x: f32, y: f32, radius: f32) -> CloudSphere {
+        CloudSphere {
+            centre: Vec3::new(x, y, 0.0),
+            radius,
+        }
+    }
+
+    #[test]
+    fn a_cloud_casts_on_those_beyond_it_along_the_light() {
+        let down = Vec3::NEG_Y;
+        let receiver = sphere(0.0, 0.0, 1.0);
+        // Above it, under a sun overhead: it casts; below it, or beside it, not.
+        assert!(casts_on(down, receiver, sphere(0.3, 5.0, 1.0)));
+        assert!(!casts_on(down, receiver, sphere(0.3, -5.0, 1.0)));
+        assert!(!casts_on(down, receiver, sphere(2.5, 5.0, 1.0)));
+        // Interpenetrating clouds cast on each other both ways.
+        let other = sphere(0.5, 0.5, 1.0);
+        assert!(casts_on(down, receiver, other) && casts_on(down, other, receiver));
+        // A low sun from +x: the cloud at +x casts.
+        let low = Vec3::new(-1.0, -0.1, 0.0).normalize();
+        assert!(casts_on(low, receiver, sphere(6.0, 0.5, 1.0)));
+        assert!(!casts_on(low, receiver, sphere(-6.0, 0.5, 1.0)));
+    }
+
+    fn cloud(index: u32, x: f32) -> CastingCloud {
+        CastingCloud {
+            entity: Entity::from_raw_u32(index).unwrap(),
+            sphere: sphere(x, 0.0, 1.0),
+            world_from_local: Affine3A::from_translation(Vec3::X * x),
+            shade_keys: vec![10 + index as u64, 20 + index as u64],
+        }
+    }
+
+    #[test]
+    fn the_cast_key_changes_with_the_casters_and_not_with_a_shared_motion() {
+        let lights = [Vec3::NEG_X, Vec3::X];
+        let clouds = [cloud(1, 0.0), cloud(2, 3.0)];
+        let (casters, keys) = casters_of(&clouds[0], &clouds, &lights);
+        // Light 0 travels towards -x: cloud 2, at +x, casts on cloud 1; light 1 the other way.
+        assert_eq!(casters, [vec![clouds[1].entity], vec![]]);
+        assert_ne!(keys[0], 0);
+        assert_eq!(keys[1], 0);
+        // Both moved together: the same key. One moved, or re-shaded: another.
+        let shift = |c: &CastingCloud, by: f32| CastingCloud {
+            world_from_local: Affine3A::from_translation(Vec3::Y * by) * c.world_from_local,
+            ..c.clone()
+        };
+        let together = [shift(&clouds[0], 1.0), shift(&clouds[1], 1.0)];
+        assert_eq!(casters_of(&together[0], &together, &lights).1, keys);
+        let apart = [clouds[0].clone(), shift(&clouds[1], 0.5)];
+        assert_ne!(casters_of(&apart[0], &apart, &lights).1[0], keys[0]);
+        let reshaded = [
+            clouds[0].clone(),
+            CastingCloud {
+                shade_keys: vec![99, 20],
+                ..clouds[1].clone()
+            },
+        ];
+        assert_ne!(casters_of(&reshaded[0], &reshaded, &lights).1[0], keys[0]);
+    }
+
+    #[test]
+    fn a_caster_maps_receiver_points_to_its_light_box_voxels() {
+        let light = LightParams {
+            u: Vec3::X,
+            h_u: 0.5,
+            v: Vec3::Z,
+            h_v: 0.25,
+            w: Vec3::NEG_Y,
+            h_w: 1.0,
+            half_extents: Vec3::new(2.0, 1.0, 4.0),
+            ..default()
+        };
+        let centre = Vec3::new(1.0, 2.0, 3.0);
+        let caster = Affine3A::from_translation(Vec3::new(10.0, 0.0, 0.0));
+        let receiver = Affine3A::from_translation(Vec3::new(12.0, 1.0, 0.0));
+        let c = Caster::new(&light, centre, &caster, &receiver, 0, 8);
+        // Receiver-local p is caster-local p + (2, 1, 0).
+        let p = Vec3::new(-0.5, 0.5, 2.0);
+        let local = p + Vec3::new(2.0, 1.0, 0.0);
+        let d = local - centre;
+        let expected =
+            (Vec3::new(d.x, d.z, -d.y) + light.half_extents) / Vec3::new(0.5, 0.25, 1.0) - 0.5;
+        let g = c.coords_from_receiver.transform_point3(p);
+        assert!((g - expected).length() < 1e-5, "{g} vs {expected}");
+    }
+}
