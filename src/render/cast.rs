@@ -63,9 +63,9 @@ pub struct CastingCloud {
 /// Per light slot, the clouds of `clouds` that cast their shadow on `receiver` under the light
 /// travelling along `directions[l]`, and the key of what they cast: their entities, their own
 /// volumes' keys and where they lie relative to the receiver (0 when none casts).
-pub fn casters_of<'a>(
+pub fn casters_of(
     receiver: &CastingCloud,
-    clouds: impl IntoIterator<Item = &'a CastingCloud> + Clone,
+    clouds: &[CastingCloud],
     directions: &[Vec3],
 ) -> (Vec<Vec<Entity>>, Vec<u64>) {
     directions
@@ -73,8 +73,7 @@ pub fn casters_of<'a>(
         .enumerate()
         .map(|(l, &d)| {
             let mut casters: Vec<&CastingCloud> = clouds
-                .clone()
-                .into_iter()
+                .iter()
                 .filter(|c| c.entity != receiver.entity && c.shade_keys.len() > l)
                 .filter(|c| casts_on(d, receiver.sphere, c.sphere))
                 .collect();

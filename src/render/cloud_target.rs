@@ -521,6 +521,8 @@ mod tests {
             lod_resolution: 48,
             lod_enabled: false,
             visible: true,
+            casts_shadows: true,
+            receives_shadows: true,
         }
     }
 

@@ -2,7 +2,7 @@
 
 use bevy::{
     camera::visibility::{InheritedVisibility, ViewVisibility},
-    light::DirectionalLight,
+    light::{DirectionalLight, NotShadowCaster, NotShadowReceiver},
     math::Affine3A,
     platform::collections::HashMap,
     prelude::*,
@@ -38,8 +38,13 @@ pub struct ExtractedCloud {
     /// Whether `lod_resolution` comes from the level of detail (the `CloudLevelOfDetail`
     /// resource is enabled and the cloud has a `CloudLod`): only its changes wait for a re-light.
     pub lod_enabled: bool,
-    /// Visible in at least one view: only such clouds do illumination work.
+    /// Visible in at least one view: such clouds, and those that shadow them, do illumination
+    /// work.
     pub visible: bool,
+    /// It shadows other clouds (no [`NotShadowCaster`]).
+    pub casts_shadows: bool,
+    /// Other clouds shadow it (no [`NotShadowReceiver`]).
+    pub receives_shadows: bool,
 }
 
 impl ExtractedCloud {
@@ -102,6 +107,8 @@ type MainWorldCloud = (
     Option<&'static CloudQualitySettings>,
     Option<&'static CloudLod>,
     Option<&'static Name>,
+    Has<NotShadowCaster>,
+    Has<NotShadowReceiver>,
 );
 
 /// A light as the main world has it.
@@ -121,7 +128,9 @@ pub(crate) fn extract_clouds(
     level_of_detail: Extract<Res<CloudLevelOfDetail>>,
     mut refused: Local<RefusedClouds>,
 ) {
-    for (entity, render_entity, cloud, transform, visibility, settings, lod, name) in &clouds {
+    for item in &clouds {
+        let (entity, render_entity, cloud, transform, visibility, settings, lod, name, ..) = item;
+        let (.., not_caster, not_receiver) = item;
         let settings = settings.copied().unwrap_or(default_quality.0);
         let lod_resolution = lod
             .filter(|_| level_of_detail.enabled())
@@ -161,6 +170,8 @@ pub(crate) fn extract_clouds(
                     lod_resolution,
                     lod_enabled: lod.is_some() && level_of_detail.enabled(),
                     visible: visibility.get(),
+                    casts_shadows: !not_caster,
+                    receives_shadows: !not_receiver,
                 });
             }
         }

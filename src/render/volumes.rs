@@ -308,7 +308,7 @@ pub(crate) fn prepare_cloud_volumes(
             continue;
         };
         let (cloud, bounds, shape) = (&frame.cloud, frame.bounds, frame.shape);
-        let casts = casters_of(&casting[&entity], casting.values(), &directions);
+        let casts = cast_on(entity, frame, &casting, &directions);
         match (volumes, state) {
             (Some(_), Some(mut state)) if deferred.contains(&entity) => {
                 // Its turn comes later: it draws with what its volumes hold.
@@ -419,10 +419,13 @@ fn cloud_frames(
     // A cloud nobody sees is still illuminated when it shadows one that is seen.
     let seen: Vec<CloudSphere> = frames
         .values()
-        .filter(|f| f.needed)
+        .filter(|f| f.needed && f.cloud.receives_shadows)
         .map(|f| f.sphere)
         .collect();
-    for frame in frames.values_mut().filter(|f| !f.needed) {
+    for frame in frames
+        .values_mut()
+        .filter(|f| !f.needed && f.cloud.casts_shadows)
+    {
         frame.needed = lights.lights.iter().any(|light| {
             let d = light.direction;
             seen.iter()
@@ -432,25 +435,40 @@ fn cloud_frames(
     frames
 }
 
-/// The clouds of `frames` that must be illuminated, as the cast sees them, each with the shade
-/// keys `shade_keys` gives it.
+/// The clouds of `frames` that must be illuminated and cast shadows, as the cast sees them, each
+/// with the shade keys `shade_keys` gives it.
 fn casting_clouds(
     frames: &HashMap<Entity, CloudFrame>,
     shade_keys: impl Fn(Entity, &CloudFrame) -> Vec<u64>,
-) -> HashMap<Entity, CastingCloud> {
+) -> Vec<CastingCloud> {
     frames
         .iter()
-        .filter(|(_, f)| f.needed)
-        .map(|(&entity, f)| {
-            let cloud = CastingCloud {
-                entity,
-                sphere: f.sphere,
-                world_from_local: f.cloud.world_from_local,
-                shade_keys: shade_keys(entity, f),
-            };
-            (entity, cloud)
-        })
+        .filter(|(_, f)| f.needed && f.cloud.casts_shadows)
+        .map(|(&entity, f)| casting_cloud(entity, f, shade_keys(entity, f)))
         .collect()
+}
+
+fn casting_cloud(entity: Entity, frame: &CloudFrame, shade_keys: Vec<u64>) -> CastingCloud {
+    CastingCloud {
+        entity,
+        sphere: frame.sphere,
+        world_from_local: frame.cloud.world_from_local,
+        shade_keys,
+    }
+}
+
+/// Per light slot, the clouds of `casting` that cast their shadow on cloud `entity` and the key
+/// of what they cast ([`casters_of`]); none on a cloud that receives no shadows.
+fn cast_on(
+    entity: Entity,
+    frame: &CloudFrame,
+    casting: &[CastingCloud],
+    directions: &[Vec3],
+) -> (Vec<Vec<Entity>>, Vec<u64>) {
+    if !frame.cloud.receives_shadows {
+        return (Vec::new(), Vec::new());
+    }
+    casters_of(&casting_cloud(entity, frame, Vec::new()), casting, directions)
 }
 
 /// The needed clouds whose pending illumination work waits for a later frame under the
@@ -481,7 +499,7 @@ fn deferred_by_budget(
         // any other; only one never illuminated cannot wait.
         match volumes.zip(state) {
             Some((v, s)) if s.ready => {
-                let (_, casts) = casters_of(&casting[&entity], casting.values(), &directions);
+                let (_, casts) = cast_on(entity, frame, &casting, &directions);
                 let keys = frame_keys(&frame.cloud, gpu, frame.bounds, lights, &casts);
                 let pending = !v.fits(frame.shape, gpu.count)
                     || !plan(&s.keys, &keys, &frame.cloud.settings).is_empty();

@@ -213,3 +213,34 @@ fn a_caster_that_moves_recasts_the_receiver_and_a_still_sky_does_nothing() {
         "unshadowed again: {error:e} of its maximum"
     );
 }
+
+/// Bevy's `NotShadowCaster` and `NotShadowReceiver` opt clouds out, as they do meshes.
+#[test]
+fn not_shadow_caster_and_not_shadow_receiver_opt_clouds_out() {
+    use bevy::light::{NotShadowCaster, NotShadowReceiver};
+    let (setup, casters) = stacked();
+    let [receiver, above, _] = clouds(&setup, &casters);
+    let alone = cpu_light_volumes(&setup, &[receiver]);
+    let above_at = above.transform.translation;
+    for opt_out in ["caster", "receiver"] {
+        let (mut app, _) = spawn_clouds(&setup, &[receiver, above]);
+        let (cloud, marker) = match opt_out {
+            "caster" => (cloud_at(&mut app, above_at), true),
+            _ => (cloud_at(&mut app, Vec3::ZERO), false),
+        };
+        let mut entity = app.world_mut().entity_mut(cloud);
+        if marker {
+            entity.insert(NotShadowCaster);
+        } else {
+            entity.insert(NotShadowReceiver);
+        }
+        let mut recorder = FrameRecorder::default();
+        render(&mut app, &mut recorder, 1);
+        let gpu = light_volumes(&mut app, Vec3::ZERO);
+        let error = max_relative_difference(&gpu[..alone.len()], &alone);
+        assert!(error <= TOLERANCE, "not shadow {opt_out}: {error:e}");
+        // The caster, out of view, shadows no cloud that takes shadows: it is not illuminated.
+        let shaded = recorder.total(CloudPass::Shade);
+        assert_eq!(shaded, 1, "not shadow {opt_out}");
+    }
+}
