@@ -139,6 +139,10 @@ pub(crate) struct Args {
     /// Split the default settings' error by scattering order (CPU only).
     #[arg(long)]
     pub(crate) decompose: bool,
+    /// Clouds do not shadow each other (every cloud `NotShadowCaster`): what the cast of their
+    /// shadows costs and what its absence does to the error.
+    #[arg(long)]
+    pub(crate) no_cloud_shadows: bool,
     /// Measure only these settings (RON, as a scene file's `settings`) instead of the sweep.
     /// Repeatable.
     #[arg(long = "settings", value_name = "RON", value_parser = parse_settings)]
@@ -271,6 +275,9 @@ fn run() -> Result<(), String> {
             &args.out,
         )?;
         let mut b = Bench::new(&scene);
+        if args.no_cloud_shadows {
+            b.without_cloud_shadows();
+        }
         adapter = b.adapter.clone();
         let _ = WALL_AXIS.set(adapter.contains("llvmpipe"));
         eprintln!(

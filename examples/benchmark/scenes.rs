@@ -113,6 +113,15 @@ pub(crate) const SCENES: &[BenchScene] = &[
         quick: false,
     },
     BenchScene {
+        name: "shadowed_clouds",
+        // Its second cloud reads paper_3100.ply, which `load_scene` writes from paper_3100.
+        particle_file: "cumulus.csv",
+        generate: cumulus_2000,
+        error_downsample: 2,
+        spp: 2048,
+        quick: false,
+    },
+    BenchScene {
         name: "paper_3100",
         particle_file: "paper_3100.ply",
         generate: paper_3100,

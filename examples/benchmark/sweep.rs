@@ -159,6 +159,14 @@ impl Bench {
         }
     }
 
+    /// No cloud shadows another (`NotShadowCaster` on every cloud).
+    pub(crate) fn without_cloud_shadows(&mut self) {
+        for &(entity, _) in &self.clouds {
+            let mut cloud = self.app.world_mut().entity_mut(entity);
+            cloud.insert(bevy::light::NotShadowCaster);
+        }
+    }
+
     /// Marks every cloud's particles changed: the next frame reruns every pass.
     pub(crate) fn touch_particles(&mut self) {
         for (_, handle) in &self.clouds {

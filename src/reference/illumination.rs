@@ -676,18 +676,43 @@ pub fn segment_weights(tau: f64) -> (f64, f64) {
 /// Optical depth below which [`segment_weights`] uses its series (relative error < 1e-5 there).
 pub const SERIES_BELOW: f64 = 0.02;
 
-/// `I_o` over the whole grid for one direction `o`: the radiance arriving at each voxel from
-/// direction `o` (from `v + o`, `v + 2o`, ...), divided by nothing yet. Marched from the downwind
-/// side, `I_o(v) = e I_o(v+o) + albedo [S(v)(1-e) + (S(v+o) - S(v))((1-e)/tau - e)]`, with
-/// `tau = K_local (rho_v + rho_{v+o}) / 2 h |o|` and density, `S` and `I_o` zero outside the grid.
-fn sweep_direction(
-    grid: &DensityGrid,
+/// What the multiple scattering sweeps through on a cloud's scattering grid (section 4): the
+/// cloud's density and albedo, and the media of other clouds where they reach into its cube
+/// (section 4, "Clouds that overlap").
+#[derive(Clone, Copy)]
+struct SweptMedium<'a> {
+    grid: &'a DensityGrid,
     k_local: f64,
     albedo: f64,
-    o: [i64; 3],
-    s: &[DVec3],
-    sky: DVec3,
-) -> Vec<DVec3> {
+    /// Per voxel, other clouds' extinction and scattering coefficients in units of the cloud's
+    /// own extinction at density 1 (`sum_c K_c rho_c / K`, `sum_c albedo_c K_c rho_c / K`).
+    foreign: Option<&'a [[f64; 2]]>,
+}
+
+impl SweptMedium<'_> {
+    /// Extinction of voxel `i`, in units of `K_local`.
+    fn density(&self, i: usize) -> f64 {
+        self.grid.rho[i] + self.foreign.map_or(0.0, |f| f[i][0])
+    }
+
+    /// Albedo of voxel `i`: the cloud's own where no other cloud's medium reaches.
+    fn albedo(&self, i: usize) -> f64 {
+        match self.foreign {
+            Some(f) if f[i][0] > 0.0 => {
+                (self.albedo * self.grid.rho[i] + f[i][1]) / (self.grid.rho[i] + f[i][0])
+            }
+            _ => self.albedo,
+        }
+    }
+}
+
+/// `I_o` over the whole grid for one direction `o`: the radiance arriving at each voxel from
+/// direction `o` (from `v + o`, `v + 2o`, ...), divided by nothing yet. Marched from the downwind
+/// side, `I_o(v) = e I_o(v+o) + J(v)(1-e) + (J(v+o) - J(v))((1-e)/tau - e)`, `J = albedo S`, with
+/// `tau = K_local (rho_v + rho_{v+o}) / 2 h |o|` and density, `S` and `I_o` zero outside the grid
+/// (with other clouds' media, `rho` and `albedo` are the voxel's over all of them).
+fn sweep_direction(medium: SweptMedium, o: [i64; 3], s: &[DVec3], sky: DVec3) -> Vec<DVec3> {
+    let grid = medium.grid;
     let n = grid.n as i64;
     let step = grid.h * ((o[0] * o[0] + o[1] * o[1] + o[2] * o[2]) as f64).sqrt();
     let mut radiance = vec![DVec3::ZERO; grid.len()];
@@ -705,13 +730,14 @@ fn sweep_direction(
                     .all(|&c| (0..n).contains(&c))
                     .then(|| grid.index(u[0] as usize, u[1] as usize, u[2] as usize));
                 // Outside the grid: no medium, and the sky's radiance arriving.
-                let (rho_u, s_u, i_u) = upwind.map_or((0.0, DVec3::ZERO, sky), |j| {
-                    (grid.rho[j], s[j], radiance[j])
+                let (rho_u, j_u, i_u) = upwind.map_or((0.0, DVec3::ZERO, sky), |j| {
+                    (medium.density(j), s[j] * medium.albedo(j), radiance[j])
                 });
-                let tau = k_local * (grid.rho[idx] + rho_u) * 0.5 * step;
+                let j = s[idx] * medium.albedo(idx);
+                let tau = medium.k_local * (medium.density(idx) + rho_u) * 0.5 * step;
                 let (constant, linear) = segment_weights(tau);
                 let e = 1.0 - constant;
-                radiance[idx] = i_u * e + (s[idx] * constant + (s_u - s[idx]) * linear) * albedo;
+                radiance[idx] = i_u * e + j * constant + (j_u - j) * linear;
             }
         }
     }
@@ -720,10 +746,10 @@ fn sweep_direction(
 
 /// One discrete-ordinates iteration: `S_{n+1}(v) = sum_o I_o(v) / 26`, the radiance `sky`
 /// entering the grid from outside.
-fn sweep(grid: &DensityGrid, k_local: f64, albedo: f64, s: &[DVec3], sky: DVec3) -> Vec<DVec3> {
+fn sweep(medium: SweptMedium, s: &[DVec3], sky: DVec3) -> Vec<DVec3> {
     lattice_directions()
         .into_par_iter()
-        .map(|o| sweep_direction(grid, k_local, albedo, o, s, sky))
+        .map(|o| sweep_direction(medium, o, s, sky))
         .reduce(
             || vec![DVec3::ZERO; s.len()],
             |mut a, b| {
@@ -827,14 +853,30 @@ pub fn scatter_under_sky(
     sky: DVec3,
     iterations: u32,
 ) -> MultipleScattering {
+    let medium = SweptMedium {
+        grid,
+        k_local,
+        albedo,
+        foreign: None,
+    };
+    scatter_through(medium, stencil, s0, sky, iterations)
+}
+
+/// [`scatter_under_sky`] through `medium`.
+fn scatter_through(
+    medium: SweptMedium,
+    stencil: ScatterStencil,
+    s0: &[DVec3],
+    sky: DVec3,
+    iterations: u32,
+) -> MultipleScattering {
+    let grid = medium.grid;
     assert_eq!(s0.len(), grid.len(), "s0 must have one entry per voxel");
     let mut orders: Vec<Vec<DVec3>> = Vec::with_capacity(iterations as usize);
     for k in 0..iterations {
         let previous = orders.last().map_or(s0, Vec::as_slice);
         let entering = if k == 0 { sky } else { DVec3::ZERO };
-        orders.push(scatter_once(
-            grid, k_local, albedo, stencil, previous, entering,
-        ));
+        orders.push(scatter_once(medium, stencil, previous, entering));
     }
     let mut total = vec![DVec3::ZERO; s0.len()];
     for order in &orders {
@@ -861,18 +903,17 @@ pub fn scatter_under_sky(
     }
 }
 
-/// One iteration of `stencil`: `K s`, with the radiance `sky` entering the grid (the sweep only).
+/// One iteration of `stencil`: `K s`, with the radiance `sky` entering the grid (the sweep only;
+/// the paper's stencil sees the cloud's own medium only).
 fn scatter_once(
-    grid: &DensityGrid,
-    k_local: f64,
-    albedo: f64,
+    medium: SweptMedium,
     stencil: ScatterStencil,
     s: &[DVec3],
     sky: DVec3,
 ) -> Vec<DVec3> {
     match stencil {
-        ScatterStencil::DiscreteOrdinates => sweep(grid, k_local, albedo, s, sky),
-        ScatterStencil::Paper => paper_stencil(grid, k_local, albedo, s),
+        ScatterStencil::DiscreteOrdinates => sweep(medium, s, sky),
+        ScatterStencil::Paper => paper_stencil(medium.grid, medium.k_local, medium.albedo, s),
     }
 }
 
@@ -903,7 +944,13 @@ pub fn scatter_warm(
     );
     assert_eq!(previous.len(), grid.len(), "one previous value per voxel");
     let start: Vec<DVec3> = s0.iter().zip(previous).map(|(s, x)| *s + *x).collect();
-    let once = scatter_once(grid, k_local, albedo, stencil, &start, sky);
+    let medium = SweptMedium {
+        grid,
+        k_local,
+        albedo,
+        foreign: None,
+    };
+    let once = scatter_once(medium, stencil, &start, sky);
     let correction: Vec<DVec3> = once.iter().zip(previous).map(|(k, x)| *k - *x).collect();
     let series = scatter(grid, k_local, albedo, stencil, &correction, iterations - 1);
     // Clamped at 0 like the GPU's: the truncated correction may overshoot where the light fell.
@@ -1023,7 +1070,7 @@ pub fn illuminate_under_sky(
     settings: &CloudQualitySettings,
 ) -> Option<CloudIllumination> {
     shade_cloud(particles, medium, scale, lights_local, settings)
-        .map(|shaded| shaded.finish(sky, settings))
+        .map(|shaded| shaded.finish(sky, settings, None))
 }
 
 /// One of several clouds illuminated together ([`illuminate_clouds_under_sky`]).
@@ -1070,10 +1117,12 @@ pub fn illuminate_clouds_under_sky(
         .collect();
     let placements: Vec<CloudPlacement> = clouds.iter().map(|c| c.placement).collect();
     cast_shadows(&mut shaded, &placements);
+    let foreign = foreign_media(&shaded, &placements);
     shaded
         .into_iter()
         .zip(clouds)
-        .map(|(s, cloud)| s.map(|s| s.finish(sky, &cloud.settings)))
+        .zip(&foreign)
+        .map(|((s, cloud), foreign)| s.map(|s| s.finish(sky, &cloud.settings, foreign.as_deref())))
         .collect()
 }
 
@@ -1124,6 +1173,48 @@ fn cast_shadows(clouds: &mut [Option<ShadedCloud>], placements: &[CloudPlacement
     }
 }
 
+/// Per voxel of every cloud's scattering grid, the other clouds' media there (section 4,
+/// "Clouds that overlap"): at the voxel's centre, `sum_c K_c rho_c / K` and
+/// `sum_c albedo_c K_c rho_c / K`, `rho_c` trilinear in cloud `c`'s scattering grid (zero outside
+/// it) and `K` the world extinctions. `None` for a cloud no other cloud's medium reaches.
+fn foreign_media(
+    clouds: &[Option<ShadedCloud>],
+    placements: &[CloudPlacement],
+) -> Vec<Option<Vec<[f64; 2]>>> {
+    let world_extinction = |c: &ShadedCloud, p: &CloudPlacement| c.inputs.k_local / p.scale;
+    clouds
+        .iter()
+        .zip(placements)
+        .enumerate()
+        .map(|(a, (cloud, placement))| {
+            let cloud = cloud.as_ref()?;
+            let extinction = world_extinction(cloud, placement);
+            if extinction <= 0.0 {
+                return None;
+            }
+            let others: Vec<(&ShadedCloud, &CloudPlacement)> = clouds
+                .iter()
+                .zip(placements)
+                .enumerate()
+                .filter(|&(b, _)| b != a)
+                .filter_map(|(_, (c, p))| Some((c.as_ref()?, p)))
+                .collect();
+            let media: Vec<[f64; 2]> = (0..cloud.grid.len())
+                .into_par_iter()
+                .map(|i| {
+                    let world = placement.world_point(cloud.grid.voxel_centre_linear(i));
+                    others.iter().fold([0.0; 2], |[t, s], (c, p)| {
+                        let sigma = world_extinction(c, p) / extinction
+                            * c.grid.sample(p.local_point(world));
+                        [t + sigma, s + c.inputs.albedo * sigma]
+                    })
+                })
+                .collect();
+            media.iter().any(|m| m[0] > 0.0).then_some(media)
+        })
+        .collect()
+}
+
 /// A cloud's density grids and light volumes (sections 1 and 2), before the other clouds cast
 /// their shadows on it and its scattering is gathered.
 struct ShadedCloud {
@@ -1166,18 +1257,24 @@ fn shade_cloud(
 
 impl ShadedCloud {
     /// Sections 3 and 4: the source gathered from the light volumes, and its multiple scattering
-    /// under the sky `sky`.
-    fn finish(self, sky: DVec3, settings: &CloudQualitySettings) -> CloudIllumination {
+    /// under the sky `sky`,
+    /// and with `foreign`, other clouds' media in the scattering grid (section 4).
+    fn finish(
+        self,
+        sky: DVec3,
+        settings: &CloudQualitySettings,
+        foreign: Option<&[[f64; 2]]>,
+    ) -> CloudIllumination {
         let source = gather(&self.grid, &self.fine, &self.lights);
-        let multiple = scatter_under_sky(
-            &self.grid,
-            self.inputs.k_local,
-            self.inputs.albedo,
-            settings.scatter_stencil,
-            &source,
-            sky,
-            settings.scatter_iterations,
-        );
+        let medium = SweptMedium {
+            grid: &self.grid,
+            k_local: self.inputs.k_local,
+            albedo: self.inputs.albedo,
+            foreign,
+        };
+        let stencil = settings.scatter_stencil;
+        let iterations = settings.scatter_iterations;
+        let multiple = scatter_through(medium, stencil, &source, sky, iterations);
         CloudIllumination {
             grid: self.grid,
             fine: self.fine,
@@ -1636,7 +1733,13 @@ mod tests {
             .map(|i| DVec3::splat(2.0 + grid.voxel_centre_linear(i).dot(gradient)))
             .collect();
         for o in [[1, 0, 0], [0, -1, 1], [-1, 1, 1]] {
-            let radiance = sweep_direction(&grid, sigma, albedo, o, &s, DVec3::ZERO);
+            let medium = SweptMedium {
+                grid: &grid,
+                k_local: sigma,
+                albedo,
+                foreign: None,
+            };
+            let radiance = sweep_direction(medium, o, &s, DVec3::ZERO);
             let d = DVec3::new(o[0] as f64, o[1] as f64, o[2] as f64).normalize();
             // the centre: 12 steps (optical depth >= 18) from every edge
             let v = grid.index(n / 2, n / 2, n / 2);

@@ -15,22 +15,31 @@ use bytemuck::{Pod, Zeroable};
 use super::{key_of, particles::CloudBounds, volumes::LightParams};
 
 /// A cloud's bounding sphere in the world: it holds the cloud's density cube, and so every light
-/// box of it.
+/// box of it. With the half-extents of the cube's world-axis-aligned box beside it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CloudSphere {
     /// World centre, metres.
     pub centre: Vec3,
     /// World radius, metres.
     pub radius: f32,
+    /// Half-extents of the box around the density cube along the world axes, metres.
+    pub half_extents: Vec3,
 }
 
 impl CloudSphere {
     /// The sphere around the density cube `bounds` (cloud-local) of a cloud placed by
     /// `world_from_local`, whose largest scale factor is `scale`.
     pub fn new(bounds: CloudBounds, world_from_local: &Affine3A, scale: f32) -> Self {
+        let m = world_from_local.matrix3;
+        let abs = Mat3::from_cols(
+            m.x_axis.abs().into(),
+            m.y_axis.abs().into(),
+            m.z_axis.abs().into(),
+        );
         Self {
             centre: world_from_local.transform_point3(bounds.centre),
             radius: 0.5 * 3f32.sqrt() * bounds.side * scale,
+            half_extents: abs * Vec3::splat(0.5 * bounds.side),
         }
     }
 }
@@ -47,34 +56,52 @@ pub fn casts_on(d: Vec3, receiver: CloudSphere, caster: CloudSphere) -> bool {
     across < reach && along < reach
 }
 
-/// A cloud as the cast sees it: where it is and what its own light volumes hold.
+/// A cloud as other clouds see it (the cast, and [`overlap`](super::overlap)): where it is, its
+/// medium, and what its volumes hold.
 #[derive(Clone, Debug)]
-pub struct CastingCloud {
+pub struct WorldCloud {
     /// Its render entity.
     pub entity: Entity,
     /// Its bounding sphere.
     pub sphere: CloudSphere,
     /// World from cloud-local.
     pub world_from_local: Affine3A,
+    /// Extinction per world metre at density 1.
+    pub extinction: f32,
+    /// Single-scattering albedo.
+    pub albedo: f32,
+    /// The density key its grids hold ([`StageKeys::density`](super::plan::StageKeys)).
+    pub density: u64,
     /// The shade key of each of its light volumes ([`StageKeys::lights`](super::plan::StageKeys)).
     pub shade_keys: Vec<u64>,
+    /// It shadows other clouds (no `NotShadowCaster`).
+    pub casts_shadows: bool,
+}
+
+impl WorldCloud {
+    /// Bits of this cloud's local space seen from `receiver`'s: how it lies relative to it.
+    pub fn relative_bits(&self, receiver: &WorldCloud) -> [u32; 12] {
+        let relative = self.world_from_local.inverse() * receiver.world_from_local;
+        relative.to_cols_array().map(f32::to_bits)
+    }
 }
 
 /// Per light slot, the clouds of `clouds` that cast their shadow on `receiver` under the light
 /// travelling along `directions[l]`, and the key of what they cast: their entities, their own
 /// volumes' keys and where they lie relative to the receiver (0 when none casts).
 pub fn casters_of(
-    receiver: &CastingCloud,
-    clouds: &[CastingCloud],
+    receiver: &WorldCloud,
+    clouds: &[WorldCloud],
     directions: &[Vec3],
 ) -> (Vec<Vec<Entity>>, Vec<u64>) {
     directions
         .iter()
         .enumerate()
         .map(|(l, &d)| {
-            let mut casters: Vec<&CastingCloud> = clouds
+            let mut casters: Vec<&WorldCloud> = clouds
                 .iter()
-                .filter(|c| c.entity != receiver.entity && c.shade_keys.len() > l)
+                .filter(|c| c.casts_shadows && c.entity != receiver.entity)
+                .filter(|c| c.shade_keys.len() > l)
                 .filter(|c| casts_on(d, receiver.sphere, c.sphere))
                 .collect();
             // The key must not depend on the order the clouds come in.
@@ -82,13 +109,9 @@ pub fn casters_of(
             if casters.is_empty() {
                 return (Vec::new(), 0);
             }
-            let bits = |a: Affine3A| a.to_cols_array().map(f32::to_bits);
             let placed: Vec<_> = casters
                 .iter()
-                .map(|c| {
-                    let relative = c.world_from_local.inverse() * receiver.world_from_local;
-                    (c.entity, c.shade_keys[l], bits(relative))
-                })
+                .map(|c| (c.entity, c.shade_keys[l], c.relative_bits(receiver)))
                 .collect();
             (casters.iter().map(|c| c.entity).collect(), key_of(placed))
         })
@@ -159,13 +182,14 @@ pub struct CastItem {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn sphere(x: f32, y: f32, radius: f32) -> CloudSphere {
+    pub(crate) fn sphere(x: f32, y: f32, radius: f32) -> CloudSphere {
         CloudSphere {
             centre: Vec3::new(x, y, 0.0),
             radius,
+            half_extents: Vec3::splat(radius / 3f32.sqrt()),
         }
     }
 
@@ -186,12 +210,16 @@ mod tests {
         assert!(!casts_on(low, receiver, sphere(-6.0, 0.5, 1.0)));
     }
 
-    fn cloud(index: u32, x: f32) -> CastingCloud {
-        CastingCloud {
+    pub(crate) fn cloud(index: u32, x: f32) -> WorldCloud {
+        WorldCloud {
             entity: Entity::from_raw_u32(index).unwrap(),
             sphere: sphere(x, 0.0, 1.0),
             world_from_local: Affine3A::from_translation(Vec3::X * x),
+            extinction: 2.0,
+            albedo: 0.9,
+            density: index as u64,
             shade_keys: vec![10 + index as u64, 20 + index as u64],
+            casts_shadows: true,
         }
     }
 
@@ -205,7 +233,7 @@ mod tests {
         assert_ne!(keys[0], 0);
         assert_eq!(keys[1], 0);
         // Both moved together: the same key. One moved, or re-shaded: another.
-        let shift = |c: &CastingCloud, by: f32| CastingCloud {
+        let shift = |c: &WorldCloud, by: f32| WorldCloud {
             world_from_local: Affine3A::from_translation(Vec3::Y * by) * c.world_from_local,
             ..c.clone()
         };
@@ -215,7 +243,7 @@ mod tests {
         assert_ne!(casters_of(&apart[0], &apart, &lights).1[0], keys[0]);
         let reshaded = [
             clouds[0].clone(),
-            CastingCloud {
+            WorldCloud {
                 shade_keys: vec![99, 20],
                 ..clouds[1].clone()
             },

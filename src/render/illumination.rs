@@ -23,6 +23,7 @@ use super::{
     cast::{CastItem, Caster},
     extract::ExtractedCloud,
     gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, WorkList, record_stage, storage_init},
+    overlap::{Neighbour, OverlapItem},
     particles::GpuParticles,
     pipelines::{
         ComputeStage, IlluminationPipelines, ReadyPipelines, SweepDirection,
@@ -95,6 +96,9 @@ struct PoolBatches {
     /// Other clouds' shadows, one batch per pool their casters lie in (first casts first).
     cast: Vec<Batch>,
     gather: Option<Batch>,
+    /// Other clouds' media in the grids of this frame's scattering, one batch per pool the
+    /// neighbours lie in (first first).
+    overlap: Vec<Batch>,
     scatter: Vec<ScatterBatch>,
 }
 
@@ -127,6 +131,7 @@ fn scatter_group(k: u32) -> usize {
 struct PoolWork {
     shade: Vec<[u32; 2]>,
     cast: HashMap<PoolId, CastWork>,
+    overlap: HashMap<PoolId, OverlapWork>,
     gather: Vec<u32>,
     scatter: HashMap<(u32, ScatterStencil, bool), Vec<u32>>,
 }
@@ -188,6 +193,15 @@ pub(crate) fn prepare_illumination_bind_groups(
         if let Some(iterations) = plan.scatter.filter(|&i| i > 0) {
             let key = (iterations, plan.stencil, plan.warm);
             w.scatter.entry(key).or_default().push(slot);
+            if v.params.foreign != 0 {
+                add_overlaps(
+                    &mut w.overlap,
+                    (cloud, v),
+                    &state.neighbours,
+                    &placed,
+                    &pools,
+                );
+            }
         }
     }
     let mut batches = Vec::new();
@@ -255,6 +269,26 @@ pub(crate) fn prepare_illumination_bind_groups(
                 batch
             })
             .collect();
+        let mut overlaps: Vec<_> = w.overlap.into_iter().collect();
+        overlaps.sort_by_key(|(neighbour_pool, _)| *neighbour_pool);
+        let overlap = overlaps
+            .into_iter()
+            .filter_map(|(neighbour_pool, o)| {
+                let neighbours = storage_init(&device, "particle_clouds_neighbours", &o.neighbours);
+                Batch::new(&device, &o.items, |work| {
+                    bind(
+                        &pipelines.overlap,
+                        &BindGroupEntries::sequential((
+                            pool.slots.as_entire_binding(),
+                            neighbours.as_entire_binding(),
+                            pools.0[&neighbour_pool].densities.as_entire_binding(),
+                            pool.foreign.as_entire_binding(),
+                            work.binding(),
+                        )),
+                    )
+                })
+            })
+            .collect();
         let (n, m, _) = id.shape;
         batches.push(PoolBatches {
             n,
@@ -262,6 +296,7 @@ pub(crate) fn prepare_illumination_bind_groups(
             shade,
             cast,
             gather,
+            overlap,
             scatter,
         });
     }
@@ -323,6 +358,51 @@ fn add_casts(
     }
 }
 
+/// The overlap work of one receivers' pool whose neighbours lie in one pool.
+#[derive(Default)]
+struct OverlapWork {
+    items: Vec<OverlapItem>,
+    neighbours: Vec<Neighbour>,
+}
+
+/// Adds the overlap of `receiver` (its cloud and volumes) by `neighbours` (render entities,
+/// found in `placed`) to `work`, one item per pool the neighbours lie in: the first (in pool
+/// order) writes `foreign`, the others add to it.
+fn add_overlaps(
+    work: &mut HashMap<PoolId, OverlapWork>,
+    (receiver, volumes): (&ExtractedCloud, &CloudVolumes),
+    neighbours: &[Entity],
+    placed: &HashMap<Entity, (&ExtractedCloud, &CloudVolumes)>,
+    pools: &VolumePools,
+) {
+    let mut by_pool: HashMap<PoolId, Vec<Neighbour>> = HashMap::default();
+    for (cloud, v) in neighbours.iter().filter_map(|e| placed.get(e)) {
+        let first = pools.pool(&v.slot).density(v.slot.index).offset / 4;
+        by_pool.entry(v.slot.pool).or_default().push(Neighbour::new(
+            v.params.grid_origin,
+            v.params.h,
+            v.params.n,
+            first as u32,
+            &cloud.world_from_local,
+            &receiver.world_from_local,
+            cloud.extinction / receiver.extinction,
+            cloud.albedo,
+        ));
+    }
+    let mut by_pool: Vec<_> = by_pool.into_iter().collect();
+    by_pool.sort_by_key(|(pool, _)| *pool);
+    for (i, (pool, neighbours)) in by_pool.into_iter().enumerate() {
+        let w = work.entry(pool).or_default();
+        w.items.push(OverlapItem {
+            slot: volumes.slot.index,
+            first_neighbour: w.neighbours.len() as u32,
+            neighbours: neighbours.len() as u32,
+            accumulate: (i > 0) as u32,
+        });
+        w.neighbours.extend(neighbours);
+    }
+}
+
 /// The bind groups of `iterations` of scattering for the slots of `work`, in `pool` (the
 /// discrete-ordinates stencil, full series: set `sweep` and `warm` for the others).
 fn scatter_batch(
@@ -347,6 +427,7 @@ fn scatter_batch(
                 to.as_entire_binding(),
                 pool.multiple.as_entire_binding(),
                 work.binding(),
+                pool.foreign.as_entire_binding(),
             )),
         )
     };
@@ -553,6 +634,16 @@ pub(crate) fn illuminate_clouds(
             &counters,
             CloudPass::Scatter,
             |pass| {
+                // Other clouds' media in the grids to scatter in, once every density is gathered.
+                pass.set_pipeline(ready.overlap);
+                for b in &batches.0 {
+                    for batch in &b.overlap {
+                        for (offset, items) in batch.work.chunks() {
+                            pass.set_bind_group(0, &batch.group, &[offset]);
+                            dispatch_linear(pass, b.n.pow(3), items);
+                        }
+                    }
+                }
                 let mut runs = 0;
                 for b in &batches.0 {
                     for batch in &b.scatter {

@@ -7,6 +7,7 @@
 //! | `volumes.rs` | per-cloud GPU volumes, sized and filled with uniforms in a prepare system |
 //! | `pools.rs` | the volumes of every cloud of one shape packed into shared buffers, one slot per cloud |
 //! | `cast.rs` | who casts a shadow on whom: each cloud's light volumes take the other clouds' optical depth |
+//! | `overlap.rs` | clouds that overlap: each cloud's multiple scattering goes through the others' media too |
 //! | `plan.rs` | which stages rerun this frame: cache keys per stage, a pure planning function |
 //! | `pipelines.rs` | compute pipelines of the illumination passes |
 //! | `illumination.rs` | voxelize, then shade, gather, scatter batched per pool (the `RenderGraph` schedule) |
@@ -26,6 +27,7 @@ pub mod draw;
 pub mod extract;
 pub mod gpu;
 pub mod illumination;
+pub mod overlap;
 pub mod particles;
 pub mod pipelines;
 pub mod plan;

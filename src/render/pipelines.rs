@@ -110,6 +110,8 @@ pub struct IlluminationPipelines {
     pub cast: ComputeStage,
     /// `gather.wgsl`, `gather`.
     pub gather: ComputeStage,
+    /// `overlap.wgsl`, `overlap_media`: other clouds' media in a cloud's scattering grid.
+    pub overlap: ComputeStage,
     /// `scatter.wgsl`, `sweep` (the discrete-ordinates stencil).
     pub sweep: ComputeStage,
     /// `scatter.wgsl`, `scatter_paper` (the paper's stencil; same layout as `sweep`).
@@ -142,6 +144,8 @@ pub struct ReadyPipelines<'a> {
     pub cast: &'a ComputePipeline,
     /// Gather.
     pub gather: &'a ComputePipeline,
+    /// Overlap.
+    pub overlap: &'a ComputePipeline,
     /// Sweep.
     pub sweep: &'a ComputePipeline,
     /// The paper's stencil.
@@ -165,6 +169,7 @@ impl IlluminationPipelines {
             upsample: self.upsample.get(cache)?,
             cast: self.cast.get(cache)?,
             gather: self.gather.get(cache)?,
+            overlap: self.overlap.get(cache)?,
             sweep: self.sweep.get(cache)?,
             scatter_paper: self.scatter_paper.get(cache)?,
             warm_start: self.warm_start.get(cache)?,
@@ -267,7 +272,15 @@ pub(crate) fn init_illumination_pipelines(
                 write(),
                 write(),
                 work(),
+                read(),
             ),
+        ),
+    );
+    let overlap = BindGroupLayoutDescriptor::new(
+        "particle_clouds_overlap_layout",
+        &BindGroupLayoutEntries::sequential(
+            ShaderStages::COMPUTE,
+            (read(), read(), read(), write(), work()),
         ),
     );
     let closure = BindGroupLayoutDescriptor::new(
@@ -290,6 +303,7 @@ pub(crate) fn init_illumination_pipelines(
         shade_brute_force: stage(&shaders.shade, "shade_brute_force", &shade),
         cast: stage(&shaders.cast, "cast_shadows", &cast),
         gather: stage(&shaders.gather, "gather", &gather),
+        overlap: stage(&shaders.overlap, "overlap_media", &overlap),
         sweep: stage(&shaders.scatter, "sweep", &scatter),
         scatter_paper: stage(&shaders.scatter, "scatter_paper", &scatter),
         warm_start: stage(&shaders.scatter, "warm_start", &scatter),

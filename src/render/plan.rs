@@ -29,8 +29,8 @@ pub struct StageKeys {
     pub gather: u64,
     /// Scatter: the gathered source, the sky, the medium and the scattering knobs.
     pub scatter: u64,
-    /// The scattering operator alone: the density, the medium and the scattering knobs, without
-    /// the source. When only the source changed (a light moved), the scattering may restart from
+    /// The scattering operator alone: the density, the medium (with the media of the clouds that
+    /// overlap it) and the scattering knobs, without the source. When only the source changed (a light moved), the scattering may restart from
     /// the solution the volumes hold.
     pub medium: u64,
 }
@@ -41,12 +41,15 @@ impl StageKeys {
 
     /// This frame's keys of a cloud with the uniform `params`, its lights' uniforms `lights` (in
     /// slot order), the key of what other clouds cast on it along each light (`casters[i]`: 0, or
-    /// missing, when none does; [`cast`](super::cast)), the sky's radiance `sky`, its particles'
-    /// upload `generation` and its `settings`.
+    /// missing, when none does; [`cast`](super::cast)), the key of the media of the clouds that
+    /// overlap it (`media`: 0 when none does; [`overlap`](super::overlap)), the sky's radiance
+    /// `sky`, its particles' upload `generation` and its `settings`.
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         params: &CloudParams,
         lights: &[LightParams],
         casters: &[u64],
+        media: u64,
         sky: Vec3,
         generation: u64,
         settings: &CloudQualitySettings,
@@ -91,6 +94,7 @@ impl StageKeys {
             settings.scatter_stencil,
             settings.scatter_iterations,
             settings.warm_scatter_iterations,
+            media,
         ));
         Self {
             density,
@@ -200,6 +204,8 @@ pub struct CloudIllumination {
     /// Per light slot, the clouds (render entities) that cast their shadow on this one this
     /// frame, for the cast pass.
     pub casters: Vec<Vec<Entity>>,
+    /// The clouds whose media reach into its scattering grid this frame, for the overlap pass.
+    pub neighbours: Vec<Entity>,
 }
 
 impl CloudIllumination {
@@ -259,7 +265,7 @@ mod tests {
     }
 
     fn keys(lights: &[LightParams], generation: u64, settings: &CloudQualitySettings) -> StageKeys {
-        StageKeys::new(&params(), lights, &[], Vec3::ZERO, generation, settings)
+        StageKeys::new(&params(), lights, &[], 0, Vec3::ZERO, generation, settings)
     }
 
     #[test]
@@ -348,7 +354,15 @@ mod tests {
                 k_local: 20.0,
                 ..params()
             };
-            StageKeys::new(&params, &[light(w, 1.0, 0)], &[], Vec3::ZERO, 1, &settings)
+            StageKeys::new(
+                &params,
+                &[light(w, 1.0, 0)],
+                &[],
+                0,
+                Vec3::ZERO,
+                1,
+                &settings,
+            )
         };
         state.update(thicker(Vec3::Y), &settings);
         assert_eq!((state.plan.scatter, state.plan.warm), (Some(32), false));
@@ -367,7 +381,8 @@ mod tests {
     fn another_clouds_shadow_recasts_without_reshading() {
         let settings = CloudQualitySettings::default();
         let two = [light(Vec3::X, 1.0, 0), light(Vec3::Y, 2.0, 1)];
-        let cast = |casts: &[u64]| StageKeys::new(&params(), &two, casts, Vec3::ZERO, 1, &settings);
+        let cast =
+            |casts: &[u64]| StageKeys::new(&params(), &two, casts, 0, Vec3::ZERO, 1, &settings);
         let mut state = CloudIllumination::default();
         // The first frame: both shaded; light 1 has casters, so it is cast too.
         state.update(cast(&[0, 7]), &settings);

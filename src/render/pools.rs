@@ -203,6 +203,9 @@ pub struct VolumePool {
     pub multiple: Buffer,
     /// vec4 closure ratio per slot.
     pub order_ratios: Buffer,
+    /// vec2 per voxel of the scattering grid: other clouds' media there (extinction, scattering;
+    /// [`overlap`](super::overlap)), at the same element as the slot's vec4 volumes.
+    pub foreign: Buffer,
 }
 
 impl VolumePool {
@@ -227,10 +230,11 @@ impl VolumePool {
             ],
             multiple: storage(device, "particle_clouds_multiple", b.volume * c),
             order_ratios: storage(device, "particle_clouds_order_ratios", 16 * c),
+            foreign: storage(device, "particle_clouds_foreign", b.volume / 2 * c),
         }
     }
 
-    fn buffers(&self) -> [&Buffer; 10] {
+    fn buffers(&self) -> [&Buffer; 11] {
         [
             &self.slots,
             &self.lights,
@@ -242,6 +246,7 @@ impl VolumePool {
             &self.orders[1],
             &self.multiple,
             &self.order_ratios,
+            &self.foreign,
         ]
     }
 

@@ -23,6 +23,8 @@ struct SweepDirection {
 @group(0) @binding(5) var<storage, read_write> multiple: array<vec4<f32>>;
 // A slot per z workgroup.
 @group(0) @binding(6) var<storage, read> work: array<u32>;
+// Other clouds' media per voxel (overlap.wgsl), read where `cloud.foreign` is 1.
+@group(0) @binding(7) var<storage, read> foreign: array<vec2<f32>>;
 
 var<private> slot: Slot;
 var<private> cloud: CloudParams;
@@ -35,6 +37,19 @@ fn begin(item: u32) {
 // Voxel i of this slot's density and volumes.
 fn density(i: u32) -> f32 {
     return densities[slot.density + i];
+}
+
+// The medium the sweep goes through at voxel i: its density in units of the cloud's extinction
+// at density 1 (x) and its albedo (y), over every cloud whose medium reaches it (§4, "Clouds that
+// overlap"); the cloud's own albedo where none does.
+fn medium(i: u32) -> vec2<f32> {
+    let rho = density(i);
+    if cloud.foreign == 0u {
+        return vec2(rho, cloud.albedo);
+    }
+    let other = foreign[slot.volume + i];
+    let total = rho + other.x;
+    return vec2(total, select(cloud.albedo, (cloud.albedo * rho + other.y) / total, other.x > 0.0));
 }
 
 fn order_in(i: u32) -> vec3<f32> {
@@ -66,11 +81,13 @@ fn line_voxel(start: vec3<i32>, t: i32, flip: vec3<bool>) -> u32 {
 }
 
 // Radiance arriving at a voxel from its upwind neighbour's side: what arrived there, attenuated
-// over the segment, plus the segment's own scattering with S linear along it.
-fn transport(upwind: vec3<f32>, rho: f32, s: vec3<f32>, rho_up: f32, s_up: vec3<f32>, half_step: f32) -> vec3<f32> {
-    let tau = cloud.k_local * (rho + rho_up) * half_step;
+// over the segment, plus the segment's own scattering J = albedo S, linear along it. `m` and
+// `m_up` are the two ends' media (density, albedo).
+fn transport(upwind: vec3<f32>, m: vec2<f32>, s: vec3<f32>, m_up: vec2<f32>, s_up: vec3<f32>, half_step: f32) -> vec3<f32> {
+    let tau = cloud.k_local * (m.x + m_up.x) * half_step;
     let w = segment_weights(tau);
-    return (1.0 - w.x) * upwind + cloud.albedo * (s * w.x + (s_up - s) * w.y);
+    let j = m.y * s;
+    return (1.0 - w.x) * upwind + j * w.x + (m_up.y * s_up - j) * w.y;
 }
 
 fn deposit(voxel: u32, radiance: vec3<f32>, overwrite: bool) {
@@ -127,28 +144,28 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
     let half_step = 0.5 * cloud.h * length(vec3<f32>(o));
     // Against o: radiance arriving from the +o side, `sky` entering the grid.
     var radiance = direction.sky;
-    var rho_up = 0.0;
+    var m_up = vec2(0.0);
     var s_up = vec3(0.0);
     for (var t = t1 - 1; t >= t0; t--) {
         let i = line_voxel(start, t, flip);
-        let rho = density(i);
+        let m = medium(i);
         let s = order_in(i);
-        radiance = transport(radiance, rho, s, rho_up, s_up, half_step);
+        radiance = transport(radiance, m, s, m_up, s_up, half_step);
         deposit(i, radiance, direction.first != 0u);
-        rho_up = rho;
+        m_up = m;
         s_up = s;
     }
     // Along o: radiance arriving from the -o side.
     radiance = direction.sky;
-    rho_up = 0.0;
+    m_up = vec2(0.0);
     s_up = vec3(0.0);
     for (var t = t0; t < t1; t++) {
         let i = line_voxel(start, t, flip);
-        let rho = density(i);
+        let m = medium(i);
         let s = order_in(i);
-        radiance = transport(radiance, rho, s, rho_up, s_up, half_step);
+        radiance = transport(radiance, m, s, m_up, s_up, half_step);
         deposit(i, radiance, false);
-        rho_up = rho;
+        m_up = m;
         s_up = s;
     }
 }

@@ -24,6 +24,8 @@ pub struct CloudShaders {
     pub cast: Handle<Shader>,
     /// `gather.wgsl`.
     pub gather: Handle<Shader>,
+    /// `overlap.wgsl`.
+    pub overlap: Handle<Shader>,
     /// `scatter.wgsl`.
     pub scatter: Handle<Shader>,
     /// `closure.wgsl`.
@@ -47,6 +49,7 @@ impl CloudShaders {
         embedded_asset!(app, "shade.wgsl");
         embedded_asset!(app, "cast.wgsl");
         embedded_asset!(app, "gather.wgsl");
+        embedded_asset!(app, "overlap.wgsl");
         embedded_asset!(app, "scatter.wgsl");
         embedded_asset!(app, "closure.wgsl");
         embedded_asset!(app, "sort.wgsl");
@@ -60,6 +63,7 @@ impl CloudShaders {
             shade: load_embedded_asset!(&*app, "shade.wgsl"),
             cast: load_embedded_asset!(&*app, "cast.wgsl"),
             gather: load_embedded_asset!(&*app, "gather.wgsl"),
+            overlap: load_embedded_asset!(&*app, "overlap.wgsl"),
             scatter: load_embedded_asset!(&*app, "scatter.wgsl"),
             closure: load_embedded_asset!(&*app, "closure.wgsl"),
             sort: load_embedded_asset!(&*app, "sort.wgsl"),

@@ -42,7 +42,8 @@ struct CloudParams {
     single_depth_scale: f32,
     // 1 when a light or the sky reaches the cloud.
     lit: u32,
-    _padding: u32,
+    // 1 when other clouds' media reach into its scattering grid (the sweep reads `foreign`).
+    foreign: u32,
 }
 
 struct LightParams {

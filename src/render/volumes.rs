@@ -15,9 +15,10 @@ use bevy::{
 
 use super::{
     budget::{RelightCandidate, relit_this_frame},
-    cast::{CastingCloud, CloudSphere, casters_of, casts_on},
-    extract::{ExtractedCloud, ExtractedCloudLights},
+    cast::{CloudSphere, WorldCloud, casters_of, casts_on},
+    extract::{CloudLight, ExtractedCloud, ExtractedCloudLights},
     gpu::{dynamic_uniform, storage, storage_bytes, uniform, uniform_bytes},
+    overlap::{neighbours_of, overlaps},
     particles::{CloudBounds, GpuParticles},
     plan::{CloudIllumination, StageKeys, plan},
     pools::{PoolSlot, Slot, VolumePool, VolumePools, VolumeShape},
@@ -63,8 +64,8 @@ pub struct CloudParams {
     pub single_depth_scale: f32,
     /// 1 when a light or the sky reaches the cloud, else 0 (it only absorbs).
     pub lit: u32,
-    /// Unused: pads the struct to 16 bytes.
-    pub _padding: u32,
+    /// 1 when other clouds' media reach into its scattering grid ([`overlap`](super::overlap)).
+    pub foreign: u32,
 }
 
 /// Mirror of `DensityLevels` in `types.wgsl`: the density levels of a fine grid
@@ -262,10 +263,12 @@ impl CloudVolumes {
 /// workgroup along x, where at most 65535 fit.
 pub const MAX_PARTICLES: u32 = 65535 * 64;
 
-/// Decides the work of each cloud that is seen or shadows one that is, and writes the uniforms it
-/// needs. Planned in two steps, since a cloud's light volumes take the shadows of others
-/// ([`cast`](super::cast)): first every cloud's own stages (and which of them the re-light budget
-/// defers), then what each is cast, from the light volumes the others will hold.
+/// Decides the work of each cloud that is seen, or that shadows or overlaps one that is, and
+/// writes the uniforms it needs. Planned in two steps, since a cloud's illumination takes what
+/// other clouds give it (their shadows, [`cast`](super::cast); their media where they overlap
+/// it, [`overlap`](super::overlap)): first every cloud's own stages (and which of them the
+/// re-light budget defers), then what each takes from the others, from the volumes the others
+/// will hold.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn prepare_cloud_volumes(
     mut commands: Commands,
@@ -280,13 +283,12 @@ pub(crate) fn prepare_cloud_volumes(
     let budget = budget.map_or(0, |b| b.0);
     let frames = cloud_frames(&clouds, &lights, &particles);
     let deferred = deferred_by_budget(&clouds, &frames, &lights, &particles, budget);
-    // What each cloud's own light volumes will hold after this frame: a deferred cloud keeps
-    // what it has.
-    let casting = casting_clouds(&frames, |entity, frame| {
+    // What each cloud's volumes will hold after this frame: a deferred cloud keeps what it has.
+    let world = world_clouds(&frames, |entity, frame| {
         let held = clouds.get(entity).ok().and_then(|(.., state)| state);
         match held {
-            Some(state) if deferred.contains(&entity) => state.keys.lights.clone(),
-            _ => frame.keys.lights.clone(),
+            Some(state) if deferred.contains(&entity) => state.keys.clone(),
+            _ => frame.keys.clone(),
         }
     });
     let directions: Vec<Vec3> = lights.lights.iter().map(|l| l.direction).collect();
@@ -302,13 +304,13 @@ pub(crate) fn prepare_cloud_volumes(
                 .remove::<(CloudVolumes, CloudIllumination)>();
             continue;
         }
-        // No work for clouds nobody sees nor shadows one that is seen, or that are transparent:
-        // their cached volumes stay.
+        // No work for clouds nobody sees (nor shadows or overlaps one that is seen), or that are
+        // transparent: their cached volumes stay.
         let Some(frame) = frames.get(&entity).filter(|f| f.needed) else {
             continue;
         };
         let (cloud, bounds, shape) = (&frame.cloud, frame.bounds, frame.shape);
-        let casts = cast_on(entity, frame, &casting, &directions);
+        let others = from_others(entity, frame, &world, &directions);
         match (volumes, state) {
             (Some(_), Some(mut state)) if deferred.contains(&entity) => {
                 // Its turn comes later: it draws with what its volumes hold.
@@ -322,7 +324,7 @@ pub(crate) fn prepare_cloud_volumes(
                     gpu,
                     bounds,
                     lights: &lights,
-                    casts,
+                    others,
                 };
                 plan_cloud(&mut v, &mut state, frame, pool, &queue);
                 state.waited = 0;
@@ -353,7 +355,7 @@ pub(crate) fn prepare_cloud_volumes(
                     gpu,
                     bounds,
                     lights: &lights,
-                    casts,
+                    others,
                 };
                 plan_cloud(&mut v, &mut state, frame, pool, &queue);
                 commands.entity(entity).insert((v, state));
@@ -379,9 +381,9 @@ struct CloudFrame {
     shape: VolumeShape,
     /// Its bounding sphere in the world.
     sphere: CloudSphere,
-    /// Seen in a view, or casting its shadow on a cloud that is: it must be illuminated.
+    /// Seen in a view, or shadowing or overlapping a cloud that is: it must be illuminated.
     needed: bool,
-    /// This frame's stage keys, without what other clouds cast on it.
+    /// This frame's stage keys, without what other clouds give it.
     keys: StageKeys,
 }
 
@@ -409,71 +411,96 @@ fn cloud_frames(
         let frame = CloudFrame {
             sphere: CloudSphere::new(bounds, &cloud.world_from_local, cloud.scale()),
             needed: cloud.visible,
-            keys: frame_keys(&cloud, gpu, bounds, lights, &[]),
+            keys: frame_keys(&cloud, gpu, bounds, lights, &[], 0),
             cloud,
             bounds,
             shape,
         };
         frames.insert(entity, frame);
     }
-    // A cloud nobody sees is still illuminated when it shadows one that is seen.
-    let seen: Vec<CloudSphere> = frames
+    // A cloud nobody sees is still illuminated when it shadows or overlaps one that is seen.
+    let seen: Vec<(CloudSphere, bool)> = frames
         .values()
-        .filter(|f| f.needed && f.cloud.receives_shadows)
-        .map(|f| f.sphere)
+        .filter(|f| f.needed)
+        .map(|f| (f.sphere, f.cloud.receives_shadows))
         .collect();
-    for frame in frames
-        .values_mut()
-        .filter(|f| !f.needed && f.cloud.casts_shadows)
-    {
-        frame.needed = lights.lights.iter().any(|light| {
-            let d = light.direction;
-            seen.iter()
-                .any(|&receiver| casts_on(d, receiver, frame.sphere))
+    for frame in frames.values_mut().filter(|f| !f.needed) {
+        let casts = |receiver: CloudSphere| {
+            let light = |l: &CloudLight| casts_on(l.direction, receiver, frame.sphere);
+            frame.cloud.casts_shadows && lights.lights.iter().any(light)
+        };
+        frame.needed = seen.iter().any(|&(receiver, receives)| {
+            overlaps(receiver, frame.sphere) || (receives && casts(receiver))
         });
     }
     frames
 }
 
-/// The clouds of `frames` that must be illuminated and cast shadows, as the cast sees them, each
-/// with the shade keys `shade_keys` gives it.
-fn casting_clouds(
+/// The clouds of `frames` that must be illuminated, as other clouds see them, each with the keys
+/// `held` gives it (what its volumes will hold after this frame).
+fn world_clouds(
     frames: &HashMap<Entity, CloudFrame>,
-    shade_keys: impl Fn(Entity, &CloudFrame) -> Vec<u64>,
-) -> Vec<CastingCloud> {
+    held: impl Fn(Entity, &CloudFrame) -> StageKeys,
+) -> Vec<WorldCloud> {
     frames
         .iter()
-        .filter(|(_, f)| f.needed && f.cloud.casts_shadows)
-        .map(|(&entity, f)| casting_cloud(entity, f, shade_keys(entity, f)))
+        .filter(|(_, f)| f.needed)
+        .map(|(&entity, f)| world_cloud(entity, f, held(entity, f)))
         .collect()
 }
 
-fn casting_cloud(entity: Entity, frame: &CloudFrame, shade_keys: Vec<u64>) -> CastingCloud {
-    CastingCloud {
+fn world_cloud(entity: Entity, frame: &CloudFrame, keys: StageKeys) -> WorldCloud {
+    WorldCloud {
         entity,
         sphere: frame.sphere,
         world_from_local: frame.cloud.world_from_local,
-        shade_keys,
+        extinction: frame.cloud.extinction,
+        albedo: frame.cloud.albedo,
+        density: keys.density,
+        shade_keys: keys.lights,
+        casts_shadows: frame.cloud.casts_shadows,
     }
 }
 
-/// Per light slot, the clouds of `casting` that cast their shadow on cloud `entity` and the key
-/// of what they cast ([`casters_of`]); none on a cloud that receives no shadows.
-fn cast_on(
+/// What other clouds give a cloud this frame ([`casters_of`], [`neighbours_of`]).
+#[derive(Default)]
+struct FromOthers {
+    /// Per light slot, the clouds casting their shadow on it.
+    casters: Vec<Vec<Entity>>,
+    /// Per light slot, the key of what they cast.
+    cast_keys: Vec<u64>,
+    /// The clouds whose media reach into its grid.
+    neighbours: Vec<Entity>,
+    /// The key of their media.
+    media: u64,
+}
+
+/// What the clouds of `world` give cloud `entity`: shadows along the lights travelling along
+/// `directions` (none on a cloud that takes no shadows), and their media where they overlap it.
+fn from_others(
     entity: Entity,
     frame: &CloudFrame,
-    casting: &[CastingCloud],
+    world: &[WorldCloud],
     directions: &[Vec3],
-) -> (Vec<Vec<Entity>>, Vec<u64>) {
-    if !frame.cloud.receives_shadows {
-        return (Vec::new(), Vec::new());
+) -> FromOthers {
+    let receiver = world_cloud(entity, frame, StageKeys::default());
+    let (casters, cast_keys) = if frame.cloud.receives_shadows {
+        casters_of(&receiver, world, directions)
+    } else {
+        (Vec::new(), Vec::new())
+    };
+    let (neighbours, media) = neighbours_of(&receiver, world);
+    FromOthers {
+        casters,
+        cast_keys,
+        neighbours,
+        media,
     }
-    casters_of(&casting_cloud(entity, frame, Vec::new()), casting, directions)
 }
 
 /// The needed clouds whose pending illumination work waits for a later frame under the
 /// re-light `budget` (none when it is 0): every cloud whose stage keys changed is a candidate,
-/// and [`relit_this_frame`] picks those that go now. What other clouds cast on a candidate is
+/// and [`relit_this_frame`] picks those that go now. What other clouds give a candidate is
 /// judged as if they were all re-lit.
 fn deferred_by_budget(
     clouds: &Query<PreparedCloud>,
@@ -485,7 +512,7 @@ fn deferred_by_budget(
     if budget == 0 {
         return HashSet::default();
     }
-    let casting = casting_clouds(frames, |_, f| f.keys.lights.clone());
+    let world = world_clouds(frames, |_, f| f.keys.clone());
     let directions: Vec<Vec3> = lights.lights.iter().map(|l| l.direction).collect();
     let mut candidates = Vec::new();
     for (entity, cloud, volumes, state) in clouds {
@@ -499,8 +526,9 @@ fn deferred_by_budget(
         // any other; only one never illuminated cannot wait.
         match volumes.zip(state) {
             Some((v, s)) if s.ready => {
-                let (_, casts) = cast_on(entity, frame, &casting, &directions);
-                let keys = frame_keys(&frame.cloud, gpu, frame.bounds, lights, &casts);
+                let others = from_others(entity, frame, &world, &directions);
+                let (casts, media) = (&others.cast_keys, others.media);
+                let keys = frame_keys(&frame.cloud, gpu, frame.bounds, lights, casts, media);
                 let pending = !v.fits(frame.shape, gpu.count)
                     || !plan(&s.keys, &keys, &frame.cloud.settings).is_empty();
                 if pending {
@@ -523,14 +551,14 @@ fn deferred_by_budget(
     pending.difference(&relit).copied().collect()
 }
 
-/// What [`plan_cloud`] plans from: the cloud, its particles and grid, the lights, and per light
-/// slot the clouds casting on it with the key of what they cast ([`casters_of`]).
+/// What [`plan_cloud`] plans from: the cloud, its particles and grid, the lights, and what other
+/// clouds give it.
 struct PlannedFrame<'a> {
     cloud: &'a ExtractedCloud,
     gpu: &'a GpuParticles,
     bounds: CloudBounds,
     lights: &'a ExtractedCloudLights,
-    casts: (Vec<Vec<Entity>>, Vec<u64>),
+    others: FromOthers,
 }
 
 /// Plans the cloud's stages and writes the uniforms they read: its own, and its slot's in `pool`.
@@ -546,9 +574,12 @@ fn plan_cloud(
         gpu,
         bounds,
         lights,
-        casts: (casters, cast_keys),
+        others,
     } = frame;
-    let params = cloud_params(cloud, gpu, bounds, lights);
+    let params = CloudParams {
+        foreign: !others.neighbours.is_empty() as u32,
+        ..cloud_params(cloud, gpu, bounds, lights)
+    };
     // Slot i shades the i-th light (none: the cloud only absorbs, and the plan zeroes its
     // multiple scattering once).
     let light_params = light_params(&params, cloud, lights);
@@ -556,14 +587,16 @@ fn plan_cloud(
         StageKeys::new(
             &params,
             &light_params,
-            &cast_keys,
+            &others.cast_keys,
+            others.media,
             lights.sky,
             gpu.generation,
             &cloud.settings,
         ),
         &cloud.settings,
     );
-    state.casters = casters;
+    state.casters = others.casters;
+    state.neighbours = others.neighbours;
     if state.plan.is_empty() {
         return;
     }
@@ -634,25 +667,28 @@ fn held_resolution(
     if n == wanted || !cloud.lod_enabled || !state.ready || !lights.any() {
         return wanted;
     }
-    let now = frame_keys(&at_resolution(cloud, n), gpu, bounds, lights, &[]);
+    let now = frame_keys(&at_resolution(cloud, n), gpu, bounds, lights, &[], 0);
     let relit = now.density != state.keys.density || now.lights != state.keys.lights;
     if relit { wanted } else { n }
 }
 
 /// This frame's stage keys of `cloud` (at its settings' resolution), other clouds casting on it
-/// what `casts` keys (per light slot; empty: none).
+/// what `casts` keys (per light slot; empty: none) and overlapping it with the media `media`
+/// keys (0: none).
 fn frame_keys(
     cloud: &ExtractedCloud,
     gpu: &GpuParticles,
     bounds: CloudBounds,
     lights: &ExtractedCloudLights,
     casts: &[u64],
+    media: u64,
 ) -> StageKeys {
     let params = cloud_params(cloud, gpu, bounds, lights);
     StageKeys::new(
         &params,
         &light_params(&params, cloud, lights),
         casts,
+        media,
         lights.sky,
         gpu.generation,
         &cloud.settings,
@@ -735,7 +771,7 @@ fn cloud_params(
             cloud.anisotropy as f64,
         ) as f32,
         lit: lights.any() as u32,
-        _padding: 0,
+        foreign: 0,
     }
 }
 

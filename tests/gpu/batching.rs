@@ -10,7 +10,7 @@ use bevy_particle_clouds::{CloudPass, reference::metrics::max_relative_differenc
 use crate::{common, plugin::small_cloud};
 
 /// A camera and one light looking at clouds along x, the light across the row (so that no cloud
-/// shadows another: `shadows.rs` tests that).
+/// shadows another: `between_clouds.rs` tests that).
 fn scene() -> App {
     let mut app = common::headless_app();
     let image = headless::float_target(&mut app, 64, 32);

@@ -2,6 +2,7 @@
 //! what the GPU computed with a CPU reference, or counts the passes a scene runs.
 
 mod batching;
+mod between_clouds;
 mod budget;
 mod cloud_target;
 mod common;
@@ -12,7 +13,6 @@ mod lod;
 mod overlap;
 mod plugin;
 mod shading_method;
-mod shadows;
 mod sky;
 mod stress;
 mod warm_start;

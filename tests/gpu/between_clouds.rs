@@ -1,7 +1,8 @@
-//! Clouds shadow each other (docs/illumination.md §2): each cloud's light volumes take the optical
-//! depth of every cloud between it and the light. Against the CPU reference, voxel by voxel and
-//! image by image, with casters in the receiver's volume pool and in another; and the cast
-//! reruns only when what it reads changes.
+//! What clouds give each other (docs/illumination.md §2 and §4): a cloud's light volumes take the
+//! optical depth of every cloud between it and the light (their shadows), and its multiple
+//! scattering goes through the media of the clouds that overlap it. Against the CPU reference,
+//! voxel by voxel and image by image, with casters in the receiver's volume pool and in another;
+//! and the cast reruns only when what it reads changes.
 
 use bevy::{prelude::*, render::sync_world::RenderEntity};
 use bevy_particle_clouds::headless::{self, FrameRecorder};
@@ -9,10 +10,13 @@ use bevy_particle_clouds::{
     CloudPass, LightSample, Medium, Particle, ParticleCloud,
     reference::{
         composite::CloudPlacement,
-        illumination::{PlacedCloud, illuminate_clouds_under_sky},
+        illumination::{CloudIllumination, PlacedCloud, illuminate_clouds_under_sky},
         metrics::{max_relative_difference, relative_rmse},
     },
-    render::{pools::VolumePools, volumes::CloudVolumes},
+    render::{
+        pools::{BufferRange, VolumePool, VolumePools},
+        volumes::CloudVolumes,
+    },
 };
 
 use crate::common;
@@ -20,7 +24,7 @@ use crate::draw::{
     Setup, SetupCloud, assert_images_match, cloud_setup, reference, reference_of_clouds,
     spawn_clouds,
 };
-use crate::illumination::TOLERANCE;
+use crate::illumination::{TOLERANCE, flat};
 
 /// A cloud under a high sun, seen from the side; two more clouds above it, out of view, one of
 /// them at another volume resolution (another pool).
@@ -64,14 +68,35 @@ fn clouds<'a>(setup: &'a Setup, casters: &'a [Vec<Particle>; 2]) -> [SetupCloud<
 
 /// The light volumes of the cloud at `translation`, as the GPU holds them.
 fn light_volumes(app: &mut App, translation: Vec3) -> Vec<f64> {
+    slot_volume(app, translation, |pool, slot| pool.optical_depth(slot))
+}
+
+/// The multiple scattering of the cloud at `translation` (RGB), as the GPU holds it.
+fn multiple_scattering(app: &mut App, translation: Vec3) -> Vec<f64> {
+    let rgba = slot_volume(app, translation, |pool, slot| {
+        pool.volume(&pool.multiple, slot)
+    });
+    rgba.chunks_exact(4)
+        .flat_map(|c| [c[0], c[1], c[2]])
+        .collect()
+}
+
+/// The f32 volume `range` picks in the slot of the cloud at `translation`.
+fn slot_volume(
+    app: &mut App,
+    translation: Vec3,
+    range: impl FnOnce(&VolumePool, u32) -> BufferRange,
+) -> Vec<f64> {
     let cloud = cloud_at(app, translation);
     let render = app.world().get::<RenderEntity>(cloud).unwrap().id();
-    let depths = common::with_render_world(app, |world| {
+    let range = common::with_render_world(app, |world| {
         let volumes = world.get::<CloudVolumes>(render).expect("its volumes");
-        let pool = world.resource::<VolumePools>().pool(&volumes.slot);
-        pool.optical_depth(volumes.slot.index)
+        range(
+            world.resource::<VolumePools>().pool(&volumes.slot),
+            volumes.slot.index,
+        )
     });
-    let bytes = headless::read_buffer_range(app, &depths).unwrap();
+    let bytes = headless::read_buffer_range(app, &range).unwrap();
     headless::floats(&bytes)
         .into_iter()
         .map(f64::from)
@@ -89,8 +114,8 @@ fn cloud_at(app: &mut App, translation: Vec3) -> Entity {
         .expect("a cloud there")
 }
 
-/// The CPU reference's light volumes of the first of `clouds`, illuminated together.
-fn cpu_light_volumes(setup: &Setup, clouds: &[SetupCloud]) -> Vec<f64> {
+/// The CPU reference's illumination of the first of `clouds`, illuminated together.
+fn cpu_illumination(setup: &Setup, clouds: &[SetupCloud]) -> CloudIllumination {
     let placed: Vec<PlacedCloud> = clouds
         .iter()
         .map(|c| PlacedCloud {
@@ -105,8 +130,15 @@ fn cpu_light_volumes(setup: &Setup, clouds: &[SetupCloud]) -> Vec<f64> {
         })
         .collect();
     let cpu = illuminate_clouds_under_sky(&placed, &setup.lights, setup.sky.as_dvec3());
-    let receiver = cpu[0].as_ref().expect("a cloud with density");
-    receiver
+    cpu.into_iter()
+        .next()
+        .unwrap()
+        .expect("a cloud with density")
+}
+
+/// The CPU reference's light volumes of the first of `clouds`, illuminated together.
+fn cpu_light_volumes(setup: &Setup, clouds: &[SetupCloud]) -> Vec<f64> {
+    cpu_illumination(setup, clouds)
         .lights
         .iter()
         .flat_map(|(v, _)| v.optical_depth.iter().copied())
@@ -243,4 +275,34 @@ fn not_shadow_caster_and_not_shadow_receiver_opt_clouds_out() {
         let shaded = recorder.total(CloudPass::Shade);
         assert_eq!(shaded, 1, "not shadow {opt_out}");
     }
+}
+
+/// Two clouds that interpenetrate, under a sky alone (so that neither shadows the other): each
+/// one's multiple scattering goes through both media, as the CPU reference's does; alone, a cloud
+/// scatters far more where the other, darker one stands.
+#[test]
+fn interpenetrating_clouds_scatter_through_each_others_media() {
+    let (mut setup, casters) = stacked();
+    setup.lights.clear();
+    setup.sky = Vec3::new(0.4, 0.6, 1.0);
+    setup.medium.albedo = 0.99;
+    let mut other = caster(&casters[0], Vec3::new(0.4, 0.3, -0.2), 12);
+    other.medium.albedo = 0.5;
+    let clouds = [setup.cloud(), other];
+    let (mut app, _) = spawn_clouds(&setup, &clouds);
+    render(&mut app, &mut FrameRecorder::default(), 2);
+    let gpu = multiple_scattering(&mut app, Vec3::ZERO);
+    let cpu = flat(&cpu_illumination(&setup, &clouds).multiple.total);
+    let error = max_relative_difference(&gpu[..cpu.len()], &cpu);
+    assert!(
+        error <= TOLERANCE,
+        "multiple scattering: {error:e} of its maximum"
+    );
+    let alone = flat(&cpu_illumination(&setup, &[setup.cloud()]).multiple.total);
+    let change = max_relative_difference(&alone, &cpu);
+    eprintln!("multiple scattering with the other's medium against alone: {change}");
+    assert!(
+        change > 0.1,
+        "the other's medium changes too little: {change}"
+    );
 }
