@@ -1,8 +1,9 @@
 //! # bevy_particle_clouds
 //!
 //! Participating media — clouds, smoke, fog, snow — made of particles, rendered by Bevy on the GPU:
-//! lit by any number of directional lights and a sky ([`CloudSkyLight`]), self-shadowed, with
-//! multiple scattering; the medium scatters isotropically or forward ([`Medium::anisotropy`]).
+//! lit by any number of directional lights and a sky ([`CloudSkyLight`]), self-shadowed and
+//! shadowing each other, with multiple scattering (through each other's media where clouds
+//! overlap); the medium scatters isotropically or forward ([`Medium::anisotropy`]).
 //! It follows Remes, Umenhoffer and Szécsi, *GPU based particle rendering system for isotropic
 //! participating media*: per cloud the particles' density is voxelized, each light shades a
 //! light-aligned volume slice by slice, the lights are gathered into one illumination volume,

@@ -21,11 +21,13 @@ pub const PASSES: usize = 7;
 pub enum CloudPass {
     /// Particles → density volume, per cloud.
     Voxelize,
-    /// Light-aligned transmittance volume, per cloud and light.
+    /// Light-aligned transmittance volume, per cloud and light (its time and dispatches include
+    /// the cast of other clouds' shadows).
     Shade,
     /// All lights into one single-scattering volume, per cloud.
     Gather,
-    /// Multiple-scattering iterations, per cloud (one count per iteration).
+    /// Multiple-scattering iterations, per cloud (one count per iteration; its time and
+    /// dispatches include the overlap of other clouds' media).
     Scatter,
     /// Back-to-front particle sort, per cloud and view (`Compositing::Sorted`).
     Sort,
