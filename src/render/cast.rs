@@ -132,15 +132,22 @@ pub struct Caster {
     pub _padding: UVec2,
 }
 
-impl Caster {
-    /// The caster of the light volume `light` (with `first` and `n` as above) of a cloud whose
-    /// density cube is centred on `grid_centre`, placed by `caster_world_from_local`, on a
-    /// receiver placed by `receiver_world_from_local`.
+/// A cloud's own light volume as casters are made of it: where its voxels lie in the world.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CasterVolume {
+    /// The volume's continuous voxel coordinates of a world point.
+    coords_from_world: Affine3A,
+    first: u32,
+    n: u32,
+}
+
+impl CasterVolume {
+    /// The light volume `light`, at element `first` with `n` voxels per side, of a cloud whose
+    /// density cube is centred on `grid_centre`, placed by `world_from_local`.
     pub fn new(
         light: &LightParams,
         grid_centre: Vec3,
-        caster_world_from_local: &Affine3A,
-        receiver_world_from_local: &Affine3A,
+        world_from_local: &Affine3A,
         first: u32,
         n: u32,
     ) -> Self {
@@ -150,35 +157,141 @@ impl Caster {
         let rows = Mat3::from_cols(axes[0] / h.x, axes[1] / h.y, axes[2] / h.z).transpose();
         let offset = (light.half_extents - Vec3::from(axes.map(|a| a.dot(grid_centre)))) / h - 0.5;
         let coords = Affine3A::from_mat3_translation(rows, offset);
-        let relative = caster_world_from_local.inverse() * *receiver_world_from_local;
         Self {
-            coords_from_receiver: Mat4::from(coords * relative),
+            coords_from_world: coords * world_from_local.inverse(),
             first,
             n,
+        }
+    }
+
+    /// This volume casting on a target whose space is placed by `target_world_from_local` (the
+    /// identity for the world).
+    pub fn on(&self, target_world_from_local: &Affine3A) -> Caster {
+        Caster {
+            coords_from_receiver: Mat4::from(self.coords_from_world * *target_world_from_local),
+            first: self.first,
+            n: self.n,
             _padding: UVec2::ZERO,
         }
     }
 }
 
-/// A work item of the cast pass (`CastItem` in `cast.wgsl`): one light volume of one slot, and
-/// its casters that lie in the pool the dispatch binds.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
+/// What a cast target's optical depths start from, before its casters are added.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CastStart {
+    /// Nothing (a shadow map).
+    Zero = 0,
+    /// The target's own optical depth (a light volume; its first dispatch this frame).
+    Own = 1,
+    /// What the target holds (a later dispatch, for casters in another pool).
+    Held = 2,
+}
+
+/// A work item of the cast pass (`CastTarget` in `cast.wgsl`): a lattice of points in the
+/// target's space (a cloud's local space for its light volume, the world for a shadow map), and
+/// its casters that lie in the pool the dispatch binds. Point `(i, j, k)` lies at
+/// `origin + i step_x + j step_y + k step_z`; its value is element
+/// `first + i + size_x (j + size_y k)`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
 #[repr(C)]
-pub struct CastItem {
-    /// The receiver's slot in its pool.
-    pub slot: u32,
-    /// The light slot.
-    pub light: u32,
+pub struct CastTarget {
+    /// Point `(0, 0, 0)`.
+    pub origin: [f32; 3],
+    /// Its element in the optical depths written.
+    pub first: u32,
+    /// From one point to the next along x.
+    pub step_x: [f32; 3],
+    /// Points along x.
+    pub size_x: u32,
+    /// From one point to the next along y.
+    pub step_y: [f32; 3],
+    /// Points along y.
+    pub size_y: u32,
+    /// From one point to the next along z.
+    pub step_z: [f32; 3],
+    /// Points along z.
+    pub size_z: u32,
     /// Its first caster in the dispatch's caster array.
     pub first_caster: u32,
     /// Its casters in that array.
     pub casters: u32,
-    /// 0: the volume becomes its own optical depth plus these casters' (the first dispatch that
-    /// casts on it this frame); 1: these casters are added to it (a later one, for casters in
-    /// another pool).
-    pub accumulate: u32,
-    /// Unused: pads the item to 32 bytes (work lists are bound in 256-byte chunks).
-    pub _padding: [u32; 3],
+    /// A [`CastStart`].
+    pub start: u32,
+    /// Unused: pads the item to 80 bytes (work lists are bound in 256-byte chunks).
+    pub _padding: u32,
+}
+
+impl CastTarget {
+    /// The voxels of light volume `light` of a cloud whose density cube is centred on
+    /// `grid_centre` (cloud-local), starting at element `first`.
+    pub fn light_volume(light: &LightParams, grid_centre: Vec3, n: u32, first: u32) -> Self {
+        let h = Vec3::new(light.h_u, light.h_v, light.h_w);
+        let axes = [light.u, light.v, light.w];
+        let corner = -light.half_extents + 0.5 * h;
+        let origin = grid_centre + axes[0] * corner.x + axes[1] * corner.y + axes[2] * corner.z;
+        let step = |a: usize| (axes[a] * h[a]).to_array();
+        Self {
+            origin: origin.to_array(),
+            first,
+            step_x: step(0),
+            size_x: n,
+            step_y: step(1),
+            size_y: n,
+            step_z: step(2),
+            size_z: n,
+            ..default()
+        }
+    }
+
+    /// Points in all.
+    pub fn points(&self) -> u32 {
+        self.size_x * self.size_y * self.size_z
+    }
+}
+
+/// The cast work of one target buffer (a pool's light volumes, or the shadow maps) whose casters
+/// lie in one pool: the targets, and their casters.
+#[derive(Default)]
+pub struct CastWork {
+    /// One per target.
+    pub targets: Vec<CastTarget>,
+    /// The targets' casters, each target's in a run.
+    pub casters: Vec<Caster>,
+}
+
+/// Adds `target`, cast on by `casters` (each with the pool it lies in), to `work`, one item per
+/// pool the casters lie in. The first (in pool order, the order the dispatches run) starts from
+/// `start`, the others add to what the first wrote. Without casters, one item in `own_pool`
+/// writes `start` alone (a light volume whose casters have gone gets its own optical depth
+/// back).
+pub fn add_cast<P: Copy + Ord + std::hash::Hash>(
+    work: &mut bevy::platform::collections::HashMap<P, CastWork>,
+    target: CastTarget,
+    start: CastStart,
+    casters: impl IntoIterator<Item = (P, Caster)>,
+    own_pool: P,
+) {
+    let mut by_pool: Vec<(P, Vec<Caster>)> = Vec::new();
+    for (pool, caster) in casters {
+        match by_pool.iter_mut().find(|(p, _)| *p == pool) {
+            Some((_, list)) => list.push(caster),
+            None => by_pool.push((pool, vec![caster])),
+        }
+    }
+    if by_pool.is_empty() {
+        by_pool.push((own_pool, Vec::new()));
+    }
+    by_pool.sort_by_key(|(pool, _)| *pool);
+    for (i, (pool, casters)) in by_pool.into_iter().enumerate() {
+        let w = work.entry(pool).or_default();
+        w.targets.push(CastTarget {
+            first_caster: w.casters.len() as u32,
+            casters: casters.len() as u32,
+            start: if i == 0 { start } else { CastStart::Held } as u32,
+            ..target
+        });
+        w.casters.extend(casters);
+    }
 }
 
 #[cfg(test)]
@@ -252,6 +365,59 @@ pub(crate) mod tests {
     }
 
     #[test]
+    fn a_light_volumes_cast_target_walks_its_voxel_centres() {
+        let light = LightParams {
+            u: Vec3::X,
+            h_u: 0.5,
+            v: Vec3::Z,
+            h_v: 0.25,
+            w: Vec3::NEG_Y,
+            h_w: 1.0,
+            half_extents: Vec3::new(2.0, 1.0, 4.0),
+            ..default()
+        };
+        let centre = Vec3::new(1.0, 2.0, 3.0);
+        let t = CastTarget::light_volume(&light, centre, 8, 100);
+        // Voxel (a, b, c) at C + xi_u u + xi_v v + xi_w w, xi = -e + (idx + 0.5) h.
+        let (a, b, c) = (3.0, 5.0, 7.0);
+        let xi = -light.half_extents + (Vec3::new(a, b, c) + 0.5) * Vec3::new(0.5, 0.25, 1.0);
+        let expected = centre + xi.x * light.u + xi.y * light.v + xi.z * light.w;
+        let point = Vec3::from(t.origin)
+            + a * Vec3::from(t.step_x)
+            + b * Vec3::from(t.step_y)
+            + c * Vec3::from(t.step_z);
+        assert!((point - expected).length() < 1e-5, "{point} vs {expected}");
+        assert_eq!((t.first, t.points()), (100, 512));
+    }
+
+    #[test]
+    fn a_target_is_cast_on_once_per_pool_its_casters_lie_in() {
+        let mut work = bevy::platform::collections::HashMap::default();
+        let target = CastTarget::default();
+        let caster = |n| Caster { n, ..default() };
+        let casters = [(2, caster(1)), (1, caster(2)), (2, caster(3))];
+        add_cast(&mut work, target, CastStart::Own, casters, 7);
+        // Pool 1 runs first and starts from the target's own depth; pool 2 adds its two.
+        let one = &work[&1];
+        assert_eq!(
+            (one.targets[0].start, one.targets[0].casters),
+            (CastStart::Own as u32, 1)
+        );
+        let two = &work[&2];
+        assert_eq!(
+            (two.targets[0].start, two.targets[0].casters),
+            (CastStart::Held as u32, 2)
+        );
+        assert_eq!(two.casters.iter().map(|c| c.n).collect::<Vec<_>>(), [1, 3]);
+        // No caster: one item in its own pool, its own depth alone.
+        add_cast(&mut work, target, CastStart::Own, [], 7);
+        assert_eq!(
+            (work[&7].targets[0].casters, work[&7].targets[0].start),
+            (0, 1)
+        );
+    }
+
+    #[test]
     fn a_caster_maps_receiver_points_to_its_light_box_voxels() {
         let light = LightParams {
             u: Vec3::X,
@@ -266,7 +432,7 @@ pub(crate) mod tests {
         let centre = Vec3::new(1.0, 2.0, 3.0);
         let caster = Affine3A::from_translation(Vec3::new(10.0, 0.0, 0.0));
         let receiver = Affine3A::from_translation(Vec3::new(12.0, 1.0, 0.0));
-        let c = Caster::new(&light, centre, &caster, &receiver, 0, 8);
+        let c = CasterVolume::new(&light, centre, &caster, 0, 8).on(&receiver);
         // Receiver-local p is caster-local p + (2, 1, 0).
         let p = Vec3::new(-0.5, 0.5, 2.0);
         let local = p + Vec3::new(2.0, 1.0, 0.0);

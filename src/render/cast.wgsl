@@ -1,13 +1,16 @@
-// Cast: the shadows clouds cast on each other (docs/illumination.md §2, "Clouds shadow each
-// other"). Optical depths add along a line, so a light volume of a cloud that others shadow is its
-// own optical depth plus, at each voxel centre, every caster's own volume looked up there. One
-// invocation per voxel of a light volume; z workgroup i rebuilds the volume of `work[i]` from the
-// casters of it that lie in the pool bound as `caster_depth` (one dispatch per pool they lie in).
-#import bevy_particle_clouds::types::{LightParams, Slot, flat_invocation, light_voxel_centre, clamped_lookup, clamped_corner, corner_weight}
+// Cast: the shadows clouds cast (docs/illumination.md §2, "Clouds shadow each other"). Optical
+// depths add along a line, so a light volume of a cloud that others shadow is its own optical
+// depth plus, at each voxel centre, every caster's own volume looked up there; and a cloud shadow
+// map (§10) is the sum of every cloud's at each texel's column. One invocation per point of a
+// target's lattice (a light volume's voxels, a map's texels); z workgroup i does target `work[i]`
+// with its casters that lie in the pool bound as `caster_depth` (one dispatch per pool they lie
+// in).
+#import bevy_particle_clouds::types::{flat_invocation, clamped_lookup, clamped_corner, corner_weight}
 
 // Rust mirror: `Caster` in cast.rs.
 struct Caster {
-    // The caster's light-box voxel coordinates (voxel i's centre at i) of a receiver-local point.
+    // The caster's light-box voxel coordinates (voxel i's centre at i) of a point in the
+    // target's space.
     coords_from_receiver: mat4x4<f32>,
     // First element of its own light volume in `caster_depth`, and voxels per side.
     first: u32,
@@ -15,32 +18,40 @@ struct Caster {
     _padding: vec2<u32>,
 }
 
-// Rust mirror: `CastItem` in cast.rs.
-struct CastItem {
-    slot: u32,
-    light: u32,
+// Rust mirror: `CastTarget` in cast.rs: a lattice of points in the target's space (a cloud's
+// local space, or the world), point (i, j, k) at origin + i step_x + j step_y + k step_z, its
+// value at element first + i + size_x (j + size_y k).
+struct CastTarget {
+    origin: vec3<f32>,
+    first: u32,
+    step_x: vec3<f32>,
+    size_x: u32,
+    step_y: vec3<f32>,
+    size_y: u32,
+    step_z: vec3<f32>,
+    size_z: u32,
     first_caster: u32,
     casters: u32,
-    // 0: own optical depth plus these casters'; 1: these casters added to what the volume holds.
-    accumulate: u32,
-    _padding_0: u32,
-    _padding_1: u32,
-    _padding_2: u32,
+    // What the casters add to: 0 nothing, 1 the target's own optical depth, 2 what it holds.
+    start: u32,
+    _padding: u32,
 }
 
-// The receivers' pool.
-@group(0) @binding(0) var<storage, read> slots: array<Slot>;
-@group(0) @binding(1) var<storage, read> lights: array<LightParams>;
-@group(0) @binding(2) var<storage, read> own_depth: array<f32>;
-@group(0) @binding(3) var<storage, read_write> optical_depth: array<f32>;
+// The targets' own optical depths (a pool's `own_depth`; unread for a shadow map), and the
+// optical depths written.
+@group(0) @binding(0) var<storage, read> own_depth: array<f32>;
+@group(0) @binding(1) var<storage, read_write> optical_depth: array<f32>;
 // This dispatch's casters, and the own light volumes of the pool they lie in.
-@group(0) @binding(4) var<storage, read> casters: array<Caster>;
-@group(0) @binding(5) var<storage, read> caster_depth: array<f32>;
-@group(0) @binding(6) var<storage, read> work: array<CastItem>;
+@group(0) @binding(2) var<storage, read> casters: array<Caster>;
+@group(0) @binding(3) var<storage, read> caster_depth: array<f32>;
+@group(0) @binding(4) var<storage, read> work: array<CastTarget>;
 
-// The optical depth `caster` casts on receiver-local point `p`: 0 beside its light box or before
-// it (its column holds none of the caster there); inside or past it, the clamped lookup, whose
-// last slice (the whole column) carries on past the box.
+const START_ZERO: u32 = 0u;
+const START_OWN: u32 = 1u;
+
+// The optical depth `caster` casts on point `p` of the target's space: 0 beside its light box or
+// before it (its column holds none of the caster there); inside or past it, the clamped lookup,
+// whose last slice (the whole column) carries on past the box.
 fn cast_depth(caster: Caster, p: vec3<f32>) -> f32 {
     let g = (caster.coords_from_receiver * vec4(p, 1.0)).xyz;
     let edge = f32(caster.n) - 0.5;
@@ -57,20 +68,23 @@ fn cast_depth(caster: Caster, p: vec3<f32>) -> f32 {
 
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn cast_shadows(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let item = work[id.z];
-    let slot = slots[item.slot];
-    let light = lights[slot.lights + item.light];
-    let m = slot.fine.n;
+    let lattice = work[id.z];
     let i = flat_invocation(id, groups);
-    if i >= m * m * m {
+    if i >= lattice.size_x * lattice.size_y * lattice.size_z {
         return;
     }
-    let p = light_voxel_centre(slot.fine, light, vec3(i % m, (i / m) % m, i / (m * m)));
+    let v = vec3(i % lattice.size_x, (i / lattice.size_x) % lattice.size_y, i / (lattice.size_x * lattice.size_y));
+    let p = lattice.origin + f32(v.x) * lattice.step_x + f32(v.y) * lattice.step_y + f32(v.z) * lattice.step_z;
     var tau = 0.0;
-    for (var k = 0u; k < item.casters; k++) {
-        tau += cast_depth(casters[item.first_caster + k], p);
+    for (var k = 0u; k < lattice.casters; k++) {
+        tau += cast_depth(casters[lattice.first_caster + k], p);
     }
-    let at = slot.optical_depth + light.offset + i;
-    let held = select(own_depth[at], optical_depth[at], item.accumulate != 0u);
+    let at = lattice.first + i;
+    var held = 0.0;
+    if lattice.start == START_OWN {
+        held = own_depth[at];
+    } else if lattice.start != START_ZERO {
+        held = optical_depth[at];
+    }
     optical_depth[at] = held + tau;
 }

@@ -20,7 +20,7 @@ use bevy::{
 };
 
 use super::{
-    cast::{CastItem, Caster},
+    cast::{CastStart, CastTarget, CastWork, Caster, CasterVolume, add_cast},
     extract::ExtractedCloud,
     gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, WorkList, record_stage, storage_init},
     overlap::{Neighbour, OverlapItem},
@@ -185,7 +185,7 @@ pub(crate) fn prepare_illumination_bind_groups(
         w.shade.extend(plan.shade.iter().map(|&l| [slot, l as u32]));
         for &l in &plan.cast {
             let casters = state.casters.get(l).map_or(&[][..], Vec::as_slice);
-            add_casts(&mut w.cast, (cloud, v), l as u32, casters, &placed, &pools);
+            add_light_cast(&mut w.cast, (cloud, v), l, casters, &placed, &pools);
         }
         if plan.gather {
             w.gather.push(slot);
@@ -229,12 +229,10 @@ pub(crate) fn prepare_illumination_bind_groups(
                     c.casters.push(Caster::default()); // a binding may not be empty
                 }
                 let casters = storage_init(&device, "particle_clouds_casters", &c.casters);
-                Batch::new(&device, &c.items, |work| {
+                Batch::new(&device, &c.targets, |work| {
                     bind(
                         &pipelines.cast,
                         &BindGroupEntries::sequential((
-                            pool.slots.as_entire_binding(),
-                            pool.lights.as_entire_binding(),
                             pool.own_depth.as_entire_binding(),
                             pool.optical_depth.as_entire_binding(),
                             casters.as_entire_binding(),
@@ -303,59 +301,53 @@ pub(crate) fn prepare_illumination_bind_groups(
     commands.insert_resource(IlluminationBatches(batches));
 }
 
-/// The cast work of one receivers' pool whose casters lie in one pool: the light volumes to
-/// rebuild, and their casters.
-#[derive(Default)]
-struct CastWork {
-    items: Vec<CastItem>,
-    casters: Vec<Caster>,
-}
-
 /// Adds the cast of light slot `light` of `receiver` (its cloud and volumes) by `casters` (render
-/// entities, found in `placed`) to `work`, one item per pool the casters lie in: the first
-/// (in pool order, the order the dispatches run) rebuilds the volume from its own optical
-/// depth, the others add to it. Without casters, one item in the receiver's own pool resets
-/// the volume to its own optical depth (its casters have gone).
-fn add_casts(
+/// entities, found in `placed`) to `work` ([`add_cast`]).
+fn add_light_cast(
     work: &mut HashMap<PoolId, CastWork>,
     (receiver, volumes): (&ExtractedCloud, &CloudVolumes),
-    light: u32,
+    light: usize,
     casters: &[Entity],
     placed: &HashMap<Entity, (&ExtractedCloud, &CloudVolumes)>,
     pools: &VolumePools,
 ) {
-    let mut by_pool: HashMap<PoolId, Vec<Caster>> = HashMap::default();
-    for (cloud, v) in casters.iter().filter_map(|e| placed.get(e)) {
-        let Some(params) = v.lights.get(light as usize) else {
-            continue;
-        };
-        let first = pools.pool(&v.slot).optical_depth(v.slot.index).offset / 4;
-        by_pool.entry(v.slot.pool).or_default().push(Caster::new(
-            params,
-            v.params.grid_centre,
-            &cloud.world_from_local,
-            &receiver.world_from_local,
-            first as u32 + params.offset,
-            v.params.light_n,
-        ));
-    }
-    if by_pool.is_empty() {
-        by_pool.insert(volumes.slot.pool, Vec::new());
-    }
-    let mut by_pool: Vec<_> = by_pool.into_iter().collect();
-    by_pool.sort_by_key(|(pool, _)| *pool);
-    for (i, (pool, casters)) in by_pool.into_iter().enumerate() {
-        let w = work.entry(pool).or_default();
-        w.items.push(CastItem {
-            slot: volumes.slot.index,
-            light,
-            first_caster: w.casters.len() as u32,
-            casters: casters.len() as u32,
-            accumulate: (i > 0) as u32,
-            ..default()
+    let Some(params) = volumes.lights.get(light) else {
+        return;
+    };
+    let own = pools.pool(&volumes.slot).optical_depth(volumes.slot.index);
+    let first = (own.offset / 4) as u32 + params.offset;
+    let n = volumes.params.light_n;
+    let target = CastTarget::light_volume(params, volumes.params.grid_centre, n, first);
+    let casters = casters
+        .iter()
+        .filter_map(|e| placed.get(e))
+        .filter_map(|&(cloud, v)| {
+            let caster = light_caster(cloud, v, light, pools)?;
+            Some((v.slot.pool, caster.on(&receiver.world_from_local)))
         });
-        w.casters.extend(casters);
-    }
+    add_cast(work, target, CastStart::Own, casters, volumes.slot.pool);
+}
+
+/// Light volume `light` of a cloud (its own optical depth), as the clouds it shadows see it.
+pub(crate) fn light_caster(
+    cloud: &ExtractedCloud,
+    volumes: &CloudVolumes,
+    light: usize,
+    pools: &VolumePools,
+) -> Option<CasterVolume> {
+    let params = volumes.lights.get(light)?;
+    let first = pools
+        .pool(&volumes.slot)
+        .optical_depth(volumes.slot.index)
+        .offset
+        / 4;
+    Some(CasterVolume::new(
+        params,
+        volumes.params.grid_centre,
+        &cloud.world_from_local,
+        first as u32 + params.offset,
+        volumes.params.light_n,
+    ))
 }
 
 /// The overlap work of one receivers' pool whose neighbours lie in one pool.

@@ -250,7 +250,7 @@ pub(crate) fn init_illumination_pipelines(
         "particle_clouds_cast_layout",
         &BindGroupLayoutEntries::sequential(
             ShaderStages::COMPUTE,
-            (read(), read(), read(), write(), read(), read(), work()),
+            (read(), write(), read(), read(), work()),
         ),
     );
     let gather = BindGroupLayoutDescriptor::new(
