@@ -66,7 +66,8 @@ pub enum ObjectShape {
     Sphere(f32),
 }
 
-/// An opaque, unlit occluder showing a constant radiance.
+/// An opaque object: it shows a constant radiance `color`, plus, with a `reflectance`, the light
+/// it reflects as a Lambertian surface (docs/physics.md, "Lit objects").
 #[derive(Clone, Copy, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SceneObject {
@@ -75,8 +76,13 @@ pub struct SceneObject {
     /// World position of the shape's centre, metres; default origin.
     #[serde(default)]
     pub translation: Vec3,
-    /// Linear RGB radiance the object shows.
+    /// Linear RGB radiance the object emits.
     pub color: Vec3,
+    /// Linear RGB Lambertian reflectance in `[0, 1]`: the surface reflects `reflectance / π`
+    /// times the irradiance of the lights and the sky that reaches it through the clouds.
+    /// Default black: an unlit object.
+    #[serde(default)]
+    pub reflectance: Vec3,
 }
 
 /// A scene file as written (docs/scene-format.md).
@@ -395,7 +401,16 @@ fn validate_object(i: usize, o: &SceneObject) -> Result<(), SceneError> {
         }
     }
     check_finite(&format!("objects[{i}].translation"), o.translation)?;
-    check_radiance(&format!("objects[{i}].color"), o.color)
+    check_radiance(&format!("objects[{i}].color"), o.color)?;
+    let r = o.reflectance;
+    if !(r.is_finite() && r.cmpge(Vec3::ZERO).all() && r.cmple(Vec3::ONE).all()) {
+        return Err(invalid(
+            format!("objects[{i}].reflectance"),
+            fmt_vec3(r),
+            "every component must lie in [0, 1]",
+        ));
+    }
+    Ok(())
 }
 
 /// Everything but the clouds.
@@ -692,6 +707,7 @@ mod tests {
                 shape: ObjectShape::Cuboid(Vec3::new(0.8, 3.0, 0.3)),
                 translation: Vec3::new(0.9, 0.0, 1.8),
                 color: Vec3::splat(0.05),
+                reflectance: Vec3::ZERO,
             }]
         );
         assert_eq!(
@@ -738,7 +754,8 @@ mod tests {
             vec![SceneObject {
                 shape: ObjectShape::Sphere(0.5),
                 translation: Vec3::ZERO,
-                color: Vec3::new(1.0, 2.0, 3.0)
+                color: Vec3::new(1.0, 2.0, 3.0),
+                reflectance: Vec3::ZERO,
             }]
         );
         assert_eq!(s.settings.scatter_stencil, ScatterStencil::Paper);
@@ -941,6 +958,14 @@ mod tests {
         (
             |f| f.objects[0].color.x = -0.05,
             "objects[0].color is (-0.05, 0.05, 0.05); every component must be finite and >= 0",
+        ),
+        (
+            |f| f.objects[0].reflectance = Vec3::new(0.5, 1.2, 0.5),
+            "objects[0].reflectance is (0.5, 1.2, 0.5); every component must lie in [0, 1]",
+        ),
+        (
+            |f| f.objects[0].reflectance.z = f32::NAN,
+            "objects[0].reflectance is (0, 0, NaN); every component must lie in [0, 1]",
         ),
         (
             |f| f.settings.volume_resolution = 300,

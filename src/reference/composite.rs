@@ -537,6 +537,7 @@ mod tests {
             shape: ObjectShape::Sphere(0.3),
             translation: Vec3::new(0.0, 0.0, z),
             color,
+            reflectance: Vec3::ZERO,
         };
         // In front (depth 2.7 < 5): exactly the object's radiance.
         let red = Vec3::new(0.9, 0.1, 0.0);
@@ -667,6 +668,7 @@ mod tests {
             shape: ObjectShape::Sphere(0.01),
             translation: Vec3::ZERO,
             color: Vec3::X,
+            reflectance: Vec3::ZERO,
         };
         let clouds = [cloud(&particles, WHITE, k as f32)];
         let image = composite(&cam, DVec3::ZERO, &[obj], &clouds, 1.0);

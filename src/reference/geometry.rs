@@ -1,4 +1,4 @@
-//! Ray intersection with the opaque objects of a scene (unlit occluders of constant radiance).
+//! Ray intersection with the opaque objects of a scene, and their surface normals.
 
 use bevy::math::DVec3;
 
@@ -11,6 +11,27 @@ pub fn intersect_object(object: &SceneObject, origin: DVec3, dir: DVec3) -> Opti
         ObjectShape::Sphere(radius) => intersect_sphere(centre, radius as f64, origin, dir),
         ObjectShape::Cuboid(extents) => {
             intersect_box(centre, extents.as_dvec3() * 0.5, origin, dir)
+        }
+    }
+}
+
+/// The outward unit normal of `object` at its surface point `x`: for a box, that of the face `x`
+/// lies on (the axis where `x` is nearest the box's extent).
+pub fn object_normal(object: &SceneObject, x: DVec3) -> DVec3 {
+    let offset = x - object.translation.as_dvec3();
+    match object.shape {
+        ObjectShape::Sphere(_) => offset.normalize_or_zero(),
+        ObjectShape::Cuboid(extents) => {
+            let q = offset / (extents.as_dvec3() * 0.5);
+            let a = q.abs();
+            let axis = if a.x >= a.y && a.x >= a.z {
+                DVec3::X
+            } else if a.y >= a.z {
+                DVec3::Y
+            } else {
+                DVec3::Z
+            };
+            axis * q.dot(axis).signum()
         }
     }
 }

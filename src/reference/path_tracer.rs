@@ -38,7 +38,12 @@
 //!   double counting with next-event estimation.
 //!
 //! Transport is grey (the albedo is a scalar per cloud), so paths carry a scalar weight and colour
-//! only enters through `E_l`, `L_background` and the objects' `color`.
+//! only enters through `E_l`, `L_background` and the objects' `color` and `reflectance`.
+//!
+//! Lit objects (a `reflectance`) reflect, as Lambertian surfaces, the irradiance of the lights
+//! (shadow rays, blocked by objects and attenuated by the clouds with the exact transmittance)
+//! and of the sky (one cosine-distributed direction per path, blocked or attenuated alike);
+//! light the clouds scatter onto them is not part of the model (docs/physics.md).
 //!
 //! Camera rays start at the eye (`t = 0`, as in docs/physics.md), not at Bevy's near plane.
 
@@ -51,9 +56,9 @@ use std::sync::{
 use bevy::math::DVec3;
 use rayon::prelude::*;
 
-use crate::math::{INV_4PI, SplitMix64, henyey_greenstein, kernel_u2};
+use crate::math::{INV_4PI, SplitMix64, henyey_greenstein, kernel_u2, light_basis};
 use crate::reference::camera::PinholeCamera;
-use crate::reference::geometry::{box_interval, nearest_object};
+use crate::reference::geometry::{box_interval, nearest_object, object_normal};
 use crate::reference::metrics::relative_rmse;
 use crate::scene::{ResolvedCloud, Scene, SceneObject};
 
@@ -680,9 +685,13 @@ pub struct Lighting {
     pub background: DVec3,
     /// The directional lights.
     pub lights: Vec<DirectionalLight>,
-    /// Opaque unlit occluders.
+    /// Opaque objects: emitting their colour, and reflecting light where they have a reflectance.
     pub objects: Vec<SceneObject>,
 }
+
+/// How far a ray leaving an object's surface starts off it, metres: clear of the surface it
+/// leaves for any scene of sane size.
+const SURFACE_OFFSET: f64 = 1e-7;
 
 impl Lighting {
     /// The lighting of a scene; lights with a zero direction (refused by validation) are skipped.
@@ -716,6 +725,48 @@ impl Lighting {
         self.single_scattering(media, x, |to_light| media.phase(x, to_light.dot(dir)))
     }
 
+    /// The radiance object `index` shows at its surface point `x` (docs/physics.md, "Lit
+    /// objects"): its colour, plus `R / π` times the irradiance reaching it from the lights
+    /// (blocked by objects, attenuated by every cloud: exact transmittance) and from the sky
+    /// (one direction, cosine-distributed about the normal: `π L_background T` where nothing
+    /// blocks it), an unbiased estimate.
+    pub fn object_radiance<M: Media>(
+        &self,
+        media: &M,
+        index: usize,
+        x: DVec3,
+        rng: &mut SplitMix64,
+    ) -> DVec3 {
+        let object = &self.objects[index];
+        let emitted = object.color.as_dvec3();
+        let reflectance = object.reflectance.as_dvec3();
+        if reflectance == DVec3::ZERO {
+            return emitted;
+        }
+        let n = object_normal(object, x);
+        let origin = x + n * SURFACE_OFFSET;
+        let arriving = |to: DVec3| {
+            let blocked = nearest_object(&self.objects, origin, to).is_some();
+            if blocked {
+                0.0
+            } else {
+                (-media.optical_depth(origin, to, f64::INFINITY)).exp()
+            }
+        };
+        let mut irradiance = DVec3::ZERO;
+        for light in &self.lights {
+            let cos = n.dot(light.to_light);
+            if cos > 0.0 {
+                irradiance += light.irradiance * (cos * arriving(light.to_light));
+            }
+        }
+        if self.background != DVec3::ZERO {
+            irradiance +=
+                self.background * (std::f64::consts::PI * arriving(cosine_direction(n, rng)));
+        }
+        emitted + reflectance * irradiance * std::f64::consts::FRAC_1_PI
+    }
+
     fn single_scattering<M: Media>(
         &self,
         media: &M,
@@ -732,6 +783,18 @@ impl Lighting {
         }
         e
     }
+}
+
+/// A unit direction about the unit normal `n`, with the density `cos θ / π`.
+fn cosine_direction(n: DVec3, rng: &mut SplitMix64) -> DVec3 {
+    cosine_direction_of(n, [rng.next_f64(), rng.next_f64()])
+}
+
+/// The direction [`cosine_direction`] makes of the uniform numbers `u` in `[0, 1)²`.
+fn cosine_direction_of(n: DVec3, [u1, u2]: [f64; 2]) -> DVec3 {
+    let (r, phi) = (u1.sqrt(), 2.0 * std::f64::consts::PI * u2);
+    let [u, v, w] = light_basis(n);
+    u * (r * phi.cos()) + v * (r * phi.sin()) + w * (1.0 - u1).max(0.0).sqrt()
 }
 
 /// One-sample estimate of the radiance (linear RGB) arriving at `origin` from direction `-dir`
@@ -780,9 +843,10 @@ pub fn radiance_by_order<M: Media>(
         let t_max = object.map_or(f64::INFINITY, |(t, _)| t);
         let Some((t, c)) = sample_free_flight(media, o, d, t_max, rng) else {
             // Unscattered to the end of the ray: the object's radiance or the background.
-            orders[(events as usize).min(last)] += object.map_or(lighting.background, |(_, i)| {
-                lighting.objects[i].color.as_dvec3()
-            });
+            orders[(events as usize).min(last)] += match object {
+                Some((t, i)) => lighting.object_radiance(media, i, o + d * t, rng),
+                None => lighting.background,
+            };
             return;
         };
         let x = o + d * t;
@@ -1534,6 +1598,7 @@ mod tests {
             shape: ObjectShape::Sphere(3.0),
             translation: Vec3::new(0.0, 10.0, 0.0),
             color: Vec3::ZERO,
+            reflectance: Vec3::ZERO,
         };
         let clouds = vec![cloud(Vec3::ZERO, 3.0, 0.9, particles.clone())];
         let shaded = scene(clouds.clone(), vec![light], Vec3::ZERO, vec![shade], (1, 1));
@@ -1557,6 +1622,7 @@ mod tests {
             shape: ObjectShape::Cuboid(Vec3::new(10.0, 10.0, 0.2)),
             translation: Vec3::new(0.0, 0.0, -3.0),
             color,
+            reflectance: Vec3::ZERO,
         };
         let absorbing = vec![cloud(Vec3::ZERO, 1.5, 0.0, particles)];
         let s = scene(absorbing, vec![light], Vec3::ONE, vec![wall], (1, 1));
@@ -1668,6 +1734,131 @@ mod tests {
         assert!(
             (0.35..0.7).contains(&ratio),
             "noise ratio 64/16 spp = {ratio}, expected ≈ 0.5"
+        );
+    }
+
+    /// The top face of a ground box (reflectance (0.2, 0.5, 0.8), colour (0.01, 0.02, 0.03)) at
+    /// the point (0.3, 0, 0.1), under `lights`, clouds and a background: its radiance, the mean
+    /// of `samples` paths.
+    fn ground_radiance(
+        clouds: Vec<ResolvedCloud>,
+        lights: Vec<LightSample>,
+        background: Vec3,
+        samples: usize,
+    ) -> DVec3 {
+        let ground = SceneObject {
+            shape: ObjectShape::Cuboid(Vec3::new(40.0, 1.0, 40.0)),
+            translation: Vec3::new(0.0, -0.5, 0.0),
+            color: Vec3::new(0.01, 0.02, 0.03),
+            reflectance: Vec3::new(0.2, 0.5, 0.8),
+        };
+        let s = scene(clouds, lights, background, vec![ground], (1, 1));
+        let (media, lighting) = (ParticleMedia::from_scene(&s), Lighting::from_scene(&s));
+        let mut rng = SplitMix64::mixed(81);
+        // Obliquely, clear of the particles the tests put above the point.
+        let (eye, target) = (DVec3::new(4.3, 0.5, 0.1), DVec3::new(0.3, 0.0, 0.1));
+        let dir = (target - eye).normalize();
+        let sum: DVec3 = (0..samples)
+            .map(|_| radiance(&media, &lighting, eye, dir, MAX_SCATTER_EVENTS, &mut rng))
+            .sum();
+        sum / samples as f64
+    }
+
+    #[test]
+    fn a_lit_object_reflects_its_lights_and_the_sky_as_a_lambertian_surface() {
+        let color = DVec3::new(0.01, 0.02, 0.03);
+        let r = DVec3::new(0.2, 0.5, 0.8);
+        // A light 60° from the normal, and one below the surface (it lights nothing); no clouds
+        // and nothing above the ground, so the sky's estimate has no variance.
+        let lights = vec![
+            LightSample {
+                direction: Vec3::new(3f32.sqrt(), -1.0, 0.0),
+                irradiance: Vec3::new(2.0, 1.0, 4.0),
+            },
+            LightSample {
+                direction: Vec3::Y,
+                irradiance: Vec3::splat(9.0),
+            },
+        ];
+        let sky = Vec3::new(0.1, 0.2, 0.3);
+        let got = ground_radiance(vec![], lights, sky, 64);
+        let e = DVec3::new(2.0, 1.0, 4.0) * 0.5 + sky.as_dvec3() * std::f64::consts::PI;
+        let expected = color + r * e / std::f64::consts::PI;
+        // Exact but for the scene's f32 inputs.
+        assert!(
+            (got - expected).abs().max_element() < 1e-7,
+            "{got} vs {expected}"
+        );
+    }
+
+    #[test]
+    fn a_cloud_between_a_lit_object_and_its_light_shadows_it_by_its_transmittance() {
+        // One particle straight above the point seen, the light straight down: the shadow ray
+        // runs through the particle's centre, tau = K eta r 16/15.
+        let (k, eta, radius) = (1.5f32, 0.8f32, 0.5f32);
+        let above = cloud(
+            Vec3::new(0.3, 1.0, 0.1),
+            k,
+            0.0,
+            vec![particle(0.0, 0.0, 0.0, radius, eta)],
+        );
+        let light = LightSample {
+            direction: Vec3::NEG_Y,
+            irradiance: Vec3::ONE,
+        };
+        // The camera ray passes the particle too (it sees the ground through it): look at the
+        // ground point from beside it instead, through clear air.
+        let ground = SceneObject {
+            shape: ObjectShape::Cuboid(Vec3::new(40.0, 1.0, 40.0)),
+            translation: Vec3::new(0.0, -0.5, 0.0),
+            color: Vec3::ZERO,
+            reflectance: Vec3::ONE,
+        };
+        let s = scene(vec![above], vec![light], Vec3::ZERO, vec![ground], (1, 1));
+        let (media, lighting) = (ParticleMedia::from_scene(&s), Lighting::from_scene(&s));
+        let target = DVec3::new(0.3, 0.0, 0.1);
+        let eye = DVec3::new(3.3, 1.0, 0.1);
+        let dir = (target - eye).normalize();
+        let mut rng = SplitMix64::mixed(82);
+        let got = radiance(&media, &lighting, eye, dir, MAX_SCATTER_EVENTS, &mut rng);
+        let tau = (k * eta * radius) as f64 * 16.0 / 15.0;
+        let expected = (-tau).exp() / std::f64::consts::PI;
+        assert!((got.x - expected).abs() < 1e-7, "{} vs {expected}", got.x);
+        // Under a sky alone, a thick particle above darkens the ground by the cosine-weighted
+        // mean transmittance of the sky's directions: against a midpoint quadrature of that mean.
+        let thick = || {
+            vec![cloud(
+                Vec3::new(0.3, 1.0, 0.1),
+                4.0,
+                0.0,
+                vec![particle(0.0, 0.0, 0.0, 0.9, 1.0)],
+            )]
+        };
+        let samples = 20_000;
+        let got = ground_radiance(thick(), vec![], Vec3::ONE, samples);
+        let s = scene(thick(), vec![], Vec3::ONE, vec![], (1, 1));
+        let media = ParticleMedia::from_scene(&s);
+        let n = 200;
+        let visible: f64 = (0..n * n)
+            .map(|i| {
+                let u = [(i % n) as f64, (i / n) as f64].map(|c| (c + 0.5) / n as f64);
+                let d = cosine_direction_of(DVec3::Y, u);
+                (-media.optical_depth(target, d, f64::INFINITY)).exp()
+            })
+            .sum::<f64>()
+            / (n * n) as f64;
+        // Radiance = colour + R * (mean transmittance); its standard error is at most R / 2 /
+        // sqrt(samples) (T lies in [0, 1]).
+        let expected = 0.01 + 0.2 * visible;
+        let error = 4.0 * 0.2 * 0.5 / (samples as f64).sqrt();
+        assert!(
+            visible < 0.7,
+            "the particle hides much of the sky: {visible}"
+        );
+        assert!(
+            (got.x - expected).abs() < error,
+            "{} vs {expected} ± {error}",
+            got.x
         );
     }
 }

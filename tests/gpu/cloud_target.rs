@@ -41,11 +41,13 @@ fn occluded_setup(compositing: Compositing, scale: f32) -> Setup {
             shape: ObjectShape::Cuboid(Vec3::new(0.4, 0.4, 0.1)),
             translation: Vec3::new(-0.3, 0.0, 2.0),
             color: FRONT,
+            reflectance: Vec3::ZERO,
         },
         SceneObject {
             shape: ObjectShape::Cuboid(Vec3::new(1.5, 3.0, 0.1)),
             translation: Vec3::new(0.6, 0.0, -1.2),
             color: BACK,
+            reflectance: Vec3::ZERO,
         },
     ];
     setup.settings.compositing = compositing;

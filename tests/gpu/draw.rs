@@ -437,11 +437,13 @@ fn opaque_objects_hide_the_cloud_and_the_cloud_blends_over_objects_behind() {
             shape: ObjectShape::Cuboid(Vec3::new(0.4, 0.4, 0.1)),
             translation: Vec3::new(-0.3, 0.0, 2.0),
             color: front,
+            reflectance: Vec3::ZERO,
         },
         SceneObject {
             shape: ObjectShape::Cuboid(Vec3::new(3.0, 3.0, 0.1)),
             translation: Vec3::new(0.0, 0.0, -2.0),
             color: back,
+            reflectance: Vec3::ZERO,
         },
     ];
     let (_, _, gpu) = render(&setup);
