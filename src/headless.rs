@@ -45,7 +45,9 @@ use crate::{
     CloudPass, CloudPassCounters, CloudQualitySettings, CloudSkyLight, Medium, PASSES, Particle,
     ParticleCloud, ParticleCloudsPlugin, Particles,
     linear_image::LinearImage,
-    scene::{ObjectShape, Scene},
+    lit_object::{LitObjectMaterial, LitObjectPlugin, LitSurface},
+    scene::{ObjectShape, Scene, SceneObject},
+    shadow_maps::CloudShadowMaps,
 };
 
 /// `ev100` for which Bevy's exposure factor `1 / (1.2 * 2^ev100)` is exactly 1: images hold
@@ -87,8 +89,11 @@ pub fn app() -> App {
 /// timing added, finished and cleaned up, ready to render inside `app.update()`.
 pub fn app_with(plugins: impl PluginGroup) -> App {
     let mut app = App::new();
-    app.add_plugins(plugins)
-        .add_plugins((RenderDiagnosticsPlugin, ParticleCloudsPlugin));
+    app.add_plugins(plugins).add_plugins((
+        RenderDiagnosticsPlugin,
+        ParticleCloudsPlugin,
+        LitObjectPlugin,
+    ));
     app.finish();
     app.cleanup();
     app
@@ -215,8 +220,14 @@ pub fn spawn_scene(app: &mut App, scene: &Scene) -> SceneTarget {
             Transform::from_translation(cloud.translation),
         );
     }
+    // Lit objects take the clouds' shadows through the shadow maps.
+    if scene.objects.iter().any(|o| o.reflectance != Vec3::ZERO) {
+        app.insert_resource(CloudShadowMaps::with_resolution(
+            SCENE_SHADOW_MAP_RESOLUTION,
+        ));
+    }
     for object in &scene.objects {
-        spawn_object(app, object.shape, object.translation, object.color);
+        spawn_object(app, object);
     }
     SceneTarget {
         image,
@@ -249,27 +260,49 @@ pub fn spawn_cloud(
         .id()
 }
 
-/// An opaque, unlit object showing the constant linear radiance `color`.
-pub fn spawn_object(app: &mut App, shape: ObjectShape, translation: Vec3, color: Vec3) -> Entity {
-    let mesh = match shape {
+/// Texels per side of the cloud shadow maps of a scene with lit objects.
+pub const SCENE_SHADOW_MAP_RESOLUTION: u32 = 512;
+
+/// Spawns a scene object: a mesh showing its `color`, and, with a `reflectance`, a Lambertian
+/// surface lit through the clouds ([`LitObjectMaterial`]; turn the [`CloudShadowMaps`] on for its
+/// shadows, as [`spawn_scene`] does).
+pub fn spawn_object(app: &mut App, object: &SceneObject) -> Entity {
+    let mesh = match object.shape {
         ObjectShape::Cuboid(extents) => Mesh::from(Cuboid::new(extents.x, extents.y, extents.z)),
         ObjectShape::Sphere(radius) => Sphere::new(radius).mesh().ico(5).expect("ico sphere"),
     };
-    let mesh = app.world_mut().resource_mut::<Assets<Mesh>>().add(mesh);
+    let mesh = Mesh3d(app.world_mut().resource_mut::<Assets<Mesh>>().add(mesh));
+    let transform = Transform::from_translation(object.translation);
+    let color = object.color;
+    if object.reflectance == Vec3::ZERO {
+        let material = app
+            .world_mut()
+            .resource_mut::<Assets<StandardMaterial>>()
+            .add(StandardMaterial {
+                base_color: Color::linear_rgb(color.x, color.y, color.z),
+                unlit: true,
+                ..default()
+            });
+        return app
+            .world_mut()
+            .spawn((mesh, MeshMaterial3d(material), transform))
+            .id();
+    }
+    let shadow_maps = app.world().resource::<CloudShadowMaps>().buffer.clone();
+    let material = LitObjectMaterial {
+        surface: LitSurface {
+            color,
+            reflectance: object.reflectance,
+        },
+        lights: default(),
+        shadow_maps,
+    };
     let material = app
         .world_mut()
-        .resource_mut::<Assets<StandardMaterial>>()
-        .add(StandardMaterial {
-            base_color: Color::linear_rgb(color.x, color.y, color.z),
-            unlit: true,
-            ..default()
-        });
+        .resource_mut::<Assets<LitObjectMaterial>>()
+        .add(material);
     app.world_mut()
-        .spawn((
-            Mesh3d(mesh),
-            MeshMaterial3d(material),
-            Transform::from_translation(translation),
-        ))
+        .spawn((mesh, MeshMaterial3d(material), transform))
         .id()
 }
 

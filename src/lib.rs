@@ -57,6 +57,8 @@ pub mod headless;
 #[cfg(feature = "image")]
 pub mod image_io;
 pub mod linear_image;
+#[cfg(feature = "headless")]
+pub mod lit_object;
 pub mod loader;
 pub mod lod;
 pub mod math;
@@ -68,6 +70,7 @@ pub mod render;
 #[cfg(feature = "scene")]
 pub mod scene;
 pub mod settings;
+pub mod shadow_maps;
 pub mod stats;
 
 use bevy::prelude::*;
@@ -81,14 +84,16 @@ pub use settings::{
     CloudQualitySettings, CloudRelightBudget, CloudTargetScale, Compositing, DefaultCloudQuality,
     ScatterStencil,
 };
+pub use shadow_maps::CloudShadowMaps;
 pub use stats::{CloudPass, CloudPassCounters, PASSES};
 
 /// Everything a Bevy user needs.
 pub mod prelude {
     pub use crate::{
-        CloudLevelOfDetail, CloudLod, CloudQualitySettings, CloudRelightBudget, CloudSkyLight,
-        CloudSystems, CloudTargetScale, Compositing, DefaultCloudQuality, Medium, NotCloudLight,
-        Particle, ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil, generators,
+        CloudLevelOfDetail, CloudLod, CloudQualitySettings, CloudRelightBudget, CloudShadowMaps,
+        CloudSkyLight, CloudSystems, CloudTargetScale, Compositing, DefaultCloudQuality, Medium,
+        NotCloudLight, Particle, ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil,
+        generators,
     };
 }
 
@@ -114,6 +119,8 @@ impl Plugin for ParticleCloudsPlugin {
             .register_type::<CloudLod>()
             .init_resource::<DefaultCloudQuality>()
             .init_resource::<CloudLevelOfDetail>()
+            .register_type::<CloudShadowMaps>()
+            .init_resource::<CloudShadowMaps>()
             .init_resource::<CloudPassCounters>()
             .init_resource::<cloud::ParticlesValidity>()
             .add_systems(
@@ -125,6 +132,9 @@ impl Plugin for ParticleCloudsPlugin {
                     cloud::validate_changed_particles
                         .in_set(CloudSystems::ValidateParticles)
                         .after(bevy::asset::AssetEventSystems),
+                    shadow_maps::place_cloud_shadow_maps
+                        .after(CloudSystems::CalculateBounds)
+                        .after(bevy::transform::TransformSystems::Propagate),
                     lod::update_cloud_lod
                         .in_set(CloudSystems::LevelOfDetail)
                         .after(CloudSystems::CalculateBounds)

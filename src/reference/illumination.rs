@@ -21,6 +21,7 @@ use crate::math::{
 use crate::particle::{LightSample, Medium, Particle, single_scattering_depth_scale};
 use crate::reference::composite::CloudPlacement;
 use crate::settings::{CloudQualitySettings, ScatterStencil};
+use crate::shadow_maps::ShadowMapPlacement;
 
 // ---------------------------------------------------------------------------------------------
 // Trilinear interpolation helpers
@@ -1027,9 +1028,13 @@ pub struct CloudIllumination {
     pub albedo: f64,
     /// The medium's Henyey–Greenstein `g`.
     pub anisotropy: f64,
-    /// Each shaded light's volume with its irradiance (section 2), in input order; lights with zero
-    /// irradiance or zero direction are left out.
+    /// Each shaded light's volume with its irradiance (section 2), in input order, with the
+    /// shadows of the clouds illuminated with it; lights with zero irradiance or zero direction
+    /// are left out.
     pub lights: Vec<(LightVolume, DVec3)>,
+    /// The same light volumes before other clouds' shadows: the cloud's own optical depth, what
+    /// it casts on others and on the shadow maps.
+    pub own_lights: Vec<LightVolume>,
     /// The multiple-scattering source `S_0` per voxel (section 3).
     pub source: Vec<DVec3>,
     /// Multiple scattering per voxel (section 4).
@@ -1135,10 +1140,7 @@ pub fn illuminate_clouds_under_sky(
 fn cast_shadows(clouds: &mut [Option<ShadedCloud>], placements: &[CloudPlacement]) {
     let own: Vec<Option<Vec<LightVolume>>> = clouds
         .iter()
-        .map(|c| {
-            c.as_ref()
-                .map(|c| c.lights.iter().map(|(v, _)| v.clone()).collect())
-        })
+        .map(|c| c.as_ref().map(|c| c.own.clone()))
         .collect();
     for (a, cloud) in clouds.iter_mut().enumerate() {
         let Some(cloud) = cloud else { continue };
@@ -1223,6 +1225,8 @@ struct ShadedCloud {
     inputs: ShadeInputs,
     anisotropy: f64,
     lights: Vec<(LightVolume, DVec3)>,
+    /// The light volumes before other clouds' shadows.
+    own: Vec<LightVolume>,
 }
 
 /// Sections 1 and 2 for one cloud (see [`illuminate_under_sky`] for the arguments).
@@ -1241,7 +1245,7 @@ fn shade_cloud(
         forward_scattering: settings.forward_scattering as f64,
         resolution: settings.light_resolution() as usize,
     };
-    let lights = lights_local
+    let lights: Vec<(LightVolume, DVec3)> = lights_local
         .iter()
         .filter(|l| l.irradiance != DVec3::ZERO && l.direction.try_normalize().is_some())
         .map(|l| (shade(&fine, &inputs, l.direction), l.irradiance))
@@ -1251,6 +1255,7 @@ fn shade_cloud(
         grid,
         inputs,
         anisotropy: medium.anisotropy as f64,
+        own: lights.iter().map(|(v, _)| v.clone()).collect(),
         lights,
     })
 }
@@ -1282,6 +1287,7 @@ impl ShadedCloud {
             albedo: self.inputs.albedo,
             anisotropy: self.anisotropy,
             lights: self.lights,
+            own_lights: self.own,
             source,
             multiple,
         }
@@ -1330,6 +1336,57 @@ impl CloudIllumination {
         let single = single_scattering_towards(&self.lights, p, medium, ray);
         (single + multiple) * self.albedo
     }
+}
+
+// ---------------------------------------------------------------------------------------------
+// 10. Cloud shadow maps
+// ---------------------------------------------------------------------------------------------
+
+/// The cloud shadow map `map` of light `light` (contract section 10): at each texel, the sum over
+/// `clouds` (each with its placement) of [`LightVolume::cast_depth_at`] of its own volume of that
+/// light at the texel's column point past every cloud. Index `i + size j`.
+pub fn cloud_shadow_map(
+    clouds: &[(&CloudIllumination, CloudPlacement)],
+    light: usize,
+    map: &ShadowMapPlacement,
+) -> Vec<f64> {
+    let n = map.size;
+    (0..n * n)
+        .into_par_iter()
+        .map(|t| {
+            let world = map.texel_point(t % n, t / n).as_dvec3();
+            clouds
+                .iter()
+                .filter_map(|(c, p)| {
+                    Some(c.own_lights.get(light)?.cast_depth_at(p.local_point(world)))
+                })
+                .sum()
+        })
+        .collect()
+}
+
+/// The optical depth at world point `x` in the shadow map `map` holding `values`: bilinear
+/// between texel centres, zero outside the map and before `w_begin` along the light.
+pub fn shadow_map_depth_at(map: &ShadowMapPlacement, values: &[f64], x: DVec3) -> f64 {
+    let [u, v, d] = [map.u, map.v, map.d].map(|a| a.as_dvec3());
+    if x.dot(d) < map.w_begin as f64 {
+        return 0.0;
+    }
+    let corner = map.corner.as_dvec2();
+    let g = (bevy::math::DVec2::new(x.dot(u), x.dot(v)) - corner) / map.texel as f64 - 0.5;
+    let n = map.size as i64;
+    let texel = |i: i64, j: i64| {
+        if (0..n).contains(&i) && (0..n).contains(&j) {
+            values[(i + n * j) as usize]
+        } else {
+            0.0
+        }
+    };
+    let (i, j) = (g.x.floor() as i64, g.y.floor() as i64);
+    let f = g - g.floor();
+    let bottom = texel(i, j) * (1.0 - f.x) + texel(i + 1, j) * f.x;
+    let top = texel(i, j + 1) * (1.0 - f.x) + texel(i + 1, j + 1) * f.x;
+    bottom * (1.0 - f.y) + top * f.y
 }
 
 #[cfg(test)]

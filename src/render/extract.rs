@@ -15,6 +15,7 @@ use crate::{
     },
     lod::{CloudLevelOfDetail, CloudLod},
     settings::{CloudQualitySettings, DefaultCloudQuality},
+    shadow_maps::cloud_light,
 };
 
 /// A cloud as the render world sees it; only valid clouds are extracted.
@@ -214,16 +215,10 @@ pub(crate) fn extract_cloud_lights(
     };
     lights.lights.clear();
     for (entity, light, transform, visibility) in &query {
-        let irradiance = light.color.to_linear().to_vec3() * light.illuminance;
-        let direction = transform.forward().as_vec3();
         // Hidden, dark or broken lights cost nothing.
-        if !visibility.get()
-            || !irradiance.is_finite()
-            || irradiance.max_element() <= 0.0
-            || !direction.is_finite()
-        {
+        let Some((direction, irradiance)) = cloud_light(light, transform, visibility.get()) else {
             continue;
-        }
+        };
         lights.lights.push(CloudLight {
             entity,
             direction,

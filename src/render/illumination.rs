@@ -16,12 +16,13 @@ use bevy::{
             ShaderType,
         },
         renderer::{RenderContext, RenderDevice},
+        storage::GpuShaderBuffer,
     },
 };
 
 use super::{
     cast::{CastStart, CastTarget, CastWork, Caster, CasterVolume, add_cast},
-    extract::ExtractedCloud,
+    extract::{ExtractedCloud, ExtractedCloudLights},
     gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, WorkList, record_stage, storage_init},
     overlap::{Neighbour, OverlapItem},
     particles::GpuParticles,
@@ -31,11 +32,13 @@ use super::{
     },
     plan::CloudIllumination,
     pools::{PoolId, VolumePool, VolumePools},
+    shadow_maps::{LitCloud, ShadowMapCasts, ShadowMapKeys, shadow_map_casts},
     volumes::{CloudVolumes, DensityLevels},
     workgroups::{self, dispatch_columns, dispatch_linear},
 };
 use crate::{
     settings::{ScatterStencil, ShadingMethod},
+    shadow_maps::CloudShadowMaps,
     stats::{CloudPass, CloudPassCounters},
 };
 
@@ -48,15 +51,15 @@ pub struct IlluminationBindGroups {
 }
 
 /// One batched pass over a pool: its bind group and work list.
-struct Batch {
-    group: BindGroup,
-    work: WorkList,
+pub(crate) struct Batch {
+    pub(crate) group: BindGroup,
+    pub(crate) work: WorkList,
 }
 
 impl Batch {
     /// The batch of `items`, with the bind group `bind` makes for their work list; `None`
     /// without items.
-    fn new<T: bytemuck::Pod>(
+    pub(crate) fn new<T: bytemuck::Pod>(
         device: &RenderDevice,
         items: &[T],
         bind: impl FnOnce(&WorkList) -> BindGroup,
@@ -102,9 +105,22 @@ struct PoolBatches {
     scatter: Vec<ScatterBatch>,
 }
 
-/// This frame's batched passes, per pool (render world resource, made in `PrepareBindGroups`).
+/// This frame's batched passes, per pool, and the filling of the cloud shadow maps (render world
+/// resource, made in `PrepareBindGroups`).
 #[derive(Resource, Default)]
-pub struct IlluminationBatches(Vec<PoolBatches>);
+pub struct IlluminationBatches {
+    pools: Vec<PoolBatches>,
+    maps: ShadowMapCasts,
+}
+
+/// What the shadow maps' batches are made from: the maps, the lights, the storage buffers (the
+/// maps' own) and the keys of what the maps hold.
+type ShadowMapInputs<'w> = (
+    Option<Res<'w, CloudShadowMaps>>,
+    Res<'w, ExtractedCloudLights>,
+    Res<'w, RenderAssets<GpuShaderBuffer>>,
+    ResMut<'w, ShadowMapKeys>,
+);
 
 /// `S_0` for `k = 0`, else the order written by iteration `k - 1` (the two order volumes alternate).
 fn order(pool: &VolumePool, k: u32) -> &Buffer {
@@ -138,6 +154,7 @@ struct PoolWork {
 
 /// Makes the voxelize bind group of every cloud whose density is rebuilt, and the bind groups
 /// and work lists of every pool's batched passes.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn prepare_illumination_bind_groups(
     mut commands: Commands,
     clouds: Query<(Entity, &ExtractedCloud, &CloudVolumes, &CloudIllumination)>,
@@ -146,6 +163,7 @@ pub(crate) fn prepare_illumination_bind_groups(
     pipelines: Option<Res<IlluminationPipelines>>,
     pipeline_cache: Res<PipelineCache>,
     device: Res<RenderDevice>,
+    (maps, lights, storage, mut map_keys): ShadowMapInputs,
 ) {
     let Some(pipelines) = pipelines else { return };
     let bind = |stage: &ComputeStage, entries: &[BindGroupEntry]| -> BindGroup {
@@ -204,6 +222,38 @@ pub(crate) fn prepare_illumination_bind_groups(
             }
         }
     }
+    let lit: Vec<LitCloud> = clouds.iter().collect();
+    let map_buffer = maps
+        .as_deref()
+        .and_then(|m| storage.get(&m.buffer))
+        .map(|b| &b.buffer);
+    let maps = match maps.as_deref() {
+        Some(maps) => shadow_map_casts(
+            maps,
+            map_buffer,
+            &lights,
+            &lit,
+            &pools,
+            &mut map_keys,
+            &device,
+            |casters, pool, list| {
+                let casters = storage_init(&device, "particle_clouds_map_casters", casters);
+                let own = &pools.0[&pool].own_depth;
+                bind(
+                    &pipelines.cast,
+                    &BindGroupEntries::sequential((
+                        // Unread: a map starts from nothing.
+                        own.as_entire_binding(),
+                        map_buffer.expect("the maps' buffer").as_entire_binding(),
+                        casters.as_entire_binding(),
+                        own.as_entire_binding(),
+                        list.binding(),
+                    )),
+                )
+            },
+        ),
+        None => ShadowMapCasts::default(),
+    };
     let mut batches = Vec::new();
     for (id, w) in work {
         let pool = &pools.0[&id];
@@ -298,7 +348,10 @@ pub(crate) fn prepare_illumination_bind_groups(
             scatter,
         });
     }
-    commands.insert_resource(IlluminationBatches(batches));
+    commands.insert_resource(IlluminationBatches {
+        pools: batches,
+        maps,
+    });
 }
 
 /// Adds the cast of light slot `light` of `receiver` (its cloud and volumes) by `casters` (render
@@ -469,9 +522,11 @@ pub(crate) fn illuminate_clouds(
     pipeline_cache: Res<PipelineCache>,
     counters: Res<CloudPassCounters>,
     shading: Option<Res<ShadingMethod>>,
+    mut map_keys: ResMut<ShadowMapKeys>,
 ) {
     let Some(pipelines) = pipelines else { return };
-    if clouds.iter().all(|(_, _, s, _)| s.plan.is_empty()) {
+    let maps_pending = batches.as_ref().is_some_and(|b| !b.maps.clears.is_empty());
+    if clouds.iter().all(|(_, _, s, _)| s.plan.is_empty()) && !maps_pending {
         return;
     }
     let brute_force = shading.is_some_and(|s| *s == ShadingMethod::BruteForce);
@@ -489,6 +544,7 @@ pub(crate) fn illuminate_clouds(
         clouds
             .iter_mut()
             .for_each(|(_, _, mut s, _)| s.invalidate());
+        *map_keys = ShadowMapKeys::default();
         return;
     };
     let recorder = ctx.diagnostic_recorder();
@@ -542,11 +598,15 @@ pub(crate) fn illuminate_clouds(
     // `ShadingMethod::BruteForce`, one voxel per invocation marching all the way to the light).
     // Every (cloud, light) of a pool in one dispatch. Then the casts, in the same stage: their
     // dispatches count as shade's, their runs do not (a run is a light shaded).
-    if batches
-        .0
-        .iter()
-        .any(|b| b.shade.is_some() || !b.cast.is_empty())
-    {
+    let maps = &batches.maps;
+    if let Some(buffer) = &maps.buffer {
+        for &(offset, size) in &maps.clears {
+            ctx.command_encoder()
+                .clear_buffer(buffer, offset, Some(size));
+        }
+    }
+    let casting = |b: &PoolBatches| b.shade.is_some() || !b.cast.is_empty();
+    if batches.pools.iter().any(casting) || !maps.batches.is_empty() {
         record_stage(
             &mut ctx,
             recorder.as_deref(),
@@ -555,7 +615,7 @@ pub(crate) fn illuminate_clouds(
             |pass| {
                 pass.set_pipeline(shade);
                 let mut runs = 0;
-                for b in &batches.0 {
+                for b in &batches.pools {
                     let Some(batch) = &b.shade else { continue };
                     for (offset, items) in batch.work.chunks() {
                         pass.set_bind_group(0, &batch.group, &[offset]);
@@ -567,14 +627,16 @@ pub(crate) fn illuminate_clouds(
                     }
                     runs += batch.work.items;
                 }
-                // Other clouds' shadows (§2), once every cloud's own optical depth is shaded.
+                // Other clouds' shadows (§2), once every cloud's own optical depth is shaded;
+                // and the shadow maps (§10).
                 pass.set_pipeline(ready.cast);
-                for b in &batches.0 {
-                    for batch in &b.cast {
-                        for (offset, items) in batch.work.chunks() {
-                            pass.set_bind_group(0, &batch.group, &[offset]);
-                            dispatch_linear(pass, b.m.pow(3), items);
-                        }
+                let pools = batches.pools.iter();
+                let light_volumes = pools.flat_map(|b| b.cast.iter().map(move |c| (c, b.m.pow(3))));
+                let map_texels = maps.batches.iter().map(|(c, points)| (c, *points));
+                for (batch, points) in light_volumes.chain(map_texels) {
+                    for (offset, items) in batch.work.chunks() {
+                        pass.set_bind_group(0, &batch.group, &[offset]);
+                        dispatch_linear(pass, points, items);
                     }
                 }
                 runs
@@ -584,7 +646,7 @@ pub(crate) fn illuminate_clouds(
 
     // Gather (§1, §3): the scattering grid's density, and every light's single scattering into
     // its source S_0. Every cloud of a pool in one dispatch.
-    if batches.0.iter().any(|b| b.gather.is_some()) {
+    if batches.pools.iter().any(|b| b.gather.is_some()) {
         record_stage(
             &mut ctx,
             recorder.as_deref(),
@@ -593,7 +655,7 @@ pub(crate) fn illuminate_clouds(
             |pass| {
                 pass.set_pipeline(ready.gather);
                 let mut runs = 0;
-                for b in &batches.0 {
+                for b in &batches.pools {
                     let Some(batch) = &b.gather else { continue };
                     for (offset, items) in batch.work.chunks() {
                         pass.set_bind_group(0, &batch.group, &[offset]);
@@ -619,7 +681,7 @@ pub(crate) fn illuminate_clouds(
             );
         }
     }
-    if batches.0.iter().any(|b| !b.scatter.is_empty()) {
+    if batches.pools.iter().any(|b| !b.scatter.is_empty()) {
         record_stage(
             &mut ctx,
             recorder.as_deref(),
@@ -628,7 +690,7 @@ pub(crate) fn illuminate_clouds(
             |pass| {
                 // Other clouds' media in the grids to scatter in, once every density is gathered.
                 pass.set_pipeline(ready.overlap);
-                for b in &batches.0 {
+                for b in &batches.pools {
                     for batch in &b.overlap {
                         for (offset, items) in batch.work.chunks() {
                             pass.set_bind_group(0, &batch.group, &[offset]);
@@ -637,7 +699,7 @@ pub(crate) fn illuminate_clouds(
                     }
                 }
                 let mut runs = 0;
-                for b in &batches.0 {
+                for b in &batches.pools {
                     for batch in &b.scatter {
                         scatter_batch_passes(pass, &ready, batch, b.n);
                         runs += batch.iterations * batch.work.items;

@@ -7,6 +7,7 @@
 //! | `volumes.rs` | per-cloud GPU volumes, sized and filled with uniforms in a prepare system |
 //! | `pools.rs` | the volumes of every cloud of one shape packed into shared buffers, one slot per cloud |
 //! | `cast.rs` | who casts a shadow on whom: each cloud's light volumes take the other clouds' optical depth |
+//! | `shadow_maps.rs` | which cloud shadow maps the cast pass fills this frame |
 //! | `overlap.rs` | clouds that overlap: each cloud's multiple scattering goes through the others' media too |
 //! | `plan.rs` | which stages rerun this frame: cache keys per stage, a pure planning function |
 //! | `pipelines.rs` | compute pipelines of the illumination passes |
@@ -33,6 +34,7 @@ pub mod pipelines;
 pub mod plan;
 pub mod pools;
 pub mod shaders;
+pub mod shadow_maps;
 pub mod sort;
 pub mod view_atlas;
 pub mod view_volume;
@@ -63,6 +65,7 @@ use self::{extract::ExtractedCloud, shaders::CloudShaders};
 use crate::{
     cloud::ParticleCloud,
     settings::{CloudRelightBudget, ShadingMethod},
+    shadow_maps::CloudShadowMaps,
     stats::CloudPassCounters,
 };
 
@@ -89,6 +92,13 @@ impl bevy::render::extract_resource::ExtractResource for CloudRelightBudget {
     type Source = CloudRelightBudget;
     fn extract_resource(source: &Self::Source) -> Self {
         *source
+    }
+}
+
+impl bevy::render::extract_resource::ExtractResource for CloudShadowMaps {
+    type Source = CloudShadowMaps;
+    fn extract_resource(source: &Self::Source) -> Self {
+        source.clone()
     }
 }
 
@@ -132,6 +142,7 @@ pub(crate) fn build(app: &mut App) {
         ExtractResourcePlugin::<CloudPassCounters>::default(),
         ExtractResourcePlugin::<ShadingMethod>::default(),
         ExtractResourcePlugin::<CloudRelightBudget>::default(),
+        ExtractResourcePlugin::<CloudShadowMaps>::default(),
     ));
     cloud_target::build(app);
     if let Some(render_app) = app.get_sub_app_mut(RenderApp) {
@@ -186,6 +197,7 @@ pub(crate) fn finish(app: &mut App) {
     render_app
         .init_resource::<extract::ExtractedCloudLights>()
         .init_resource::<pools::VolumePools>()
+        .init_resource::<shadow_maps::ShadowMapKeys>()
         .init_resource::<view_atlas::ViewVolumeAtlases>()
         .init_resource::<SpecializedRenderPipelines<draw::BillboardPipeline>>()
         .init_resource::<draw::BillboardEmitPipelines>()

@@ -29,6 +29,7 @@ use crate::math::{
 };
 use crate::particle::single_scattering_depth_scale;
 use crate::settings::CloudRelightBudget;
+use crate::shadow_maps::CloudShadowMaps;
 
 /// Mirror of `CloudParams` in `types.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
@@ -276,12 +277,14 @@ pub(crate) fn prepare_cloud_volumes(
     lights: Res<ExtractedCloudLights>,
     particles: Res<RenderAssets<GpuParticles>>,
     budget: Option<Res<CloudRelightBudget>>,
+    maps: Option<Res<CloudShadowMaps>>,
     mut pools: ResMut<VolumePools>,
     device: Res<RenderDevice>,
     queue: Res<RenderQueue>,
 ) {
     let budget = budget.map_or(0, |b| b.0);
-    let frames = cloud_frames(&clouds, &lights, &particles);
+    let mapped = maps.is_some_and(|m| m.resolution > 0);
+    let frames = cloud_frames(&clouds, &lights, &particles, mapped);
     let deferred = deferred_by_budget(&clouds, &frames, &lights, &particles, budget);
     // What each cloud's volumes will hold after this frame: a deferred cloud keeps what it has.
     let world = world_clouds(&frames, |entity, frame| {
@@ -387,11 +390,13 @@ struct CloudFrame {
     keys: StageKeys,
 }
 
-/// Every cloud that has particles and extinction, as this frame illuminates it.
+/// Every cloud that has particles and extinction, as this frame illuminates it; with cloud
+/// shadow maps (`mapped`), every cloud that casts shadows is needed, seen or not.
 fn cloud_frames(
     clouds: &Query<PreparedCloud>,
     lights: &ExtractedCloudLights,
     particles: &RenderAssets<GpuParticles>,
+    mapped: bool,
 ) -> HashMap<Entity, CloudFrame> {
     let mut frames: HashMap<Entity, CloudFrame> = HashMap::default();
     for (entity, cloud, volumes, state) in clouds {
@@ -410,7 +415,7 @@ fn cloud_frames(
         };
         let frame = CloudFrame {
             sphere: CloudSphere::new(bounds, &cloud.world_from_local, cloud.scale()),
-            needed: cloud.visible,
+            needed: cloud.visible || (mapped && cloud.casts_shadows),
             keys: frame_keys(&cloud, gpu, bounds, lights, &[], 0),
             cloud,
             bounds,

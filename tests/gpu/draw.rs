@@ -173,7 +173,7 @@ pub(crate) fn spawn_clouds(setup: &Setup, clouds: &[SetupCloud]) -> (App, SceneT
         headless::spawn_light(&mut app, light.direction, light.irradiance);
     }
     for object in &setup.objects {
-        headless::spawn_object(&mut app, object.shape, object.translation, object.color);
+        headless::spawn_object(&mut app, object);
     }
     for c in clouds {
         headless::spawn_cloud(

@@ -8,6 +8,7 @@ mod cloud_target;
 mod common;
 mod draw;
 mod illumination;
+mod lit_objects;
 mod loader;
 mod lod;
 mod overlap;

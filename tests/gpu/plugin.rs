@@ -5,7 +5,7 @@ use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
     CloudPass, CloudQualitySettings, Compositing, Medium, Particle, ParticleCloud, Particles,
-    scene::ObjectShape,
+    scene::{ObjectShape, SceneObject},
 };
 
 use crate::common;
@@ -113,9 +113,12 @@ fn an_opaque_object_renders_exactly_its_color() {
     );
     headless::spawn_object(
         &mut app,
-        ObjectShape::Cuboid(Vec3::new(1.0, 1.0, 0.2)),
-        Vec3::ZERO,
-        color,
+        &SceneObject {
+            shape: ObjectShape::Cuboid(Vec3::new(1.0, 1.0, 0.2)),
+            translation: Vec3::ZERO,
+            color,
+            reflectance: Vec3::ZERO,
+        },
     );
     let mut recorder = FrameRecorder::default();
     for _ in 0..3 {

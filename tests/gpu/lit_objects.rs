@@ -1,0 +1,182 @@
+//! Lit objects under clouds (docs/illumination.md §10): the cloud shadow map against the CPU
+//! reference texel by texel, and a Lambertian ground's every pixel against the shading the CPU
+//! reference gives it through that map; the map is filled again only when a cloud moves.
+
+use bevy::render::storage::GpuShaderBuffer;
+use bevy::{prelude::*, render::render_asset::RenderAssets};
+use bevy_particle_clouds::{
+    CloudPass, CloudShadowMaps, LightSample,
+    headless::{self, FrameRecorder},
+    reference::{
+        camera::PinholeCamera,
+        composite::CloudPlacement,
+        geometry::nearest_object,
+        illumination::{
+            PlacedCloud, cloud_shadow_map, illuminate_clouds_under_sky, shadow_map_depth_at,
+        },
+        metrics::{max_relative_difference, relative_rmse},
+    },
+    scene::{ObjectShape, SceneObject},
+};
+
+use crate::common;
+use crate::draw::{FOV, H, Setup, W, cloud_setup, spawn};
+use crate::illumination::TOLERANCE;
+
+const REFLECTANCE: Vec3 = Vec3::new(0.5, 0.6, 0.7);
+const EMITTED: Vec3 = Vec3::new(0.01, 0.01, 0.02);
+
+/// A cloud high above a Lambertian ground, out of the camera's view, its shadow on the ground in
+/// view; a sky.
+fn cloud_over_ground() -> Setup {
+    let camera = Transform::from_xyz(0.0, 0.6, 4.5).looking_at(Vec3::new(-0.6, 0.0, -0.3), Vec3::Y);
+    let mut setup = cloud_setup(41, camera);
+    setup.transform = Transform::from_xyz(0.2, 3.5, 0.0);
+    setup.lights = vec![LightSample {
+        direction: Vec3::new(-0.3, -1.0, -0.2),
+        irradiance: Vec3::new(2.0, 1.8, 1.5),
+    }];
+    setup.sky = Vec3::new(0.1, 0.15, 0.25);
+    setup.background = setup.sky;
+    setup.objects = vec![SceneObject {
+        shape: ObjectShape::Cuboid(Vec3::new(20.0, 1.0, 20.0)),
+        translation: Vec3::new(0.0, -0.5, 0.0),
+        color: EMITTED,
+        reflectance: REFLECTANCE,
+    }];
+    setup
+}
+
+/// The GPU's shadow map of the first light, and its placement.
+fn gpu_map(
+    app: &mut App,
+) -> (
+    Vec<f64>,
+    bevy_particle_clouds::shadow_maps::ShadowMapPlacement,
+) {
+    let maps = app.world().resource::<CloudShadowMaps>().clone();
+    let (_, placement) = maps.maps[0];
+    let buffer = common::with_render_world(app, |world| {
+        let buffers = world.resource::<RenderAssets<GpuShaderBuffer>>();
+        buffers
+            .get(&maps.buffer)
+            .expect("the maps' buffer")
+            .buffer
+            .clone()
+    });
+    let bytes = headless::read_buffer(app, &buffer).unwrap();
+    let texels = (placement.size * placement.size) as usize;
+    let values = headless::floats(&bytes)[placement.first as usize..][..texels]
+        .iter()
+        .map(|&v| v as f64)
+        .collect();
+    (values, placement)
+}
+
+#[test]
+fn a_lit_ground_takes_the_clouds_shadow_as_the_cpu_reference_does() {
+    let setup = cloud_over_ground();
+    let (mut app, target) = spawn(&setup);
+    app.insert_resource(CloudShadowMaps::with_resolution(96));
+    let mut recorder = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut recorder, 1, 20).unwrap();
+    let image = headless::capture(&mut app, &mut recorder, &target.image).unwrap();
+    let drawn = recorder.frames.last().unwrap().runs(CloudPass::Draw);
+    assert_eq!(drawn, 0, "the cloud is out of view");
+
+    // The map, texel by texel.
+    let (gpu, map) = gpu_map(&mut app);
+    let placement = CloudPlacement {
+        translation: setup.transform.translation.as_dvec3(),
+        rotation: setup.transform.rotation.as_dquat(),
+        scale: 1.0,
+    };
+    let placed = [PlacedCloud {
+        particles: &setup.particles,
+        medium: setup.medium,
+        placement,
+        settings: setup.settings,
+    }];
+    let cpu = illuminate_clouds_under_sky(&placed, &setup.lights, setup.sky.as_dvec3());
+    let cloud = cpu[0].as_ref().expect("a cloud with density");
+    let cpu_map = cloud_shadow_map(&[(cloud, placement)], 0, &map);
+    let error = max_relative_difference(&gpu, &cpu_map);
+    assert!(error <= TOLERANCE, "shadow map: {error:e} of its maximum");
+
+    // Every ground pixel: its colour plus R / pi (E cos T + pi L_sky), T through the CPU's map.
+    let eye = setup.camera.translation.as_dvec3();
+    let camera = PinholeCamera::looking_at(
+        eye,
+        eye + setup.camera.forward().as_vec3().as_dvec3(),
+        setup.camera.up().as_vec3().as_dvec3(),
+        FOV as f64,
+        W,
+        H,
+    );
+    let light = &setup.lights[0];
+    let to_light = -light.direction.normalize().as_dvec3();
+    let (mut expected, mut seen, mut darkest) = (Vec::new(), Vec::new(), 1.0f64);
+    for py in 0..H {
+        for px in 0..W {
+            let ray = camera.pixel_ray(px, py);
+            let Some((t, _)) = nearest_object(&setup.objects, eye, ray) else {
+                continue;
+            };
+            let x = eye + ray * t;
+            let transmittance = (-shadow_map_depth_at(&map, &cpu_map, x)).exp();
+            darkest = darkest.min(transmittance);
+            let e = light.irradiance.as_dvec3() * (to_light.y * transmittance)
+                + setup.sky.as_dvec3() * std::f64::consts::PI;
+            let l = EMITTED.as_dvec3() + REFLECTANCE.as_dvec3() * e / std::f64::consts::PI;
+            expected.push([l.x as f32, l.y as f32, l.z as f32, 1.0]);
+            let g = image.pixels[(py * W + px) as usize];
+            seen.push([g[0], g[1], g[2], 1.0]);
+        }
+    }
+    assert!(
+        expected.len() > (W * H / 3) as usize,
+        "the ground fills the view"
+    );
+    assert!(darkest < 0.3, "the cloud's shadow falls in view: {darkest}");
+    let error = relative_rmse(&seen, &expected);
+    // f16 output, and f32 positions interpolated across the ground.
+    eprintln!("lit ground: relative RMSE {error:e} against the CPU shading");
+    assert!(error < 3e-3, "lit ground: relative RMSE {error}");
+}
+
+#[test]
+fn a_still_sky_fills_the_map_once_and_a_moving_cloud_again() {
+    let setup = cloud_over_ground();
+    let (mut app, _) = spawn(&setup);
+    app.insert_resource(CloudShadowMaps::with_resolution(64));
+    let mut recorder = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut recorder, 1, 20).unwrap();
+    let dispatches = |recorder: &FrameRecorder, from: usize| -> u32 {
+        recorder.frames[from..]
+            .iter()
+            .map(|f| f.dispatches(CloudPass::Shade))
+            .sum()
+    };
+    // Still: nothing.
+    let first = recorder.frames.len();
+    for _ in 0..3 {
+        recorder.frame(&mut app).unwrap();
+    }
+    assert_eq!(dispatches(&recorder, first), 0);
+    // The cloud drifts: no cloud is re-lit, but the map is filled again (one cast dispatch).
+    let mut clouds = app
+        .world_mut()
+        .query_filtered::<&mut Transform, With<bevy_particle_clouds::ParticleCloud>>();
+    for mut t in clouds.iter_mut(app.world_mut()) {
+        t.translation.x += 0.3;
+    }
+    let first = recorder.frames.len();
+    for _ in 0..3 {
+        recorder.frame(&mut app).unwrap();
+    }
+    let runs: u32 = recorder.frames[first..]
+        .iter()
+        .map(|f| f.runs(CloudPass::Shade))
+        .sum();
+    assert_eq!((runs, dispatches(&recorder, first)), (0, 1));
+}
