@@ -23,6 +23,7 @@ use std::{
 };
 
 use bevy::app::PluginGroupBuilder;
+use bevy::asset::RenderAssetUsages;
 use bevy::{
     camera::{Exposure, Hdr, RenderTarget},
     core_pipeline::tonemapping::{DebandDither, Tonemapping},
@@ -36,6 +37,7 @@ use bevy::{
         render_resource::{PollType, TextureFormat, TextureUsages},
         renderer::{RenderAdapterInfo, RenderDevice},
         settings::{Backends, RenderCreation, WgpuSettings},
+        storage::ShaderBuffer,
         view::screenshot::{Screenshot, ScreenshotCaptured},
     },
     window::ExitCondition,
@@ -220,11 +222,20 @@ pub fn spawn_scene(app: &mut App, scene: &Scene) -> SceneTarget {
             Transform::from_translation(cloud.translation),
         );
     }
-    // Lit objects take the clouds' shadows through the shadow maps.
+    // Lit objects take the clouds' shadows through the shadow maps, whose buffer is made here so
+    // that their materials bind it from the first frame.
     if scene.objects.iter().any(|o| o.reflectance != Vec3::ZERO) {
-        app.insert_resource(CloudShadowMaps::with_resolution(
-            SCENE_SHADOW_MAP_RESOLUTION,
-        ));
+        let resolution = SCENE_SHADOW_MAP_RESOLUTION;
+        let bytes = CloudShadowMaps::buffer_bytes(scene.lights.len(), resolution);
+        let buffer = ShaderBuffer::with_size(bytes, RenderAssetUsages::default());
+        let buffer = app
+            .world_mut()
+            .resource_mut::<Assets<ShaderBuffer>>()
+            .add(buffer);
+        app.insert_resource(CloudShadowMaps {
+            buffer,
+            ..CloudShadowMaps::with_resolution(resolution)
+        });
     }
     for object in &scene.objects {
         spawn_object(app, object);

@@ -48,6 +48,12 @@ impl CloudShadowMaps {
         }
     }
 
+    /// Bytes of the maps' buffer for `lights` maps of `resolution²` texels (never empty:
+    /// materials bind it whether the maps are on or not).
+    pub fn buffer_bytes(lights: usize, resolution: u32) -> usize {
+        (lights * (resolution * resolution) as usize * 4).max(16)
+    }
+
     /// The placement of the map of light `light` (its main-world entity), if it has one.
     pub fn map_of(&self, light: Entity) -> Option<&ShadowMapPlacement> {
         self.maps.iter().find(|(e, _)| *e == light).map(|(_, p)| p)
@@ -182,8 +188,7 @@ pub(crate) fn place_cloud_shadow_maps(
         })
         .filter(|_| size > 0)
         .collect();
-    // Never empty: materials bind it whether the maps are on or not.
-    let bytes = (placed.len() * (size * size) as usize * 4).max(16);
+    let bytes = CloudShadowMaps::buffer_bytes(placed.len(), size);
     let fits = buffers
         .get(&maps.buffer)
         .is_some_and(|b| b.buffer_description.size == bytes as u64);

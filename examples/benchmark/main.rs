@@ -345,6 +345,22 @@ fn run() -> Result<(), String> {
                     &args.out.join(format!("{}-compare.png", bench.name)),
                 );
             }
+            // Scenes with lit objects: the error over the pixels that see one (the ground and
+            // the clouds' shadows on it).
+            if let Some((mask, noise)) = &reference.ground {
+                let error = relative_rmse(
+                    &masked(&image.pixels, mask),
+                    &masked(&reference.image, mask),
+                );
+                bar.suspend(|| {
+                    eprintln!(
+                        "benchmark: {} {}: over the lit objects' pixels rel. RMSE {error:.4} (denoised {:.4}; noise {noise:.4})",
+                        bench.name,
+                        setting_label(s),
+                        denoised(error, *noise)
+                    )
+                });
+            }
             // Above the bar on a terminal; plain lines in a log.
             bar.inc(1);
             bar.suspend(|| eprintln!(

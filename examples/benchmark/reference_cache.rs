@@ -14,6 +14,35 @@ pub(crate) struct Reference {
     pub(crate) noise: f64,
     /// The same after a 4×4 box filter of both renders.
     pub(crate) noise_box4: f64,
+    /// With lit objects: which pixels see one (their centre's ray hits it first), and the noise
+    /// over those pixels.
+    pub(crate) ground: Option<(Vec<bool>, f64)>,
+}
+
+/// The pixels of `scene`'s camera whose centre ray first hits a lit object (one with a
+/// reflectance); `None` without lit objects.
+pub(crate) fn lit_object_pixels(scene: &Scene) -> Option<Vec<bool>> {
+    use bevy_particle_clouds::reference::{camera::PinholeCamera, geometry::nearest_object};
+    if scene.objects.iter().all(|o| o.reflectance == Vec3::ZERO) {
+        return None;
+    }
+    let camera = PinholeCamera::from_scene(&scene.camera);
+    let (w, h) = (scene.camera.width, scene.camera.height);
+    let seen = (0..w * h).map(|i| {
+        let ray = camera.pixel_ray(i % w, i / w);
+        nearest_object(&scene.objects, camera.position, ray)
+            .is_some_and(|(_, o)| scene.objects[o].reflectance != Vec3::ZERO)
+    });
+    Some(seen.collect())
+}
+
+/// `pixels` with every pixel outside `mask` zeroed.
+pub(crate) fn masked(pixels: &[[f32; 4]], mask: &[bool]) -> Vec<[f32; 4]> {
+    pixels
+        .iter()
+        .zip(mask)
+        .map(|(p, &m)| if m { *p } else { [0.0; 4] })
+        .collect()
 }
 
 /// FNV-1a, 64 bits: a hash that is the same on every machine and Rust version.
@@ -137,6 +166,11 @@ pub(crate) fn reference(
         },
         &out.join(format!("{}-reference.png", bench.name)),
     );
+    let ground = lit_object_pixels(&small).map(|mask| {
+        let halves = [0, 1].map(|i| masked(&images[i].pixels, &mask));
+        let noise = noise_level(&halves[0], &halves[1]) / std::f64::consts::SQRT_2;
+        (mask, noise)
+    });
     Ok(Reference {
         image,
         width: small.camera.width,
@@ -144,6 +178,7 @@ pub(crate) fn reference(
         spp: 2 * spp,
         noise,
         noise_box4,
+        ground,
     })
 }
 

@@ -122,6 +122,22 @@ pub(crate) const SCENES: &[BenchScene] = &[
         quick: false,
     },
     BenchScene {
+        name: "cloud_over_ground",
+        particle_file: "cumulus.csv",
+        generate: cumulus_2000,
+        error_downsample: 2,
+        spp: 1024,
+        quick: false,
+    },
+    BenchScene {
+        name: "cloud_over_ground_sky",
+        particle_file: "cumulus.csv",
+        generate: cumulus_2000,
+        error_downsample: 2,
+        spp: 2048,
+        quick: false,
+    },
+    BenchScene {
         name: "paper_3100",
         particle_file: "paper_3100.ply",
         generate: paper_3100,
