@@ -222,20 +222,9 @@ pub fn spawn_scene(app: &mut App, scene: &Scene) -> SceneTarget {
             Transform::from_translation(cloud.translation),
         );
     }
-    // Lit objects take the clouds' shadows through the shadow maps, whose buffer is made here so
-    // that their materials bind it from the first frame.
+    // Lit objects take the clouds' shadows through the shadow maps.
     if scene.objects.iter().any(|o| o.reflectance != Vec3::ZERO) {
-        let resolution = SCENE_SHADOW_MAP_RESOLUTION;
-        let bytes = CloudShadowMaps::buffer_bytes(scene.lights.len(), resolution);
-        let buffer = ShaderBuffer::with_size(bytes, RenderAssetUsages::default());
-        let buffer = app
-            .world_mut()
-            .resource_mut::<Assets<ShaderBuffer>>()
-            .add(buffer);
-        app.insert_resource(CloudShadowMaps {
-            buffer,
-            ..CloudShadowMaps::with_resolution(resolution)
-        });
+        enable_cloud_shadow_maps(app, SCENE_SHADOW_MAP_RESOLUTION, scene.lights.len());
     }
     for object in &scene.objects {
         spawn_object(app, object);
@@ -273,6 +262,23 @@ pub fn spawn_cloud(
 
 /// Texels per side of the cloud shadow maps of a scene with lit objects.
 pub const SCENE_SHADOW_MAP_RESOLUTION: u32 = 512;
+
+/// Turns the cloud shadow maps on at `resolution` texels per side for `lights` cloud-lighting
+/// lights, their buffer made at once: lit objects spawned afterwards bind it from the first
+/// frame (a buffer made later reaches their materials only a frame or two after the clouds are
+/// finished).
+pub fn enable_cloud_shadow_maps(app: &mut App, resolution: u32, lights: usize) {
+    let bytes = CloudShadowMaps::buffer_bytes(lights, resolution);
+    let buffer = ShaderBuffer::with_size(bytes, RenderAssetUsages::default());
+    let buffer = app
+        .world_mut()
+        .resource_mut::<Assets<ShaderBuffer>>()
+        .add(buffer);
+    app.insert_resource(CloudShadowMaps {
+        buffer,
+        ..CloudShadowMaps::with_resolution(resolution)
+    });
+}
 
 /// Spawns a scene object: a mesh showing its `color`, and, with a `reflectance`, a Lambertian
 /// surface lit through the clouds ([`LitObjectMaterial`]; turn the [`CloudShadowMaps`] on for its

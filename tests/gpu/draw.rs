@@ -164,7 +164,11 @@ pub(crate) fn spawn(setup: &Setup) -> (App, SceneTarget) {
 
 /// A headless app with the setup's camera, lights and objects, and these clouds.
 pub(crate) fn spawn_clouds(setup: &Setup, clouds: &[SetupCloud]) -> (App, SceneTarget) {
-    let mut app = common::headless_app();
+    spawn_into(common::headless_app(), setup, clouds)
+}
+
+/// `app` with the setup's camera, lights and objects, and these clouds.
+pub(crate) fn spawn_into(mut app: App, setup: &Setup, clouds: &[SetupCloud]) -> (App, SceneTarget) {
     app.insert_resource(CloudSkyLight::from_radiance(setup.sky));
     let image = headless::float_target(&mut app, W, H);
     let camera =

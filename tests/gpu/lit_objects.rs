@@ -20,7 +20,7 @@ use bevy_particle_clouds::{
 };
 
 use crate::common;
-use crate::draw::{FOV, H, Setup, W, cloud_setup, spawn};
+use crate::draw::{FOV, H, Setup, W, cloud_setup, spawn_into};
 use crate::illumination::TOLERANCE;
 
 const REFLECTANCE: Vec3 = Vec3::new(0.5, 0.6, 0.7);
@@ -45,6 +45,13 @@ fn cloud_over_ground() -> Setup {
         reflectance: REFLECTANCE,
     }];
     setup
+}
+
+/// The setup spawned with cloud shadow maps of `resolution` texels per side.
+fn spawn_with_maps(setup: &Setup, resolution: u32) -> (App, headless::SceneTarget) {
+    let mut app = common::headless_app();
+    headless::enable_cloud_shadow_maps(&mut app, resolution, setup.lights.len());
+    spawn_into(app, setup, &[setup.cloud()])
 }
 
 /// The GPU's shadow map of the first light, and its placement.
@@ -76,8 +83,7 @@ fn gpu_map(
 #[test]
 fn a_lit_ground_takes_the_clouds_shadow_as_the_cpu_reference_does() {
     let setup = cloud_over_ground();
-    let (mut app, target) = spawn(&setup);
-    app.insert_resource(CloudShadowMaps::with_resolution(96));
+    let (mut app, target) = spawn_with_maps(&setup, 96);
     let mut recorder = FrameRecorder::default();
     headless::render_until_steady(&mut app, &mut recorder, 1, 20).unwrap();
     let image = headless::capture(&mut app, &mut recorder, &target.image).unwrap();
@@ -147,8 +153,7 @@ fn a_lit_ground_takes_the_clouds_shadow_as_the_cpu_reference_does() {
 #[test]
 fn a_still_sky_fills_the_map_once_and_a_moving_cloud_again() {
     let setup = cloud_over_ground();
-    let (mut app, _) = spawn(&setup);
-    app.insert_resource(CloudShadowMaps::with_resolution(64));
+    let (mut app, _) = spawn_with_maps(&setup, 64);
     let mut recorder = FrameRecorder::default();
     headless::render_until_steady(&mut app, &mut recorder, 1, 20).unwrap();
     let dispatches = |recorder: &FrameRecorder, from: usize| -> u32 {
