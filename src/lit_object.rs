@@ -7,7 +7,6 @@
 
 use bevy::{
     asset::embedded_asset,
-    light::DirectionalLight,
     prelude::*,
     render::{
         render_resource::{AsBindGroup, ShaderType},
@@ -18,8 +17,7 @@ use bevy::{
 
 use crate::{
     CloudSkyLight,
-    cloud::NotCloudLight,
-    shadow_maps::{CloudShadowMaps, ShadowMapPlacement, cloud_light},
+    shadow_maps::{CloudLightQuery, CloudShadowMaps, ShadowMapPlacement, cloud_lights},
 };
 
 /// The most lights a lit object takes.
@@ -119,24 +117,11 @@ fn lit_object_lights(
 fn update_lit_objects(
     maps: Res<CloudShadowMaps>,
     sky: Res<CloudSkyLight>,
-    lights: Query<
-        (
-            Entity,
-            &DirectionalLight,
-            &GlobalTransform,
-            &InheritedVisibility,
-        ),
-        Without<NotCloudLight>,
-    >,
+    lights: CloudLightQuery,
     mut materials: ResMut<Assets<LitObjectMaterial>>,
 ) {
-    let lit = lights
-        .iter()
-        .filter_map(|(entity, light, transform, visible)| {
-            let (direction, irradiance) = cloud_light(light, transform, visible.get())?;
-            Some((entity, direction, irradiance))
-        });
-    let lit = lit_object_lights(&maps, sky.radiance().unwrap_or(Vec3::ZERO), lit);
+    let sky = sky.radiance().unwrap_or(Vec3::ZERO);
+    let lit = lit_object_lights(&maps, sky, cloud_lights(&lights));
     let stale: Vec<AssetId<LitObjectMaterial>> = materials
         .iter()
         .filter(|(_, m)| m.lights != lit || m.shadow_maps != maps.buffer)

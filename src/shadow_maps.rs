@@ -145,19 +145,37 @@ pub fn cloud_light(
 /// A cloud as the shadow maps see it.
 type MappedCloud = (&'static GlobalTransform, &'static Aabb);
 
+/// The directional lights of the main world, for [`cloud_lights`].
+pub(crate) type CloudLightQuery<'w, 's> = Query<
+    'w,
+    's,
+    (
+        Entity,
+        &'static DirectionalLight,
+        &'static GlobalTransform,
+        &'static InheritedVisibility,
+    ),
+    Without<NotCloudLight>,
+>;
+
+/// Every light of `lights` that lights clouds ([`cloud_light`]): its entity, direction and
+/// irradiance.
+pub(crate) fn cloud_lights<'a>(
+    lights: &'a CloudLightQuery,
+) -> impl Iterator<Item = (Entity, Vec3, Vec3)> + 'a {
+    lights
+        .iter()
+        .filter_map(|(entity, light, transform, visible)| {
+            let (direction, irradiance) = cloud_light(light, transform, visible.get())?;
+            Some((entity, direction, irradiance))
+        })
+}
+
 /// Places every cloud-lighting light's map over the clouds, and keeps the maps' buffer sized.
 pub(crate) fn place_cloud_shadow_maps(
     mut maps: ResMut<CloudShadowMaps>,
     clouds: Query<MappedCloud, (With<ParticleCloud>, Without<NotShadowCaster>)>,
-    lights: Query<
-        (
-            Entity,
-            &DirectionalLight,
-            &GlobalTransform,
-            &InheritedVisibility,
-        ),
-        Without<NotCloudLight>,
-    >,
+    lights: CloudLightQuery,
     mut buffers: ResMut<Assets<ShaderBuffer>>,
 ) {
     let spheres: Vec<(Vec3, f32)> = clouds
@@ -172,14 +190,9 @@ pub(crate) fn place_cloud_shadow_maps(
         })
         .collect();
     let size = maps.resolution;
-    let placed: Vec<(Entity, ShadowMapPlacement)> = lights
-        .iter()
-        .filter_map(|(entity, light, transform, visibility)| {
-            let (d, _) = cloud_light(light, transform, visibility.get())?;
-            Some((entity, d))
-        })
+    let placed: Vec<(Entity, ShadowMapPlacement)> = cloud_lights(&lights)
         .enumerate()
-        .filter_map(|(i, (entity, d))| {
+        .filter_map(|(i, (entity, d, _))| {
             let first = i as u32 * size * size;
             Some((
                 entity,

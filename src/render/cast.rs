@@ -364,9 +364,9 @@ pub(crate) mod tests {
         assert_ne!(casters_of(&reshaded[0], &reshaded, &lights).1[0], keys[0]);
     }
 
-    #[test]
-    fn a_light_volumes_cast_target_walks_its_voxel_centres() {
-        let light = LightParams {
+    /// A light box travelling down, its axes x, z, -y, voxels 0.5, 0.25, 1 across.
+    fn light_box() -> LightParams {
+        LightParams {
             u: Vec3::X,
             h_u: 0.5,
             v: Vec3::Z,
@@ -375,7 +375,12 @@ pub(crate) mod tests {
             h_w: 1.0,
             half_extents: Vec3::new(2.0, 1.0, 4.0),
             ..default()
-        };
+        }
+    }
+
+    #[test]
+    fn a_light_volumes_cast_target_walks_its_voxel_centres() {
+        let light = light_box();
         let centre = Vec3::new(1.0, 2.0, 3.0);
         let t = CastTarget::light_volume(&light, centre, 8, 100);
         // Voxel (a, b, c) at C + xi_u u + xi_v v + xi_w w, xi = -e + (idx + 0.5) h.
@@ -419,16 +424,7 @@ pub(crate) mod tests {
 
     #[test]
     fn a_caster_maps_receiver_points_to_its_light_box_voxels() {
-        let light = LightParams {
-            u: Vec3::X,
-            h_u: 0.5,
-            v: Vec3::Z,
-            h_v: 0.25,
-            w: Vec3::NEG_Y,
-            h_w: 1.0,
-            half_extents: Vec3::new(2.0, 1.0, 4.0),
-            ..default()
-        };
+        let light = light_box();
         let centre = Vec3::new(1.0, 2.0, 3.0);
         let caster = Affine3A::from_translation(Vec3::new(10.0, 0.0, 0.0));
         let receiver = Affine3A::from_translation(Vec3::new(12.0, 1.0, 0.0));

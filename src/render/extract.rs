@@ -1,8 +1,8 @@
 //! Main world → render world: clouds (with their validity) and the lights that illuminate them.
 
 use bevy::{
-    camera::visibility::{InheritedVisibility, ViewVisibility},
-    light::{DirectionalLight, NotShadowCaster, NotShadowReceiver},
+    camera::visibility::ViewVisibility,
+    light::{NotShadowCaster, NotShadowReceiver},
     math::Affine3A,
     platform::collections::HashMap,
     prelude::*,
@@ -10,12 +10,10 @@ use bevy::{
 };
 
 use crate::{
-    cloud::{
-        CloudSkyLight, InvalidCloud, NotCloudLight, ParticleCloud, Particles, ParticlesValidity,
-    },
+    cloud::{CloudSkyLight, InvalidCloud, ParticleCloud, Particles, ParticlesValidity},
     lod::{CloudLevelOfDetail, CloudLod},
     settings::{CloudQualitySettings, DefaultCloudQuality},
-    shadow_maps::cloud_light,
+    shadow_maps::{CloudLightQuery, cloud_lights},
 };
 
 /// A cloud as the render world sees it; only valid clouds are extracted.
@@ -112,14 +110,6 @@ type MainWorldCloud = (
     Has<NotShadowReceiver>,
 );
 
-/// A light as the main world has it.
-type MainWorldLight = (
-    Entity,
-    &'static DirectionalLight,
-    &'static GlobalTransform,
-    &'static InheritedVisibility,
-);
-
 pub(crate) fn extract_clouds(
     mut commands: Commands,
     clouds: Extract<Query<MainWorldCloud>>,
@@ -196,7 +186,7 @@ fn validate(
 
 pub(crate) fn extract_cloud_lights(
     mut lights: ResMut<ExtractedCloudLights>,
-    query: Extract<Query<MainWorldLight, Without<NotCloudLight>>>,
+    query: Extract<CloudLightQuery>,
     sky: Extract<Res<CloudSkyLight>>,
     mut refused_sky: Local<Option<String>>,
 ) {
@@ -213,16 +203,11 @@ pub(crate) fn extract_cloud_lights(
             Vec3::ZERO
         }
     };
-    lights.lights.clear();
-    for (entity, light, transform, visibility) in &query {
-        // Hidden, dark or broken lights cost nothing.
-        let Some((direction, irradiance)) = cloud_light(light, transform, visibility.get()) else {
-            continue;
-        };
-        lights.lights.push(CloudLight {
-            entity,
-            direction,
-            irradiance,
-        });
-    }
+    // Hidden, dark or broken lights cost nothing.
+    let lit = cloud_lights(&query).map(|(entity, direction, irradiance)| CloudLight {
+        entity,
+        direction,
+        irradiance,
+    });
+    lights.lights = lit.collect();
 }

@@ -313,7 +313,13 @@ pub(crate) fn prepare_cloud_volumes(
             continue;
         };
         let (cloud, bounds, shape) = (&frame.cloud, frame.bounds, frame.shape);
-        let others = from_others(entity, frame, &world, &directions);
+        let planned = PlannedFrame {
+            cloud,
+            gpu,
+            bounds,
+            lights: &lights,
+            others: from_others(entity, frame, &world, &directions),
+        };
         match (volumes, state) {
             (Some(_), Some(mut state)) if deferred.contains(&entity) => {
                 // Its turn comes later: it draws with what its volumes hold.
@@ -322,14 +328,7 @@ pub(crate) fn prepare_cloud_volumes(
             }
             (Some(mut v), Some(mut state)) if v.fits(shape, gpu.count) => {
                 let pool = pools.pool(&v.slot);
-                let frame = PlannedFrame {
-                    cloud,
-                    gpu,
-                    bounds,
-                    lights: &lights,
-                    others,
-                };
-                plan_cloud(&mut v, &mut state, frame, pool, &queue);
+                plan_cloud(&mut v, &mut state, planned, pool, &queue);
                 state.waited = 0;
             }
             _ => {
@@ -353,14 +352,7 @@ pub(crate) fn prepare_cloud_volumes(
                 };
                 let mut state = CloudIllumination::default();
                 let pool = pools.pool(&v.slot);
-                let frame = PlannedFrame {
-                    cloud,
-                    gpu,
-                    bounds,
-                    lights: &lights,
-                    others,
-                };
-                plan_cloud(&mut v, &mut state, frame, pool, &queue);
+                plan_cloud(&mut v, &mut state, planned, pool, &queue);
                 commands.entity(entity).insert((v, state));
             }
         }
