@@ -222,9 +222,14 @@ pub fn spawn_scene(app: &mut App, scene: &Scene) -> SceneTarget {
             Transform::from_translation(cloud.translation),
         );
     }
-    // Lit objects take the clouds' shadows through the shadow maps.
+    // Lit objects take the clouds' shadows through the shadow maps: at the resolution the app's
+    // maps already have, else at the scenes' default.
     if scene.objects.iter().any(|o| o.reflectance != Vec3::ZERO) {
-        enable_cloud_shadow_maps(app, SCENE_SHADOW_MAP_RESOLUTION, scene.lights.len());
+        let resolution = match app.world().resource::<CloudShadowMaps>().resolution {
+            0 => SCENE_SHADOW_MAP_RESOLUTION,
+            chosen => chosen,
+        };
+        enable_cloud_shadow_maps(app, resolution, scene.lights.len());
     }
     for object in &scene.objects {
         spawn_object(app, object);
@@ -260,7 +265,8 @@ pub fn spawn_cloud(
         .id()
 }
 
-/// Texels per side of the cloud shadow maps of a scene with lit objects.
+/// Texels per side of the cloud shadow maps of a scene with lit objects, unless the app's
+/// [`CloudShadowMaps`] already have a resolution.
 pub const SCENE_SHADOW_MAP_RESOLUTION: u32 = 512;
 
 /// Turns the cloud shadow maps on at `resolution` texels per side for `lights` cloud-lighting

@@ -143,6 +143,10 @@ pub(crate) struct Args {
     /// shadows costs and what its absence does to the error.
     #[arg(long)]
     pub(crate) no_cloud_shadows: bool,
+    /// Texels per side of the cloud shadow maps of scenes with lit objects (default: the
+    /// headless renderer's, `headless::SCENE_SHADOW_MAP_RESOLUTION`).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    pub(crate) shadow_map_resolution: Option<u32>,
     /// Measure only these settings (RON, as a scene file's `settings`) instead of the sweep.
     /// Repeatable.
     #[arg(long = "settings", value_name = "RON", value_parser = parse_settings)]
@@ -274,7 +278,7 @@ fn run() -> Result<(), String> {
                 .unwrap_or(if args.quick { bench.spp / 4 } else { bench.spp }),
             &args.out,
         )?;
-        let mut b = Bench::new(&scene);
+        let mut b = Bench::with_shadow_maps(&scene, args.shadow_map_resolution);
         if args.no_cloud_shadows {
             b.without_cloud_shadows();
         }

@@ -134,7 +134,18 @@ pub(crate) struct Bench {
 
 impl Bench {
     pub(crate) fn new(scene: &Scene) -> Bench {
+        Self::with_shadow_maps(scene, None)
+    }
+
+    /// A bench of `scene` whose lit objects take shadow maps of `resolution` texels per side
+    /// (else the headless renderer's default).
+    pub(crate) fn with_shadow_maps(scene: &Scene, resolution: Option<u32>) -> Bench {
         let mut app = headless::app_with(headless::plugins().disable::<bevy::winit::WinitPlugin>());
+        if let Some(resolution) = resolution {
+            app.insert_resource(bevy_particle_clouds::CloudShadowMaps::with_resolution(
+                resolution,
+            ));
+        }
         let adapter = headless::adapter_name(&mut app);
         let target = headless::spawn_scene(&mut app, scene);
         let clouds = app
