@@ -271,17 +271,10 @@ pub fn add_cast<P: Copy + Ord + std::hash::Hash>(
     casters: impl IntoIterator<Item = (P, Caster)>,
     own_pool: P,
 ) {
-    let mut by_pool: Vec<(P, Vec<Caster>)> = Vec::new();
-    for (pool, caster) in casters {
-        match by_pool.iter_mut().find(|(p, _)| *p == pool) {
-            Some((_, list)) => list.push(caster),
-            None => by_pool.push((pool, vec![caster])),
-        }
-    }
+    let mut by_pool = by_pool(casters);
     if by_pool.is_empty() {
         by_pool.push((own_pool, Vec::new()));
     }
-    by_pool.sort_by_key(|(pool, _)| *pool);
     for (i, (pool, casters)) in by_pool.into_iter().enumerate() {
         let w = work.entry(pool).or_default();
         w.targets.push(CastTarget {
@@ -292,6 +285,21 @@ pub fn add_cast<P: Copy + Ord + std::hash::Hash>(
         });
         w.casters.extend(casters);
     }
+}
+
+/// `items` grouped by the pool each lies in, the pools in order: the order their dispatches
+/// run, the first writing a target and the others adding to it (the cast, and the overlap of
+/// [`overlap`](super::overlap)).
+pub fn by_pool<P: Copy + Ord, T>(items: impl IntoIterator<Item = (P, T)>) -> Vec<(P, Vec<T>)> {
+    let mut grouped: Vec<(P, Vec<T>)> = Vec::new();
+    for (pool, item) in items {
+        match grouped.iter_mut().find(|(p, _)| *p == pool) {
+            Some((_, list)) => list.push(item),
+            None => grouped.push((pool, vec![item])),
+        }
+    }
+    grouped.sort_by_key(|(pool, _)| *pool);
+    grouped
 }
 
 #[cfg(test)]

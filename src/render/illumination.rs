@@ -21,7 +21,7 @@ use bevy::{
 };
 
 use super::{
-    cast::{CastStart, CastTarget, CastWork, Caster, CasterVolume, add_cast},
+    cast::{CastStart, CastTarget, CastWork, Caster, CasterVolume, add_cast, by_pool},
     extract::{ExtractedCloud, ExtractedCloudLights},
     gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, WorkList, record_stage, storage_init},
     overlap::{Neighbour, OverlapItem},
@@ -420,23 +420,24 @@ fn add_overlaps(
     placed: &HashMap<Entity, (&ExtractedCloud, &CloudVolumes)>,
     pools: &VolumePools,
 ) {
-    let mut by_pool: HashMap<PoolId, Vec<Neighbour>> = HashMap::default();
-    for (cloud, v) in neighbours.iter().filter_map(|e| placed.get(e)) {
-        let first = pools.pool(&v.slot).density(v.slot.index).offset / 4;
-        by_pool.entry(v.slot.pool).or_default().push(Neighbour::new(
-            v.params.grid_origin,
-            v.params.h,
-            v.params.n,
-            first as u32,
-            &cloud.world_from_local,
-            &receiver.world_from_local,
-            cloud.extinction / receiver.extinction,
-            cloud.albedo,
-        ));
-    }
-    let mut by_pool: Vec<_> = by_pool.into_iter().collect();
-    by_pool.sort_by_key(|(pool, _)| *pool);
-    for (i, (pool, neighbours)) in by_pool.into_iter().enumerate() {
+    let placed_neighbours = neighbours
+        .iter()
+        .filter_map(|e| placed.get(e))
+        .map(|&(cloud, v)| {
+            let first = pools.pool(&v.slot).density(v.slot.index).offset / 4;
+            let neighbour = Neighbour::new(
+                v.params.grid_origin,
+                v.params.h,
+                v.params.n,
+                first as u32,
+                &cloud.world_from_local,
+                &receiver.world_from_local,
+                cloud.extinction / receiver.extinction,
+                cloud.albedo,
+            );
+            (v.slot.pool, neighbour)
+        });
+    for (i, (pool, neighbours)) in by_pool(placed_neighbours).into_iter().enumerate() {
         let w = work.entry(pool).or_default();
         w.items.push(OverlapItem {
             slot: volumes.slot.index,
@@ -525,7 +526,9 @@ pub(crate) fn illuminate_clouds(
     mut map_keys: ResMut<ShadowMapKeys>,
 ) {
     let Some(pipelines) = pipelines else { return };
-    let maps_pending = batches.as_ref().is_some_and(|b| !b.maps.clears.is_empty());
+    let maps_pending = batches
+        .as_ref()
+        .is_some_and(|b| !b.maps.clears.is_empty() || !b.maps.batches.is_empty());
     if clouds.iter().all(|(_, _, s, _)| s.plan.is_empty()) && !maps_pending {
         return;
     }

@@ -16,7 +16,7 @@ use bevy::{
 use super::{
     cast::{CastStart, CastTarget, CastWork, Caster, add_cast},
     extract::{ExtractedCloud, ExtractedCloudLights},
-    gpu::WorkList,
+    gpu::{WorkList, uniform_bytes},
     illumination::{Batch, light_caster},
     key_of,
     plan::CloudIllumination,
@@ -29,9 +29,9 @@ use crate::shadow_maps::{CloudShadowMaps, ShadowMapPlacement};
 #[derive(Resource, Default)]
 pub struct ShadowMapKeys(HashMap<Entity, u64>);
 
-/// This frame's filling of the shadow maps: the maps' buffer, the regions (bytes) to clear
-/// first, and one batch of cast targets per pool the casters lie in, with the texels each
-/// target covers.
+/// This frame's filling of the shadow maps: the maps' buffer, the regions (bytes) of maps no cloud
+/// casts on (cleared), and one batch of cast targets per pool the casters lie in, with the texels
+/// each target covers.
 #[derive(Default)]
 pub(crate) struct ShadowMapCasts {
     pub(crate) buffer: Option<Buffer>,
@@ -85,20 +85,24 @@ pub(crate) fn shadow_map_casts<'a>(
                 (*e, state.keys.lights.get(l).copied(), place)
             })
             .collect();
-        let key = key_of((placement_bits(map), buffer.id(), held));
+        let key = key_of((uniform_bytes(map), buffer.id(), held));
         if keys.0.get(&light.entity) == Some(&key) {
             continue;
         }
         keys.0.insert(light.entity, key);
-        let texels = (map.size * map.size) as u64;
-        casts.clears.push((map.first as u64 * 4, texels * 4));
         let placed = casters.iter().filter_map(|&&(_, cloud, v, _)| {
             let caster = light_caster(cloud, v, l, pools)?;
             Some((v.slot.pool, caster.on(&Affine3A::IDENTITY)))
         });
         let placed: Vec<_> = placed.collect();
-        if let Some(&(own, _)) = placed.first() {
-            add_cast(&mut work, map_target(map), CastStart::Held, placed, own);
+        match placed.first() {
+            // The first pool's dispatch writes the map from nothing, the others add to it.
+            Some(&(own, _)) => add_cast(&mut work, map_target(map), CastStart::Zero, placed, own),
+            // No cloud casts on it: it holds nothing.
+            None => {
+                let texels = (map.size * map.size) as u64;
+                casts.clears.push((map.first as u64 * 4, texels * 4));
+            }
         }
     }
     let mut work: Vec<_> = work.into_iter().collect();
@@ -126,27 +130,4 @@ fn map_target(map: &ShadowMapPlacement) -> CastTarget {
         size_z: 1,
         ..default()
     }
-}
-
-/// The bits of a placement, for its key.
-fn placement_bits(map: &ShadowMapPlacement) -> [u32; 16] {
-    let f = |v: f32| v.to_bits();
-    [
-        f(map.u.x),
-        f(map.u.y),
-        f(map.u.z),
-        f(map.texel),
-        f(map.v.x),
-        f(map.v.y),
-        f(map.v.z),
-        f(map.w_begin),
-        f(map.d.x),
-        f(map.d.y),
-        f(map.d.z),
-        f(map.w_end),
-        f(map.corner.x),
-        f(map.corner.y),
-        map.size,
-        map.first,
-    ]
 }
