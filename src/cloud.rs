@@ -70,7 +70,9 @@ pub struct ParticleCloud {
     pub albedo: f32,
     /// Henyey–Greenstein anisotropy `g` in `(-1, 1)`: the mean cosine of the scattering angle
     /// (dimensionless). `0` (the default) scatters isotropically; `g > 0` scatters forward, so the
-    /// cloud's edges glow with the sun behind it (water clouds: about 0.85).
+    /// cloud's edges glow with the sun behind it (water clouds: about 0.85). Non-zero, the
+    /// multiple scattering carries the light's angular moments (docs/illumination.md §4): more
+    /// memory and time than an isotropic cloud.
     pub anisotropy: f32,
 }
 

@@ -123,10 +123,9 @@ impl Particle {
 }
 
 impl Medium {
-    /// The fraction of its optical depth that the light's beam keeps for single scattering:
-    /// `1 - albedo g²` (docs/illumination.md §5). 1 for an isotropic medium.
-    pub fn single_scattering_depth_scale(&self) -> f64 {
-        single_scattering_depth_scale(self.albedo as f64, self.anisotropy as f64)
+    /// The medium's δ-Eddington transform (docs/illumination.md §4, §5).
+    pub fn delta_eddington(&self) -> DeltaEddington {
+        DeltaEddington::new(self.albedo as f64, self.anisotropy as f64)
     }
 
     /// Checks the medium against docs/physics.md.
@@ -144,14 +143,37 @@ impl Medium {
     }
 }
 
-/// The fraction of its optical depth that a light's beam keeps in a Henyey–Greenstein medium of
-/// anisotropy `g` and albedo `albedo`, as single scattering sees it: `1 - albedo g²`. The
-/// δ-Eddington truncation (Joseph, Wiscombe & Weinman 1976) takes the fraction `g²` of the
-/// scattering as not scattered at all (it stays in the forward peak), so light that scattered a
-/// few times at small angles still lights a point as if it came straight from the light.
-/// Exactly 1 for `g = 0`.
-pub fn single_scattering_depth_scale(albedo: f64, g: f64) -> f64 {
-    1.0 - albedo * g * g
+/// The δ-Eddington transform of a Henyey–Greenstein medium (Joseph, Wiscombe & Weinman 1976;
+/// docs/illumination.md §4): the fraction `f = g²` of its scattering (for `g > 0`; none for
+/// `g <= 0`) goes on in the forward direction as if not scattered at all, and the rest scatters
+/// with the asymmetry `g' = (g - f) / (1 - f)`. The transformed medium keeps the phase function's
+/// first two Legendre moments, `g` and `g²`. Identity for `g = 0`: `depth_scale` 1, `albedo`
+/// unchanged, `anisotropy` 0.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DeltaEddington {
+    /// The fraction of the optical depth the transformed medium keeps, `1 - albedo f`: the
+    /// light's beam and the multiple scattering see `depth_scale * tau`.
+    pub depth_scale: f64,
+    /// The transformed medium's albedo, `albedo (1 - f) / (1 - albedo f)`.
+    pub albedo: f64,
+    /// The transformed medium's asymmetry `g'`: `g / (1 + g)` for `g > 0`, else `g`.
+    pub anisotropy: f64,
+}
+
+impl DeltaEddington {
+    /// The transform of a medium of albedo `albedo` in `[0, 1]` and anisotropy `g` in `(-1, 1)`.
+    pub fn new(albedo: f64, g: f64) -> Self {
+        // A backward peak is not a forward one: only g > 0 is truncated (g' would leave [-1, 1]
+        // for g < -1/2 otherwise).
+        let f = g.max(0.0).powi(2);
+        // > 0: f < 1.
+        let depth_scale = 1.0 - albedo * f;
+        Self {
+            depth_scale,
+            albedo: albedo * (1.0 - f) / depth_scale,
+            anisotropy: (g - f) / (1.0 - f),
+        }
+    }
 }
 
 /// Validates a whole cloud: the medium first, then every particle.
@@ -170,4 +192,32 @@ pub struct LightSample {
     pub direction: Vec3,
     /// Linear RGB irradiance `E` perpendicular to the direction.
     pub irradiance: Vec3,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The transformed phase function `f δ + (1 - f) p_g'` keeps the first two Legendre moments
+    /// of Henyey–Greenstein's, `g` and `g²`; the transformed medium's scattering coefficient is
+    /// `(1 - f)` of the medium's; `g = 0` and backward media are not truncated.
+    #[test]
+    fn delta_eddington_keeps_the_phase_functions_first_two_moments() {
+        for (albedo, g) in [(0.9, 0.7), (1.0, 0.85), (0.5, 0.2), (0.99, 0.0)] {
+            let d = DeltaEddington::new(albedo, g);
+            let f = g * g;
+            assert!((f + (1.0 - f) * d.anisotropy - g).abs() < 1e-12);
+            assert!((d.depth_scale - (1.0 - albedo * f)).abs() < 1e-12);
+            assert!((d.albedo * d.depth_scale - albedo * (1.0 - f)).abs() < 1e-12);
+            assert!((0.0..=1.0).contains(&d.albedo) && d.anisotropy.abs() < 1.0);
+        }
+        assert_eq!(
+            DeltaEddington::new(0.8, -0.6),
+            DeltaEddington {
+                depth_scale: 1.0,
+                albedo: 0.8,
+                anisotropy: -0.6
+            }
+        );
+    }
 }

@@ -2,7 +2,9 @@
 //! which the GPU passes match within 2e-4 of the maximum: tests/illumination.rs, tests/draw.rs)
 //! against the path tracer, on a small thick cloud lit from the side.
 //!
-//! A forward-scattering cloud lit from behind glows at its edges as the path tracer says.
+//! A forward-scattering cloud lit from behind glows at its edges as the path tracer says; lit
+//! from the side, its multiply scattered light, seen through its angular moments, matches the
+//! path tracer.
 //!
 //! Raising a quality knob must not make the result worse: for fixed iterations, the in-scattered
 //! light at 64³ and 128³ is at least as accurate as at 32³.
@@ -15,7 +17,7 @@ use bevy_particle_clouds::{
     generators::SplitMix64,
     reference::{
         composite::composite_scene_cloud,
-        illumination::illuminate_scene_cloud,
+        illumination::{CloudIllumination, illuminate_scene_cloud},
         metrics::relative_rmse,
         path_tracer::{
             self, Lighting, MAX_SCATTER_EVENTS, ParticleMedia, PathTracerSettings, noise_level,
@@ -71,7 +73,18 @@ fn scene() -> Scene {
 /// over its footprint like the path tracer's instead of sampling its centre (at 32×24 the
 /// difference would otherwise dominate every other error).
 fn real_time(scene: &Scene, settings: &CloudQualitySettings) -> Vec<[f32; 4]> {
-    let illumination = illuminate_scene_cloud(scene, 0, settings).expect("a cloud with density");
+    real_time_with(scene, settings, |_| {})
+}
+
+/// [`real_time`] with the illumination changed by `change` before the billboards draw it.
+fn real_time_with(
+    scene: &Scene,
+    settings: &CloudQualitySettings,
+    change: impl FnOnce(&mut CloudIllumination),
+) -> Vec<[f32; 4]> {
+    let mut illumination =
+        illuminate_scene_cloud(scene, 0, settings).expect("a cloud with density");
+    change(&mut illumination);
     let mut fine = scene.clone();
     fine.camera.width *= 2;
     fine.camera.height *= 2;
@@ -264,4 +277,47 @@ fn a_cloud_lit_from_behind_glows_as_the_path_tracer_says() {
     );
     assert!((ratio - 1.0).abs() < 0.15, "real-time / truth {ratio}");
     assert!(denoised < 0.1, "relative RMSE {denoised}");
+}
+
+/// A forward-scattering cloud (g = 0.7) lit from the side and from the front: its multiply
+/// scattered light flows on with the light, and the camera sees it through the phase function's
+/// first three moments (docs/illumination.md §4, §5). Against the path tracer, at most a third of
+/// the error of the isotropic multiple scattering it replaced (0.35 and 0.85 here), and within
+/// 0.1. (This cloud is thinner than the benchmark's cumulus, optical depth about 5 through its
+/// core, and its multiply scattered light more forward-peaked than three moments hold: the
+/// benchmark's goal of 0.05 is not met here; see README "Limitations".)
+#[test]
+fn a_forward_scattering_cloud_lit_from_the_side_or_the_front_follows_the_path_tracer() {
+    use bevy_particle_clouds::reference::illumination::{gather, scatter};
+    for direction in [Vec3::new(-1.0, -0.3, -0.1), Vec3::new(-0.8, -0.35, -0.6)] {
+        let mut forward = scene();
+        forward.lights[0].direction = direction;
+        forward.clouds[0].medium.anisotropy = 0.7;
+        let (truth, noise) = reference(&forward, 4096);
+        let settings = CloudQualitySettings::default();
+        let denoised = |image: &[[f32; 4]]| {
+            let error = relative_rmse(image, &truth);
+            (error * error - noise * noise).max(0.0).sqrt()
+        };
+        let error = denoised(&real_time(&forward, &settings));
+        let isotropic = denoised(&real_time_with(&forward, &settings, |ill| {
+            let s0 = gather(&ill.grid, &ill.fine, &ill.lights);
+            let (grid, k, albedo) = (&ill.grid, ill.k_local, ill.albedo);
+            let iterations = settings.scatter_iterations;
+            ill.multiple = scatter(grid, k, albedo, settings.scatter_stencil, &s0, iterations);
+        }));
+        eprintln!(
+            "forward, light {direction}: relative RMSE {error:.4}, {isotropic:.4} with isotropic \
+             multiple scattering (reference noise {noise:.4})"
+        );
+        assert!(
+            noise < 0.034,
+            "the reference is too noisy to compare: {noise}"
+        );
+        assert!(error < 0.1, "relative RMSE {error}");
+        assert!(
+            3.0 * error < isotropic,
+            "isotropic multiple scattering errs by {isotropic}"
+        );
+    }
 }

@@ -12,6 +12,11 @@
 //! - the billboards alone: order 1 drawn from the exact single scattering (the path tracer's
 //!   transmittance towards each light at every shading point), so only the billboard
 //!   approximation (chord segments, particles composited whole in sorted order) is left.
+//!
+//! An anisotropic medium's orders are those of its δ-Eddington transform, whose beam keeps light
+//! that scattered at small angles, and its orders' angular moments are not kept apart: its
+//! image is split into order 1 (the light volumes' exact beam, without the transform) and
+//! everything else.
 
 use std::fmt::Write;
 
@@ -81,7 +86,7 @@ fn billboards(
 }
 
 /// Order images of the real-time transport: 1 (single), 2..=M+1 (the grid's orders), M+2 (the
-/// closure).
+/// closure); for an anisotropic medium, 1 (the exact beam) and 2 (everything else).
 fn real_time_orders(
     scene: &Scene,
     ill: &CloudIllumination,
@@ -90,6 +95,26 @@ fn real_time_orders(
 ) -> Vec<LinearImage> {
     let albedo = ill.albedo;
     let grid = &ill.grid;
+    if ill.anisotropy != 0.0 {
+        // Albedo 0 in the depth scale: the beam through the whole optical depth.
+        let exact = |x, ray| single_scattering_towards(&ill.lights, x, (0.0, ill.anisotropy), ray);
+        return vec![
+            billboards(
+                scene,
+                &|x, ray| exact(x, ray) * albedo,
+                settings,
+                &ill.fine,
+                factor,
+            ),
+            billboards(
+                scene,
+                &|x, ray| ill.scattered_at(x, ray) - exact(x, ray) * albedo,
+                settings,
+                &ill.fine,
+                factor,
+            ),
+        ];
+    }
     let mut images = vec![billboards(
         scene,
         &|x, ray| single_scattering_towards(&ill.lights, x, (albedo, ill.anisotropy), ray) * albedo,
@@ -248,7 +273,10 @@ pub fn decompose(
             (n > 0 && n < last).then(|| energy(&images[n]) / energy(&images[n - 1]))
         };
         let fmt = |v: Option<f64>| v.map_or("".into(), |v| format!("{v:.3}"));
-        let label = if n == last {
+        let anisotropic = scene.clouds[0].medium.anisotropy != 0.0;
+        let label = if n == last && anisotropic {
+            format!("≥ {} (δ-Eddington beam and grid)", n + 1)
+        } else if n == last {
             format!("≥ {} (closure)", n + 1)
         } else {
             format!("{}", n + 1)

@@ -29,7 +29,6 @@
 //! `main_transparent_pass_3d`) runs every frame anyway. The static cost is that of a frame where
 //! nothing changed: the draw only. Both are medians over `--frames` frames, wall time beside them.
 
-mod anisotropy;
 mod cloud_target_scale;
 mod decompose;
 mod illumination;
@@ -70,7 +69,6 @@ use bevy_particle_clouds::{
     settings::ShadingMethod,
 };
 use clap::Parser;
-use anisotropy::*;
 use cloud_target_scale::*;
 use illumination::*;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -141,9 +139,6 @@ pub(crate) struct Args {
     /// Split the default settings' error by scattering order (CPU only).
     #[arg(long)]
     pub(crate) decompose: bool,
-    /// Variants of an anisotropic medium's multiple scattering against the path tracer (CPU only).
-    #[arg(long)]
-    pub(crate) anisotropy: bool,
     /// Clouds do not shadow each other (every cloud `NotShadowCaster`): what the cast of their
     /// shadows costs and what its absence does to the error.
     #[arg(long)]
@@ -266,9 +261,6 @@ fn run() -> Result<(), String> {
     }
     if args.decompose {
         return decomposition(&args, &chosen);
-    }
-    if args.anisotropy {
-        return anisotropy_benchmark(&args, &chosen);
     }
     let settings = if args.settings.is_empty() {
         sweep(args.quick)

@@ -18,7 +18,7 @@ use crate::math::{
     density_level, density_level_sizes, henyey_greenstein, kernel_u2, level_kernel_radius,
     light_basis,
 };
-use crate::particle::{LightSample, Medium, Particle, single_scattering_depth_scale};
+use crate::particle::{DeltaEddington, LightSample, Medium, Particle};
 use crate::reference::composite::CloudPlacement;
 use crate::settings::{CloudQualitySettings, ScatterStencil};
 use crate::shadow_maps::ShadowMapPlacement;
@@ -56,6 +56,14 @@ fn trilinear<T>(axes: [AxisFootprint; 3], n: usize, values: &[T]) -> T
 where
     T: Copy + Default + Add<Output = T> + Mul<f64, Output = T>,
 {
+    trilinear_of(axes, n, |i| values[i])
+}
+
+/// [`trilinear`] of the values `value(i)` of the voxels `i`.
+fn trilinear_of<T>(axes: [AxisFootprint; 3], n: usize, value: impl Fn(usize) -> T) -> T
+where
+    T: Default + Add<Output = T> + Mul<f64, Output = T>,
+{
     let mut acc = T::default();
     for &(k, wk) in &axes[2] {
         for &(j, wj) in &axes[1] {
@@ -65,12 +73,35 @@ where
                 };
                 let w = wi * wj * wk;
                 if w != 0.0 {
-                    acc = acc + values[i + n * (j + n * k)] * w;
+                    acc = acc + value(i + n * (j + n * k)) * w;
                 }
             }
         }
     }
     acc
+}
+
+/// Per-voxel arrays as [`trilinear_of`] combines them.
+struct Entries<const K: usize>([DVec3; K]);
+
+impl<const K: usize> Default for Entries<K> {
+    fn default() -> Self {
+        Self([DVec3::ZERO; K])
+    }
+}
+
+impl<const K: usize> Add for Entries<K> {
+    type Output = Self;
+    fn add(self, other: Self) -> Self {
+        Self(std::array::from_fn(|i| self.0[i] + other.0[i]))
+    }
+}
+
+impl<const K: usize> Mul<f64> for Entries<K> {
+    type Output = Self;
+    fn mul(self, w: f64) -> Self {
+        Self(self.0.map(|v| v * w))
+    }
 }
 
 /// Splits a linear index `i + n * (j + n * k)` into `(i, j, k)`.
@@ -157,6 +188,23 @@ impl DensityGrid {
         let g = self.grid_coords(p);
         let axes = [0, 1, 2].map(|a| axis_clamped(g[a], self.n));
         trilinear(axes, self.n, values)
+    }
+
+    /// [`DensityGrid::sample_clamped`] of per-voxel arrays (a [`Flux`], a [`Quadrupole`]), entry
+    /// by entry.
+    pub fn sample_clamped_array<const K: usize>(
+        &self,
+        values: &[[DVec3; K]],
+        p: DVec3,
+    ) -> [DVec3; K] {
+        assert_eq!(
+            values.len(),
+            self.len(),
+            "values must have one entry per voxel"
+        );
+        let g = self.grid_coords(p);
+        let axes = [0, 1, 2].map(|a| axis_clamped(g[a], self.n));
+        trilinear_of(axes, self.n, |i| Entries(values[i])).0
     }
 
     /// Largest voxel density `rho_max` (0 for an empty grid).
@@ -591,7 +639,7 @@ pub fn single_scattering_at(lights: &[(LightVolume, DVec3)], p: DVec3) -> DVec3 
 /// Single scattering towards the camera at local point `p` of a medium of albedo `albedo` and
 /// anisotropy `g` (section 5): `S_1(p, w) = sum_l p_HG(g, d_l . (-w)) E_l exp(-c tau_l(p))`,
 /// `w` the unit local direction of the view ray (from the camera), `d_l` the light's travel
-/// direction and `c = 1 - albedo g²` ([`single_scattering_depth_scale`]).
+/// direction and `c` the δ-Eddington depth scale ([`DeltaEddington::depth_scale`]).
 /// [`single_scattering_at`] for `g = 0`.
 pub fn single_scattering_towards(
     lights: &[(LightVolume, DVec3)],
@@ -599,11 +647,79 @@ pub fn single_scattering_towards(
     (albedo, g): (f64, f64),
     ray: DVec3,
 ) -> DVec3 {
-    let scale = single_scattering_depth_scale(albedo, g);
+    let scale = DeltaEddington::new(albedo, g).depth_scale;
     lights.iter().fold(DVec3::ZERO, |acc, (vol, e)| {
         let phase = henyey_greenstein(g, -vol.basis[2].dot(ray));
         acc + *e * ((-vol.optical_depth_at(p) * scale).exp() * phase)
     })
+}
+
+/// The first angular moment of a radiance field at a voxel, `(1/4π) ∫ L ω dω`: one RGB per axis
+/// (x, y, z), in the units of `E` per steradian (contract section 4).
+pub type Flux = [DVec3; 3];
+
+/// The second angular moment of a radiance field at a voxel without its trace,
+/// `(1/4π) ∫ L (ω ω^T - I/3) dω`: the RGB of its `xx, yy, xy, xz, yz` entries (`zz = -xx - yy`).
+pub type Quadrupole = [DVec3; 5];
+
+/// The entries of [`Quadrupole`] for one unit direction `w`: `w w^T - I/3` at `xx, yy, xy, xz, yz`.
+pub fn quadrupole_basis(w: DVec3) -> [f64; 5] {
+    [
+        w.x * w.x - 1.0 / 3.0,
+        w.y * w.y - 1.0 / 3.0,
+        w.x * w.y,
+        w.x * w.z,
+        w.y * w.z,
+    ]
+}
+
+/// `w^T Q w` for unit `w`.
+fn quadrupole_along(q: &Quadrupole, w: DVec3) -> DVec3 {
+    let zz = -(q[0] + q[1]);
+    q[0] * (w.x * w.x)
+        + q[1] * (w.y * w.y)
+        + zz * (w.z * w.z)
+        + (q[2] * (w.x * w.y) + q[3] * (w.x * w.z) + q[4] * (w.y * w.z)) * 2.0
+}
+
+/// `F . w` for unit `w`.
+fn flux_along(f: &Flux, w: DVec3) -> DVec3 {
+    f[0] * w.x + f[1] * w.y + f[2] * w.z
+}
+
+/// A source or an order of the multiple scattering over the scattering grid (contract
+/// section 4): per voxel the mean radiance `(1/4π) ∫ L dω` (`S` of an isotropic medium) and, for
+/// an anisotropic medium, the [`Flux`]; `flux` is empty for an isotropic one.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Moments {
+    /// Mean radiance per voxel.
+    pub mean: Vec<DVec3>,
+    /// First angular moment per voxel; empty for an isotropic medium.
+    pub flux: Vec<Flux>,
+}
+
+impl Moments {
+    /// An isotropic source or order.
+    pub fn isotropic(mean: Vec<DVec3>) -> Self {
+        Self {
+            mean,
+            flux: Vec::new(),
+        }
+    }
+
+    /// `self + k other`, voxel by voxel.
+    fn plus(&self, other: &Moments, k: DVec3) -> Moments {
+        Moments {
+            mean: zip_with(&self.mean, &other.mean, |a, b| *a + *b * k),
+            flux: zip_with(&self.flux, &other.flux, |a, b| {
+                std::array::from_fn(|i| a[i] + b[i] * k)
+            }),
+        }
+    }
+}
+
+fn zip_with<T, U>(a: &[T], b: &[T], f: impl Fn(&T, &T) -> U) -> Vec<U> {
+    a.iter().zip(b).map(|(a, b)| f(a, b)).collect()
 }
 
 /// The multiple-scattering source `S_0` of every voxel of `grid` (contract section 3): the
@@ -615,28 +731,68 @@ pub fn gather(
     fine: &DensityGrid,
     lights: &[(LightVolume, DVec3)],
 ) -> Vec<DVec3> {
+    gather_source(grid, fine, lights, DeltaEddington::new(1.0, 0.0)).mean
+}
+
+/// [`gather`] for a medium of δ-Eddington transform `delta` (contract section 3): the lights'
+/// beams seen through `delta.depth_scale` of their optical depth, `E_l exp(-c tau_l) / 4π`, and,
+/// for an anisotropic medium, their flux `E_l exp(-c tau_l) d_l / 4π` (the moments of a
+/// collimated beam), density-weighted alike.
+pub fn gather_source(
+    grid: &DensityGrid,
+    fine: &DensityGrid,
+    lights: &[(LightVolume, DVec3)],
+    delta: DeltaEddington,
+) -> Moments {
     let f = fine.n / grid.n;
-    (0..grid.len())
+    let beams = |p: DVec3| {
+        lights
+            .iter()
+            .fold((DVec3::ZERO, [DVec3::ZERO; 3]), |(m, fl), (vol, e)| {
+                let t = *e * (-vol.optical_depth_at(p) * delta.depth_scale).exp() / (4.0 * PI);
+                let d = vol.basis[2];
+                (m + t, [fl[0] + t * d.x, fl[1] + t * d.y, fl[2] + t * d.z])
+            })
+    };
+    let voxels: Vec<(DVec3, Flux)> = (0..grid.len())
         .into_par_iter()
         .map(|idx| {
             let (i, j, k) = unravel(idx, grid.n);
-            let (mut weighted, mut mass, mut plain) = (DVec3::ZERO, 0.0, DVec3::ZERO);
+            let (mut weighted, mut mass, mut plain) = (
+                (DVec3::ZERO, [DVec3::ZERO; 3]),
+                0.0,
+                (DVec3::ZERO, [DVec3::ZERO; 3]),
+            );
             for child in 0..f * f * f {
                 let (a, b, c) = unravel(child, f);
                 let (fi, fj, fk) = (i * f + a, j * f + b, k * f + c);
-                let s = single_scattering_at(lights, fine.voxel_centre(fi, fj, fk));
+                let (m, fl) = beams(fine.voxel_centre(fi, fj, fk));
                 let rho = fine.rho[fine.index(fi, fj, fk)];
-                weighted += s * rho;
+                weighted.0 += m * rho;
+                plain.0 += m;
+                for axis in 0..3 {
+                    weighted.1[axis] += fl[axis] * rho;
+                    plain.1[axis] += fl[axis];
+                }
                 mass += rho;
-                plain += s;
             }
-            if mass > 0.0 {
-                weighted / mass
+            let (sum, count) = if mass > 0.0 {
+                (weighted, mass)
             } else {
-                plain / (f * f * f) as f64
-            }
+                (plain, (f * f * f) as f64)
+            };
+            (sum.0 / count, sum.1.map(|a| a / count))
         })
-        .collect()
+        .collect();
+    let (mean, flux) = voxels.into_iter().unzip();
+    Moments {
+        mean,
+        flux: if delta.anisotropy != 0.0 {
+            flux
+        } else {
+            Vec::new()
+        },
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -678,44 +834,79 @@ pub fn segment_weights(tau: f64) -> (f64, f64) {
 pub const SERIES_BELOW: f64 = 0.02;
 
 /// What the multiple scattering sweeps through on a cloud's scattering grid (section 4): the
-/// cloud's density and albedo, and the media of other clouds where they reach into its cube
-/// (section 4, "Clouds that overlap").
+/// cloud's density and its medium's δ-Eddington transform, and the media of other clouds where
+/// they reach into its cube (section 4, "Clouds that overlap").
 #[derive(Clone, Copy)]
 struct SweptMedium<'a> {
     grid: &'a DensityGrid,
     k_local: f64,
+    /// The cloud's own albedo (the paper's stencil takes it untransformed).
     albedo: f64,
-    /// Per voxel, other clouds' extinction and scattering coefficients in units of the cloud's
-    /// own extinction at density 1 (`sum_c K_c rho_c / K`, `sum_c albedo_c K_c rho_c / K`).
+    /// The cloud's own medium, transformed (its true albedo for an isotropic one).
+    delta: DeltaEddington,
+    /// Per voxel, other clouds' transformed extinction and scattering coefficients in units of
+    /// the cloud's own (untransformed) extinction at density 1
+    /// (`sum_c c_c K_c rho_c / K`, `sum_c c_c albedo'_c K_c rho_c / K`).
     foreign: Option<&'a [[f64; 2]]>,
 }
 
-impl SweptMedium<'_> {
+impl<'a> SweptMedium<'a> {
+    /// A cloud alone: local extinction `k_local`, albedo `albedo`, anisotropy `g`.
+    fn alone(grid: &'a DensityGrid, k_local: f64, albedo: f64, g: f64) -> Self {
+        Self {
+            grid,
+            k_local,
+            albedo,
+            delta: DeltaEddington::new(albedo, g),
+            foreign: None,
+        }
+    }
+
     /// Extinction of voxel `i`, in units of `K_local`.
     fn density(&self, i: usize) -> f64 {
-        self.grid.rho[i] + self.foreign.map_or(0.0, |f| f[i][0])
+        self.delta.depth_scale * self.grid.rho[i] + self.foreign.map_or(0.0, |f| f[i][0])
     }
 
     /// Albedo of voxel `i`: the cloud's own where no other cloud's medium reaches.
     fn albedo(&self, i: usize) -> f64 {
         match self.foreign {
             Some(f) if f[i][0] > 0.0 => {
-                (self.albedo * self.grid.rho[i] + f[i][1]) / (self.grid.rho[i] + f[i][0])
+                let own = self.delta.albedo * self.delta.depth_scale * self.grid.rho[i];
+                (own + f[i][1]) / self.density(i)
             }
-            _ => self.albedo,
+            _ => self.delta.albedo,
         }
     }
+
+    /// `J = albedo S(w)` at voxel `i` towards the unit direction `w`, with the P1 phase function
+    /// of the cloud's transformed anisotropy `g'`: `albedo (mean + 3 g' F . w)`.
+    fn source(&self, s: &Moments, i: usize, w: DVec3) -> DVec3 {
+        let mean = s.mean[i];
+        let directional = match s.flux.get(i) {
+            Some(f) => flux_along(f, w) * (3.0 * self.delta.anisotropy),
+            None => DVec3::ZERO,
+        };
+        (mean + directional) * self.albedo(i)
+    }
+}
+
+/// The unit direction the radiance of sweep direction `o` travels in: `-o / |o|` (it arrives
+/// from the `+o` side).
+fn travel(o: [i64; 3]) -> DVec3 {
+    -DVec3::new(o[0] as f64, o[1] as f64, o[2] as f64).normalize()
 }
 
 /// `I_o` over the whole grid for one direction `o`: the radiance arriving at each voxel from
 /// direction `o` (from `v + o`, `v + 2o`, ...), divided by nothing yet. Marched from the downwind
-/// side, `I_o(v) = e I_o(v+o) + J(v)(1-e) + (J(v+o) - J(v))((1-e)/tau - e)`, `J = albedo S`, with
+/// side, `I_o(v) = e I_o(v+o) + J(v)(1-e) + (J(v+o) - J(v))((1-e)/tau - e)`, `J` the voxel's
+/// [`SweptMedium::source`] towards the radiance's travel direction `-o`, with
 /// `tau = K_local (rho_v + rho_{v+o}) / 2 h |o|` and density, `S` and `I_o` zero outside the grid
 /// (with other clouds' media, `rho` and `albedo` are the voxel's over all of them).
-fn sweep_direction(medium: SweptMedium, o: [i64; 3], s: &[DVec3], sky: DVec3) -> Vec<DVec3> {
+fn sweep_direction(medium: SweptMedium, o: [i64; 3], s: &Moments, sky: DVec3) -> Vec<DVec3> {
     let grid = medium.grid;
     let n = grid.n as i64;
     let step = grid.h * ((o[0] * o[0] + o[1] * o[1] + o[2] * o[2]) as f64).sqrt();
+    let w = travel(o);
     let mut radiance = vec![DVec3::ZERO; grid.len()];
     // Visit voxels so that v + o is always visited before v: along each axis, descending where
     // o is positive.
@@ -732,9 +923,9 @@ fn sweep_direction(medium: SweptMedium, o: [i64; 3], s: &[DVec3], sky: DVec3) ->
                     .then(|| grid.index(u[0] as usize, u[1] as usize, u[2] as usize));
                 // Outside the grid: no medium, and the sky's radiance arriving.
                 let (rho_u, j_u, i_u) = upwind.map_or((0.0, DVec3::ZERO, sky), |j| {
-                    (medium.density(j), s[j] * medium.albedo(j), radiance[j])
+                    (medium.density(j), medium.source(s, j, w), radiance[j])
                 });
-                let j = s[idx] * medium.albedo(idx);
+                let j = medium.source(s, idx, w);
                 let tau = medium.k_local * (medium.density(idx) + rho_u) * 0.5 * step;
                 let (constant, linear) = segment_weights(tau);
                 let e = 1.0 - constant;
@@ -745,22 +936,67 @@ fn sweep_direction(medium: SweptMedium, o: [i64; 3], s: &[DVec3], sky: DVec3) ->
     radiance
 }
 
-/// One discrete-ordinates iteration: `S_{n+1}(v) = sum_o I_o(v) / 26`, the radiance `sky`
+/// One discrete-ordinates iteration (section 4): the next order's moments over the 26 lattice
+/// directions, each weighing `1/26`, `mean = sum_o I_o / 26`, and for an anisotropic medium (one
+/// whose source has a flux) `F = sum_o I_o w_o / 26` and the quadrupole
+/// `sum_o I_o (w_o w_o^T - I/3) / 26`, `w_o` the radiance's travel direction; the radiance `sky`
 /// entering the grid from outside.
-fn sweep(medium: SweptMedium, s: &[DVec3], sky: DVec3) -> Vec<DVec3> {
-    lattice_directions()
+fn sweep(medium: SweptMedium, s: &Moments, sky: DVec3) -> (Moments, Vec<Quadrupole>) {
+    let directional = !s.flux.is_empty();
+    let voxels = s.mean.len();
+    let empty = || Swept {
+        mean: vec![DVec3::ZERO; voxels],
+        flux: vec![[DVec3::ZERO; 3]; if directional { voxels } else { 0 }],
+        quadrupole: vec![[DVec3::ZERO; 5]; if directional { voxels } else { 0 }],
+    };
+    let swept = lattice_directions()
         .into_par_iter()
-        .map(|o| sweep_direction(medium, o, s, sky))
-        .reduce(
-            || vec![DVec3::ZERO; s.len()],
-            |mut a, b| {
-                a.iter_mut().zip(&b).for_each(|(x, y)| *x += *y);
-                a
-            },
-        )
-        .into_iter()
-        .map(|x| x / 26.0)
-        .collect()
+        .map(|o| {
+            let radiance = sweep_direction(medium, o, s, sky);
+            let mut out = empty();
+            let w = travel(o);
+            let q = quadrupole_basis(w);
+            for (i, r) in radiance.into_iter().enumerate() {
+                let share = r / 26.0;
+                out.mean[i] = share;
+                if directional {
+                    out.flux[i] = [share * w.x, share * w.y, share * w.z];
+                    out.quadrupole[i] = q.map(|q| share * q);
+                }
+            }
+            out
+        })
+        .reduce(empty, Swept::add);
+    (
+        Moments {
+            mean: swept.mean,
+            flux: swept.flux,
+        },
+        swept.quadrupole,
+    )
+}
+
+/// What one sweep accumulates (see [`sweep`]).
+struct Swept {
+    mean: Vec<DVec3>,
+    flux: Vec<Flux>,
+    quadrupole: Vec<Quadrupole>,
+}
+
+impl Swept {
+    fn add(mut self, other: Swept) -> Swept {
+        self.mean
+            .iter_mut()
+            .zip(&other.mean)
+            .for_each(|(a, b)| *a += *b);
+        for (a, b) in self.flux.iter_mut().zip(&other.flux) {
+            (0..3).for_each(|i| a[i] += b[i]);
+        }
+        for (a, b) in self.quadrupole.iter_mut().zip(&other.quadrupole) {
+            (0..5).for_each(|i| a[i] += b[i]);
+        }
+        self
+    }
 }
 
 /// One iteration of the paper's Algorithm 2:
@@ -819,12 +1055,27 @@ pub fn order_ratio(grid: &DensityGrid, last: &[DVec3], before: &[DVec3]) -> DVec
 /// Multiple scattering, every order past the first (contract section 4).
 #[derive(Clone, Debug, PartialEq)]
 pub struct MultipleScattering {
-    /// `S_1, ..., S_M` (one entry per voxel each), the orders computed.
+    /// `S_1, ..., S_M` (one mean per voxel each), the orders computed.
     pub orders: Vec<Vec<DVec3>>,
     /// The closure's per-channel ratio `lambda` (zero for `M = 0`).
     pub ratio: DVec3,
-    /// `sum_{n=1..M} S_n + S_M lambda / (1 - lambda)` per voxel.
+    /// `sum_{n=1..M} S_n + S_M lambda / (1 - lambda)` per voxel (the means).
     pub total: Vec<DVec3>,
+    /// The same sum of the orders' [`Flux`]es, closed alike; empty for an isotropic medium.
+    pub flux: Vec<Flux>,
+    /// The sum of the orders' [`Quadrupole`]s (the closure's tail adds none: the light of the
+    /// late orders is nearly isotropic); empty for an isotropic medium.
+    pub quadrupole: Vec<Quadrupole>,
+}
+
+impl MultipleScattering {
+    /// The solution's mean and flux, as a warm restart starts from it.
+    pub fn moments(&self) -> Moments {
+        Moments {
+            mean: self.total.clone(),
+            flux: self.flux.clone(),
+        }
+    }
 }
 
 /// Iterates the stencil `iterations` times from `s0` (one entry per voxel; units of `E` per
@@ -854,67 +1105,103 @@ pub fn scatter_under_sky(
     sky: DVec3,
     iterations: u32,
 ) -> MultipleScattering {
-    let medium = SweptMedium {
-        grid,
-        k_local,
-        albedo,
-        foreign: None,
-    };
+    let medium = SweptMedium::alone(grid, k_local, albedo, 0.0);
+    scatter_through(
+        medium,
+        stencil,
+        &Moments::isotropic(s0.to_vec()),
+        sky,
+        iterations,
+    )
+}
+
+/// [`scatter_under_sky`] for a medium of anisotropy `g` (section 4): the sweep goes through the
+/// medium's δ-Eddington transform, with the P1 source of its asymmetry `g'`, from the source
+/// `s0` of [`gather_source`] (with its flux unless `g = 0`).
+#[allow(clippy::too_many_arguments)]
+pub fn scatter_medium(
+    grid: &DensityGrid,
+    k_local: f64,
+    (albedo, g): (f64, f64),
+    stencil: ScatterStencil,
+    s0: &Moments,
+    sky: DVec3,
+    iterations: u32,
+) -> MultipleScattering {
+    let medium = SweptMedium::alone(grid, k_local, albedo, g);
     scatter_through(medium, stencil, s0, sky, iterations)
 }
 
-/// [`scatter_under_sky`] through `medium`.
+/// [`scatter_medium`] through `medium`.
 fn scatter_through(
     medium: SweptMedium,
     stencil: ScatterStencil,
-    s0: &[DVec3],
+    s0: &Moments,
     sky: DVec3,
     iterations: u32,
 ) -> MultipleScattering {
     let grid = medium.grid;
-    assert_eq!(s0.len(), grid.len(), "s0 must have one entry per voxel");
+    assert_eq!(
+        s0.mean.len(),
+        grid.len(),
+        "s0 must have one entry per voxel"
+    );
+    // The paper's stencil is isotropic.
+    let s0 = match stencil {
+        ScatterStencil::DiscreteOrdinates => s0.clone(),
+        ScatterStencil::Paper => Moments::isotropic(s0.mean.clone()),
+    };
+    let zero = s0.plus(&s0, DVec3::splat(-1.0));
+    let mut quadrupole = vec![[DVec3::ZERO; 5]; s0.flux.len()];
+    let (mut total, mut last, mut before) = (zero.clone(), s0.clone(), s0.mean.clone());
     let mut orders: Vec<Vec<DVec3>> = Vec::with_capacity(iterations as usize);
     for k in 0..iterations {
-        let previous = orders.last().map_or(s0, Vec::as_slice);
         let entering = if k == 0 { sky } else { DVec3::ZERO };
-        orders.push(scatter_once(medium, stencil, previous, entering));
-    }
-    let mut total = vec![DVec3::ZERO; s0.len()];
-    for order in &orders {
-        total.iter_mut().zip(order).for_each(|(t, s)| *t += *s);
-    }
-    let ratio = match orders.as_slice() {
-        [] => DVec3::ZERO,
-        [.., last] => {
-            let before = orders.len().checked_sub(2).map_or(s0, |i| &orders[i]);
-            order_ratio(grid, last, before)
+        let (next, q) = scatter_once(medium, stencil, &last, entering);
+        total = total.plus(&next, DVec3::ONE);
+        for (t, q) in quadrupole.iter_mut().zip(&q) {
+            (0..5).for_each(|i| t[i] += q[i]);
         }
+        before = std::mem::replace(&mut last, next).mean;
+        orders.push(last.mean.clone());
+    }
+    let ratio = if iterations == 0 {
+        DVec3::ZERO
+    } else {
+        order_ratio(grid, &last.mean, &before)
     };
-    if let Some(last) = orders.last() {
-        let tail = ratio / (DVec3::ONE - ratio);
-        total
-            .iter_mut()
-            .zip(last)
-            .for_each(|(t, s)| *t += *s * tail);
+    if iterations > 0 {
+        total = total.plus(&last, ratio / (DVec3::ONE - ratio));
     }
     MultipleScattering {
         orders,
         ratio,
-        total,
+        total: total.mean,
+        flux: total.flux,
+        quadrupole,
     }
 }
 
-/// One iteration of `stencil`: `K s`, with the radiance `sky` entering the grid (the sweep only;
-/// the paper's stencil sees the cloud's own medium only).
+/// One iteration of `stencil`: `K s` (and the quadrupole of the sweep's radiance), with the
+/// radiance `sky` entering the grid (the sweep only; the paper's stencil sees the cloud's own
+/// medium only, isotropically).
 fn scatter_once(
     medium: SweptMedium,
     stencil: ScatterStencil,
-    s: &[DVec3],
+    s: &Moments,
     sky: DVec3,
-) -> Vec<DVec3> {
+) -> (Moments, Vec<Quadrupole>) {
     match stencil {
         ScatterStencil::DiscreteOrdinates => sweep(medium, s, sky),
-        ScatterStencil::Paper => paper_stencil(medium.grid, medium.k_local, medium.albedo, s),
+        ScatterStencil::Paper => (
+            Moments::isotropic(paper_stencil(
+                medium.grid,
+                medium.k_local,
+                medium.albedo,
+                &s.mean,
+            )),
+            Vec::new(),
+        ),
     }
 }
 
@@ -939,33 +1226,59 @@ pub fn scatter_warm(
     sky: DVec3,
     iterations: u32,
 ) -> MultipleScattering {
+    let (s0, previous) = (
+        Moments::isotropic(s0.to_vec()),
+        Moments::isotropic(previous.to_vec()),
+    );
+    let medium = (albedo, 0.0);
+    scatter_warm_medium(
+        grid, k_local, medium, stencil, &s0, &previous, sky, iterations,
+    )
+}
+
+/// [`scatter_warm`] for a medium of anisotropy `g` ([`scatter_medium`]), from the moments of the
+/// solution held ([`MultipleScattering::moments`]). Its quadrupole is that of `K (s0 + previous)`
+/// and of the `W_k`.
+#[allow(clippy::too_many_arguments)]
+pub fn scatter_warm_medium(
+    grid: &DensityGrid,
+    k_local: f64,
+    (albedo, g): (f64, f64),
+    stencil: ScatterStencil,
+    s0: &Moments,
+    previous: &Moments,
+    sky: DVec3,
+    iterations: u32,
+) -> MultipleScattering {
+    let medium = SweptMedium::alone(grid, k_local, albedo, g);
     assert!(
         iterations >= 2,
         "a warm restart takes at least 2 iterations"
     );
-    assert_eq!(previous.len(), grid.len(), "one previous value per voxel");
-    let start: Vec<DVec3> = s0.iter().zip(previous).map(|(s, x)| *s + *x).collect();
-    let medium = SweptMedium {
-        grid,
-        k_local,
-        albedo,
-        foreign: None,
-    };
-    let once = scatter_once(medium, stencil, &start, sky);
-    let correction: Vec<DVec3> = once.iter().zip(previous).map(|(k, x)| *k - *x).collect();
-    let series = scatter(grid, k_local, albedo, stencil, &correction, iterations - 1);
+    assert_eq!(
+        previous.mean.len(),
+        s0.mean.len(),
+        "one previous value per voxel"
+    );
+    let (once, q_once) = scatter_once(medium, stencil, &s0.plus(previous, DVec3::ONE), sky);
+    let correction = once.plus(previous, DVec3::splat(-1.0));
+    let series = scatter_through(medium, stencil, &correction, DVec3::ZERO, iterations - 1);
     // Clamped at 0 like the GPU's: the truncated correction may overshoot where the light fell.
-    let total = once
-        .iter()
-        .zip(&series.total)
-        .map(|(k, t)| (*k + *t).max(DVec3::ZERO))
-        .collect();
-    let mut orders = vec![correction];
+    let total = zip_with(&once.mean, &series.total, |k, t| (*k + *t).max(DVec3::ZERO));
+    let flux = zip_with(&once.flux, &series.flux, |k, t| {
+        std::array::from_fn(|i| k[i] + t[i])
+    });
+    let quadrupole = zip_with(&q_once, &series.quadrupole, |k, t| {
+        std::array::from_fn(|i| k[i] + t[i])
+    });
+    let mut orders = vec![correction.mean];
     orders.extend(series.orders);
     MultipleScattering {
         orders,
         ratio: series.ratio,
         total,
+        flux,
+        quadrupole,
     }
 }
 
@@ -1035,8 +1348,9 @@ pub struct CloudIllumination {
     /// The same light volumes before other clouds' shadows: the cloud's own optical depth, what
     /// it casts on others and on the shadow maps.
     pub own_lights: Vec<LightVolume>,
-    /// The multiple-scattering source `S_0` per voxel (section 3).
-    pub source: Vec<DVec3>,
+    /// The multiple-scattering source `S_0` per voxel (section 3): its mean, and its flux for
+    /// an anisotropic medium.
+    pub source: Moments,
     /// Multiple scattering per voxel (section 4).
     pub multiple: MultipleScattering,
 }
@@ -1176,9 +1490,11 @@ fn cast_shadows(clouds: &mut [Option<ShadedCloud>], placements: &[CloudPlacement
 }
 
 /// Per voxel of every cloud's scattering grid, the other clouds' media there (section 4,
-/// "Clouds that overlap"): at the voxel's centre, `sum_c K_c rho_c / K` and
-/// `sum_c albedo_c K_c rho_c / K`, `rho_c` trilinear in cloud `c`'s scattering grid (zero outside
-/// it) and `K` the world extinctions. `None` for a cloud no other cloud's medium reaches.
+/// "Clouds that overlap"): at the voxel's centre, `sum_c c_c K_c rho_c / K` and
+/// `sum_c c_c albedo'_c K_c rho_c / K`, `rho_c` trilinear in cloud `c`'s scattering grid (zero
+/// outside it), `K` the world extinctions and `c_c`, `albedo'_c` cloud `c`'s δ-Eddington
+/// transform (1 and its albedo for an isotropic medium). `None` for a cloud no other cloud's
+/// medium reaches.
 fn foreign_media(
     clouds: &[Option<ShadedCloud>],
     placements: &[CloudPlacement],
@@ -1206,9 +1522,10 @@ fn foreign_media(
                 .map(|i| {
                     let world = placement.world_point(cloud.grid.voxel_centre_linear(i));
                     others.iter().fold([0.0; 2], |[t, s], (c, p)| {
-                        let sigma = world_extinction(c, p) / extinction
+                        let delta = c.delta();
+                        let sigma = delta.depth_scale * world_extinction(c, p) / extinction
                             * c.grid.sample(p.local_point(world));
-                        [t + sigma, s + c.inputs.albedo * sigma]
+                        [t + sigma, s + delta.albedo * sigma]
                     })
                 })
                 .collect();
@@ -1261,6 +1578,11 @@ fn shade_cloud(
 }
 
 impl ShadedCloud {
+    /// The δ-Eddington transform of its medium.
+    fn delta(&self) -> DeltaEddington {
+        DeltaEddington::new(self.inputs.albedo, self.anisotropy)
+    }
+
     /// Sections 3 and 4: the source gathered from the light volumes, and its multiple scattering
     /// under the sky `sky`,
     /// and with `foreign`, other clouds' media in the scattering grid (section 4).
@@ -1270,11 +1592,13 @@ impl ShadedCloud {
         settings: &CloudQualitySettings,
         foreign: Option<&[[f64; 2]]>,
     ) -> CloudIllumination {
-        let source = gather(&self.grid, &self.fine, &self.lights);
+        let delta = self.delta();
+        let source = gather_source(&self.grid, &self.fine, &self.lights, delta);
         let medium = SweptMedium {
             grid: &self.grid,
             k_local: self.inputs.k_local,
             albedo: self.inputs.albedo,
+            delta,
             foreign,
         };
         let stencil = settings.scatter_stencil;
@@ -1331,10 +1655,26 @@ impl CloudIllumination {
     /// volumes with the phase function towards the camera and `S_m` the multiple scattering,
     /// trilinear and clamped to the edge. Radiance in the units of `E`.
     pub fn scattered_at(&self, p: DVec3, ray: DVec3) -> DVec3 {
-        let multiple = self.grid.sample_clamped(&self.multiple.total, p);
         let medium = (self.albedo, self.anisotropy);
         let single = single_scattering_towards(&self.lights, p, medium, ray);
-        (single + multiple) * self.albedo
+        (single + self.multiple_towards(p, -ray)) * self.albedo
+    }
+
+    /// The multiple scattering at local point `p` scattered towards the unit direction `w`
+    /// (section 5): `S_m(p)`, and for an anisotropic medium the Henyey–Greenstein phase function
+    /// applied to its first three angular moments,
+    /// `max(mean + 3 g F . w + (15/2) g² w^T Q w, 0)`; all trilinear and clamped to the edge.
+    pub fn multiple_towards(&self, p: DVec3, w: DVec3) -> DVec3 {
+        let m = &self.multiple;
+        let mean = self.grid.sample_clamped(&m.total, p);
+        if m.flux.is_empty() {
+            return mean;
+        }
+        let g = self.anisotropy;
+        let flux = self.grid.sample_clamped_array(&m.flux, p);
+        let quadrupole = self.grid.sample_clamped_array(&m.quadrupole, p);
+        (mean + flux_along(&flux, w) * (3.0 * g) + quadrupole_along(&quadrupole, w) * (7.5 * g * g))
+            .max(DVec3::ZERO)
     }
 }
 
@@ -1780,6 +2120,84 @@ mod tests {
     }
 
     #[test]
+    fn sweep_scales_a_p1_field_by_albedo_and_its_flux_by_g_inside_a_thick_medium() {
+        // Deep inside a homogeneous medium a uniform source of mean S and flux F sends
+        // albedo' (S + 3 g' F . w) along every direction w; over the 26 lattice directions (whose
+        // second moment is exactly I/3) the next order holds albedo' S and albedo' g' F, as the
+        // transport operator of the δ-Eddington medium does, and no quadrupole.
+        let (n, albedo, g) = (16, 0.9, 0.6);
+        let grid = uniform_grid(n, 1.0);
+        let k = 1.0 / DeltaEddington::new(albedo, g).depth_scale; // one mean free path per voxel
+        let flux = [
+            DVec3::new(0.2, 0.1, 0.0),
+            DVec3::new(-0.1, 0.0, 0.05),
+            DVec3::new(0.0, 0.3, 0.1),
+        ];
+        let s = Moments {
+            mean: vec![DVec3::new(1.0, 2.0, 0.5); grid.len()],
+            flux: vec![flux; grid.len()],
+        };
+        let medium = SweptMedium::alone(&grid, k, albedo, g);
+        let delta = medium.delta;
+        assert!((delta.anisotropy - g / (1.0 + g)).abs() < 1e-12);
+        let (next, quadrupole) = sweep(medium, &s, DVec3::ZERO);
+        let centre = grid.index(n / 2, n / 2, n / 2);
+        let close = |a: DVec3, b: DVec3| (a - b).abs().max_element() < 2e-3 * b.abs().max_element();
+        assert!(close(next.mean[centre], s.mean[centre] * delta.albedo));
+        for axis in 0..3 {
+            let expected = flux[axis] * (delta.albedo * delta.anisotropy);
+            assert!(
+                close(next.flux[centre][axis], expected),
+                "{axis}: {}",
+                next.flux[centre][axis]
+            );
+        }
+        assert!(
+            quadrupole[centre]
+                .iter()
+                .all(|q| q.abs().max_element() < 2e-3)
+        );
+    }
+
+    #[test]
+    fn an_anisotropic_medium_under_a_uniform_sky_holds_the_sky() {
+        // The furnace: at albedo 1, whatever the phase function, a cloud under a uniform sky and
+        // no light holds the sky's radiance everywhere, in every direction.
+        let particles = random_cloud(30, 5);
+        let sky = DVec3::new(0.2, 0.3, 0.5);
+        for g in [0.0, 0.8, -0.5] {
+            let medium = Medium {
+                extinction: 3.0,
+                albedo: 1.0,
+                anisotropy: g,
+            };
+            let settings = CloudQualitySettings {
+                volume_resolution: 12,
+                scatter_iterations: 40,
+                ..Default::default()
+            };
+            let ill = illuminate_under_sky(&particles, &medium, 1.0, &[], sky, &settings).unwrap();
+            for (idx, rho) in ill.grid.rho.iter().enumerate() {
+                if *rho < 0.5 * ill.grid.max() {
+                    continue;
+                }
+                let x = ill.grid.voxel_centre_linear(idx);
+                for w in [
+                    DVec3::X,
+                    DVec3::NEG_Y,
+                    DVec3::new(1.0, 1.0, -1.0).normalize(),
+                ] {
+                    let seen = ill.multiple_towards(x, w);
+                    assert!(
+                        ((seen - sky) / sky).abs().max_element() < 0.01,
+                        "g {g}: {seen} towards {w}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
     fn sweep_is_exact_for_a_linear_source_along_a_line() {
         // With S linear in space, the radiance arriving from direction o deep inside a homogeneous
         // medium is albedo (S(v) + dS/ds / sigma) (s measured towards v + o), exactly.
@@ -1790,13 +2208,8 @@ mod tests {
             .map(|i| DVec3::splat(2.0 + grid.voxel_centre_linear(i).dot(gradient)))
             .collect();
         for o in [[1, 0, 0], [0, -1, 1], [-1, 1, 1]] {
-            let medium = SweptMedium {
-                grid: &grid,
-                k_local: sigma,
-                albedo,
-                foreign: None,
-            };
-            let radiance = sweep_direction(medium, o, &s, DVec3::ZERO);
+            let medium = SweptMedium::alone(&grid, sigma, albedo, 0.0);
+            let radiance = sweep_direction(medium, o, &Moments::isotropic(s.clone()), DVec3::ZERO);
             let d = DVec3::new(o[0] as f64, o[1] as f64, o[2] as f64).normalize();
             // the centre: 12 steps (optical depth >= 18) from every edge
             let v = grid.index(n / 2, n / 2, n / 2);
@@ -1886,6 +2299,55 @@ mod tests {
         }
         let stays = scatter_warm(&grid, k, 0.99, stencil, &new, &after, DVec3::ZERO, 2);
         assert!(error(&stays.total) < 1e-3, "{}", error(&stays.total));
+    }
+
+    #[test]
+    fn an_anisotropic_warm_restart_is_the_series_from_zero_and_stays_at_the_solution() {
+        let particles = random_cloud(40, 21);
+        let grid = voxelize(&particles, 12).unwrap();
+        let k = 4.0 / (grid.max() * grid.h);
+        let (albedo, g) = (0.95, 0.7);
+        let delta = DeltaEddington::new(albedo, g);
+        let vol = shade(
+            &grid,
+            &inputs(k, albedo, 0.0, 12),
+            DVec3::new(0.2, -1.0, 0.1),
+        );
+        let s0 = gather_source(&grid, &grid, &[(vol, DVec3::ONE)], delta);
+        assert_eq!(s0.flux.len(), grid.len());
+        let stencil = ScatterStencil::DiscreteOrdinates;
+        let sky = DVec3::new(0.1, 0.1, 0.2);
+        let converged = scatter_medium(&grid, k, (albedo, g), stencil, &s0, sky, 300);
+        let cold = scatter_medium(&grid, k, (albedo, g), stencil, &s0, sky, 4);
+        let zero = s0.plus(&s0, DVec3::splat(-1.0));
+        let from_zero = scatter_warm_medium(&grid, k, (albedo, g), stencil, &s0, &zero, sky, 4);
+        let close = |a: &[DVec3], b: &[DVec3], tolerance: f64| {
+            let scale = b.iter().fold(0.0f64, |m, v| m.max(v.abs().max_element()));
+            a.iter()
+                .zip(b)
+                .all(|(a, b)| (*a - *b).abs().max_element() <= tolerance * scale)
+        };
+        let fluxes = |m: &MultipleScattering, axis: usize| {
+            m.flux.iter().map(|f| f[axis]).collect::<Vec<_>>()
+        };
+        assert!(close(&from_zero.total, &cold.total, 1e-12));
+        assert!((0..3).all(|a| close(&fluxes(&from_zero, a), &fluxes(&cold, a), 1e-12)));
+        let stays = scatter_warm_medium(
+            &grid,
+            k,
+            (albedo, g),
+            stencil,
+            &s0,
+            &converged.moments(),
+            sky,
+            2,
+        );
+        assert!(close(&stays.total, &converged.total, 1e-3));
+        assert!((0..3).all(|a| close(&fluxes(&stays, a), &fluxes(&converged, a), 1e-3)));
+        assert!(
+            !close(&cold.total, &converged.total, 1e-2),
+            "the test can tell them apart"
+        );
     }
 
     #[test]
@@ -2022,7 +2484,7 @@ mod tests {
             assert!(vol.optical_depth.iter().all(|&t| t == 0.0));
         }
         let expected = DVec3::new(3.0, 3.0, 4.5) / (4.0 * PI);
-        for s in &ill.source {
+        for s in &ill.source.mean {
             assert!((*s - expected).length() < 1e-15);
         }
         // Nothing scatters twice in a medium that does not interact.
@@ -2101,11 +2563,11 @@ mod tests {
     }
 
     /// A Henyey–Greenstein medium: single scattering takes the phase function towards the
-    /// camera (forward: the camera looks into the light) and sees the optical depths `1 - albedo
-    /// g²` times; the multiple scattering is the isotropic one of the same medium. `g = 0` is the
-    /// isotropic medium exactly.
+    /// camera (forward: the camera looks into the light) and sees the optical depths through the
+    /// δ-Eddington depth scale `1 - albedo g²`; the multiple scattering is seen through the phase
+    /// function's first three moments. `g = 0` is the isotropic medium exactly.
     #[test]
-    fn anisotropic_medium_scatters_once_with_its_phase_function_and_then_isotropically() {
+    fn anisotropic_medium_sees_single_and_multiple_scattering_with_its_phase_function() {
         let particles = random_cloud(12, 4);
         let medium = Medium {
             extinction: 6.0,
@@ -2123,19 +2585,36 @@ mod tests {
         };
         let ill = illuminate(&particles, &medium, 1.0, &[light], &settings).unwrap();
         let x = ill.grid.voxel_centre(4, 3, 4);
-        let multiple = ill.grid.sample_clamped(&ill.multiple.total, x);
-        let scale = 1.0 - ill.albedo * ill.anisotropy * ill.anisotropy;
+        let scale = DeltaEddington::new(ill.albedo, ill.anisotropy).depth_scale;
         assert!((scale - (1.0 - 0.9 * 0.49)).abs() < 1e-6);
         let (vol, e) = &ill.lights[0];
         let beam = *e * (-vol.optical_depth_at(x) * scale).exp();
+        let m = &ill.multiple;
+        let (mean, flux, quadrupole) = (
+            ill.grid.sample_clamped(&m.total, x),
+            ill.grid.sample_clamped_array(&m.flux, x),
+            ill.grid.sample_clamped_array(&m.quadrupole, x),
+        );
         for (ray, cos) in [(-light.direction, 1.0), (light.direction, -1.0)] {
-            let expected = (beam * henyey_greenstein(ill.anisotropy, cos) + multiple) * ill.albedo;
+            let (w, g) = (-ray, ill.anisotropy);
+            let seen = (mean
+                + flux_along(&flux, w) * (3.0 * g)
+                + quadrupole_along(&quadrupole, w) * (7.5 * g * g))
+                .max(DVec3::ZERO);
+            assert_eq!(ill.multiple_towards(x, w), seen);
+            let expected = (beam * henyey_greenstein(ill.anisotropy, cos) + seen) * ill.albedo;
             let got = ill.scattered_at(x, ray);
             assert!(
                 (got - expected).length() < 1e-12 * expected.length(),
                 "cos {cos}: {got} against {expected}"
             );
         }
+        // The multiply scattered light flows on with the light: more of it is seen looking into
+        // the light than from where it comes.
+        assert!(
+            ill.multiple_towards(x, light.direction).x
+                > ill.multiple_towards(x, -light.direction).x
+        );
         assert!(
             ill.scattered_at(x, -light.direction).x > 10.0 * ill.scattered_at(x, light.direction).x
         );
@@ -2144,12 +2623,30 @@ mod tests {
             ..medium
         };
         let iso = illuminate(&particles, &isotropic, 1.0, &[light], &settings).unwrap();
-        assert_eq!(iso.source, ill.source);
-        assert_eq!(iso.multiple.total, ill.multiple.total);
+        assert!(iso.source.flux.is_empty() && iso.multiple.flux.is_empty());
+        assert!(iso.multiple.quadrupole.is_empty());
+        let plain = scatter(
+            &iso.grid,
+            iso.k_local,
+            iso.albedo,
+            settings.scatter_stencil,
+            &iso.source.mean,
+            5,
+        );
+        assert_eq!(iso.multiple, plain);
         for ray in [DVec3::X, -light.direction] {
-            let expected = (single_scattering_at(&iso.lights, x) + multiple) * iso.albedo;
+            let expected = (single_scattering_at(&iso.lights, x)
+                + iso.grid.sample_clamped(&iso.multiple.total, x))
+                * iso.albedo;
             assert!((iso.scattered_at(x, ray) - expected).length() < 1e-15 * expected.length());
         }
-        assert_eq!(single_scattering_depth_scale(0.9, 0.0), 1.0);
+        assert_eq!(
+            DeltaEddington::new(0.9, 0.0),
+            DeltaEddington {
+                depth_scale: 1.0,
+                albedo: 0.9,
+                anisotropy: 0.0
+            }
+        );
     }
 }

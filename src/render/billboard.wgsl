@@ -12,7 +12,7 @@
 // CLOUD_TARGET: drawn into the view's reduced-resolution cloud target, which has no depth
 // attachment; each fragment is depth-tested here against the view pixel its texel stands for
 // (cloud_target.wgsl enlarges the target onto the view).
-#import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, ViewVolumeParams, CloudTargetParams, grid_coords, henyey_greenstein, light_coords, clamped_lookup, clamped_corner, corner_weight, opacity, voxel_index, view_volume_coords, cloud_target_depth_pixel}
+#import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, ViewVolumeParams, CloudTargetParams, grid_coords, henyey_greenstein, flux_element, quadrupole_element, quadrupole_weights, light_coords, clamped_lookup, clamped_corner, corner_weight, opacity, voxel_index, view_volume_coords, cloud_target_depth_pixel}
 
 struct DrawParams {
     world_from_local: mat4x4<f32>,
@@ -46,7 +46,8 @@ struct DrawParams {
 #endif
 @group(1) @binding(4) var<storage, read> lights: array<LightParams>;
 @group(1) @binding(5) var<storage, read> optical_depth: array<f32>;
-// Multiple scattering S_m per voxel of the density grid.
+// Multiple scattering S_m per voxel of the density grid (its means; with moments, then its flux
+// and its quadrupole).
 @group(1) @binding(6) var<storage, read> multiple: array<vec4<f32>>;
 #ifdef VIEW_TRANSMITTANCE
 // Optical depth from the camera at the nodes of every view volume of this view, each from its
@@ -130,8 +131,8 @@ fn chord_integral(s: f32, q: f32, r: f32) -> f32 {
 
 // S_1 at a cloud-local point towards the camera, straight from the light volumes: each light's
 // share weighted by the phase function between its travel direction and -ray, `ray` the view
-// ray's cloud-local unit direction, its beam through `single_depth_scale` of the optical depth
-// (1 for an isotropic medium; docs/illumination.md §5).
+// ray's cloud-local unit direction, its beam through `depth_scale` of the optical depth (the
+// delta-Eddington beam; 1 for an isotropic medium; docs/illumination.md §5).
 fn single_scattering_at(p: vec3<f32>, ray: vec3<f32>) -> vec3<f32> {
     var sum = vec3(0.0);
     for (var l = 0u; l < cloud.light_count; l++) {
@@ -142,19 +143,44 @@ fn single_scattering_at(p: vec3<f32>, ray: vec3<f32>) -> vec3<f32> {
             tau += corner_weight(t, corner) * optical_depth[light.offset + clamped_corner(t, corner, cloud.light_n)];
         }
         let phase = henyey_greenstein(cloud.anisotropy, -dot(light.w, ray));
-        sum += light.irradiance * (exp(-tau * cloud.single_depth_scale) * phase);
+        sum += light.irradiance * (exp(-tau * cloud.depth_scale) * phase);
     }
     return sum;
 }
 
-// albedo (S_1 + S_m) at a cloud-local point, seen along `ray`.
-fn scattered_at(p: vec3<f32>, ray: vec3<f32>) -> vec3<f32> {
+// S_m at a cloud-local point towards the unit direction w: its mean, and with moments the
+// Henyey-Greenstein phase function on its first three angular moments,
+// max(mean + 3 g F . w + (15/2) g^2 w^T Q w, 0) (docs/illumination.md §5).
+fn multiple_towards(p: vec3<f32>, w: vec3<f32>) -> vec3<f32> {
     let t = clamped_lookup(grid_coords(cloud, p), cloud.n);
+    let n = cloud.n;
     var s_m = vec3(0.0);
     for (var corner = 0u; corner < 8u; corner++) {
-        s_m += corner_weight(t, corner) * multiple[clamped_corner(t, corner, cloud.n)].xyz;
+        s_m += corner_weight(t, corner) * multiple[clamped_corner(t, corner, n)].xyz;
     }
-    return cloud.albedo * (single_scattering_at(p, ray) + s_m);
+    if cloud.moments == 0u {
+        return s_m;
+    }
+    let g = cloud.anisotropy;
+    var q = quadrupole_weights(w);
+    var directional = vec3(0.0);
+    for (var corner = 0u; corner < 8u; corner++) {
+        let i = clamped_corner(t, corner, n);
+        var at = vec3(0.0);
+        for (var axis = 0u; axis < 3u; axis++) {
+            at += 3.0 * g * w[axis] * multiple[flux_element(0u, n, i, axis)].xyz;
+        }
+        for (var c = 0u; c < 5u; c++) {
+            at += 7.5 * g * g * q[c] * multiple[quadrupole_element(0u, n, i, c)].xyz;
+        }
+        directional += corner_weight(t, corner) * at;
+    }
+    return max(s_m + directional, vec3(0.0));
+}
+
+// albedo (S_1 + S_m) at a cloud-local point, seen along `ray`.
+fn scattered_at(p: vec3<f32>, ray: vec3<f32>) -> vec3<f32> {
+    return cloud.albedo * (single_scattering_at(p, ray) + multiple_towards(p, -ray));
 }
 
 // The chord's ray direction in cloud-local space (unit).

@@ -70,6 +70,8 @@ pub struct WorldCloud {
     pub extinction: f32,
     /// Single-scattering albedo.
     pub albedo: f32,
+    /// Henyey–Greenstein anisotropy `g` (its medium as the sweep takes it depends on it).
+    pub anisotropy: f32,
     /// The density key its grids hold ([`StageKeys::density`](super::plan::StageKeys)).
     pub density: u64,
     /// The shade key of each of its light volumes ([`StageKeys::lights`](super::plan::StageKeys)).
@@ -338,6 +340,7 @@ pub(crate) mod tests {
             world_from_local: Affine3A::from_translation(Vec3::X * x),
             extinction: 2.0,
             albedo: 0.9,
+            anisotropy: 0.0,
             density: index as u64,
             shade_keys: vec![10 + index as u64, 20 + index as u64],
             casts_shadows: true,

@@ -1,9 +1,10 @@
 // Closing the scattering series (docs/illumination.md §4): the orders past M are taken as
 // geometric with the per-channel ratio of the last two, lambda = sum rho |S_M| / sum rho |S_{M-1}|
 // (the absolute values matter for a warm restart's correction, whose orders may be negative),
-// and S_M lambda / (1 - lambda) is added to the multiple-scattering volume. Every cloud of a
-// volume pool in one dispatch: z workgroup i closes slot `work[i]`.
-#import bevy_particle_clouds::types::{Slot, flat_invocation}
+// and S_M lambda / (1 - lambda) is added to the multiple-scattering volume (with moments, its
+// flux too; the quadrupole takes no tail). Every cloud of a volume pool in one dispatch: z
+// workgroup i closes slot `work[i]`.
+#import bevy_particle_clouds::types::{Slot, flat_invocation, flux_element}
 
 @group(0) @binding(0) var<storage, read> slots: array<Slot>;
 @group(0) @binding(1) var<storage, read> densities: array<f32>;
@@ -66,9 +67,16 @@ fn extrapolate(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgr
     if v >= slot.cloud.n * slot.cloud.n * slot.cloud.n {
         return;
     }
-    let lambda = ratio[slot.ratio].xyz;
-    let i = slot.volume + v;
+    let tail = vec4(ratio[slot.ratio].xyz, 0.0);
+    let k = tail / (1.0 - tail);
+    let m = slot.multiple + v;
     // Never negative: the full series' orders are not; a warm restart's truncated correction may
     // overshoot where the light fell.
-    multiple[i] = max(multiple[i] + vec4(last[i].xyz * (lambda / (1.0 - lambda)), 0.0), vec4(0.0));
+    multiple[m] = max(multiple[m] + last[slot.volume + v] * k, vec4(0.0));
+#ifdef MOMENTS
+    let n = slot.cloud.n;
+    for (var axis = 0u; axis < 3u; axis++) {
+        multiple[flux_element(slot.multiple, n, v, axis)] += last[flux_element(slot.volume, n, v, axis)] * k;
+    }
+#endif
 }

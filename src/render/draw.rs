@@ -381,7 +381,7 @@ pub(crate) fn prepare_billboard_bind_groups(
         let compositing = cloud.settings.compositing;
         let pool = pools.pool(&volumes.slot);
         let optical_depth = pool.optical_depth(volumes.slot.index);
-        let multiple = pool.volume(&pool.multiple, volumes.slot.index);
+        let multiple = pool.multiple(volumes.slot.index);
         let lights = pool.lights(volumes.slot.index);
         let layout = pipeline_cache.get_bind_group_layout(pipeline.cloud_layout(compositing));
         let world_from_local = Mat4::from(cloud.world_from_local);

@@ -56,6 +56,12 @@ impl ExtractedCloud {
             .max(m.z_axis.length())
     }
 
+    /// Whether its scattering volumes hold angular moments beside their means: an anisotropic
+    /// medium (docs/illumination.md §4).
+    pub fn has_moments(&self) -> bool {
+        self.anisotropy != 0.0
+    }
+
     /// Rotation part, world from local.
     pub fn rotation(&self) -> Quat {
         let (_, rotation, _) = self.world_from_local.to_scale_rotation_translation();

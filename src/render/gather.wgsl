@@ -1,9 +1,12 @@
 // Gather: for every voxel of the scattering grid, its density (the mean of its f^3 children in
 // the fine grid, docs/illumination.md §1) and its multiple-scattering source S_0, the
-// density-weighted mean over those children of the single scattering
-// S_1 = (1 / 4 pi) sum_l E_l exp(-tau_l), all lights in one dispatch (§3). Every cloud of a
-// volume pool in that dispatch: z workgroup i gathers slot `work[i]`.
-#import bevy_particle_clouds::types::{CloudParams, LightParams, Slot, PI, voxel_index, flat_invocation, light_coords, clamped_lookup, clamped_corner, corner_weight}
+// density-weighted mean over those children of the beams' radiance
+// (1 / 4 pi) sum_l E_l exp(-c tau_l), c the delta-Eddington depth scale (1 for an isotropic
+// medium), and for an anisotropic medium (shader def MOMENTS) of their flux
+// (1 / 4 pi) sum_l E_l exp(-c tau_l) d_l;
+// all lights in one dispatch (§3). Every cloud of a volume pool in that dispatch: z workgroup i
+// gathers slot `work[i]`.
+#import bevy_particle_clouds::types::{CloudParams, LightParams, Slot, PI, voxel_index, flat_invocation, light_coords, clamped_lookup, clamped_corner, corner_weight, flux_element}
 
 @group(0) @binding(0) var<storage, read> slots: array<Slot>;
 @group(0) @binding(1) var<storage, read> lights: array<LightParams>;
@@ -17,9 +20,15 @@
 var<private> slot: Slot;
 var<private> cloud: CloudParams;
 
-// S_1 at a cloud-local point. (billboard.wgsl evaluates the same sum at its shading points.)
-fn single_scattering_at(p: vec3<f32>) -> vec3<f32> {
-    var sum = vec3(0.0);
+// The beams' mean radiance and flux (x, y, z) at a cloud-local point. (billboard.wgsl
+// evaluates the same optical depths at its shading points.)
+struct Beams {
+    mean: vec3<f32>,
+    flux: array<vec3<f32>, 3>,
+}
+
+fn beams_at(p: vec3<f32>) -> Beams {
+    var beams: Beams;
     for (var l = 0u; l < cloud.light_count; l++) {
         let light = lights[slot.lights + l];
         let t = clamped_lookup(light_coords(cloud, light, p), cloud.light_n);
@@ -28,9 +37,15 @@ fn single_scattering_at(p: vec3<f32>) -> vec3<f32> {
         for (var corner = 0u; corner < 8u; corner++) {
             tau += corner_weight(t, corner) * optical_depth[first + clamped_corner(t, corner, cloud.light_n)];
         }
-        sum += light.irradiance * exp(-tau);
+        let radiance = light.irradiance * (exp(-tau * cloud.depth_scale) / (4.0 * PI));
+        beams.mean += radiance;
+#ifdef MOMENTS
+        for (var axis = 0u; axis < 3u; axis++) {
+            beams.flux[axis] += radiance * light.w[axis];
+        }
+#endif
     }
-    return sum / (4.0 * PI);
+    return beams;
 }
 
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
@@ -45,19 +60,33 @@ fn gather(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups)
     let voxel = vec3(i % n, (i / n) % n, i / (n * n));
     let f = cloud.supersampling;
     let fine_h = cloud.h / f32(f);
-    var weighted = vec3(0.0);
+    var weighted: Beams;
     var mass = 0.0;
-    var plain = vec3(0.0);
+    var plain: Beams;
     for (var s = 0u; s < f * f * f; s++) {
         let child = voxel * f + vec3(s % f, (s / f) % f, s / (f * f));
         let p = cloud.grid_origin + (vec3<f32>(child) + 0.5) * fine_h;
-        let scattered = single_scattering_at(p);
+        let beams = beams_at(p);
         let rho = densities[slot.fine_density + voxel_index(child, cloud.light_n)];
-        weighted += rho * scattered;
+        weighted.mean += rho * beams.mean;
+        plain.mean += beams.mean;
+#ifdef MOMENTS
+        for (var axis = 0u; axis < 3u; axis++) {
+            weighted.flux[axis] += rho * beams.flux[axis];
+            plain.flux[axis] += beams.flux[axis];
+        }
+#endif
         mass += rho;
-        plain += scattered;
     }
     let children = f32(f * f * f);
     densities[slot.density + i] = mass / children;
-    source[slot.volume + i] = vec4(select(plain / children, weighted / mass, mass > 0.0), 0.0);
+    let filled = mass > 0.0;
+    let count = select(children, mass, filled);
+    source[slot.volume + i] = vec4(select(plain.mean, weighted.mean, filled) / count, 0.0);
+#ifdef MOMENTS
+    for (var axis = 0u; axis < 3u; axis++) {
+        let flux = select(plain.flux[axis], weighted.flux[axis], filled) / count;
+        source[flux_element(slot.volume, n, i, axis)] = vec4(flux, 0.0);
+    }
+#endif
 }

@@ -37,6 +37,7 @@ use super::{
     workgroups::{self, dispatch_columns, dispatch_linear},
 };
 use crate::{
+    particle::DeltaEddington,
     settings::{ScatterStencil, ShadingMethod},
     shadow_maps::CloudShadowMaps,
     stats::{CloudPass, CloudPassCounters},
@@ -95,6 +96,8 @@ struct PoolBatches {
     /// Voxels per side of the scattering grid, and of the fine grid and light volumes.
     n: u32,
     m: u32,
+    /// Its scattering volumes hold angular moments: the `MOMENTS` variants of the stages run.
+    moments: bool,
     shade: Option<Batch>,
     /// Other clouds' shadows, one batch per pool their casters lie in (first casts first).
     cast: Vec<Batch>,
@@ -293,9 +296,10 @@ pub(crate) fn prepare_illumination_bind_groups(
                 })
             })
             .collect();
+        let moments = id.shape.moments;
         let gather = Batch::new(&device, &w.gather, |work| {
             bind(
-                &pipelines.gather,
+                pipelines.gather.stage(moments),
                 &BindGroupEntries::sequential((
                     pool.slots.as_entire_binding(),
                     pool.lights.as_entire_binding(),
@@ -337,10 +341,10 @@ pub(crate) fn prepare_illumination_bind_groups(
                 })
             })
             .collect();
-        let (n, m, _) = id.shape;
         batches.push(PoolBatches {
-            n,
-            m,
+            n: id.shape.n,
+            m: id.shape.m,
+            moments,
             shade,
             cast,
             gather,
@@ -425,6 +429,8 @@ fn add_overlaps(
         .filter_map(|e| placed.get(e))
         .map(|&(cloud, v)| {
             let first = pools.pool(&v.slot).density(v.slot.index).offset / 4;
+            // Its medium as the sweep takes it: δ-Eddington transformed (docs/illumination.md §4).
+            let delta = DeltaEddington::new(cloud.albedo as f64, cloud.anisotropy as f64);
             let neighbour = Neighbour::new(
                 v.params.grid_origin,
                 v.params.h,
@@ -432,8 +438,8 @@ fn add_overlaps(
                 first as u32,
                 &cloud.world_from_local,
                 &receiver.world_from_local,
-                cloud.extinction / receiver.extinction,
-                cloud.albedo,
+                delta.depth_scale as f32 * cloud.extinction / receiver.extinction,
+                delta.albedo as f32,
             );
             (v.slot.pool, neighbour)
         });
@@ -460,7 +466,7 @@ fn scatter_batch(
 ) -> ScatterBatch {
     let pair = |from: &Buffer, to: &Buffer| {
         bind(
-            &pipelines.sweep,
+            pipelines.sweep.stage(pool.shape().moments),
             &BindGroupEntries::sequential((
                 pool.slots.as_entire_binding(),
                 BufferBinding {
@@ -656,10 +662,10 @@ pub(crate) fn illuminate_clouds(
             &counters,
             CloudPass::Gather,
             |pass| {
-                pass.set_pipeline(ready.gather);
                 let mut runs = 0;
                 for b in &batches.pools {
                     let Some(batch) = &b.gather else { continue };
+                    pass.set_pipeline(ready.gather[b.moments as usize]);
                     for (offset, items) in batch.work.chunks() {
                         pass.set_bind_group(0, &batch.group, &[offset]);
                         dispatch_linear(pass, b.n.pow(3), items);
@@ -676,7 +682,7 @@ pub(crate) fn illuminate_clouds(
     for (_, v, s, _) in &clouds {
         if (s.plan.scatter.is_some() && !s.plan.warm) || s.plan.unlit {
             let pool = pools.pool(&v.slot);
-            let multiple = pool.volume(&pool.multiple, v.slot.index);
+            let multiple = pool.multiple(v.slot.index);
             ctx.command_encoder().clear_buffer(
                 &multiple.buffer,
                 multiple.offset,
@@ -704,7 +710,7 @@ pub(crate) fn illuminate_clouds(
                 let mut runs = 0;
                 for b in &batches.pools {
                     for batch in &b.scatter {
-                        scatter_batch_passes(pass, &ready, batch, b.n);
+                        scatter_batch_passes(pass, &ready, batch, b.n, b.moments);
                         runs += batch.iterations * batch.work.items;
                     }
                 }
@@ -727,9 +733,11 @@ fn scatter_batch_passes(
     ready: &ReadyPipelines,
     batch: &ScatterBatch,
     n: u32,
+    moments: bool,
 ) {
+    let variant = moments as usize;
     let stencil = if batch.sweep {
-        ready.sweep
+        ready.sweep[variant]
     } else {
         ready.scatter_paper
     };
@@ -751,12 +759,12 @@ fn scatter_batch_passes(
         };
         let first = if batch.warm {
             // S_0 + X → b, scattered into a without accumulating, then a = W_0 and multiple += W_0.
-            pass.set_pipeline(ready.warm_start);
+            pass.set_pipeline(ready.warm_start[variant]);
             pass.set_bind_group(0, &batch.groups[3], &[0, work]);
             dispatch_linear(pass, n.pow(3), items);
             pass.set_pipeline(stencil);
             iterate(pass, &batch.groups[2], false, true);
-            pass.set_pipeline(ready.warm_correction);
+            pass.set_pipeline(ready.warm_correction[variant]);
             pass.set_bind_group(0, &batch.groups[2], &[0, work]);
             dispatch_linear(pass, n.pow(3), items);
             1
@@ -772,7 +780,7 @@ fn scatter_batch_passes(
         pass.set_bind_group(0, &batch.closure, &[work]);
         pass.set_pipeline(ready.order_ratio);
         pass.dispatch(1, 1, items);
-        pass.set_pipeline(ready.extrapolate);
+        pass.set_pipeline(ready.extrapolate[variant]);
         dispatch_linear(pass, n.pow(3), items);
     }
 }

@@ -42,7 +42,7 @@ pub fn neighbours_of(receiver: &WorldCloud, clouds: &[WorldCloud]) -> (Vec<Entit
     let media: Vec<_> = neighbours
         .iter()
         .map(|c| {
-            let medium = [c.extinction, c.albedo].map(f32::to_bits);
+            let medium = [c.extinction, c.albedo, c.anisotropy].map(f32::to_bits);
             (c.entity, c.density, medium, c.relative_bits(receiver))
         })
         .collect();
@@ -60,9 +60,10 @@ pub struct Neighbour {
     pub first: u32,
     /// Voxels per side of that grid.
     pub n: u32,
-    /// The neighbour's extinction over the receiver's (world, at density 1).
+    /// The neighbour's extinction over the receiver's (world, at density 1), as the sweep takes
+    /// it: times the neighbour's δ-Eddington depth scale (docs/illumination.md §4).
     pub extinction: f32,
-    /// The neighbour's albedo.
+    /// The neighbour's δ-Eddington transformed albedo.
     pub albedo: f32,
 }
 

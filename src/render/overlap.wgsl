@@ -13,7 +13,8 @@ struct Neighbour {
     // First element of its density in `neighbour_densities`, and voxels per side.
     first: u32,
     n: u32,
-    // Its extinction over the receiver's, and its albedo.
+    // Its extinction over the receiver's, and its albedo, both as the sweep takes them:
+    // delta-Eddington transformed (docs/illumination.md §4).
     extinction: f32,
     albedo: f32,
 }
@@ -65,6 +66,6 @@ fn overlap_media(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_work
         let sigma = neighbour.extinction * neighbour_density(neighbour, p);
         media += vec2(sigma, sigma * neighbour.albedo);
     }
-    let at = slots[item.slot].volume + i;
+    let at = slots[item.slot].foreign + i;
     foreign[at] = select(vec2(0.0), foreign[at], item.accumulate != 0u) + media;
 }

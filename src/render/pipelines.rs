@@ -37,11 +37,28 @@ impl ComputeStage {
         entry_point: &'static str,
         layout: BindGroupLayoutDescriptor,
     ) -> Self {
+        Self::specialized(pipeline_cache, shader, entry_point, layout, false)
+    }
+
+    /// With `moments`, compiled with the shader def `MOMENTS`: for pools whose scattering
+    /// volumes hold angular moments beside their means (docs/illumination.md §4, §9).
+    fn specialized(
+        pipeline_cache: &PipelineCache,
+        shader: Handle<Shader>,
+        entry_point: &'static str,
+        layout: BindGroupLayoutDescriptor,
+        moments: bool,
+    ) -> Self {
+        let mut shader_defs = super::workgroups::shader_defs();
+        if moments {
+            shader_defs.push("MOMENTS".into());
+        }
+        let variant = if moments { "_moments" } else { "" };
         let pipeline = pipeline_cache.queue_compute_pipeline(ComputePipelineDescriptor {
-            label: Some(format!("particle_clouds_{entry_point}").into()),
+            label: Some(format!("particle_clouds_{entry_point}{variant}").into()),
             layout: vec![layout.clone()],
             shader,
-            shader_defs: super::workgroups::shader_defs(),
+            shader_defs,
             entry_point: Some(entry_point.into()),
             ..default()
         });
@@ -51,6 +68,32 @@ impl ComputeStage {
     /// The compiled pipeline, once ready.
     pub fn get<'a>(&self, pipeline_cache: &'a PipelineCache) -> Option<&'a ComputePipeline> {
         pipeline_cache.get_compute_pipeline(self.pipeline)
+    }
+}
+
+/// A stage of the scattering volumes, compiled for pools without angular moments (index 0) and
+/// with them (index 1, shader def `MOMENTS`): an isotropic cloud runs exactly the isotropic code.
+pub struct ByMoments(pub [ComputeStage; 2]);
+
+impl ByMoments {
+    fn new(
+        cache: &PipelineCache,
+        shader: &Handle<Shader>,
+        entry: &'static str,
+        layout: &BindGroupLayoutDescriptor,
+    ) -> Self {
+        Self([false, true].map(|moments| {
+            ComputeStage::specialized(cache, shader.clone(), entry, layout.clone(), moments)
+        }))
+    }
+
+    /// The stage for a pool with `moments` or without (both share one bind group layout).
+    pub fn stage(&self, moments: bool) -> &ComputeStage {
+        &self.0[moments as usize]
+    }
+
+    fn get<'a>(&self, cache: &'a PipelineCache) -> Option<[&'a ComputePipeline; 2]> {
+        Some([self.0[0].get(cache)?, self.0[1].get(cache)?])
     }
 }
 
@@ -109,21 +152,21 @@ pub struct IlluminationPipelines {
     /// `cast.wgsl`, `cast_shadows`: other clouds' shadows added to the light volumes.
     pub cast: ComputeStage,
     /// `gather.wgsl`, `gather`.
-    pub gather: ComputeStage,
+    pub gather: ByMoments,
     /// `overlap.wgsl`, `overlap_media`: other clouds' media in a cloud's scattering grid.
     pub overlap: ComputeStage,
     /// `scatter.wgsl`, `sweep` (the discrete-ordinates stencil).
-    pub sweep: ComputeStage,
+    pub sweep: ByMoments,
     /// `scatter.wgsl`, `scatter_paper` (the paper's stencil; same layout as `sweep`).
     pub scatter_paper: ComputeStage,
     /// `scatter.wgsl`, `warm_start` (a warm restart's start; same layout).
-    pub warm_start: ComputeStage,
+    pub warm_start: ByMoments,
     /// `scatter.wgsl`, `warm_correction` (a warm restart's first order; same layout).
-    pub warm_correction: ComputeStage,
+    pub warm_correction: ByMoments,
     /// `closure.wgsl`, `order_ratio`.
     pub order_ratio: ComputeStage,
     /// `closure.wgsl`, `extrapolate` (same layout as `order_ratio`).
-    pub extrapolate: ComputeStage,
+    pub extrapolate: ByMoments,
     /// The 13 `SweepDirection`s in each of the four sets of [`sweep_direction_offset`]
     /// (accumulating or not, bringing the sky in or not), `DYNAMIC_UNIFORM_STRIDE` bytes apart (a
     /// dynamic uniform; [`write_sweep_sky`] writes the sky into them).
@@ -132,7 +175,8 @@ pub struct IlluminationPipelines {
     pub sweep_sky: Vec3,
 }
 
-/// The compiled pipelines of every illumination pass (brute-force shading aside).
+/// The compiled pipelines of every illumination pass (brute-force shading aside); those of the
+/// scattering volumes for pools without angular moments and with them ([`ByMoments`]).
 pub struct ReadyPipelines<'a> {
     /// Voxelize's kernel sums.
     pub kernel_sums: &'a ComputePipeline,
@@ -143,21 +187,21 @@ pub struct ReadyPipelines<'a> {
     /// Cast.
     pub cast: &'a ComputePipeline,
     /// Gather.
-    pub gather: &'a ComputePipeline,
+    pub gather: [&'a ComputePipeline; 2],
     /// Overlap.
     pub overlap: &'a ComputePipeline,
     /// Sweep.
-    pub sweep: &'a ComputePipeline,
+    pub sweep: [&'a ComputePipeline; 2],
     /// The paper's stencil.
     pub scatter_paper: &'a ComputePipeline,
     /// A warm restart's start.
-    pub warm_start: &'a ComputePipeline,
+    pub warm_start: [&'a ComputePipeline; 2],
     /// A warm restart's first order.
-    pub warm_correction: &'a ComputePipeline,
+    pub warm_correction: [&'a ComputePipeline; 2],
     /// The closure's ratio.
     pub order_ratio: &'a ComputePipeline,
     /// The closure's extrapolation.
-    pub extrapolate: &'a ComputePipeline,
+    pub extrapolate: [&'a ComputePipeline; 2],
 }
 
 impl IlluminationPipelines {
@@ -302,14 +346,14 @@ pub(crate) fn init_illumination_pipelines(
         shade: stage(&shaders.shade, "shade", &shade),
         shade_brute_force: stage(&shaders.shade, "shade_brute_force", &shade),
         cast: stage(&shaders.cast, "cast_shadows", &cast),
-        gather: stage(&shaders.gather, "gather", &gather),
+        gather: ByMoments::new(cache, &shaders.gather, "gather", &gather),
         overlap: stage(&shaders.overlap, "overlap_media", &overlap),
-        sweep: stage(&shaders.scatter, "sweep", &scatter),
+        sweep: ByMoments::new(cache, &shaders.scatter, "sweep", &scatter),
         scatter_paper: stage(&shaders.scatter, "scatter_paper", &scatter),
-        warm_start: stage(&shaders.scatter, "warm_start", &scatter),
-        warm_correction: stage(&shaders.scatter, "warm_correction", &scatter),
+        warm_start: ByMoments::new(cache, &shaders.scatter, "warm_start", &scatter),
+        warm_correction: ByMoments::new(cache, &shaders.scatter, "warm_correction", &scatter),
         order_ratio: stage(&shaders.closure, "order_ratio", &closure),
-        extrapolate: stage(&shaders.closure, "extrapolate", &closure),
+        extrapolate: ByMoments::new(cache, &shaders.closure, "extrapolate", &closure),
         sweep_directions: dynamic_uniform(
             &device,
             "particle_clouds_sweep_directions",

@@ -85,12 +85,24 @@ impl StageKeys {
             .zip(lights)
             .map(|(key, light)| (*key, bits(light.irradiance)))
             .collect();
-        let gather = key_of((&gather_inputs, density, params.supersampling));
+        // The beams are seen through the δ-Eddington depth scale (docs/illumination.md §3).
+        let gather = key_of((
+            &gather_inputs,
+            density,
+            params.supersampling,
+            params.depth_scale.to_bits(),
+        ));
         let medium = key_of((
             density,
             params.supersampling,
             params.k_local.to_bits(),
             params.albedo.to_bits(),
+            [
+                params.depth_scale,
+                params.scatter_albedo,
+                params.scatter_anisotropy,
+            ]
+            .map(f32::to_bits),
             settings.scatter_stencil,
             settings.scatter_iterations,
             settings.warm_scatter_iterations,

@@ -27,7 +27,7 @@ use super::{
 pub const SLOT_ALIGNMENT: u64 = 256;
 
 /// Clouds whose volumes can share a pool.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct VolumeShape {
     /// Voxels per side `N` of the scattering grid.
     pub n: u32,
@@ -35,6 +35,10 @@ pub struct VolumeShape {
     pub m: u32,
     /// Lights, each with a light volume.
     pub lights: u32,
+    /// The scattering volumes hold angular moments beside their means (an anisotropic medium):
+    /// the source and the orders their flux (3 vec4 per voxel), `multiple` its flux and
+    /// quadrupole (8 vec4 per voxel).
+    pub moments: bool,
 }
 
 /// Mirror of `Slot` in `types.wgsl`: one cloud's uniforms and the first element of each of its
@@ -51,8 +55,12 @@ pub struct Slot {
     pub density: u32,
     /// First f32 of the light volumes in `optical_depth`.
     pub optical_depth: u32,
-    /// First vec4 of the volume in `source`, `orders` and `multiple`.
+    /// First vec4 of the volume in `source` and `orders`.
     pub volume: u32,
+    /// First vec4 of the volume in `multiple`.
+    pub multiple: u32,
+    /// First vec2 of the other clouds' media in `foreign`.
+    pub foreign: u32,
     /// First of the cloud's lights in the pool's light array.
     pub lights: u32,
     /// Its element of the closure's `order_ratios`.
@@ -70,8 +78,12 @@ struct SlotBytes {
     fine_density: u64,
     /// Every light's `m³` optical depth.
     optical_depth: u64,
-    /// One `n³` vec4 volume (`source`, each order, `multiple`).
+    /// One `n³` vec4 volume (`source`, each order), with its flux if the shape has moments.
     volume: u64,
+    /// The `n³` vec4 `multiple`, with its flux and quadrupole if the shape has moments.
+    multiple: u64,
+    /// The `n³` vec2 other clouds' media.
+    foreign: u64,
     /// Every light's `LightParams` (at least one: a binding of a runtime-sized array may not be
     /// shorter).
     lights: u64,
@@ -106,21 +118,30 @@ impl VolumeShape {
         let voxels = (self.n as u64).pow(3);
         let fine_density = DensityLevels::elements(self.m) * 4;
         let density_at = aligned(fine_density);
+        let (volume, multiple) = self.vec4_per_voxel();
         SlotBytes {
             densities: density_at + aligned(voxels * 4),
             density_at,
             fine_density,
             optical_depth: aligned((self.m as u64).pow(3) * 4 * self.lights.max(1) as u64),
-            volume: aligned(voxels * 16),
+            volume: aligned(voxels * 16 * volume),
+            multiple: aligned(voxels * 16 * multiple),
+            foreign: aligned(voxels * 8),
             lights: light_stride(self.lights),
         }
+    }
+
+    /// The vec4 per voxel of a scattering volume (`source`, an order) and of `multiple`: the
+    /// mean, and with moments the flux (3), and in `multiple` the quadrupole (5).
+    fn vec4_per_voxel(&self) -> (u64, u64) {
+        if self.moments { (4, 9) } else { (1, 1) }
     }
 
     /// The most slots a pool of this shape may hold under the adapter's `max_binding` (bytes of
     /// one storage binding), at most 65535 (the dispatches' z workgroups).
     pub fn max_slots(&self, max_binding: u64) -> u32 {
         let b = self.bytes();
-        let largest = b.densities.max(b.optical_depth).max(b.volume);
+        let largest = b.densities.max(b.optical_depth).max(b.multiple);
         (max_binding / largest).min(65535) as u32
     }
 }
@@ -168,8 +189,8 @@ impl Drop for PoolSlot {
 /// A pool: its shape and its number among the pools of that shape.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct PoolId {
-    /// Voxels per side, light voxels per side, lights.
-    pub shape: (u32, u32, u32),
+    /// The shape of its clouds' volumes.
+    pub shape: VolumeShape,
     /// Pools of one shape are numbered from 0 as each fills up.
     pub number: u32,
 }
@@ -195,16 +216,17 @@ pub struct VolumePool {
     pub optical_depth: Buffer,
     /// The same, the cloud's own optical depth only (other clouds' casts read it; same layout).
     pub own_depth: Buffer,
-    /// vec4 multiple-scattering source `S_0` per slot.
+    /// vec4 multiple-scattering source `S_0` per slot (its means, then with moments its flux).
     pub source: Buffer,
-    /// vec4 ping-pong scattering orders per slot.
+    /// vec4 ping-pong scattering orders per slot (laid out like `source`).
     pub orders: [Buffer; 2],
-    /// vec4 multiple scattering `S_m` per slot.
+    /// vec4 multiple scattering `S_m` per slot (its means, then with moments its flux and its
+    /// quadrupole).
     pub multiple: Buffer,
     /// vec4 closure ratio per slot.
     pub order_ratios: Buffer,
     /// vec2 per voxel of the scattering grid: other clouds' media there (extinction, scattering;
-    /// [`overlap`](super::overlap)), at the same element as the slot's vec4 volumes.
+    /// [`overlap`](super::overlap)).
     pub foreign: Buffer,
 }
 
@@ -228,9 +250,9 @@ impl VolumePool {
                 storage(device, "particle_clouds_order_a", b.volume * c),
                 storage(device, "particle_clouds_order_b", b.volume * c),
             ],
-            multiple: storage(device, "particle_clouds_multiple", b.volume * c),
+            multiple: storage(device, "particle_clouds_multiple", b.multiple * c),
             order_ratios: storage(device, "particle_clouds_order_ratios", 16 * c),
-            foreign: storage(device, "particle_clouds_foreign", b.volume / 2 * c),
+            foreign: storage(device, "particle_clouds_foreign", b.foreign * c),
         }
     }
 
@@ -294,6 +316,11 @@ impl VolumePool {
         })
     }
 
+    /// The shape of its clouds' volumes.
+    pub fn shape(&self) -> VolumeShape {
+        self.shape
+    }
+
     /// No slot is in use.
     fn is_empty(&self) -> bool {
         self.free
@@ -313,6 +340,8 @@ impl VolumePool {
             density: element(i * b.densities + b.density_at, 4),
             optical_depth: element(i * b.optical_depth, 4),
             volume: element(i * b.volume, 16),
+            multiple: element(i * b.multiple, 16),
+            foreign: element(i * b.foreign, 8),
             lights: element(i * b.lights, LightParams::min_size().get()),
             ratio: index,
         }
@@ -346,11 +375,18 @@ impl VolumePool {
         Self::range(&self.optical_depth, index, b.optical_depth, 0, size)
     }
 
-    /// Slot `index`'s `n³` vec4 volume in `buffer` (`source`, an order or `multiple`).
-    pub fn volume(&self, buffer: &Buffer, index: u32) -> BufferRange {
+    /// Slot `index`'s source `S_0`, its moments included.
+    pub fn source(&self, index: u32) -> BufferRange {
         let b = self.shape.bytes();
-        let size = (self.shape.n as u64).pow(3) * 16;
-        Self::range(buffer, index, b.volume, 0, size)
+        let size = (self.shape.n as u64).pow(3) * 16 * self.shape.vec4_per_voxel().0;
+        Self::range(&self.source, index, b.volume, 0, size)
+    }
+
+    /// Slot `index`'s `multiple` (the billboards bind it), its moments included.
+    pub fn multiple(&self, index: u32) -> BufferRange {
+        let b = self.shape.bytes();
+        let size = (self.shape.n as u64).pow(3) * 16 * self.shape.vec4_per_voxel().1;
+        Self::range(&self.multiple, index, b.multiple, 0, size)
     }
 
     /// Slot `index`'s `LightParams` (the billboards bind them).
@@ -385,10 +421,7 @@ impl VolumePools {
             return None;
         }
         for number in 0.. {
-            let id = PoolId {
-                shape: (shape.n, shape.m, shape.lights),
-                number,
-            };
+            let id = PoolId { shape, number };
             let pool = self
                 .0
                 .entry(id)
@@ -421,6 +454,7 @@ mod tests {
             n: 5,
             m: 10,
             lights: 3,
+            moments: false,
         };
         let b = shape.bytes();
         for bytes in [
@@ -428,6 +462,8 @@ mod tests {
             b.density_at,
             b.optical_depth,
             b.volume,
+            b.multiple,
+            b.foreign,
             b.lights,
         ] {
             assert_eq!(bytes % SLOT_ALIGNMENT, 0, "{b:?}");
@@ -435,7 +471,19 @@ mod tests {
         assert!(b.fine_density >= 1000 * 4 && b.density_at >= b.fine_density);
         assert!(b.densities - b.density_at >= 125 * 4);
         assert!(b.optical_depth >= 3 * 1000 * 4);
-        assert!(b.volume >= 125 * 16);
+        assert!(b.volume >= 125 * 16 && b.multiple == b.volume);
+        assert!(b.foreign >= 125 * 8);
+        // With moments: the flux after the means, and in `multiple` the quadrupole after it.
+        let moments = VolumeShape {
+            moments: true,
+            ..shape
+        }
+        .bytes();
+        assert!(moments.volume >= 125 * 16 * 4 && moments.multiple >= 125 * 16 * 9);
+        assert_eq!(
+            (moments.foreign, moments.optical_depth),
+            (b.foreign, b.optical_depth)
+        );
         assert!(b.lights >= 3 * LightParams::min_size().get());
         // The passes index the lights by element, the billboards bind them by byte: the same place.
         assert_eq!(b.lights % LightParams::min_size().get(), 0, "{b:?}");
@@ -447,6 +495,7 @@ mod tests {
             n: 16,
             m: 32,
             lights: 1,
+            moments: false,
         };
         // The fine density levels of 32³ and the 16³ density: 37,448 + 4,096 f32.
         let largest = shape.bytes().densities;

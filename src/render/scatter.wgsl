@@ -1,7 +1,10 @@
 // Multiple scattering: one iteration n -> n + 1 (docs/illumination.md §4). Reads S_n, writes
 // S_{n+1} and adds it to the multiple-scattering volume. Two stencils, one entry point each.
 // Every cloud of a volume pool in one dispatch: z workgroup i scatters slot `work[i]`.
-#import bevy_particle_clouds::types::{CloudParams, Slot, voxel_index, flat_invocation}
+// An anisotropic medium's volumes hold angular moments beside their means (shader def MOMENTS):
+// the sweep's source takes the P1 phase function of the transformed medium, and each order's
+// flux (and in `multiple` the quadrupole) is gathered from the radiance of every direction.
+#import bevy_particle_clouds::types::{CloudParams, Slot, voxel_index, flat_invocation, flux_element, quadrupole_element, quadrupole_basis}
 
 // One direction pair (o, -o) of the discrete-ordinates sweep, o's first non-zero component
 // positive; `first` is 1 for the first of an iteration's 13 dispatches (it overwrites S_{n+1});
@@ -39,21 +42,31 @@ fn density(i: u32) -> f32 {
     return densities[slot.density + i];
 }
 
-// The medium the sweep goes through at voxel i: its density in units of the cloud's extinction
-// at density 1 (x) and its albedo (y), over every cloud whose medium reaches it (§4, "Clouds that
-// overlap"); the cloud's own albedo where none does.
+// The medium the sweep goes through at voxel i, delta-Eddington transformed (§4): its density
+// in units of the cloud's extinction at density 1 (x) and its albedo (y), over every cloud whose
+// medium reaches it (§4, "Clouds that overlap"); the cloud's own albedo where none does.
 fn medium(i: u32) -> vec2<f32> {
-    let rho = density(i);
+    let rho = cloud.depth_scale * density(i);
     if cloud.foreign == 0u {
-        return vec2(rho, cloud.albedo);
+        return vec2(rho, cloud.scatter_albedo);
     }
-    let other = foreign[slot.volume + i];
+    let other = foreign[slot.foreign + i];
     let total = rho + other.x;
-    return vec2(total, select(cloud.albedo, (cloud.albedo * rho + other.y) / total, other.x > 0.0));
+    return vec2(total, select(cloud.scatter_albedo, (cloud.scatter_albedo * rho + other.y) / total, other.x > 0.0));
 }
 
-fn order_in(i: u32) -> vec3<f32> {
-    return s_in[slot.volume + i].xyz;
+// The in-scattered radiance of order n at voxel i towards the unit direction w, per unit
+// scattering coefficient: its mean, plus 3 g' F . w with moments (the P1 phase function).
+fn order_in(i: u32, w: vec3<f32>) -> vec3<f32> {
+    var s = s_in[slot.volume + i].xyz;
+#ifdef MOMENTS
+    var along = vec3(0.0);
+    for (var axis = 0u; axis < 3u; axis++) {
+        along += s_in[flux_element(slot.volume, cloud.n, i, axis)].xyz * w[axis];
+    }
+    s += 3.0 * cloud.scatter_anisotropy * along;
+#endif
+    return s;
 }
 
 // Below this optical depth the segment weights use their series: 1 - e and (1 - e)/tau - e
@@ -90,17 +103,43 @@ fn transport(upwind: vec3<f32>, m: vec2<f32>, s: vec3<f32>, m_up: vec2<f32>, s_u
     return (1.0 - w.x) * upwind + j * w.x + (m_up.y * s_up - j) * w.y;
 }
 
-fn deposit(voxel: u32, radiance: vec3<f32>, overwrite: bool) {
-    let i = slot.volume + voxel;
-    let share = vec4(radiance / 26.0, 0.0);
+fn add_to(element: u32, share: vec4<f32>, overwrite: bool) {
     if overwrite {
-        s_out[i] = share;
+        s_out[element] = share;
     } else {
-        s_out[i] += share;
+        s_out[element] += share;
     }
-    if direction.accumulate != 0u {
-        multiple[i] += share;
+}
+
+// Voxel `voxel`'s share of the radiance arriving there travelling along w: 1/26 of it to the
+// next order's mean (and with moments its flux), and the same to `multiple` when the iteration
+// accumulates. The quadrupole goes to `multiple` only (the sweep's source is P1): added, or,
+// in a warm restart's first sweep, which does not accumulate, written anew (§4).
+fn deposit(voxel: u32, radiance: vec3<f32>, w: vec3<f32>, overwrite: bool) {
+    let share = vec4(radiance / 26.0, 0.0);
+    let n = cloud.n;
+    let accumulate = direction.accumulate != 0u;
+    add_to(slot.volume + voxel, share, overwrite);
+    if accumulate {
+        multiple[slot.multiple + voxel] += share;
     }
+#ifdef MOMENTS
+    for (var axis = 0u; axis < 3u; axis++) {
+        add_to(flux_element(slot.volume, n, voxel, axis), share * w[axis], overwrite);
+        if accumulate {
+            multiple[flux_element(slot.multiple, n, voxel, axis)] += share * w[axis];
+        }
+    }
+    var q = quadrupole_basis(w);
+    for (var c = 0u; c < 5u; c++) {
+        let at = quadrupole_element(slot.multiple, n, voxel, c);
+        if overwrite && !accumulate {
+            multiple[at] = share * q[c];
+        } else {
+            multiple[at] += share * q[c];
+        }
+    }
+#endif
 }
 
 // One invocation per lattice line of direction o: marches it against o (radiance arriving from
@@ -142,6 +181,8 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
     }
     let flip = o < vec3(0);
     let half_step = 0.5 * cloud.h * length(vec3<f32>(o));
+    // The direction the radiance arriving from the +o side travels in.
+    let w = -normalize(vec3<f32>(o));
     // Against o: radiance arriving from the +o side, `sky` entering the grid.
     var radiance = direction.sky;
     var m_up = vec2(0.0);
@@ -149,9 +190,9 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
     for (var t = t1 - 1; t >= t0; t--) {
         let i = line_voxel(start, t, flip);
         let m = medium(i);
-        let s = order_in(i);
+        let s = order_in(i, w);
         radiance = transport(radiance, m, s, m_up, s_up, half_step);
-        deposit(i, radiance, direction.first != 0u);
+        deposit(i, radiance, w, direction.first != 0u);
         m_up = m;
         s_up = s;
     }
@@ -162,9 +203,9 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
     for (var t = t0; t < t1; t++) {
         let i = line_voxel(start, t, flip);
         let m = medium(i);
-        let s = order_in(i);
+        let s = order_in(i, -w);
         radiance = transport(radiance, m, s, m_up, s_up, half_step);
-        deposit(i, radiance, false);
+        deposit(i, radiance, -w, false);
         m_up = m;
         s_up = s;
     }
@@ -188,7 +229,7 @@ fn scatter_paper(@builtin(global_invocation_id) invocation: vec3<u32>, @builtin(
                 if all(vec3(x, y, z) == vec3(0)) || any(v < vec3(0)) || any(v >= vec3(i32(n))) {
                     continue;
                 }
-                sum += order_in(voxel_index(vec3<u32>(v), n));
+                sum += s_in[slot.volume + voxel_index(vec3<u32>(v), n)].xyz;
             }
         }
     }
@@ -196,43 +237,59 @@ fn scatter_paper(@builtin(global_invocation_id) invocation: vec3<u32>, @builtin(
     let s = sum * (cloud.albedo / 26.0 * opacity);
     s_out[slot.volume + flat] = vec4(s, 0.0);
     if direction.accumulate != 0u {
-        multiple[slot.volume + flat] += vec4(s, 0.0);
+        multiple[slot.multiple + flat] += vec4(s, 0.0);
     }
 }
 
 const PAST_THE_GRID: u32 = 0xffffffffu;
 
-// The element of a one-voxel-per-invocation kernel's voxel in its slot's volumes, or
-// PAST_THE_GRID.
-fn slot_element(id: vec3<u32>, groups: vec3<u32>) -> u32 {
+// The voxel of a one-voxel-per-invocation kernel, or PAST_THE_GRID.
+fn slot_voxel(id: vec3<u32>, groups: vec3<u32>) -> u32 {
     begin(id.z);
     let v = flat_invocation(id, groups);
     if v >= cloud.n * cloud.n * cloud.n {
         return PAST_THE_GRID;
     }
-    return slot.volume + v;
+    return v;
 }
 
 // A warm restart (docs/illumination.md §4) from the solution X that `multiple` holds: its first
-// sweep scatters S_0 + X (written here into s_out, from S_0 in s_in) without accumulating.
+// sweep scatters S_0 + X (written here into s_out, from S_0 in s_in) without accumulating. With
+// moments, their flux alike.
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn warm_start(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let i = slot_element(id, groups);
-    if i == PAST_THE_GRID {
+    let v = slot_voxel(id, groups);
+    if v == PAST_THE_GRID {
         return;
     }
-    s_out[i] = s_in[i] + multiple[i];
+    s_out[slot.volume + v] = s_in[slot.volume + v] + multiple[slot.multiple + v];
+#ifdef MOMENTS
+    for (var axis = 0u; axis < 3u; axis++) {
+        let at = flux_element(slot.volume, cloud.n, v, axis);
+        s_out[at] = s_in[at] + multiple[flux_element(slot.multiple, cloud.n, v, axis)];
+    }
+#endif
 }
 
 // Then s_out holds K (S_0 + X): the correction W_0 = K (S_0 + X) - X becomes the series' first
-// order, and `multiple` becomes X + W_0.
+// order, and `multiple` becomes X + W_0 (its quadrupole, that of K (S_0 + X), the first sweep
+// wrote).
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn warm_correction(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let i = slot_element(id, groups);
-    if i == PAST_THE_GRID {
+    let v = slot_voxel(id, groups);
+    if v == PAST_THE_GRID {
         return;
     }
-    let scattered = s_out[i];
-    s_out[i] = scattered - multiple[i];
-    multiple[i] = scattered;
+    correct(slot.volume + v, slot.multiple + v);
+#ifdef MOMENTS
+    for (var axis = 0u; axis < 3u; axis++) {
+        correct(flux_element(slot.volume, cloud.n, v, axis), flux_element(slot.multiple, cloud.n, v, axis));
+    }
+#endif
+}
+
+fn correct(order: u32, solution: u32) {
+    let scattered = s_out[order];
+    s_out[order] = scattered - multiple[solution];
+    multiple[solution] = scattered;
 }

@@ -35,15 +35,21 @@ struct CloudParams {
     supersampling: u32,
     // Rows per axis of the largest particle's support in the fine grid (the voxelize dispatch).
     rows: u32,
-    // Henyey-Greenstein g of the single scattering towards the camera.
+    // Henyey-Greenstein g of the scattering towards the camera.
     anisotropy: f32,
-    // The fraction of the shaded optical depths the single scattering sees: 1 - albedo g^2
-    // (docs/illumination.md §5).
-    single_depth_scale: f32,
+    // The medium's delta-Eddington transform (docs/illumination.md §4): the fraction of the
+    // optical depths the light's beam and the multiple scattering see, 1 - albedo f ...
+    depth_scale: f32,
     // 1 when a light or the sky reaches the cloud.
     lit: u32,
     // 1 when other clouds' media reach into its scattering grid (the sweep reads `foreign`).
     foreign: u32,
+    // ... the transformed albedo and asymmetry g' the multiple scattering sweeps with.
+    scatter_albedo: f32,
+    scatter_anisotropy: f32,
+    // 1 when the scattering volumes hold angular moments beside their means (an anisotropic
+    // medium): the flux after the means, and in `multiple` the quadrupole after the flux.
+    moments: u32,
 }
 
 struct LightParams {
@@ -78,8 +84,12 @@ struct Slot {
     density: u32,
     // First f32 of the light volumes in `optical_depth`.
     optical_depth: u32,
-    // First vec4 of the volume in `source`, `orders` and `multiple`.
+    // First vec4 of the volume in `source` and `orders`.
     volume: u32,
+    // First vec4 of the volume in `multiple`.
+    multiple: u32,
+    // First vec2 of the other clouds' media in `foreign`.
+    foreign: u32,
     // First of the cloud's lights in the pool's light array.
     lights: u32,
     // Its element of the closure's `order_ratios`.
@@ -100,6 +110,28 @@ struct DensityLevels {
     max_radius: f32,
     // On level l, a particle deposits a kernel of radius sqrt(r² - kernel_narrowing (h_l² - h²)).
     kernel_narrowing: f32,
+}
+
+// The element of entry `axis` of voxel i's flux in a volume whose means start at `first`
+// (docs/illumination.md §9): the n^3 means, then 3 vec4 (x, y, z: RGB) per voxel.
+fn flux_element(first: u32, n: u32, i: u32, axis: u32) -> u32 {
+    return first + n * n * n + 3u * i + axis;
+}
+
+// The element of entry `c` (xx, yy, xy, xz, yz) of voxel i's quadrupole in `multiple`: after the
+// means and the flux, 5 vec4 (RGB) per voxel.
+fn quadrupole_element(first: u32, n: u32, i: u32, c: u32) -> u32 {
+    return first + 4u * n * n * n + 5u * i + c;
+}
+
+// The entries of w w^T - I/3 at xx, yy, xy, xz, yz, for unit w; and the weights of those entries
+// in w^T Q w (zz = -xx - yy).
+fn quadrupole_basis(w: vec3<f32>) -> array<f32, 5> {
+    return array(w.x * w.x - 1.0 / 3.0, w.y * w.y - 1.0 / 3.0, w.x * w.y, w.x * w.z, w.y * w.z);
+}
+
+fn quadrupole_weights(w: vec3<f32>) -> array<f32, 5> {
+    return array(w.x * w.x - w.z * w.z, w.y * w.y - w.z * w.z, 2.0 * w.x * w.y, 2.0 * w.x * w.z, 2.0 * w.y * w.z);
 }
 
 // Linear index of voxel `v` in an n^3 volume.

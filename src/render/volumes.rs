@@ -27,7 +27,7 @@ use crate::math::{
     LEVEL_KERNEL_NARROWING, MAX_DENSITY_LEVELS, MAX_RADIUS_IN_LEVEL_VOXELS, density_level,
     density_level_sizes, light_basis,
 };
-use crate::particle::single_scattering_depth_scale;
+use crate::particle::DeltaEddington;
 use crate::settings::CloudRelightBudget;
 use crate::shadow_maps::CloudShadowMaps;
 
@@ -58,15 +58,22 @@ pub struct CloudParams {
     pub supersampling: u32,
     /// Rows per axis of the largest particle's support on its density level (at most 33): the voxelize dispatch is particles × rows × rows.
     pub rows: u32,
-    /// Henyey–Greenstein anisotropy `g` of the single scattering towards the camera.
+    /// Henyey–Greenstein anisotropy `g` of the scattering towards the camera.
     pub anisotropy: f32,
-    /// The fraction of the shaded optical depths the single scattering sees, `1 - albedo g²`
-    /// ([`single_scattering_depth_scale`]).
-    pub single_depth_scale: f32,
+    /// The fraction of the shaded optical depths the light's beam and the multiple scattering
+    /// see ([`DeltaEddington::depth_scale`]; 1 for an isotropic medium).
+    pub depth_scale: f32,
     /// 1 when a light or the sky reaches the cloud, else 0 (it only absorbs).
     pub lit: u32,
     /// 1 when other clouds' media reach into its scattering grid ([`overlap`](super::overlap)).
     pub foreign: u32,
+    /// The albedo the multiple scattering sweeps with ([`DeltaEddington::albedo`]).
+    pub scatter_albedo: f32,
+    /// The asymmetry `g'` of the sweep's P1 source ([`DeltaEddington::anisotropy`]).
+    pub scatter_anisotropy: f32,
+    /// 1 when the scattering volumes hold angular moments beside their means (an anisotropic
+    /// medium; docs/illumination.md §4, §9), else 0.
+    pub moments: u32,
 }
 
 /// Mirror of `DensityLevels` in `types.wgsl`: the density levels of a fine grid
@@ -256,6 +263,7 @@ impl CloudVolumes {
             n: self.params.n,
             m: self.params.light_n,
             lights: self.params.light_count,
+            moments: self.params.moments != 0,
         }
     }
 }
@@ -404,6 +412,7 @@ fn cloud_frames(
             n: cloud.settings.volume_resolution,
             m: cloud.settings.light_resolution(),
             lights: lights.lights.len() as u32,
+            moments: cloud.has_moments(),
         };
         let frame = CloudFrame {
             sphere: CloudSphere::new(bounds, &cloud.world_from_local, cloud.scale()),
@@ -453,6 +462,7 @@ fn world_cloud(entity: Entity, frame: &CloudFrame, keys: StageKeys) -> WorldClou
         world_from_local: frame.cloud.world_from_local,
         extinction: frame.cloud.extinction,
         albedo: frame.cloud.albedo,
+        anisotropy: frame.cloud.anisotropy,
         density: keys.density,
         shade_keys: keys.lights,
         casts_shadows: frame.cloud.casts_shadows,
@@ -749,6 +759,7 @@ fn cloud_params(
     lights: &ExtractedCloudLights,
 ) -> CloudParams {
     let n = cloud.settings.volume_resolution;
+    let delta = DeltaEddington::new(cloud.albedo as f64, cloud.anisotropy as f64);
     CloudParams {
         n,
         particle_count: gpu.count,
@@ -763,12 +774,12 @@ fn cloud_params(
         supersampling: cloud.settings.supersampling(),
         rows: support_rows(bounds, cloud.settings.light_resolution()),
         anisotropy: cloud.anisotropy,
-        single_depth_scale: single_scattering_depth_scale(
-            cloud.albedo as f64,
-            cloud.anisotropy as f64,
-        ) as f32,
+        depth_scale: delta.depth_scale as f32,
         lit: lights.any() as u32,
         foreign: 0,
+        scatter_albedo: delta.albedo as f32,
+        scatter_anisotropy: delta.anisotropy as f32,
+        moments: cloud.has_moments() as u32,
     }
 }
 

@@ -56,7 +56,7 @@ fn volumes_of(app: &mut App, cloud: Entity) -> (Vec<f64>, Vec<f64>) {
             .expect("the cloud's volumes");
         let pool = world.resource::<VolumePools>().pool(&volumes.slot);
         let slot = volumes.slot.index;
-        (pool.optical_depth(slot), pool.volume(&pool.multiple, slot))
+        (pool.optical_depth(slot), pool.multiple(slot))
     });
     let read = |app: &mut App, range| -> Vec<f64> {
         let bytes = headless::read_buffer_range(app, range).unwrap();

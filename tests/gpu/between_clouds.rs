@@ -73,9 +73,7 @@ fn light_volumes(app: &mut App, translation: Vec3) -> Vec<f64> {
 
 /// The multiple scattering of the cloud at `translation` (RGB), as the GPU holds it.
 fn multiple_scattering(app: &mut App, translation: Vec3) -> Vec<f64> {
-    let rgba = slot_volume(app, translation, |pool, slot| {
-        pool.volume(&pool.multiple, slot)
-    });
+    let rgba = slot_volume(app, translation, |pool, slot| pool.multiple(slot));
     rgba.chunks_exact(4)
         .flat_map(|c| [c[0], c[1], c[2]])
         .collect()

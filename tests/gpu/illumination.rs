@@ -35,6 +35,12 @@ pub(crate) fn flat(v: &[bevy::math::DVec3]) -> Vec<f64> {
     v.iter().flat_map(|c| c.to_array()).collect()
 }
 
+/// A CPU volume of per-voxel moments (a flux, a quadrupole) as flat floats, laid out like the
+/// GPU's: voxel by voxel, entry by entry, RGB.
+pub(crate) fn flat_entries<const K: usize>(v: &[[bevy::math::DVec3; K]]) -> Vec<f64> {
+    v.iter().flatten().flat_map(|c| c.to_array()).collect()
+}
+
 pub(crate) fn random_particles(seed: u64, count: usize) -> Vec<Particle> {
     let mut rng = SplitMix64::new(seed);
     (0..count)
@@ -109,9 +115,9 @@ fn check(case: Case, sky: Vec3) {
                 pool.fine_density(slot),
                 pool.density(slot),
                 pool.optical_depth(slot),
-                pool.volume(&pool.source, slot),
+                pool.source(slot),
                 pool.order_ratio(slot),
-                pool.volume(&pool.multiple, slot),
+                pool.multiple(slot),
             )
         });
     let read_f64 = |app: &mut App, range| -> Vec<f64> {
@@ -166,7 +172,7 @@ fn check(case: Case, sky: Vec3) {
         ),
         (
             "source",
-            max_relative_difference(&gpu_source[..3 * n3], &flat(&cpu.source)),
+            max_relative_difference(&gpu_source[..3 * n3], &flat(&cpu.source.mean)),
         ),
         (
             "multiple",
@@ -178,6 +184,36 @@ fn check(case: Case, sky: Vec3) {
             "order ratio",
             max_relative_difference(&gpu_ratio[..3], &cpu.multiple.ratio.to_array()),
         ));
+    }
+    // An anisotropic medium's moments: after the n³ means, 3 vec4 of flux per voxel, and in
+    // `multiple` then 5 of quadrupole.
+    let moments = case.medium.anisotropy != 0.0;
+    assert_eq!(
+        gpu_multiple.len() == 27 * n3,
+        moments,
+        "moments held for anisotropic media only"
+    );
+    if moments {
+        let (flux, quadrupole) = (3 * n3..12 * n3, 12 * n3..27 * n3);
+        let m = &cpu.multiple;
+        errors.extend([
+            (
+                "source flux",
+                max_relative_difference(&gpu_source[flux.clone()], &flat_entries(&cpu.source.flux)),
+            ),
+            (
+                "multiple flux",
+                max_relative_difference(&gpu_multiple[flux], &flat_entries(&m.flux)),
+            ),
+            (
+                "multiple quadrupole",
+                max_relative_difference(&gpu_multiple[quadrupole], &flat_entries(&m.quadrupole)),
+            ),
+        ]);
+        assert!(
+            m.quadrupole.iter().flatten().any(|q| q.max_element() > 0.0),
+            "the multiply scattered light is not isotropic"
+        );
     }
     for (name, error) in errors {
         assert!(
@@ -234,6 +270,31 @@ fn a_sky_lights_the_cloud_with_and_without_a_light() {
     let sky = Vec3::new(0.2, 0.3, 0.5);
     check(case(vec![sun]), sky);
     check(case(vec![]), sky);
+}
+
+/// A forward-scattering medium (docs/illumination.md §4): its source's and its multiple
+/// scattering's moments too, under a sun and a sky, on a rotated, scaled cloud; and a backward
+/// one (no δ-Eddington truncation, flux only from `g`).
+#[test]
+fn anisotropic_media_with_their_moments() {
+    let case = |anisotropy: f32| Case {
+        particles: random_particles(6, 70),
+        medium: Medium {
+            extinction: 6.0,
+            albedo: 0.95,
+            anisotropy,
+        },
+        lights: vec![LightSample {
+            direction: Vec3::new(0.3, -1.0, 0.2),
+            irradiance: Vec3::new(1.0, 0.9, 0.8),
+        }],
+        transform: Transform::from_xyz(0.2, 0.1, -0.3)
+            .with_rotation(Quat::from_euler(EulerRot::YXZ, 0.4, 0.2, -0.3))
+            .with_scale(Vec3::splat(1.3)),
+        settings: common::quality(16, 5),
+    };
+    check(case(0.7), Vec3::new(0.2, 0.3, 0.5));
+    check(case(-0.4), Vec3::ZERO);
 }
 
 #[test]

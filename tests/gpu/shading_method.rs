@@ -88,7 +88,7 @@ fn render(
             .expect("one cloud's volumes");
         let pool = world.resource::<VolumePools>().pool(&volumes.slot);
         let slot = volumes.slot.index;
-        (pool.optical_depth(slot), pool.volume(&pool.multiple, slot))
+        (pool.optical_depth(slot), pool.multiple(slot))
     });
     let n3 = (settings.volume_resolution as usize).pow(3);
     let m3 = (settings.light_resolution() as usize).pow(3);

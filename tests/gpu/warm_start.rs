@@ -1,14 +1,15 @@
 //! The warm restart of the scattering on the GPU against the f64 CPU reference: when only the
 //! light moves, the scattering restarts from the solution the volumes hold
 //! (`warm_scatter_iterations`), and the first frame the light stays still settles it with the
-//! full series. Under a black sky and under a blue one, which enters the restart's first sweep.
+//! full series. Under a black sky and under a blue one, which enters the restart's first sweep;
+//! and for an anisotropic medium, whose volumes hold angular moments beside their means.
 
 use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder};
 use bevy_particle_clouds::{
     CloudPass, CloudQualitySettings, CloudSkyLight, Medium, ScatterStencil,
     reference::{
-        illumination::{LocalLight, illuminate_under_sky, scatter_warm},
+        illumination::{LocalLight, MultipleScattering, illuminate_under_sky, scatter_warm_medium},
         metrics::max_relative_difference,
     },
     render::{pools::VolumePools, volumes::CloudVolumes},
@@ -17,8 +18,26 @@ use bevy_particle_clouds::{
 // The illumination tests' tolerance: f32 storage and arbitrary summation order.
 use crate::{
     common,
-    illumination::{TOLERANCE, flat, random_particles, rgb},
+    illumination::{TOLERANCE, flat, flat_entries, random_particles, rgb},
 };
+
+/// Each part of a multiple-scattering volume the GPU holds (the means, and with moments the
+/// flux and the quadrupole) against the CPU's, relative to its own maximum: the largest.
+fn difference(gpu: &[f64], cpu: &MultipleScattering) -> f64 {
+    let mut parts = vec![flat(&cpu.total)];
+    if !cpu.flux.is_empty() {
+        parts.extend([flat_entries(&cpu.flux), flat_entries(&cpu.quadrupole)]);
+    }
+    assert_eq!(gpu.len(), parts.iter().map(Vec::len).sum::<usize>());
+    let mut at = 0;
+    parts
+        .iter()
+        .map(|part| {
+            at += part.len();
+            max_relative_difference(&gpu[at - part.len()..at], part)
+        })
+        .fold(0.0, f64::max)
+}
 
 fn gpu_multiple(app: &mut App) -> Vec<f64> {
     let range = common::with_render_world(app, |world| {
@@ -27,29 +46,38 @@ fn gpu_multiple(app: &mut App) -> Vec<f64> {
             .single(world)
             .expect("one cloud's volumes");
         let pool = world.resource::<VolumePools>().pool(&volumes.slot);
-        pool.volume(&pool.multiple, volumes.slot.index)
+        pool.multiple(volumes.slot.index)
     });
     rgb(&headless::read_buffer_range(app, &range).unwrap())
 }
 
 #[test]
 fn a_moving_light_restarts_warm_and_a_still_one_settles() {
-    check_warm_restart(Vec3::ZERO);
-    check_warm_restart(Vec3::new(0.1, 0.2, 0.4));
+    let turn = Vec3::new(0.5, -0.9, 0.1);
+    check_warm_restart(Vec3::ZERO, 0.0, turn);
+    check_warm_restart(Vec3::new(0.1, 0.2, 0.4), 0.0, turn);
 }
 
-fn check_warm_restart(sky: Vec3) {
+#[test]
+fn an_anisotropic_medium_restarts_warm_with_its_moments() {
+    // The transformed medium is thinner and its series shorter: a larger turn, so that the
+    // warm frame is not yet the full series' result.
+    check_warm_restart(Vec3::new(0.1, 0.2, 0.4), 0.6, Vec3::new(1.0, -0.3, 0.6));
+}
+
+/// The light turns from straight down-ish to `turn`.
+fn check_warm_restart(sky: Vec3, anisotropy: f32, turn: Vec3) {
     let particles = random_particles(3, 60);
     let medium = Medium {
         extinction: 8.0,
         albedo: 0.95,
-        ..Default::default()
+        anisotropy,
     };
     let settings = CloudQualitySettings {
         warm_scatter_iterations: 3,
         ..common::quality(16, 8)
     };
-    let (a, b) = (Vec3::new(0.2, -1.0, 0.1), Vec3::new(0.5, -0.9, 0.1));
+    let (a, b) = (Vec3::new(0.2, -1.0, 0.1), turn);
     let irradiance = Vec3::new(1.0, 0.9, 0.8);
 
     let mut app = common::headless_app();
@@ -94,17 +122,17 @@ fn check_warm_restart(sky: Vec3) {
         .unwrap()
     };
     let (before, after) = (cpu(a), cpu(b));
-    let restarted = scatter_warm(
+    let restarted = scatter_warm_medium(
         &after.grid,
         after.k_local,
-        after.albedo,
+        (after.albedo, after.anisotropy),
         ScatterStencil::DiscreteOrdinates,
         &after.source,
-        &before.multiple.total,
+        &before.multiple.moments(),
         sky.as_dvec3(),
         3,
     );
-    let error = max_relative_difference(&warm, &flat(&restarted.total));
+    let error = difference(&warm, &restarted);
     assert!(error <= TOLERANCE, "warm restart: GPU differs by {error:e}");
     // It is not the full series' result (else this test could not tell them apart) ...
     let full = flat(&after.multiple.total);
@@ -129,7 +157,7 @@ fn check_warm_restart(sky: Vec3) {
         (0, 8)
     );
     let settled = gpu_multiple(&mut app);
-    let error = max_relative_difference(&settled, &full);
+    let error = difference(&settled, &after.multiple);
     assert!(error <= TOLERANCE, "settled: GPU differs by {error:e}");
     assert_eq!(recorder.frame(&mut app).unwrap().work(), 0);
 }
