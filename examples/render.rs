@@ -285,6 +285,8 @@ fn check_volume_fits(app: &mut bevy::app::App, scene: &Scene, adapter: &str) -> 
         .max_storage_buffer_binding_size;
     let resolution = scene.settings.volume_resolution;
     let lights = scene.lights.len();
+    // An anisotropic medium's scattering volumes also hold the radiance's angular moments.
+    let moments = scene.clouds.iter().any(|c| c.medium.anisotropy != 0.0);
     let fits = |n: u32| {
         let settings = CloudQualitySettings {
             volume_resolution: n,
@@ -294,6 +296,7 @@ fn check_volume_fits(app: &mut bevy::app::App, scene: &Scene, adapter: &str) -> 
             n,
             m: settings.light_resolution(),
             lights: lights as u32,
+            moments,
         };
         shape.max_slots(limit) > 0
     };
