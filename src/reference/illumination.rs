@@ -180,14 +180,7 @@ impl DensityGrid {
     where
         T: Copy + Default + Add<Output = T> + Mul<f64, Output = T>,
     {
-        assert_eq!(
-            values.len(),
-            self.len(),
-            "values must have one entry per voxel"
-        );
-        let g = self.grid_coords(p);
-        let axes = [0, 1, 2].map(|a| axis_clamped(g[a], self.n));
-        trilinear(axes, self.n, values)
+        self.sample_clamped_of(values.len(), p, |i| values[i])
     }
 
     /// [`DensityGrid::sample_clamped`] of per-voxel arrays (a [`Flux`], a [`Quadrupole`]), entry
@@ -197,14 +190,18 @@ impl DensityGrid {
         values: &[[DVec3; K]],
         p: DVec3,
     ) -> [DVec3; K] {
-        assert_eq!(
-            values.len(),
-            self.len(),
-            "values must have one entry per voxel"
-        );
+        self.sample_clamped_of(values.len(), p, |i| Entries(values[i])).0
+    }
+
+    /// The trilinear, edge-clamped sample at `p` of the `len` per-voxel values `value(i)`.
+    fn sample_clamped_of<T>(&self, len: usize, p: DVec3, value: impl Fn(usize) -> T) -> T
+    where
+        T: Default + Add<Output = T> + Mul<f64, Output = T>,
+    {
+        assert_eq!(len, self.len(), "values must have one entry per voxel");
         let g = self.grid_coords(p);
         let axes = [0, 1, 2].map(|a| axis_clamped(g[a], self.n));
-        trilinear_of(axes, self.n, |i| Entries(values[i])).0
+        trilinear_of(axes, self.n, value)
     }
 
     /// Largest voxel density `rho_max` (0 for an empty grid).
