@@ -112,6 +112,7 @@ fn default_scene() -> Scene {
             particles: generators::cumulus(2.5, 3000, 7).particles,
         }],
         objects: vec![],
+        fog: None,
         settings: CloudQualitySettings {
             volume_resolution: 64,
             scatter_iterations: 16,

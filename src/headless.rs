@@ -204,6 +204,11 @@ pub fn spawn_scene(app: &mut App, scene: &Scene) -> SceneTarget {
         camera.vertical_fov_degrees,
         scene.background,
     );
+    if let Some(fog) = &scene.fog {
+        app.world_mut()
+            .entity_mut(camera_entity)
+            .insert(crate::render::fog::distance_fog(fog));
+    }
     for light in &scene.lights {
         spawn_light(app, light.direction, light.irradiance);
     }

@@ -39,25 +39,28 @@
 //! # Features
 //!
 //! The default is what a game needs: the plugin, the components, the [`Particles`] asset and its
-//! PLY/CSV loader. Opt in to the rest:
+//! PLY/CSV loader, and `distance_fog`. Opt in to the rest:
 //!
 //! | feature | enables |
 //! |---|---|
+//! | `distance_fog` (default) | clouds fogged by the camera's `DistanceFog` (pulls in `bevy_pbr`) |
+//! | `lit_object` | `lit_object::LitObjectMaterial`, a Lambertian material that takes the clouds' shadows (pulls in `bevy_pbr`) |
 //! | `parallel` | multi-threaded particle generators (rayon); identical results |
 //! | `scene` | RON scene files ([`scene`]) |
 //! | `image` | EXR (with metadata) and PNG output (`image_io`) |
 //! | `reference` | the f64 CPU reference of every pass and the ground-truth path tracer (`reference`); implies `scene`, `parallel` |
-//! | `headless` | rendering without a window (`headless`): spawn a scene, render until finished, capture; implies `scene` |
+//! | `headless` | rendering without a window (`headless`): spawn a scene, render until finished, capture; implies `scene`, `distance_fog`, `lit_object` |
 
 #![warn(missing_docs)]
 pub mod cloud;
+pub mod fog;
 pub mod generators;
 #[cfg(feature = "headless")]
 pub mod headless;
 #[cfg(feature = "image")]
 pub mod image_io;
 pub mod linear_image;
-#[cfg(feature = "headless")]
+#[cfg(feature = "lit_object")]
 pub mod lit_object;
 pub mod loader;
 pub mod lod;

@@ -1,9 +1,11 @@
-//! Lit objects (feature `headless`; docs/physics.md, "Lit objects"): the Lambertian surfaces of
-//! scene files' objects with a `reflectance`, shaded as the physics says, lit by the
-//! cloud-lighting directional lights through the cloud shadow maps ([`CloudShadowMaps`]) and by
-//! the sky ([`CloudSkyLight`], unshadowed by clouds). Bevy's `StandardMaterial` is not Lambertian
-//! (its diffuse lobe is Burley's, with a specular lobe beside it), so these objects have their own
-//! material, `lit_object.wgsl`; a game keeps its own materials.
+//! Lit objects (feature `lit_object`, which `headless` enables; docs/physics.md, "Lit objects"):
+//! the Lambertian surfaces of scene files' objects with a `reflectance`, shaded as the physics
+//! says, lit by the cloud-lighting directional lights through the cloud shadow maps
+//! ([`CloudShadowMaps`]) and by the sky ([`CloudSkyLight`], unshadowed by clouds), fogged by the
+//! view's `DistanceFog`. Bevy's `StandardMaterial` is not Lambertian (its diffuse lobe is
+//! Burley's, with a specular lobe beside it), so these objects have their own material,
+//! `lit_object.wgsl`. A game may use it for a mesh that should take the clouds' shadows (add
+//! [`LitObjectPlugin`] and turn the shadow maps on), as the `clouds` example's ground does.
 
 use bevy::{
     asset::embedded_asset,

@@ -1,7 +1,11 @@
 // Lit objects (docs/physics.md, "Lit objects"; docs/illumination.md §10): a Lambertian surface
 // shows its colour plus reflectance / pi times the irradiance of the lights, through the clouds'
-// shadow maps, and of the sky. Rust mirrors: src/lit_object.rs, src/shadow_maps.rs.
+// shadow maps, and of the sky; fogged by the view's `DistanceFog` like any mesh.
+// Rust mirrors: src/lit_object.rs, src/shadow_maps.rs.
 #import bevy_pbr::{forward_io::VertexOutput, mesh_view_bindings::view}
+#ifdef DISTANCE_FOG
+#import bevy_pbr::{mesh_view_bindings::fog, pbr_functions::apply_fog}
+#endif
 
 const PI: f32 = 3.141592653589793;
 
@@ -80,5 +84,11 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
         irradiance += light.irradiance * (cosine * exp(-tau));
     }
     let radiance = surface.color + surface.reflectance * irradiance / PI;
-    return vec4(radiance * view.exposure, 1.0);
+    let colour = vec4(radiance * view.exposure, 1.0);
+#ifdef DISTANCE_FOG
+    // Fogged as Bevy fogs its own meshes.
+    return apply_fog(fog, colour, x, view.world_position, in.position.xy);
+#else
+    return colour;
+#endif
 }

@@ -7,6 +7,7 @@
 use bevy::math::Vec3;
 use serde::Deserialize;
 
+use crate::fog::Fog;
 use crate::particle::{LightSample, Medium, Particle};
 use crate::settings::CloudQualitySettings;
 
@@ -102,9 +103,18 @@ pub struct SceneFile {
     /// Opaque unlit objects; default none.
     #[serde(default)]
     pub objects: Vec<SceneObject>,
+    /// Distance fog of the camera (Bevy's `DistanceFog`), written `fog: (color: …, falloff: …)`;
+    /// default none.
+    #[serde(default, deserialize_with = "deserialize_fog")]
+    pub fog: Option<Fog>,
     /// Quality knobs for every cloud; missing fields take [`CloudQualitySettings`]' defaults.
     #[serde(default)]
     pub settings: CloudQualitySettings,
+}
+
+/// A scene's `fog` is written without RON's `Some(…)`.
+fn deserialize_fog<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<Fog>, D::Error> {
+    Fog::deserialize(d).map(Some)
 }
 
 /// A cloud with its particles loaded and validated.
@@ -131,6 +141,8 @@ pub struct Scene {
     pub clouds: Vec<ResolvedCloud>,
     /// Opaque unlit objects.
     pub objects: Vec<SceneObject>,
+    /// Distance fog of the camera, if any.
+    pub fog: Option<Fog>,
     /// Quality knobs for every cloud.
     pub settings: CloudQualitySettings,
 }
@@ -328,6 +340,13 @@ pub fn apply_setting(
     settings.validate().map_err(SceneError::Settings)
 }
 
+fn validate_fog(fog: Option<&Fog>) -> Result<(), SceneError> {
+    fog.map_or(Ok(()), |f| {
+        f.validate()
+            .map_err(|e| invalid(format!("fog.{}", e.field), e.value, e.allowed))
+    })
+}
+
 fn validate_camera(c: &SceneCamera) -> Result<(), SceneError> {
     check_finite("camera.position", c.position)?;
     check_finite("camera.look_at", c.look_at)?;
@@ -489,6 +508,7 @@ impl Scene {
             &file.objects,
             &file.settings,
         )?;
+        validate_fog(file.fog.as_ref())?;
         for (i, cloud) in file.clouds.iter().enumerate() {
             validate_cloud_header(i, cloud.translation, &cloud.medium)?;
         }
@@ -507,6 +527,7 @@ impl Scene {
             lights: file.lights,
             clouds,
             objects: file.objects,
+            fog: file.fog,
             settings: file.settings,
         })
     }
@@ -520,6 +541,7 @@ impl Scene {
             &self.objects,
             &self.settings,
         )?;
+        validate_fog(self.fog.as_ref())?;
         for (i, cloud) in self.clouds.iter().enumerate() {
             validate_cloud_header(i, cloud.translation, &cloud.medium)?;
             validate_particles(i, &cloud.particles, "")?;
@@ -633,6 +655,39 @@ mod tests {
 
     fn example_file() -> SceneFile {
         ron::from_str(EXAMPLE).unwrap()
+    }
+
+    #[test]
+    fn fog_is_read_with_its_defaults_and_checked() {
+        use crate::fog::Falloff;
+        let with_fog = |fog: &str| MINIMAL.replacen("    clouds: [", &format!("    fog: {fog},\n    clouds: ["), 1);
+        let scene = Scene::from_ron_str(
+            &with_fog("(color: (0.2, 0.3, 0.4), falloff: Exponential(density: 0.1))"),
+            here(),
+        )
+        .unwrap();
+        let fog = scene.fog.unwrap();
+        assert_eq!(fog.falloff, Falloff::Exponential { density: 0.1 });
+        assert_eq!((fog.alpha, fog.directional_light_exponent), (1.0, 8.0));
+        assert_eq!(fog.directional_light_color, Vec3::ZERO);
+        assert_eq!(Scene::from_ron_str(MINIMAL, here()).unwrap().fog, None);
+        let e = Scene::from_ron_str(
+            &with_fog("(color: (0.2, 0.3, 0.4), falloff: Linear(start: 10, end: 2))"),
+            here(),
+        )
+        .unwrap_err()
+        .to_string();
+        assert_eq!(
+            e,
+            "fog.falloff is Linear(start: 10, end: 2); start and end must be finite, start < end"
+        );
+        let e = Scene::from_ron_str(
+            &with_fog("(color: (0.2, 0.3, 0.4), falloff: Exponential(density: 0.1), density: 2)"),
+            here(),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("density"), "{e}");
     }
 
     #[test]

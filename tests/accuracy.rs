@@ -64,6 +64,7 @@ fn scene() -> Scene {
             particles,
         }],
         objects: Vec::new(),
+        fog: None,
         settings: CloudQualitySettings::default(),
     }
 }

@@ -68,6 +68,7 @@ fn scene(
         }],
         clouds,
         objects: Vec::new(),
+        fog: None,
         settings,
     }
 }

@@ -59,6 +59,7 @@ fn scene(q: f32, settings: CloudQualitySettings) -> Scene {
             particles,
         }],
         objects: Vec::new(),
+        fog: None,
         settings,
     }
 }

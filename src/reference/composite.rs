@@ -18,10 +18,15 @@
 //! transparent phase does per entity), except that consecutive view-transmittance clouds make
 //! one layer: each particle's light is seen through the view volumes of all of them, so clouds
 //! that interpenetrate composite correctly in any order.
+//!
+//! With distance fog ([`composite_fogged`]), each segment is fogged at its own distance, its
+//! share of the view as its coverage (docs/physics.md, "Fog"); objects are fogged, the
+//! background is not (as in Bevy).
 
 use bevy::math::{DQuat, DVec3};
 use rayon::prelude::*;
 
+use crate::fog::Fog;
 use crate::particle::{Medium, Particle};
 use crate::reference::camera::PinholeCamera;
 use crate::reference::geometry::nearest_object;
@@ -236,17 +241,36 @@ fn particle_radiance(
     bb: &Billboard,
     chord: &Chord,
     cloud: &BillboardCloud,
+    seen: &Seen,
 ) -> (DVec3, f64) {
     let (mut colour, mut transmittance) = (DVec3::ZERO, 1.0);
     let ray = cloud.world_from_local.local_direction(w);
     for (a, b, tau) in segments(bb, chord, cloud) {
-        let x = camera.position + w * (chord.t_c + 0.5 * (a + b));
-        let opacity = -(-tau).exp_m1();
-        colour += (cloud.scattered)(cloud.world_from_local.local_point(x), ray)
-            * (transmittance * opacity);
-        transmittance *= 1.0 - opacity;
+        let t = chord.t_c + 0.5 * (a + b);
+        let x = camera.position + w * t;
+        let coverage = transmittance * -(-tau).exp_m1();
+        let light = (cloud.scattered)(cloud.world_from_local.local_point(x), ray) * coverage;
+        colour += seen.piece(light, coverage, t);
+        transmittance -= coverage;
     }
     (colour, 1.0 - transmittance)
+}
+
+/// How a pixel ray's light reaches the image: times `exposure`, then fogged (the fog, and its
+/// colour along this ray).
+struct Seen<'a> {
+    exposure: f64,
+    fog: Option<(&'a Fog, DVec3)>,
+}
+
+impl Seen<'_> {
+    /// A piece of premultiplied light covering `coverage` of the view at distance `t`.
+    fn piece(&self, light: DVec3, coverage: f64, t: f64) -> DVec3 {
+        match self.fog {
+            Some((fog, colour)) => fog.apply(light * self.exposure, coverage, t, colour),
+            None => light * self.exposure,
+        }
+    }
 }
 
 /// `(1 - exp(-x)) / x`, 1 at 0: the mean of `exp(-x t)` over `t` in `[0, 1]`.
@@ -293,18 +317,20 @@ fn particle_light_through_view(
     chord: &Chord,
     cloud: &BillboardCloud,
     view_depth: &dyn Fn(DVec3) -> f64,
+    seen: &Seen,
 ) -> (DVec3, f64) {
     let at = |s: f64| camera.position + w * (chord.t_c + s);
     let ray = cloud.world_from_local.local_direction(w);
     let scattered = |s: f64| (cloud.scattered)(cloud.world_from_local.local_point(at(s)), ray);
     let (mut light, mut own) = (DVec3::ZERO, 0.0);
     let (mut view_before, mut s_before) = (view_depth(at(chord.s0)), scattered(chord.s0));
-    for (_, b, tau) in segments(bb, chord, cloud) {
+    for (a, b, tau) in segments(bb, chord, cloud) {
         let view_after = view_depth(at(b));
         let s_after = scattered(b);
         let all = (view_after - view_before).max(tau);
-        light += segment_mean(s_before, s_after, all)
-            * (tau * (-view_before).exp() * mean_attenuation(all));
+        let coverage = tau * (-view_before).exp() * mean_attenuation(all);
+        let t = chord.t_c + 0.5 * (a + b);
+        light += seen.piece(segment_mean(s_before, s_after, all) * coverage, coverage, t);
         own += tau;
         (view_before, s_before) = (view_after, s_after);
     }
@@ -318,10 +344,15 @@ fn shade_ray<'c>(
     background: DVec3,
     objects: &[SceneObject],
     clouds: &'c [(&'c SortedCloud<'c>, Vec<&'c Billboard>)],
-    exposure: f64,
+    seen: &Seen,
 ) -> DVec3 {
     let (mut colour, opaque_depth) = match nearest_object(objects, camera.position, w) {
-        Some((t, i)) => (objects[i].color.as_dvec3(), t * w.dot(camera.forward)),
+        // An object is fogged at its distance as Bevy fogs meshes; its colour is radiance.
+        Some((t, i)) => {
+            let c = objects[i].color.as_dvec3();
+            let fogged = seen.fog.map_or(c, |(fog, f)| fog.apply(c, 1.0, t, f));
+            (fogged, t * w.dot(camera.forward))
+        }
         None => (background, f64::INFINITY),
     };
     let visible = |sorted: &'c SortedCloud, billboards: &'c [&'c Billboard]| {
@@ -338,8 +369,8 @@ fn shade_ray<'c>(
         if views.is_empty() {
             for (sorted, billboards) in run {
                 for (bb, chord, cloud) in visible(sorted, billboards) {
-                    let (radiance, alpha) = particle_radiance(camera, w, bb, &chord, cloud);
-                    colour = radiance * exposure + colour * (1.0 - alpha);
+                    let (radiance, alpha) = particle_radiance(camera, w, bb, &chord, cloud, seen);
+                    colour = radiance + colour * (1.0 - alpha);
                 }
             }
             continue;
@@ -349,12 +380,12 @@ fn shade_ray<'c>(
         for (sorted, billboards) in run {
             for (bb, chord, cloud) in visible(sorted, billboards) {
                 let (l, alpha) =
-                    particle_light_through_view(camera, w, bb, &chord, cloud, &view_depth);
+                    particle_light_through_view(camera, w, bb, &chord, cloud, &view_depth, seen);
                 light += l;
                 transmittance *= 1.0 - alpha;
             }
         }
-        colour = colour * transmittance + light * exposure;
+        colour = colour * transmittance + light;
     }
     colour
 }
@@ -394,6 +425,29 @@ pub fn composite(
     clouds: &[BillboardCloud],
     exposure: f64,
 ) -> Vec<[f32; 4]> {
+    composite_fogged(camera, background, objects, clouds, exposure, None)
+}
+
+/// The fog of a view: Bevy's `DistanceFog` and the directional lights that make it glow
+/// (`(unit direction towards the light, irradiance)`).
+#[derive(Clone, Copy, Debug)]
+pub struct ViewFog<'a> {
+    /// The fog.
+    pub fog: &'a Fog,
+    /// The lights it glows about.
+    pub lights: &'a [(DVec3, DVec3)],
+}
+
+/// [`composite`] through distance fog, if any: objects and every segment of every chord fogged
+/// at their own distance (docs/physics.md, "Fog"); the background is not fogged.
+pub fn composite_fogged(
+    camera: &PinholeCamera,
+    background: DVec3,
+    objects: &[SceneObject],
+    clouds: &[BillboardCloud],
+    exposure: f64,
+    fog: Option<ViewFog>,
+) -> Vec<[f32; 4]> {
     let sorted: Vec<SortedCloud> = clouds.iter().map(|c| sort_cloud(camera, c)).collect();
     let width = camera.width as usize;
     let mut image = vec![[0.0f32; 4]; width * camera.height as usize];
@@ -404,7 +458,11 @@ pub fn composite(
             let candidates = row_candidates(camera, py as u32, &sorted);
             for (px, pixel) in row.iter_mut().enumerate() {
                 let w = camera.pixel_ray(px as u32, py as u32);
-                let c = shade_ray(camera, w, background, objects, &candidates, exposure);
+                let seen = Seen {
+                    exposure,
+                    fog: fog.map(|f| (f.fog, f.fog.colour_towards(w, f.lights))),
+                };
+                let c = shade_ray(camera, w, background, objects, &candidates, &seen);
                 *pixel = [c.x as f32, c.y as f32, c.z as f32, 1.0];
             }
         });
@@ -743,7 +801,10 @@ mod tests {
                     DVec3::splat(0.05),
                     &[],
                     &all,
-                    2.0,
+                    &Seen {
+                        exposure: 2.0,
+                        fog: None,
+                    },
                 );
                 assert!(close(pixel(&image, px, py), direct));
                 covered += (direct.x != 0.05) as usize;

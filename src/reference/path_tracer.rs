@@ -56,6 +56,7 @@ use std::sync::{
 use bevy::math::DVec3;
 use rayon::prelude::*;
 
+use crate::fog::Fog;
 use crate::math::{INV_4PI, SplitMix64, henyey_greenstein, kernel_u2, light_basis};
 use crate::reference::camera::PinholeCamera;
 use crate::reference::geometry::{box_interval, nearest_object, object_normal};
@@ -687,6 +688,8 @@ pub struct Lighting {
     pub lights: Vec<DirectionalLight>,
     /// Opaque objects: emitting their colour, and reflecting light where they have a reflectance.
     pub objects: Vec<SceneObject>,
+    /// Distance fog along the camera's rays (docs/physics.md, "Fog"), if any.
+    pub fog: Option<Fog>,
 }
 
 /// How far a ray leaving an object's surface starts off it, metres: clear of the surface it
@@ -709,7 +712,18 @@ impl Lighting {
             background: scene.background.as_dvec3(),
             lights,
             objects: scene.objects.clone(),
+            fog: scene.fog,
         }
+    }
+
+    /// The fog's colour along the camera ray `dir` (its glow about each light).
+    fn fog_colour(&self, fog: &Fog, dir: DVec3) -> DVec3 {
+        let lights: Vec<_> = self
+            .lights
+            .iter()
+            .map(|l| (l.to_light, l.irradiance))
+            .collect();
+        fog.colour_towards(dir, &lights)
     }
 
     /// `Σ_l E_l T_l(x)`: unscattered irradiance at `x` from all lights, with exact transmittance.
@@ -838,22 +852,39 @@ pub fn radiance_by_order<M: Media>(
     let last = orders.len() - 1;
     let (mut o, mut d) = (origin, dir);
     let mut events = 0;
+    // What the fog lets through from the camera ray's end (its first collision or its object).
+    let mut fogged = DVec3::ONE;
     loop {
         let object = nearest_object(&lighting.objects, o, d);
         let t_max = object.map_or(f64::INFINITY, |(t, _)| t);
-        let Some((t, c)) = sample_free_flight(media, o, d, t_max, rng) else {
+        let collision = sample_free_flight(media, o, d, t_max, rng);
+        if events == 0
+            && let Some(fog) = &lighting.fog
+        {
+            // The fog fogs what ends the camera ray, at its distance (the sky is not fogged, as
+            // in Bevy). With t the first collision, E[A(t) F] = ∫ T_cloud dA F, the fog of a
+            // medium that permeates the cloud (docs/physics.md, "Fog").
+            let end = collision.map(|(t, _)| t).or(object.map(|(t, _)| t));
+            if let Some(t) = end {
+                let at = fog.at(t);
+                fogged = at.transmitted;
+                orders[0] += at.inscattered * lighting.fog_colour(fog, d);
+            }
+        }
+        let Some((t, c)) = collision else {
             // Unscattered to the end of the ray: the object's radiance or the background.
-            orders[(events as usize).min(last)] += match object {
-                Some((t, i)) => lighting.object_radiance(media, i, o + d * t, rng),
-                None => lighting.background,
-            };
+            orders[(events as usize).min(last)] += fogged
+                * match object {
+                    Some((t, i)) => lighting.object_radiance(media, i, o + d * t, rng),
+                    None => lighting.background,
+                };
             return;
         };
         let x = o + d * t;
         // σ_s/σ_t: a real collision was accepted with probability σ_t/majorant > 0, so σ_t > 0.
         let albedo = c.scattering / c.extinction;
         events += 1;
-        orders[(events as usize).min(last)] += lighting.in_scattered(media, x, d) * albedo;
+        orders[(events as usize).min(last)] += fogged * lighting.in_scattered(media, x, d) * albedo;
         // Russian roulette on the albedo: survivors keep weight 1.
         if events >= max_scatter_events || rng.next_f64() >= albedo {
             return;
@@ -1045,6 +1076,7 @@ mod tests {
             lights,
             clouds,
             objects,
+            fog: None,
             settings: CloudQualitySettings::default(),
         }
     }
@@ -1260,6 +1292,79 @@ mod tests {
                 "b {b}: delta tracking escapes {p}, expected {t}"
             );
         }
+    }
+
+    /// Distance fog on the camera ray: an object at distance D shows `V(D) L + A(D) F` exactly,
+    /// the sky is not fogged, and an absorbing slab from t0 to t1 in front of the sky shows the
+    /// fog between the camera and every depth of it: `F [1 - e^{-σL} - σ/(σ+k) e^{-k t0}
+    /// (1 - e^{-(σ+k)L})] + e^{-σL} B` for exponential fog of density k (docs/physics.md, "Fog").
+    #[test]
+    fn distance_fog_fogs_the_camera_ray_up_to_its_first_collision() {
+        use crate::fog::{Falloff, Fog};
+        use crate::scene::ObjectShape;
+        let k = 0.3;
+        let fog = Fog {
+            color: Vec3::new(0.6, 0.7, 0.8),
+            alpha: 1.0,
+            falloff: Falloff::Exponential { density: k as f32 },
+            directional_light_color: Vec3::ZERO,
+            directional_light_exponent: 8.0,
+        };
+        let f = fog.color.as_dvec3();
+        let background = DVec3::new(0.1, 0.2, 0.4);
+        let mut lighting = Lighting {
+            background,
+            lights: vec![],
+            objects: vec![],
+            fog: Some(fog),
+        };
+        let origin = DVec3::ZERO;
+        let mut rng = SplitMix64::mixed(31);
+        let empty = HomogeneousBox {
+            lo: DVec3::splat(100.0),
+            hi: DVec3::splat(101.0),
+            extinction: 1.0,
+            albedo: 0.0,
+            majorant_factor: 1.0,
+        };
+        // The sky: unfogged.
+        let sky = radiance(&empty, &lighting, origin, DVec3::Z, 8, &mut rng);
+        assert_eq!(sky, background);
+        // An unlit object 4 m away (its front face at z = 4).
+        let colour = Vec3::new(1.0, 0.5, 0.25);
+        lighting.objects = vec![SceneObject {
+            shape: ObjectShape::Cuboid(Vec3::new(10.0, 10.0, 2.0)),
+            translation: Vec3::new(0.0, 0.0, 5.0),
+            color: colour,
+            reflectance: Vec3::ZERO,
+        }];
+        let seen = radiance(&empty, &lighting, origin, DVec3::Z, 8, &mut rng);
+        let v = (-k * 4.0f64).exp();
+        let expected = colour.as_dvec3() * v + f * (1.0 - v);
+        assert!((seen - expected).length() < 1e-6, "{seen} vs {expected}");
+        // An absorber from 2 to 3.5 m, the sky behind.
+        lighting.objects.clear();
+        let (sigma, t0, length) = (1.2, 2.0, 1.5);
+        let slab = HomogeneousBox {
+            lo: DVec3::new(-50.0, -50.0, t0),
+            hi: DVec3::new(50.0, 50.0, t0 + length),
+            extinction: sigma,
+            albedo: 0.0,
+            majorant_factor: 2.0,
+        };
+        let samples: Vec<DVec3> = (0..40_000)
+            .map(|_| radiance(&slab, &lighting, origin, DVec3::Z, 8, &mut rng))
+            .collect();
+        let t = (-sigma * length).exp();
+        let fogged = 1.0 - t
+            - sigma / (sigma + k) * (-k * t0).exp() * (1.0 - (-(sigma + k) * length).exp());
+        assert_close(
+            "fogged absorber",
+            mean_and_error(&samples),
+            f * fogged + background * t,
+            4.5,
+            1e-9,
+        );
     }
 
     /// Beer–Lambert through a homogeneous slab (analytic test medium with a loose majorant):
@@ -1543,6 +1648,7 @@ mod tests {
                 background: DVec3::ZERO,
                 lights,
                 objects: vec![],
+                fog: None,
             }
         };
         let eye = DVec3::new(0.0, 0.0, 4.0);

@@ -12,6 +12,9 @@
 // CLOUD_TARGET: drawn into the view's reduced-resolution cloud target, which has no depth
 // attachment; each fragment is depth-tested here against the view pixel its texel stands for
 // (cloud_target.wgsl enlarges the target onto the view).
+//
+// DISTANCE_FOG: every piece of every chord is fogged at its own distance (fog.wgsl).
+#import bevy_particle_clouds::fog::{CloudFog, fog_colour, fogged}
 #import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, ViewVolumeParams, CloudTargetParams, grid_coords, henyey_greenstein, flux_element, quadrupole_element, quadrupole_weights, light_coords, clamped_lookup, clamped_corner, corner_weight, opacity, voxel_index, view_volume_coords, cloud_target_depth_pixel}
 
 struct DrawParams {
@@ -34,6 +37,9 @@ struct DrawParams {
 #else
 @group(0) @binding(2) var scene_depth: texture_depth_2d;
 #endif
+@group(0) @binding(3) var<uniform> fog: CloudFog;
+#else
+@group(0) @binding(1) var<uniform> fog: CloudFog;
 #endif
 @group(1) @binding(0) var<uniform> params: DrawParams;
 @group(1) @binding(1) var<uniform> cloud: CloudParams;
@@ -248,6 +254,26 @@ fn local_at(c: Chord, s: f32) -> vec3<f32> {
     return (params.local_from_world * vec4(world_at(c, s), 1.0)).xyz;
 }
 
+// The fog's colour along the chord's ray (unused without fog).
+fn ray_fog_colour(c: Chord) -> vec3<f32> {
+#ifdef DISTANCE_FOG
+    return fog_colour(fog, c.w, view.exposure);
+#else
+    return vec3(0.0);
+#endif
+}
+
+// A piece of the chord's light as the image shows it: `light` (premultiplied, before exposure)
+// covering `coverage` of the view at chord parameter s, exposed, then fogged at its distance
+// with the fog colour `f`.
+fn shown(c: Chord, light: vec3<f32>, coverage: f32, s: f32, f: vec3<f32>) -> vec3<f32> {
+#ifdef DISTANCE_FOG
+    return fogged(fog, light * view.exposure, coverage, c.t_c + s, f);
+#else
+    return light * view.exposure;
+#endif
+}
+
 #ifdef VIEW_TRANSMITTANCE
 // Optical depth from the camera to view-space point `p` through view volume `k`: trilinear,
 // clamped to the volume. None in front of its first slice (which holds 0) or off its rectangle of
@@ -395,7 +421,7 @@ fn emit(in: VertexOutput) -> @location(0) vec4<f32> {
     if !c.seen {
         discard;
     }
-    return vec4(emitted(c) * view.exposure, 0.0);
+    return vec4(emitted(c), 0.0);
 }
 
 // Into a cloud target, which holds only clouds (cleared to no cloud), both at once: the light
@@ -407,12 +433,13 @@ fn accumulate(in: VertexOutput) -> @location(0) vec4<f32> {
     if !c.seen {
         discard;
     }
-    return vec4(emitted(c) * view.exposure, opacity(own_depth(c, c.s1)));
+    return vec4(emitted(c), opacity(own_depth(c, c.s1)));
 }
 
-// The particle's light: piece k of the chord adds
+// The particle's light as the image shows it: piece k of the chord adds
 // mean S * tau_k / tau_all * exp(-tau_view(a_k)) * (1 - exp(-tau_all)), tau_all the piece's
-// optical depth with every particle (the view volume's, at least the particle's own tau_k).
+// optical depth with every particle (the view volume's, at least the particle's own tau_k),
+// exposed and fogged at its midpoint.
 fn emitted(c: Chord) -> vec3<f32> {
     let ds = (c.s1 - c.s0) / f32(params.segments);
     var light = vec3(0.0);
@@ -421,6 +448,7 @@ fn emitted(c: Chord) -> vec3<f32> {
     var view_before = view_optical_depth_at(world_at(c, c.s0), ray);
     let direction = local_ray(c);
     var s_before = scattered_at(local_at(c, c.s0), direction);
+    let f = ray_fog_colour(c);
     for (var k = 1u; k <= params.segments; k++) {
         let end = c.s0 + ds * f32(k);
         let own_after = own_depth(c, end);
@@ -428,7 +456,9 @@ fn emitted(c: Chord) -> vec3<f32> {
         let view_after = view_optical_depth_at(world_at(c, end), ray);
         let s_after = scattered_at(local_at(c, end), direction);
         let all = max(view_after - view_before, tau);
-        light += segment_mean(s_before, s_after, all) * (tau * exp(-view_before) * mean_attenuation(all));
+        let coverage = tau * exp(-view_before) * mean_attenuation(all);
+        let piece = segment_mean(s_before, s_after, all) * coverage;
+        light += shown(c, piece, coverage, end - 0.5 * ds, f);
         own_before = own_after;
         view_before = view_after;
         s_before = s_after;
@@ -449,15 +479,18 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     var transmittance = 1.0;
     var depth_before = 0.0;
     let direction = local_ray(c);
+    let f = ray_fog_colour(c);
     for (var k = 1u; k <= params.segments; k++) {
         let end = c.s0 + ds * f32(k);
+        let middle = end - 0.5 * ds;
         let depth_after = own_depth(c, end);
-        let segment = opacity(max(depth_after - depth_before, 0.0));
-        colour += transmittance * segment * scattered_at(local_at(c, end - 0.5 * ds), direction);
-        transmittance *= 1.0 - segment;
+        let coverage = transmittance * opacity(max(depth_after - depth_before, 0.0));
+        let piece = coverage * scattered_at(local_at(c, middle), direction);
+        colour += shown(c, piece, coverage, middle, f);
+        transmittance -= coverage;
         depth_before = depth_after;
     }
     let alpha = 1.0 - transmittance;
-    return vec4(colour * view.exposure, alpha);
+    return vec4(colour, alpha);
 }
 #endif

@@ -47,6 +47,7 @@ use bevy::{
 use super::{
     draw::{CloudDrawBindGroups, draw_billboards},
     extract::ExtractedCloud,
+    fog::{CloudFogParams, CloudFogUniforms, ViewCloudFogOffset},
     gpu::uniform_bytes,
     key_of,
     particles::GpuParticles,
@@ -141,6 +142,7 @@ pub(crate) fn billboard_view_layout(multisampled: bool) -> BindGroupLayoutDescri
                 uniform_buffer::<ViewUniform>(true),
                 uniform_buffer::<CloudTargetParams>(false),
                 depth_binding(multisampled),
+                uniform_buffer::<CloudFogParams>(true),
             ),
         ),
     )
@@ -342,6 +344,7 @@ fn prepare_cloud_targets(
     cache: Res<PipelineCache>,
     mut textures: ResMut<TextureCache>,
     view_uniforms: Res<ViewUniforms>,
+    fog_uniforms: Res<CloudFogUniforms>,
     views: Query<(
         Entity,
         &ViewCloudTarget,
@@ -349,9 +352,11 @@ fn prepare_cloud_targets(
         Option<&ViewCloudTargetResources>,
     )>,
 ) {
-    let (Some(view_binding), Some(view_buffer)) = (
+    let (Some(view_binding), Some(view_buffer), Some(fog_binding), Some(fog_buffer)) = (
         view_uniforms.uniforms.binding(),
         view_uniforms.uniforms.buffer(),
+        fog_uniforms.0.binding(),
+        fog_uniforms.0.buffer(),
     ) else {
         return;
     };
@@ -386,6 +391,7 @@ fn prepare_cloud_targets(
             texture.default_view.id(),
             depth.view().id(),
             view_buffer.id(),
+            fog_buffer.id(),
         ));
         if existing.is_some_and(|e| e.key == key) {
             continue;
@@ -402,6 +408,7 @@ fn prepare_cloud_targets(
                 view_binding.clone(),
                 params.as_entire_binding(),
                 depth.view(),
+                fog_binding.clone(),
             )),
         );
         let composite = device.create_bind_group(
@@ -431,6 +438,7 @@ fn draw_cloud_target(
         &ExtractedView,
         &ViewTarget,
         &ViewUniformOffset,
+        &ViewCloudFogOffset,
         &ViewCloudDraws,
         &ViewCloudTargetResources,
         &ViewCompositePipeline,
@@ -442,7 +450,7 @@ fn draw_cloud_target(
     counters: Res<CloudPassCounters>,
     mut ctx: RenderContext,
 ) {
-    let (camera, extracted, target, offset, draws, resources, composite) = view.into_inner();
+    let (camera, extracted, target, offset, fog, draws, resources, composite) = view.into_inner();
     let Some(composite) = cache.get_render_pipeline(composite.0) else {
         return;
     };
@@ -466,7 +474,7 @@ fn draw_cloud_target(
         })],
         ..default()
     });
-    pass.set_bind_group(0, &resources.billboard_view, &[offset.offset]);
+    pass.set_bind_group(0, &resources.billboard_view, &[offset.offset, fog.0]);
     let mut drawn = 0;
     for &(entity, pipeline_id) in &draws.0 {
         let Ok((cloud, groups)) = clouds.get(entity) else {

@@ -48,6 +48,7 @@ use bevy::{
 use super::{
     cloud_target::{ViewCloudDraws, ViewCloudTarget},
     extract::ExtractedCloud,
+    fog::{CloudFogParams, CloudFogUniforms, ExtractedCloudFog, FogMode, ViewCloudFogOffset},
     gpu::uniform_bytes,
     key_of,
     particles::GpuParticles,
@@ -85,7 +86,7 @@ pub struct DrawParams {
 /// The billboard render pipeline's layouts and shader (specialized per view target).
 #[derive(Resource)]
 pub struct BillboardPipeline {
-    /// Group 0: the view uniform.
+    /// Group 0: the view uniform and the view's fog.
     pub view_layout: BindGroupLayoutDescriptor,
     /// Group 1 when sorted: draw uniform, cloud uniform, particles, sorted order, lights,
     /// optical depths, multiple scattering.
@@ -108,9 +109,12 @@ impl BillboardPipeline {
 pub(crate) fn init_billboard_pipeline(mut commands: Commands, shaders: Res<CloudShaders>) {
     let view_layout = BindGroupLayoutDescriptor::new(
         "particle_clouds_view_layout",
-        &BindGroupLayoutEntries::single(
+        &BindGroupLayoutEntries::sequential(
             ShaderStages::VERTEX_FRAGMENT,
-            uniform_buffer::<ViewUniform>(true),
+            (
+                uniform_buffer::<ViewUniform>(true),
+                uniform_buffer::<CloudFogParams>(true),
+            ),
         ),
     );
     let read = || storage_buffer_read_only_sized(false, None);
@@ -222,13 +226,15 @@ pub enum BillboardTarget {
     },
 }
 
-/// What a billboard pipeline depends on: where it draws and the draw's blend.
+/// What a billboard pipeline depends on: where it draws, the draw's blend and the view's fog.
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
 pub struct BillboardPipelineKey {
     /// The target drawn into.
     pub target: BillboardTarget,
     /// Which of the compositing's draws.
     pub blend: BillboardBlend,
+    /// The view's distance fog, if any.
+    pub fog: Option<FogMode>,
 }
 
 impl SpecializedRenderPipeline for BillboardPipeline {
@@ -240,6 +246,9 @@ impl SpecializedRenderPipeline for BillboardPipeline {
         let mut shader_defs = super::workgroups::shader_defs();
         if compositing == Compositing::ViewTransmittance {
             shader_defs.push("VIEW_TRANSMITTANCE".into());
+        }
+        if let Some(fog) = key.fog {
+            shader_defs.extend(fog.shader_defs().map(Into::into));
         }
         let (view_layout, format, samples, depth_stencil) = match key.target {
             BillboardTarget::View { format, samples } => (
@@ -360,19 +369,23 @@ pub(crate) fn prepare_billboard_bind_groups(
     pipeline_cache: Res<PipelineCache>,
     device: Res<RenderDevice>,
     view_uniforms: Res<ViewUniforms>,
+    fog_uniforms: Res<CloudFogUniforms>,
     clouds: Query<BillboardSources>,
     particles: Res<RenderAssets<GpuParticles>>,
     pools: Res<VolumePools>,
     atlases: Res<ViewVolumeAtlases>,
 ) {
     let Some(pipeline) = pipeline else { return };
-    let Some(view_binding) = view_uniforms.uniforms.binding() else {
+    let (Some(view_binding), Some(fog_binding)) = (
+        view_uniforms.uniforms.binding(),
+        fog_uniforms.0.binding(),
+    ) else {
         return;
     };
     commands.insert_resource(BillboardViewBindGroup(device.create_bind_group(
         "particle_clouds_view_bind_group",
         &pipeline_cache.get_bind_group_layout(&pipeline.view_layout),
-        &BindGroupEntries::single(view_binding),
+        &BindGroupEntries::sequential((view_binding, fog_binding)),
     )));
     for (entity, cloud, volumes, sorts, view_volumes, existing) in &clouds {
         let Some(gpu) = particles.get(cloud.particles) else {
@@ -482,6 +495,7 @@ type ViewToQueue = (
     &'static Msaa,
     &'static RenderVisibleEntities,
     Option<&'static ViewCloudTarget>,
+    Option<&'static ExtractedCloudFog>,
 );
 
 /// Whether a cloud is ready to draw in a view, and what its phase item needs.
@@ -511,7 +525,7 @@ pub(crate) fn queue_cloud_billboards(
 ) {
     let Some(pipeline) = pipeline else { return };
     let draw_function = draw_functions.read().id::<DrawCloudBillboards>();
-    for (entity, view, msaa, visible, cloud_target) in &views {
+    for (entity, view, msaa, visible, cloud_target, fog) in &views {
         let Some(phase) = phases.get_mut(&view.retained_view_entity) else {
             continue;
         };
@@ -527,8 +541,9 @@ pub(crate) fn queue_cloud_billboards(
                 samples: msaa.samples(),
             },
         };
+        let fog = fog.map(|f| FogMode::of(&f.0.falloff));
         let mut specialize = |blend| {
-            let key = BillboardPipelineKey { target, blend };
+            let key = BillboardPipelineKey { target, blend, fog };
             pipelines.specialize(&pipeline_cache, &pipeline, key)
         };
         let sorted = specialize(BillboardBlend::Sorted);
@@ -662,22 +677,22 @@ pub type DrawCloudBillboards = (
     DrawBillboards,
 );
 
-/// Binds the view uniform at group `I`.
+/// Binds the view uniform and the view's fog at group `I`.
 pub struct SetBillboardViewBindGroup<const I: usize>;
 
 impl<P: PhaseItem, const I: usize> RenderCommand<P> for SetBillboardViewBindGroup<I> {
     type Param = SRes<BillboardViewBindGroup>;
-    type ViewQuery = Read<ViewUniformOffset>;
+    type ViewQuery = (Read<ViewUniformOffset>, Read<ViewCloudFogOffset>);
     type ItemQuery = ();
 
     fn render<'w>(
         _: &P,
-        offset: ROQueryItem<'w, '_, Self::ViewQuery>,
+        (view, fog): ROQueryItem<'w, '_, Self::ViewQuery>,
         _: Option<ROQueryItem<'w, '_, Self::ItemQuery>>,
         group: SystemParamItem<'w, '_, Self::Param>,
         pass: &mut TrackedRenderPass<'w>,
     ) -> RenderCommandResult {
-        pass.set_bind_group(I, &group.into_inner().0, &[offset.offset]);
+        pass.set_bind_group(I, &group.into_inner().0, &[view.offset, fog.0]);
         RenderCommandResult::Success
     }
 }

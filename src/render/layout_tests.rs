@@ -4,18 +4,20 @@
 use bevy::render::render_resource::ShaderType;
 
 use super::{
-    cloud_target::CloudTargetParams, draw::DrawParams, particles::GpuParticle,
+    cloud_target::CloudTargetParams, draw::DrawParams, fog::CloudFogParams, particles::GpuParticle,
     pipelines::SweepDirection, pools::Slot, sort::SortParams, view_volume::ViewVolumeParams,
     volumes::CloudParams, volumes::DensityLevels, volumes::LightParams,
 };
 
-const WGSL: [&str; 4] = [
+const WGSL: [&str; 5] = [
     include_str!("types.wgsl"),
+    include_str!("fog.wgsl"),
     include_str!("billboard.wgsl"),
     include_str!("sort.wgsl"),
     include_str!("scatter.wgsl"),
 ];
-const RUST: [&str; 8] = [
+const RUST: [&str; 9] = [
+    include_str!("fog.rs"),
     include_str!("volumes.rs"),
     include_str!("pools.rs"),
     include_str!("draw.rs"),
@@ -94,6 +96,7 @@ fn rust_mirrors_have_the_wgsl_layout() {
         DensityLevels::min_size().get(),
     );
     check("DrawParams", "DrawParams", DrawParams::min_size().get());
+    check("CloudFog", "CloudFogParams", CloudFogParams::min_size().get());
     check("SortParams", "SortParams", SortParams::min_size().get());
     check(
         "ViewVolumeParams",

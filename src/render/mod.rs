@@ -16,6 +16,7 @@
 //! | `view_volume.rs` | per-view optical depth from the camera (`Compositing::ViewTransmittance`) |
 //! | `view_atlas.rs` | a view's volumes in shared buffers; which clouds each cloud sees through |
 //! | `draw.rs` | the billboard draw in `Transparent3d` |
+//! | `fog.rs` | each view's distance fog, applied to every piece of every chord |
 //! | `cloud_target.rs` | the paper's §4: billboards into a reduced-resolution target, upsampled by depth |
 //! | `workgroups.rs` | workgroup sizes and dispatches, shared with the WGSL as shader defs |
 //! | `gpu.rs` | buffers, their encodings, and a recorded stage (compute pass, GPU time span, counter) |
@@ -26,6 +27,7 @@ pub mod cast;
 pub mod cloud_target;
 pub mod draw;
 pub mod extract;
+pub mod fog;
 pub mod gpu;
 pub mod illumination;
 pub mod overlap;
@@ -201,6 +203,7 @@ pub(crate) fn finish(app: &mut App) {
         .init_resource::<view_atlas::ViewVolumeAtlases>()
         .init_resource::<SpecializedRenderPipelines<draw::BillboardPipeline>>()
         .init_resource::<draw::BillboardEmitPipelines>()
+        .init_resource::<fog::CloudFogUniforms>()
         .add_render_command::<Transparent3d, draw::DrawCloudBillboards>()
         .add_systems(
             RenderStartup,
@@ -225,6 +228,7 @@ pub(crate) fn finish(app: &mut App) {
                     .chain()
                     .in_set(RenderSystems::PrepareResources),
                 pipelines::write_sweep_sky.in_set(RenderSystems::PrepareResources),
+                fog::prepare_cloud_fog.in_set(RenderSystems::PrepareResources),
                 (
                     illumination::prepare_illumination_bind_groups,
                     sort::prepare_sort_bind_groups,
@@ -245,5 +249,7 @@ pub(crate) fn finish(app: &mut App) {
                 .in_set(RenderGraphSystems::Render)
                 .before(camera_driver),
         );
+    #[cfg(feature = "distance_fog")]
+    render_app.add_systems(ExtractSchedule, fog::extract_cloud_fog);
     cloud_target::finish(render_app);
 }

@@ -34,6 +34,8 @@ pub struct CloudShaders {
     pub sort: Handle<Shader>,
     /// `view_volume.wgsl`.
     pub view_volume: Handle<Shader>,
+    /// `bevy_particle_clouds::fog`, imported by billboard.
+    pub fog: Handle<Shader>,
     /// `billboard.wgsl`.
     pub billboard: Handle<Shader>,
     /// `cloud_target.wgsl`.
@@ -54,6 +56,7 @@ impl CloudShaders {
         embedded_asset!(app, "closure.wgsl");
         embedded_asset!(app, "sort.wgsl");
         embedded_asset!(app, "view_volume.wgsl");
+        embedded_asset!(app, "fog.wgsl");
         embedded_asset!(app, "billboard.wgsl");
         embedded_asset!(app, "cloud_target.wgsl");
         Self {
@@ -68,6 +71,7 @@ impl CloudShaders {
             closure: load_embedded_asset!(&*app, "closure.wgsl"),
             sort: load_embedded_asset!(&*app, "sort.wgsl"),
             view_volume: load_embedded_asset!(&*app, "view_volume.wgsl"),
+            fog: load_embedded_asset!(&*app, "fog.wgsl"),
             billboard: load_embedded_asset!(&*app, "billboard.wgsl"),
             cloud_target: load_embedded_asset!(&*app, "cloud_target.wgsl"),
         }

@@ -13,7 +13,8 @@ use bevy_particle_clouds::{
     Compositing, ParticleCloud,
     headless::{self, FrameRecorder, f16_to_f32, floats},
     image_io::LinearImage,
-    reference::cloud_target::CloudTargetImage,
+    fog::{Falloff, Fog},
+    reference::{cloud_target::CloudTargetImage, metrics::relative_rmse},
     render::cloud_target::{ViewCloudTarget, ViewCloudTargetResources},
     scene::{ObjectShape, SceneObject},
 };
@@ -205,6 +206,40 @@ fn at_half_size_objects_in_front_stay_clean_and_their_edges_have_no_halo() {
             "{compositing:?}: a halo: {ring_error} by the edge, {rest_error} elsewhere"
         );
     }
+}
+
+/// A fogged view drawn at half size (the cloud target's one `accumulate` draw) takes the fog as
+/// the full-size draw does: the half-size image stays close to the full-size one, while the
+/// same clouds unfogged differ far more. No objects, and the background is not fogged: only the
+/// clouds' fog shows.
+#[test]
+fn a_fogged_cloud_drawn_at_half_size_takes_the_fog() {
+    let fog = Fog {
+        color: Vec3::new(0.3, 0.35, 0.4),
+        alpha: 1.0,
+        falloff: Falloff::Exponential { density: 0.2 },
+        directional_light_color: Vec3::new(0.4, 0.3, 0.2),
+        directional_light_exponent: 2.0,
+    };
+    let image = |scale: f32, fog: Option<Fog>| {
+        let mut setup = occluded_setup(Compositing::ViewTransmittance, scale);
+        setup.objects.clear();
+        setup.fog = fog;
+        render(&setup).2.image.pixels
+    };
+    let full = image(1.0, Some(fog));
+    let half = image(0.5, Some(fog));
+    let half_unfogged = image(0.5, None);
+    let (error, unfogged) = (
+        relative_rmse(&half, &full),
+        relative_rmse(&half_unfogged, &full),
+    );
+    eprintln!("half size against full size, fogged: {error:.4}; unfogged: {unfogged:.4}");
+    assert!(error < 0.05, "the fogged half-size image differs by {error}");
+    assert!(
+        unfogged > 4.0 * error,
+        "the fog changes the half-size image too little: {unfogged} against {error}"
+    );
 }
 
 /// The setup's objects and background alone (its cloud has no extinction, so draws nothing).

@@ -19,7 +19,7 @@ use bevy_particle_clouds::{
     image_io::LinearImage,
     reference::{
         camera::PinholeCamera,
-        composite::{BillboardCloud, BillboardCompositing, CloudPlacement, composite},
+        composite::{BillboardCloud, BillboardCompositing, CloudPlacement, ViewFog, composite_fogged},
         illumination::{PlacedCloud, illuminate_clouds_under_sky},
         metrics::relative_rmse,
     },
@@ -27,6 +27,7 @@ use bevy_particle_clouds::{
     render::sort::{SortBuffers, SortPipelines, record_sort},
     scene::{ObjectShape, SceneObject},
 };
+use bevy_particle_clouds::fog::{Falloff, Fog};
 
 use crate::common;
 
@@ -145,6 +146,8 @@ pub(crate) struct Setup {
     pub(crate) background: Vec3,
     /// The sky's radiance ([`CloudSkyLight`]): black but in the sky tests.
     pub(crate) sky: Vec3,
+    /// The camera's `DistanceFog`: none but in the fog test.
+    pub(crate) fog: Option<Fog>,
     pub(crate) settings: CloudQualitySettings,
 }
 
@@ -173,6 +176,10 @@ pub(crate) fn spawn_into(mut app: App, setup: &Setup, clouds: &[SetupCloud]) -> 
     let image = headless::float_target(&mut app, W, H);
     let camera =
         headless::spawn_linear_camera(&mut app, image.clone(), setup.camera, FOV, setup.background);
+    if let Some(fog) = &setup.fog {
+        let fog = bevy_particle_clouds::render::fog::distance_fog(fog);
+        app.world_mut().entity_mut(camera).insert(fog);
+    }
     for light in &setup.lights {
         headless::spawn_light(&mut app, light.direction, light.irradiance);
     }
@@ -268,12 +275,22 @@ pub(crate) fn reference_of_clouds(setup: &Setup, clouds: &[SetupCloud]) -> Vec<[
         W,
         H,
     );
-    composite(
+    let lights: Vec<(DVec3, DVec3)> = setup
+        .lights
+        .iter()
+        .map(|l| (-l.direction.as_dvec3().normalize(), l.irradiance.as_dvec3()))
+        .collect();
+    let fog = setup.fog.as_ref().map(|fog| ViewFog {
+        fog,
+        lights: &lights,
+    });
+    composite_fogged(
         &camera,
         setup.background.as_dvec3(),
         &setup.objects,
         &billboards,
         1.0,
+        fog,
     )
 }
 
@@ -316,6 +333,7 @@ pub(crate) fn cloud_setup(seed: u64, camera: Transform) -> Setup {
         camera,
         background: Vec3::new(0.05, 0.1, 0.2),
         sky: Vec3::ZERO,
+        fog: None,
         settings: common::quality(16, 4),
     }
 }
@@ -386,6 +404,52 @@ fn an_anisotropic_cloud_equals_the_cpu_billboard_reference() {
     }
 }
 
+/// Bevy's `DistanceFog` on the camera: every falloff, with a glow about the lights, both
+/// compositings; a wall behind the cloud (Bevy's own `StandardMaterial`, fogged by Bevy) and the
+/// cloud (fogged piece by piece) equal the CPU reference, and the fog changes the image.
+#[test]
+fn a_fogged_cloud_equals_the_cpu_billboard_reference() {
+    let fogs = [
+        Falloff::Exponential { density: 0.15 },
+        Falloff::Linear {
+            start: 2.0,
+            end: 9.0,
+        },
+        Falloff::ExponentialSquared { density: 0.12 },
+        Falloff::Atmospheric {
+            extinction: Vec3::new(0.2, 0.15, 0.1),
+            inscattering: Vec3::new(0.05, 0.1, 0.2),
+        },
+    ];
+    for (i, falloff) in fogs.into_iter().enumerate() {
+        let compositing = COMPOSITINGS[i % 2];
+        // Looking towards the brighter light, so its glow shows.
+        let camera = Transform::from_xyz(1.6, 1.2, 3.4).looking_at(Vec3::ZERO, Vec3::Y);
+        let mut setup = cloud_setup(27, camera);
+        setup.settings.compositing = compositing;
+        setup.objects = vec![SceneObject {
+            shape: ObjectShape::Cuboid(Vec3::new(6.0, 6.0, 0.1)),
+            translation: Vec3::new(-1.0, -0.5, -2.0),
+            color: Vec3::new(0.1, 0.3, 0.1),
+            reflectance: Vec3::ZERO,
+        }];
+        let clear = reference(&setup);
+        setup.fog = Some(Fog {
+            color: Vec3::new(0.3, 0.35, 0.4),
+            alpha: 0.9,
+            falloff,
+            directional_light_color: Vec3::new(0.4, 0.3, 0.2),
+            directional_light_exponent: 2.0,
+        });
+        let (_, _, gpu) = render(&setup);
+        let fogged = reference(&setup);
+        let what = format!("{falloff:?}, {compositing:?}");
+        assert_images_match(&gpu.image, &fogged, &what);
+        let change = relative_rmse(&fogged, &clear);
+        assert!(change > 0.1, "{what}: the fog changes the image by only {change}");
+    }
+}
+
 #[test]
 fn two_overlapping_particles_composite_alike_from_either_side_in_either_order() {
     // A lit particle and a shadowed one behind it along the light: different colours.
@@ -420,6 +484,7 @@ fn two_overlapping_particles_composite_alike_from_either_side_in_either_order() 
                 camera: Transform::from_translation(eye).looking_at(Vec3::ZERO, Vec3::Y),
                 background: Vec3::ZERO,
                 sky: Vec3::ZERO,
+                fog: None,
                 settings: common::quality(16, 2),
             };
             setup.settings.compositing = compositing;

@@ -19,6 +19,8 @@ use bevy_particle_clouds::{
     scene::{ObjectShape, SceneObject},
 };
 
+use bevy_particle_clouds::fog::{Falloff, Fog};
+
 use crate::common;
 use crate::draw::{FOV, H, Setup, W, cloud_setup, spawn_into};
 use crate::illumination::TOLERANCE;
@@ -82,7 +84,25 @@ fn gpu_map(
 
 #[test]
 fn a_lit_ground_takes_the_clouds_shadow_as_the_cpu_reference_does() {
-    let setup = cloud_over_ground();
+    lit_ground_matches_the_cpu_reference(None);
+}
+
+/// In `DistanceFog`, the lit ground is fogged as Bevy fogs its meshes (`apply_fog`), glow
+/// included: `L V(d) + A(d) F`.
+#[test]
+fn a_lit_ground_in_fog_is_fogged_like_bevys_meshes() {
+    lit_ground_matches_the_cpu_reference(Some(Fog {
+        color: Vec3::new(0.3, 0.32, 0.35),
+        alpha: 1.0,
+        falloff: Falloff::Exponential { density: 0.12 },
+        directional_light_color: Vec3::new(0.5, 0.4, 0.3),
+        directional_light_exponent: 1.5,
+    }));
+}
+
+fn lit_ground_matches_the_cpu_reference(fog: Option<Fog>) {
+    let mut setup = cloud_over_ground();
+    setup.fog = fog;
     let (mut app, target) = spawn_with_maps(&setup, 96);
     let mut recorder = FrameRecorder::default();
     headless::render_until_steady(&mut app, &mut recorder, 1, 20).unwrap();
@@ -133,7 +153,10 @@ fn a_lit_ground_takes_the_clouds_shadow_as_the_cpu_reference_does() {
             darkest = darkest.min(transmittance);
             let e = light.irradiance.as_dvec3() * (to_light.y * transmittance)
                 + setup.sky.as_dvec3() * std::f64::consts::PI;
-            let l = EMITTED.as_dvec3() + REFLECTANCE.as_dvec3() * e / std::f64::consts::PI;
+            let mut l = EMITTED.as_dvec3() + REFLECTANCE.as_dvec3() * e / std::f64::consts::PI;
+            if let Some(fog) = &setup.fog {
+                l = fog.apply(l, 1.0, t, fog.colour_towards(ray, &[(to_light, light.irradiance.as_dvec3())]));
+            }
             expected.push([l.x as f32, l.y as f32, l.z as f32, 1.0]);
             let g = image.pixels[(py * W + px) as usize];
             seen.push([g[0], g[1], g[2], 1.0]);
