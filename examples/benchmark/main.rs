@@ -31,6 +31,7 @@
 
 mod cloud_target_scale;
 mod decompose;
+mod fog;
 mod illumination;
 mod plot;
 mod reference_cache;
@@ -57,6 +58,7 @@ use bevy_particle_clouds::headless::{self, FrameRecorder, FrameStats};
 use bevy_particle_clouds::reference::path_tracer::Progress;
 use bevy_particle_clouds::{
     CloudPass, CloudQualitySettings, Compositing, PASSES, Particle, ParticleCloud, Particles,
+    fog::Fog,
     ScatterStencil, generators,
     image_io::{ImageMetadata, LinearImage, read_exr, write_exr_with_metadata, write_png},
     math::SplitMix64,
@@ -70,6 +72,7 @@ use bevy_particle_clouds::{
 };
 use clap::Parser;
 use cloud_target_scale::*;
+use fog::*;
 use illumination::*;
 use indicatif::{ProgressBar, ProgressStyle};
 use plot::*;
@@ -271,13 +274,11 @@ fn run() -> Result<(), String> {
     let mut adapter = String::new();
     for bench in &chosen {
         let scene = load_scene(bench)?;
-        let reference = reference(
-            &scene,
-            bench,
-            args.spp
-                .unwrap_or(if args.quick { bench.spp / 4 } else { bench.spp }),
-            &args.out,
-        )?;
+        let spp = args
+            .spp
+            .unwrap_or(if args.quick { bench.spp / 4 } else { bench.spp });
+        let fog_effect = FogEffect::new(&scene, bench, spp, &args.out)?;
+        let reference = reference(&scene, bench, spp, &args.out)?;
         let mut b = Bench::with_shadow_maps(&scene, args.shadow_map_resolution);
         if args.no_cloud_shadows {
             b.without_cloud_shadows();
@@ -348,6 +349,37 @@ fn run() -> Result<(), String> {
                     &side_by_side(&shown, &reference_image),
                     &args.out.join(format!("{}-compare.png", bench.name)),
                 );
+            }
+            // Scenes with fog: the error of what the fog changes (the same frame without it).
+            if let Some(effect) = &fog_effect {
+                b.set_fog(None);
+                let clear = downsample(&b.image(), bench.error_downsample);
+                let (clear_draw, clear_wall) = b.static_frames(args.frames());
+                b.set_fog(scene.fog.as_ref());
+                b.image();
+                let (fog_draw, fog_wall) = b.static_frames(args.frames());
+                bar.suspend(|| {
+                    eprintln!(
+                        "benchmark: {} {}: static frame with fog / without: draw {:.1} / {:.1} ms, wall {:.1} / {:.1} ms",
+                        bench.name,
+                        setting_label(s),
+                        median(fog_draw),
+                        median(clear_draw),
+                        median(fog_wall),
+                        median(clear_wall)
+                    )
+                });
+                let (error, inherited) =
+                    effect.error(&image.pixels, &clear.pixels, &reference, &scene);
+                let noise = effect.noise(&reference);
+                bar.suspend(|| {
+                    eprintln!(
+                        "benchmark: {} {}: the fog's effect: rel. RMSE {error:.4} (denoised {:.4}; noise {noise:.4}); the clear cloud's error through the fog alone would make it about {inherited:.4}",
+                        bench.name,
+                        setting_label(s),
+                        denoised(error, noise)
+                    )
+                });
             }
             // Scenes with lit objects: the error over the pixels that see one (the ground and
             // the clouds' shadows on it).

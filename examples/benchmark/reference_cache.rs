@@ -17,6 +17,8 @@ pub(crate) struct Reference {
     /// With lit objects: which pixels see one (their centre's ray hits it first), and the noise
     /// over those pixels.
     pub(crate) ground: Option<(Vec<bool>, f64)>,
+    /// The two renders `image` averages (seeds 1 and 2).
+    pub(crate) seeds: [Vec<[f32; 4]>; 2],
 }
 
 /// The pixels of `scene`'s camera whose centre ray first hits a lit object (one with a
@@ -52,12 +54,16 @@ pub(crate) fn fnv1a(bytes: &[u8]) -> u64 {
     })
 }
 
-/// The scene as the path tracer sees it (camera, background, lights, clouds, objects), hashed.
+/// The scene as the path tracer sees it (camera, background, lights, clouds, objects, fog),
+/// hashed. A scene without fog hashes as before fog existed, so its cached references hold.
 pub(crate) fn reference_hash(scene: &Scene, spp: u32) -> u64 {
-    let text = format!(
+    let mut text = format!(
         "{:?}|{:?}|{:?}|{:?}|{:?}|spp {spp}",
         scene.camera, scene.background, scene.lights, scene.clouds, scene.objects
     );
+    if let Some(fog) = &scene.fog {
+        text += &format!("|fog {fog:?}");
+    }
     fnv1a(text.as_bytes())
 }
 
@@ -179,6 +185,7 @@ pub(crate) fn reference(
         noise,
         noise_box4,
         ground,
+        seeds: [images[0].pixels.clone(), images[1].pixels.clone()],
     })
 }
 

@@ -145,6 +145,15 @@ pub(crate) const SCENES: &[BenchScene] = &[
         quick: false,
     },
     BenchScene {
+        name: "cumulus_fog",
+        particle_file: "cumulus.csv",
+        generate: cumulus_2000,
+        error_downsample: 2,
+        // The fog's effect (a difference of two references) is noisier than either image.
+        spp: 8192,
+        quick: false,
+    },
+    BenchScene {
         name: "shadowed_clouds",
         // Its second cloud reads paper_3100.ply, which `load_scene` writes from paper_3100.
         particle_file: "cumulus.csv",

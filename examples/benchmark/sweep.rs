@@ -170,6 +170,15 @@ impl Bench {
         }
     }
 
+    /// The camera's distance fog: `fog`, or none.
+    pub(crate) fn set_fog(&mut self, fog: Option<&Fog>) {
+        let mut camera = self.app.world_mut().entity_mut(self.target.camera);
+        match fog {
+            Some(fog) => camera.insert(bevy_particle_clouds::render::fog::distance_fog(fog)),
+            None => camera.remove::<bevy::pbr::DistanceFog>(),
+        };
+    }
+
     /// No cloud shadows another (`NotShadowCaster` on every cloud).
     pub(crate) fn without_cloud_shadows(&mut self) {
         for &(entity, _) in &self.clouds {
