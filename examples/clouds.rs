@@ -5,11 +5,14 @@
 //! cargo run --example clouds -- --frames 120         # exits after 120 frames (CI, under Xvfb)
 //! cargo run --example clouds -- --screenshot clouds.png [--size 800x450]   # headless picture
 //! cargo run --example clouds -- --sun 200,12 --screenshot backlit.png   # the sun behind a cloud
+//! cargo run --example clouds -- --visibility 0       # no haze
 //! ```
 //!
 //! The clouds scatter forward (Henyey–Greenstein g = 0.6), so with the sun behind one (turn it
 //! with the arrow keys, or start there with `--sun`) its thin edges glow: the silver lining. A
-//! blue sky lights them too (`CloudSkyLight`), which tints their shadowed sides.
+//! blue sky lights them too (`CloudSkyLight`), which tints their shadowed sides. They shadow the
+//! ground (its material takes the `CloudShadowMaps`), and a haze (Bevy's `DistanceFog`, 1500 m
+//! visibility) fogs the clouds and the ground alike, fading into the sky.
 //!
 //! Controls: arrow keys turn the sun (azimuth, elevation); drag with the left mouse button or
 //! A/D/W/S to orbit; wheel or +/- to zoom; [ and ] change the multiple-scattering iterations,
@@ -29,7 +32,7 @@ mod support;
 use std::process::ExitCode;
 
 use bevy::prelude::*;
-use bevy_particle_clouds::prelude::*;
+use bevy_particle_clouds::{headless, lit_object::LitObjectMaterial, prelude::*};
 use support::{Example, Hud, HudLines, KeyLight, Options, OrbitCamera, SUN_LUX};
 
 const EXAMPLE: Example = Example {
@@ -47,6 +50,16 @@ struct Args {
     /// the direction the light comes from; elevation in -90..=90).
     #[arg(long, value_name = "AZ,EL", value_parser = parse_sun, default_value = "30,25")]
     sun: (f32, f32),
+    /// The haze's visibility, metres (`FogFalloff::from_visibility`); 0 for none.
+    #[arg(long, value_name = "M", value_parser = parse_visibility, default_value = "1500")]
+    visibility: f32,
+}
+
+fn parse_visibility(text: &str) -> Result<f32, String> {
+    text.parse::<f32>()
+        .ok()
+        .filter(|v| v.is_finite() && *v >= 0.0)
+        .ok_or(format!("--visibility is {text}; it must be a number of metres >= 0"))
 }
 
 fn parse_sun(text: &str) -> Result<(f32, f32), String> {
@@ -59,15 +72,23 @@ fn parse_sun(text: &str) -> Result<(f32, f32), String> {
         ))
 }
 
-/// The sun the scene starts with (radians).
+/// The sun the scene starts with (radians), and the haze's visibility (metres, 0 for none).
 #[derive(Resource)]
-struct StartingSun((f32, f32));
+struct Start {
+    sun: (f32, f32),
+    visibility: f32,
+}
 
 fn main() -> ExitCode {
     let args: Args = support::parse_args();
     let options = args.common;
     support::run(EXAMPLE, options, |app| {
-        app.insert_resource(StartingSun(args.sun));
+        // The ground takes the clouds' shadows of the sun through a 1024² map.
+        headless::enable_cloud_shadow_maps(app, 1024, 1);
+        app.insert_resource(Start {
+            sun: args.sun,
+            visibility: args.visibility,
+        });
         app.insert_resource(DefaultCloudQuality(CloudQualitySettings {
             volume_resolution: 48,
             scatter_iterations: 8,
@@ -80,10 +101,11 @@ fn main() -> ExitCode {
 
 fn setup(
     mut commands: Commands,
-    sun: Res<StartingSun>,
+    start: Res<Start>,
     mut particles: ResMut<Assets<Particles>>,
     mut meshes: ResMut<Assets<Mesh>>,
-    mut materials: ResMut<Assets<StandardMaterial>>,
+    mut materials: ResMut<Assets<LitObjectMaterial>>,
+    shadow_maps: Res<CloudShadowMaps>,
 ) {
     // Eight cumulus of different sizes on a loose ring, their bases at 6–9 m.
     let mut rng = generators::SplitMix64::new(2024);
@@ -118,14 +140,23 @@ fn setup(
         yaw: 0.3,
         pitch: 0.12,
     };
-    support::spawn_outdoor(
-        &mut commands,
+    let ground = support::shadowed_ground(
         &mut meshes,
         &mut materials,
+        &shadow_maps,
         1000.0,
-        sun.0,
-        orbit,
+        support::GROUND_ALBEDO,
     );
+    let camera = support::spawn_outdoor(&mut commands, ground, start.sun, orbit);
+    if start.visibility > 0.0 {
+        commands.entity(camera).insert(DistanceFog {
+            color: support::sky_color(),
+            // The sun's glow in the haze: its colour times the exposed illuminance (13 here).
+            directional_light_color: Color::linear_rgba(1.0, 0.9, 0.7, 0.02),
+            directional_light_exponent: 16.0,
+            falloff: FogFalloff::from_visibility(start.visibility),
+        });
+    }
 }
 
 fn change_quality(

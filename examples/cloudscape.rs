@@ -139,14 +139,14 @@ fn setup(
         pitch: 0.12,
     };
     let sun = (30f32.to_radians(), 30f32.to_radians());
-    support::spawn_outdoor(
-        &mut commands,
+    let albedo = support::GROUND_ALBEDO;
+    let ground = support::ground(
         &mut meshes,
         &mut materials,
         5000.0,
-        sun,
-        orbit,
+        Color::linear_rgb(albedo.x, albedo.y, albedo.z),
     );
+    support::spawn_outdoor(&mut commands, ground, sun, orbit);
 }
 
 fn controls(

@@ -30,10 +30,11 @@ use bevy::{
     },
 };
 use bevy_particle_clouds::{
-    CloudPass, CloudPassCounters, CloudSkyLight, CloudTargetScale, PASSES, ParticleCloud,
-    ParticleCloudsPlugin, Particles,
+    CloudPass, CloudPassCounters, CloudShadowMaps, CloudSkyLight, CloudTargetScale, PASSES,
+    ParticleCloud, ParticleCloudsPlugin, Particles,
     headless::{self, FrameRecorder},
     image_io,
+    lit_object::{LitObjectMaterial, LitObjectPlugin, LitSurface},
 };
 
 /// The options every example accepts (see the module documentation); flatten them into the
@@ -213,25 +214,21 @@ const SKY_COLOR: Vec3 = Vec3::new(0.22, 0.38, 0.75);
 /// a clear sky.
 const SKY_NITS: f32 = 375.0;
 
-/// The outdoor set of the sky examples: a green ground plane `ground` metres across, a sun of
-/// [`SUN_LUX`] turned with the arrow keys from `azimuth` and `elevation` (radians), a blue sky
-/// that lights the clouds (`CloudSkyLight`) and, with the same radiance, the meshes (Bevy's
+/// The outdoor examples' ground albedo, linear RGB: grass.
+pub const GROUND_ALBEDO: Vec3 = Vec3::new(0.03, 0.055, 0.02);
+
+/// The outdoor set of the sky examples: `ground` (a green plane), a sun of [`SUN_LUX`] turned
+/// with the arrow keys from `azimuth` and `elevation` (radians), a blue sky that lights the
+/// clouds (`CloudSkyLight`) and, with the same radiance, the meshes (Bevy's
 /// `GlobalAmbientLight`), and the camera on `orbit` (exposure ev100 9.3), drawing its clouds at
-/// half its size as a game would.
+/// half its size as a game would. Returns the camera.
 pub fn spawn_outdoor(
     commands: &mut Commands,
-    meshes: &mut Assets<Mesh>,
-    materials: &mut Assets<StandardMaterial>,
-    ground_size: f32,
+    ground: impl Bundle,
     (azimuth, elevation): (f32, f32),
     orbit: OrbitCamera,
-) {
-    commands.spawn(ground(
-        meshes,
-        materials,
-        ground_size,
-        Color::linear_rgb(0.03, 0.055, 0.02),
-    ));
+) -> Entity {
+    commands.spawn(ground);
     commands.spawn(key_light(
         KeyLight {
             name: "sun",
@@ -257,7 +254,37 @@ pub fn spawn_outdoor(
         brightness: SKY_NITS,
         ..default()
     });
-    commands.spawn((camera(orbit, 9.3, sky), CloudTargetScale(0.5)));
+    commands
+        .spawn((camera(orbit, 9.3, sky), CloudTargetScale(0.5)))
+        .id()
+}
+
+/// The outdoor examples' sky colour: the camera's clear colour, and a fog's that fades into it.
+pub fn sky_color() -> Color {
+    Color::linear_rgb(SKY_COLOR.x, SKY_COLOR.y, SKY_COLOR.z)
+}
+
+/// A Lambertian ground plane of `size` metres and linear `albedo` at `y = 0` that takes the
+/// clouds' shadows ([`LitObjectMaterial`] through the [`CloudShadowMaps`], which must be on):
+/// lit by the clouds' lights through the clouds, and by their sky.
+pub fn shadowed_ground(
+    meshes: &mut Assets<Mesh>,
+    materials: &mut Assets<LitObjectMaterial>,
+    shadow_maps: &CloudShadowMaps,
+    size: f32,
+    albedo: Vec3,
+) -> impl Bundle {
+    (
+        Mesh3d(meshes.add(Plane3d::default().mesh().size(size, size))),
+        MeshMaterial3d(materials.add(LitObjectMaterial {
+            surface: LitSurface {
+                color: Vec3::ZERO,
+                reflectance: albedo,
+            },
+            lights: default(),
+            shadow_maps: shadow_maps.buffer.clone(),
+        })),
+    )
 }
 
 /// A large lit ground plane of `size` metres and linear albedo `color`, at `y = 0`.
@@ -336,6 +363,7 @@ pub fn run(example: Example, options: Options, build: impl FnOnce(&mut App)) -> 
                 ..default()
             }),
             ParticleCloudsPlugin,
+            LitObjectPlugin,
             RenderDiagnosticsPlugin,
             FrameTimeDiagnosticsPlugin::default(),
         ));
