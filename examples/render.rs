@@ -113,6 +113,7 @@ fn default_scene() -> Scene {
         }],
         objects: vec![],
         fog: None,
+        shadow_map_resolution: bevy_particle_clouds::scene::DEFAULT_SHADOW_MAP_RESOLUTION,
         settings: CloudQualitySettings {
             volume_resolution: 64,
             scatter_iterations: 16,

@@ -228,10 +228,10 @@ pub fn spawn_scene(app: &mut App, scene: &Scene) -> SceneTarget {
         );
     }
     // Lit objects take the clouds' shadows through the shadow maps: at the resolution the app's
-    // maps already have, else at the scenes' default.
+    // maps already have, else at the scene's.
     if scene.objects.iter().any(|o| o.reflectance != Vec3::ZERO) {
         let resolution = match app.world().resource::<CloudShadowMaps>().resolution {
-            0 => SCENE_SHADOW_MAP_RESOLUTION,
+            0 => scene.shadow_map_resolution,
             chosen => chosen,
         };
         enable_cloud_shadow_maps(app, resolution, scene.lights.len());
@@ -269,10 +269,6 @@ pub fn spawn_cloud(
         ))
         .id()
 }
-
-/// Texels per side of the cloud shadow maps of a scene with lit objects, unless the app's
-/// [`CloudShadowMaps`] already have a resolution.
-pub const SCENE_SHADOW_MAP_RESOLUTION: u32 = 512;
 
 /// Turns the cloud shadow maps on at `resolution` texels per side for `lights` cloud-lighting
 /// lights, their buffer made at once: lit objects spawned afterwards bind it from the first

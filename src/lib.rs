@@ -46,7 +46,7 @@
 //! | `distance_fog` (default) | clouds fogged by the camera's `DistanceFog` (pulls in `bevy_pbr`) |
 //! | `lit_object` | `lit_object::LitObjectMaterial`, a Lambertian material that takes the clouds' shadows (pulls in `bevy_pbr`) |
 //! | `parallel` | multi-threaded particle generators (rayon); identical results |
-//! | `scene` | RON scene files ([`scene`]) |
+//! | `scene` | RON scene files (`scene`) |
 //! | `image` | EXR (with metadata) and PNG output (`image_io`) |
 //! | `reference` | the f64 CPU reference of every pass and the ground-truth path tracer (`reference`); implies `scene`, `parallel` |
 //! | `headless` | rendering without a window (`headless`): spawn a scene, render until finished, capture; implies `scene`, `distance_fog`, `lit_object` |

@@ -71,7 +71,7 @@ impl CloudLevelOfDetail {
 
     /// The level a cloud `pixels` across asks for, at most `max` voxels per side, coming from
     /// level `current`: finer at once when it grows on screen, coarser only once it is
-    /// [`HYSTERESIS`] levels past the boundary.
+    /// `HYSTERESIS` levels past the boundary.
     pub fn level(&self, pixels: f32, max: u32, current: Option<u32>) -> u32 {
         let coarsest = self.coarsest_level(max);
         // Continuous level: 0 where the cloud spans `max` voxels at `pixels_per_voxel`.

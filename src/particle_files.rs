@@ -11,7 +11,7 @@
 //! Other attribute names (Houdini's `pscale` for the radius, say), defaults for a missing radius or
 //! density, and a scale come from [`ParticleAttributes`], the loader's settings.
 //!
-//! Readers do not validate values (a negative radius is read as written); [`crate::scene`]
+//! Readers do not validate values (a negative radius is read as written); `scene` (feature `scene`)
 //! validates every particle and names it in its error. Errors here name the file and, for text,
 //! the 1-based line number (for binary PLY, the vertex index and byte offset).
 

@@ -107,9 +107,23 @@ pub struct SceneFile {
     /// default none.
     #[serde(default, deserialize_with = "deserialize_fog")]
     pub fog: Option<Fog>,
+    /// Texels per side of the cloud shadow maps that lit objects take (real-time renderer only),
+    /// in [`SHADOW_MAP_RESOLUTIONS`]; default [`DEFAULT_SHADOW_MAP_RESOLUTION`].
+    #[serde(default = "default_shadow_map_resolution")]
+    pub shadow_map_resolution: u32,
     /// Quality knobs for every cloud; missing fields take [`CloudQualitySettings`]' defaults.
     #[serde(default)]
     pub settings: CloudQualitySettings,
+}
+
+/// Texels per side of a scene's cloud shadow maps when it does not say.
+pub const DEFAULT_SHADOW_MAP_RESOLUTION: u32 = 512;
+
+/// The shadow-map resolutions a scene may ask for: up to 16 MiB of map per light.
+pub const SHADOW_MAP_RESOLUTIONS: std::ops::RangeInclusive<u32> = 16..=2048;
+
+fn default_shadow_map_resolution() -> u32 {
+    DEFAULT_SHADOW_MAP_RESOLUTION
 }
 
 /// A scene's `fog` is written without RON's `Some(…)`.
@@ -143,6 +157,8 @@ pub struct Scene {
     pub objects: Vec<SceneObject>,
     /// Distance fog of the camera, if any.
     pub fog: Option<Fog>,
+    /// Texels per side of the cloud shadow maps that lit objects take.
+    pub shadow_map_resolution: u32,
     /// Quality knobs for every cloud.
     pub settings: CloudQualitySettings,
 }
@@ -340,6 +356,18 @@ pub fn apply_setting(
     settings.validate().map_err(SceneError::Settings)
 }
 
+fn validate_shadow_map_resolution(resolution: u32) -> Result<(), SceneError> {
+    if SHADOW_MAP_RESOLUTIONS.contains(&resolution) {
+        return Ok(());
+    }
+    let (lo, hi) = (SHADOW_MAP_RESOLUTIONS.start(), SHADOW_MAP_RESOLUTIONS.end());
+    Err(invalid(
+        "shadow_map_resolution",
+        resolution,
+        format!("allowed: {lo}..={hi}"),
+    ))
+}
+
 fn validate_fog(fog: Option<&Fog>) -> Result<(), SceneError> {
     fog.map_or(Ok(()), |f| {
         f.validate()
@@ -509,6 +537,7 @@ impl Scene {
             &file.settings,
         )?;
         validate_fog(file.fog.as_ref())?;
+        validate_shadow_map_resolution(file.shadow_map_resolution)?;
         for (i, cloud) in file.clouds.iter().enumerate() {
             validate_cloud_header(i, cloud.translation, &cloud.medium)?;
         }
@@ -528,6 +557,7 @@ impl Scene {
             clouds,
             objects: file.objects,
             fog: file.fog,
+            shadow_map_resolution: file.shadow_map_resolution,
             settings: file.settings,
         })
     }
@@ -542,6 +572,7 @@ impl Scene {
             &self.settings,
         )?;
         validate_fog(self.fog.as_ref())?;
+        validate_shadow_map_resolution(self.shadow_map_resolution)?;
         for (i, cloud) in self.clouds.iter().enumerate() {
             validate_cloud_header(i, cloud.translation, &cloud.medium)?;
             validate_particles(i, &cloud.particles, "")?;
@@ -670,7 +701,15 @@ mod tests {
         assert_eq!(fog.falloff, Falloff::Exponential { density: 0.1 });
         assert_eq!((fog.alpha, fog.directional_light_exponent), (1.0, 8.0));
         assert_eq!(fog.directional_light_color, Vec3::ZERO);
-        assert_eq!(Scene::from_ron_str(MINIMAL, here()).unwrap().fog, None);
+        let minimal = Scene::from_ron_str(MINIMAL, here()).unwrap();
+        assert_eq!(minimal.fog, None);
+        assert_eq!(minimal.shadow_map_resolution, DEFAULT_SHADOW_MAP_RESOLUTION);
+        let with_maps = |n: u32| MINIMAL.replacen("    clouds: [", &format!("    shadow_map_resolution: {n},\n    clouds: ["), 1);
+        assert_eq!(Scene::from_ron_str(&with_maps(96), here()).unwrap().shadow_map_resolution, 96);
+        assert_eq!(
+            Scene::from_ron_str(&with_maps(8), here()).unwrap_err().to_string(),
+            "shadow_map_resolution is 8; allowed: 16..=2048"
+        );
         let e = Scene::from_ron_str(
             &with_fog("(color: (0.2, 0.3, 0.4), falloff: Linear(start: 10, end: 2))"),
             here(),

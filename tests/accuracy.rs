@@ -65,6 +65,7 @@ fn scene() -> Scene {
         }],
         objects: Vec::new(),
         fog: None,
+        shadow_map_resolution: bevy_particle_clouds::scene::DEFAULT_SHADOW_MAP_RESOLUTION,
         settings: CloudQualitySettings::default(),
     }
 }

@@ -146,8 +146,8 @@ pub(crate) struct Args {
     /// shadows costs and what its absence does to the error.
     #[arg(long)]
     pub(crate) no_cloud_shadows: bool,
-    /// Texels per side of the cloud shadow maps of scenes with lit objects (default: the
-    /// headless renderer's, `headless::SCENE_SHADOW_MAP_RESOLUTION`).
+    /// Texels per side of the cloud shadow maps of scenes with lit objects (default: each
+    /// scene's `shadow_map_resolution`).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]
     pub(crate) shadow_map_resolution: Option<u32>,
     /// Measure only these settings (RON, as a scene file's `settings`) instead of the sweep.

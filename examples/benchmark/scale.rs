@@ -69,6 +69,7 @@ fn scene(
         clouds,
         objects: Vec::new(),
         fog: None,
+        shadow_map_resolution: bevy_particle_clouds::scene::DEFAULT_SHADOW_MAP_RESOLUTION,
         settings,
     }
 }

@@ -60,6 +60,7 @@ fn scene(q: f32, settings: CloudQualitySettings) -> Scene {
         }],
         objects: Vec::new(),
         fog: None,
+        shadow_map_resolution: bevy_particle_clouds::scene::DEFAULT_SHADOW_MAP_RESOLUTION,
         settings,
     }
 }

@@ -1077,6 +1077,7 @@ mod tests {
             clouds,
             objects,
             fog: None,
+            shadow_map_resolution: crate::scene::DEFAULT_SHADOW_MAP_RESOLUTION,
             settings: CloudQualitySettings::default(),
         }
     }

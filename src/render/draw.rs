@@ -720,7 +720,7 @@ pub(crate) fn draw_billboards<'w>(
 }
 
 /// Draws the clouds of one `Transparent3d` item ([`ViewCloudGroups`], else the item's own
-/// cloud) with [`draw_billboards`].
+/// cloud) with `draw_billboards`.
 pub struct DrawBillboards;
 
 impl<P: CachedRenderPipelinePhaseItem> RenderCommand<P> for DrawBillboards {

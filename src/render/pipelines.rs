@@ -169,7 +169,7 @@ pub struct IlluminationPipelines {
     pub extrapolate: ByMoments,
     /// The 13 `SweepDirection`s in each of the four sets of [`sweep_direction_offset`]
     /// (accumulating or not, bringing the sky in or not), `DYNAMIC_UNIFORM_STRIDE` bytes apart (a
-    /// dynamic uniform; [`write_sweep_sky`] writes the sky into them).
+    /// dynamic uniform; `write_sweep_sky` writes the sky into them).
     pub sweep_directions: Buffer,
     /// The sky radiance the sweep directions hold.
     pub sweep_sky: Vec3,
