@@ -59,7 +59,9 @@ fn parse_visibility(text: &str) -> Result<f32, String> {
     text.parse::<f32>()
         .ok()
         .filter(|v| v.is_finite() && *v >= 0.0)
-        .ok_or(format!("--visibility is {text}; it must be a number of metres >= 0"))
+        .ok_or(format!(
+            "--visibility is {text}; it must be a number of metres >= 0"
+        ))
 }
 
 fn parse_sun(text: &str) -> Result<(f32, f32), String> {

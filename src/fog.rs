@@ -159,12 +159,15 @@ impl Fog {
                 1.0 - ((end - distance) / (end - start)).clamp(0.0, 1.0)
             }
             Falloff::Exponential { density } => thickening(distance * density as f64),
-            Falloff::ExponentialSquared { density } => thickening((distance * density as f64).powi(2)),
+            Falloff::ExponentialSquared { density } => {
+                thickening((distance * density as f64).powi(2))
+            }
             Falloff::Atmospheric {
                 extinction,
                 inscattering,
             } => {
-                let per_channel = |k: Vec3| k.as_dvec3().to_array().map(|k| thickening(distance * k));
+                let per_channel =
+                    |k: Vec3| k.as_dvec3().to_array().map(|k| thickening(distance * k));
                 return FogAt {
                     transmitted: DVec3::ONE - DVec3::from(per_channel(extinction)) * alpha,
                     inscattered: DVec3::from(per_channel(inscattering)) * alpha,
@@ -180,10 +183,14 @@ impl Fog {
     /// The fog's colour `F` seen along the unit ray `ray`: its colour plus each light's glow,
     /// `directional_light_color × max(ray · to_light, 0)^exponent × E`; `lights` are
     /// `(unit direction towards the light, irradiance)`.
-    pub fn colour_towards(&self, ray: DVec3, lights: &[(DVec3, DVec3)]) -> DVec3 {
+    pub fn colour_towards(
+        &self,
+        ray: DVec3,
+        lights: impl IntoIterator<Item = (DVec3, DVec3)>,
+    ) -> DVec3 {
         let glow: DVec3 = lights
-            .iter()
-            .map(|&(to_light, irradiance)| {
+            .into_iter()
+            .map(|(to_light, irradiance)| {
                 let cosine = ray.dot(to_light).max(0.0);
                 irradiance * cosine.powf(self.directional_light_exponent as f64)
             })
@@ -246,11 +253,14 @@ mod tests {
         f.directional_light_exponent = 2.0;
         let lights = [(DVec3::Z, DVec3::splat(2.0))];
         // Away from the light: the fog colour alone.
-        assert_eq!(f.colour_towards(-DVec3::Z, &lights), f.color.as_dvec3());
+        assert_eq!(f.colour_towards(-DVec3::Z, lights), f.color.as_dvec3());
         // 60° off the light: cos² = 1/4 of the irradiance, times the glow colour.
         let ray = DVec3::new(0.75f64.sqrt(), 0.0, 0.5);
-        let colour = f.colour_towards(ray, &lights);
-        assert!((colour - DVec3::new(1.0, 0.85, 0.7)).length() < 1e-6, "{colour}");
+        let colour = f.colour_towards(ray, lights);
+        assert!(
+            (colour - DVec3::new(1.0, 0.85, 0.7)).length() < 1e-6,
+            "{colour}"
+        );
         let c = f.apply(DVec3::ONE, 1.0, 10.0, colour);
         let v = (-1.0f64).exp();
         assert!((c - (DVec3::ONE * v + colour * (1.0 - v))).length() < 1e-7);
@@ -267,7 +277,12 @@ mod tests {
             start: 5.0,
             end: 5.0,
         };
-        assert!(f.validate().unwrap_err().to_string().starts_with("fog.falloff is Linear"));
+        assert!(
+            f.validate()
+                .unwrap_err()
+                .to_string()
+                .starts_with("fog.falloff is Linear")
+        );
         f.falloff = Falloff::ExponentialSquared { density: 0.1 };
         f.alpha = 1.5;
         assert_eq!(f.validate().unwrap_err().field, "alpha");
@@ -276,7 +291,10 @@ mod tests {
         assert_eq!(f.validate().unwrap_err().field, "color");
         f.color = Vec3::ONE;
         f.directional_light_exponent = 0.0;
-        assert_eq!(f.validate().unwrap_err().field, "directional_light_exponent");
+        assert_eq!(
+            f.validate().unwrap_err().field,
+            "directional_light_exponent"
+        );
         f.directional_light_exponent = 8.0;
         assert_eq!(f.validate(), Ok(()));
     }

@@ -691,7 +691,13 @@ mod tests {
     #[test]
     fn fog_is_read_with_its_defaults_and_checked() {
         use crate::fog::Falloff;
-        let with_fog = |fog: &str| MINIMAL.replacen("    clouds: [", &format!("    fog: {fog},\n    clouds: ["), 1);
+        let with_fog = |fog: &str| {
+            MINIMAL.replacen(
+                "    clouds: [",
+                &format!("    fog: {fog},\n    clouds: ["),
+                1,
+            )
+        };
         let scene = Scene::from_ron_str(
             &with_fog("(color: (0.2, 0.3, 0.4), falloff: Exponential(density: 0.1))"),
             here(),
@@ -704,10 +710,23 @@ mod tests {
         let minimal = Scene::from_ron_str(MINIMAL, here()).unwrap();
         assert_eq!(minimal.fog, None);
         assert_eq!(minimal.shadow_map_resolution, DEFAULT_SHADOW_MAP_RESOLUTION);
-        let with_maps = |n: u32| MINIMAL.replacen("    clouds: [", &format!("    shadow_map_resolution: {n},\n    clouds: ["), 1);
-        assert_eq!(Scene::from_ron_str(&with_maps(96), here()).unwrap().shadow_map_resolution, 96);
+        let with_maps = |n: u32| {
+            MINIMAL.replacen(
+                "    clouds: [",
+                &format!("    shadow_map_resolution: {n},\n    clouds: ["),
+                1,
+            )
+        };
         assert_eq!(
-            Scene::from_ron_str(&with_maps(8), here()).unwrap_err().to_string(),
+            Scene::from_ron_str(&with_maps(96), here())
+                .unwrap()
+                .shadow_map_resolution,
+            96
+        );
+        assert_eq!(
+            Scene::from_ron_str(&with_maps(8), here())
+                .unwrap_err()
+                .to_string(),
             "shadow_map_resolution is 8; allowed: 16..=2048"
         );
         let e = Scene::from_ron_str(

@@ -60,7 +60,15 @@ impl FogEffect {
         let inherited: Vec<[f32; 4]> = difference(clear, &self.clear.image)
             .iter()
             .zip(&effect)
-            .map(|(e, r)| std::array::from_fn(|c| if c < 3 { r[c] + (1.0 - kept[c] as f32) * e[c] } else { r[c] }))
+            .map(|(e, r)| {
+                std::array::from_fn(|c| {
+                    if c < 3 {
+                        r[c] + (1.0 - kept[c] as f32) * e[c]
+                    } else {
+                        r[c]
+                    }
+                })
+            })
             .collect();
         (error, relative_rmse(&inherited, &effect))
     }

@@ -58,8 +58,9 @@ use bevy_particle_clouds::headless::{self, FrameRecorder, FrameStats};
 use bevy_particle_clouds::reference::path_tracer::Progress;
 use bevy_particle_clouds::{
     CloudPass, CloudQualitySettings, Compositing, PASSES, Particle, ParticleCloud, Particles,
+    ScatterStencil,
     fog::Fog,
-    ScatterStencil, generators,
+    generators,
     image_io::{ImageMetadata, LinearImage, read_exr, write_exr_with_metadata, write_png},
     math::SplitMix64,
     particle_files::{write_csv, write_ply_binary},

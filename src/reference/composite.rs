@@ -460,7 +460,7 @@ pub fn composite_fogged(
                 let w = camera.pixel_ray(px as u32, py as u32);
                 let seen = Seen {
                     exposure,
-                    fog: fog.map(|f| (f.fog, f.fog.colour_towards(w, f.lights))),
+                    fog: fog.map(|f| (f.fog, f.fog.colour_towards(w, f.lights.iter().copied()))),
                 };
                 let c = shade_ray(camera, w, background, objects, &candidates, &seen);
                 *pixel = [c.x as f32, c.y as f32, c.z as f32, 1.0];

@@ -190,7 +190,8 @@ impl DensityGrid {
         values: &[[DVec3; K]],
         p: DVec3,
     ) -> [DVec3; K] {
-        self.sample_clamped_of(values.len(), p, |i| Entries(values[i])).0
+        self.sample_clamped_of(values.len(), p, |i| Entries(values[i]))
+            .0
     }
 
     /// The trilinear, edge-clamped sample at `p` of the `len` per-voxel values `value(i)`.

@@ -718,12 +718,7 @@ impl Lighting {
 
     /// The fog's colour along the camera ray `dir` (its glow about each light).
     fn fog_colour(&self, fog: &Fog, dir: DVec3) -> DVec3 {
-        let lights: Vec<_> = self
-            .lights
-            .iter()
-            .map(|l| (l.to_light, l.irradiance))
-            .collect();
-        fog.colour_towards(dir, &lights)
+        fog.colour_towards(dir, self.lights.iter().map(|l| (l.to_light, l.irradiance)))
     }
 
     /// `Σ_l E_l T_l(x)`: unscattered irradiance at `x` from all lights, with exact transmittance.
@@ -1357,8 +1352,8 @@ mod tests {
             .map(|_| radiance(&slab, &lighting, origin, DVec3::Z, 8, &mut rng))
             .collect();
         let t = (-sigma * length).exp();
-        let fogged = 1.0 - t
-            - sigma / (sigma + k) * (-k * t0).exp() * (1.0 - (-(sigma + k) * length).exp());
+        let fogged =
+            1.0 - t - sigma / (sigma + k) * (-k * t0).exp() * (1.0 - (-(sigma + k) * length).exp());
         assert_close(
             "fogged absorber",
             mean_and_error(&samples),

@@ -376,10 +376,9 @@ pub(crate) fn prepare_billboard_bind_groups(
     atlases: Res<ViewVolumeAtlases>,
 ) {
     let Some(pipeline) = pipeline else { return };
-    let (Some(view_binding), Some(fog_binding)) = (
-        view_uniforms.uniforms.binding(),
-        fog_uniforms.0.binding(),
-    ) else {
+    let (Some(view_binding), Some(fog_binding)) =
+        (view_uniforms.uniforms.binding(), fog_uniforms.0.binding())
+    else {
         return;
     };
     commands.insert_resource(BillboardViewBindGroup(device.create_bind_group(

@@ -149,18 +149,21 @@ pub(crate) fn prepare_cloud_fog(
 pub(crate) fn extract_cloud_fog(
     mut commands: Commands,
     cameras: bevy::render::Extract<
-        Query<(
-            Entity,
-            bevy::render::sync_world::RenderEntity,
-            Option<&bevy::pbr::DistanceFog>,
-        ), With<Camera>>,
+        Query<
+            (
+                Entity,
+                bevy::render::sync_world::RenderEntity,
+                Option<&bevy::pbr::DistanceFog>,
+            ),
+            With<Camera>,
+        >,
     >,
     mut refused: Local<bevy::platform::collections::HashMap<Entity, String>>,
 ) {
     for (entity, render_entity, distance_fog) in &cameras {
-        let fog = distance_fog.map(fog_of).map(|fog| {
-            fog.validate().map(|()| fog).map_err(|e| e.to_string())
-        });
+        let fog = distance_fog
+            .map(fog_of)
+            .map(|fog| fog.validate().map(|()| fog).map_err(|e| e.to_string()));
         let mut target = commands.entity(render_entity);
         match fog {
             Some(Ok(fog)) => {

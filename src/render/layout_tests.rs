@@ -96,7 +96,11 @@ fn rust_mirrors_have_the_wgsl_layout() {
         DensityLevels::min_size().get(),
     );
     check("DrawParams", "DrawParams", DrawParams::min_size().get());
-    check("CloudFog", "CloudFogParams", CloudFogParams::min_size().get());
+    check(
+        "CloudFog",
+        "CloudFogParams",
+        CloudFogParams::min_size().get(),
+    );
     check("SortParams", "SortParams", SortParams::min_size().get());
     check(
         "ViewVolumeParams",

@@ -11,9 +11,9 @@ use bevy::{
 };
 use bevy_particle_clouds::{
     Compositing, ParticleCloud,
+    fog::{Falloff, Fog},
     headless::{self, FrameRecorder, f16_to_f32, floats},
     image_io::LinearImage,
-    fog::{Falloff, Fog},
     reference::{cloud_target::CloudTargetImage, metrics::relative_rmse},
     render::cloud_target::{ViewCloudTarget, ViewCloudTargetResources},
     scene::{ObjectShape, SceneObject},
@@ -235,7 +235,10 @@ fn a_fogged_cloud_drawn_at_half_size_takes_the_fog() {
         relative_rmse(&half_unfogged, &full),
     );
     eprintln!("half size against full size, fogged: {error:.4}; unfogged: {unfogged:.4}");
-    assert!(error < 0.05, "the fogged half-size image differs by {error}");
+    assert!(
+        error < 0.05,
+        "the fogged half-size image differs by {error}"
+    );
     assert!(
         unfogged > 4.0 * error,
         "the fog changes the half-size image too little: {unfogged} against {error}"

@@ -12,6 +12,7 @@ use bevy::{
         renderer::{RenderDevice, RenderQueue},
     },
 };
+use bevy_particle_clouds::fog::{Falloff, Fog};
 use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
     CloudPass, CloudQualitySettings, CloudSkyLight, Compositing, LightSample, Medium, Particle,
@@ -19,7 +20,9 @@ use bevy_particle_clouds::{
     image_io::LinearImage,
     reference::{
         camera::PinholeCamera,
-        composite::{BillboardCloud, BillboardCompositing, CloudPlacement, ViewFog, composite_fogged},
+        composite::{
+            BillboardCloud, BillboardCompositing, CloudPlacement, ViewFog, composite_fogged,
+        },
         illumination::{PlacedCloud, illuminate_clouds_under_sky},
         metrics::relative_rmse,
     },
@@ -27,7 +30,6 @@ use bevy_particle_clouds::{
     render::sort::{SortBuffers, SortPipelines, record_sort},
     scene::{ObjectShape, SceneObject},
 };
-use bevy_particle_clouds::fog::{Falloff, Fog};
 
 use crate::common;
 
@@ -446,7 +448,10 @@ fn a_fogged_cloud_equals_the_cpu_billboard_reference() {
         let what = format!("{falloff:?}, {compositing:?}");
         assert_images_match(&gpu.image, &fogged, &what);
         let change = relative_rmse(&fogged, &clear);
-        assert!(change > 0.1, "{what}: the fog changes the image by only {change}");
+        assert!(
+            change > 0.1,
+            "{what}: the fog changes the image by only {change}"
+        );
     }
 }
 

@@ -155,7 +155,12 @@ fn lit_ground_matches_the_cpu_reference(fog: Option<Fog>) {
                 + setup.sky.as_dvec3() * std::f64::consts::PI;
             let mut l = EMITTED.as_dvec3() + REFLECTANCE.as_dvec3() * e / std::f64::consts::PI;
             if let Some(fog) = &setup.fog {
-                l = fog.apply(l, 1.0, t, fog.colour_towards(ray, &[(to_light, light.irradiance.as_dvec3())]));
+                l = fog.apply(
+                    l,
+                    1.0,
+                    t,
+                    fog.colour_towards(ray, [(to_light, light.irradiance.as_dvec3())]),
+                );
             }
             expected.push([l.x as f32, l.y as f32, l.z as f32, 1.0]);
             let g = image.pixels[(py * W + px) as usize];
