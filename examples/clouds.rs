@@ -10,8 +10,9 @@
 //!
 //! The clouds scatter forward (Henyey–Greenstein g = 0.6), so with the sun behind one (turn it
 //! with the arrow keys, or start there with `--sun`) its thin edges glow: the silver lining. A
-//! blue sky lights them too (`CloudSkyLight`), which tints their shadowed sides. They shadow the
-//! ground (its material takes the `CloudShadowMaps`), and a haze (Bevy's `DistanceFog`, 1500 m
+//! blue sky lights them too (`CloudSkyLight`), which tints their shadowed sides, and the grass
+//! lights their undersides a little (`CloudGround`). They shadow the ground (its material takes
+//! the `CloudShadowMaps`), and a haze (Bevy's `DistanceFog`, 1500 m
 //! visibility) fogs the clouds and the ground alike, fading into the sky.
 //!
 //! Controls: arrow keys turn the sun (azimuth, elevation); drag with the left mouse button or

@@ -191,7 +191,7 @@ pub fn spawn_light(app: &mut App, direction: Vec3, irradiance: Vec3) -> Entity {
 }
 
 /// Spawns everything of a scene file and returns its target; its background also lights the
-/// clouds ([`CloudSkyLight`]).
+/// clouds ([`CloudSkyLight`]), and its widest lit object is their ground ([`Scene::cloud_ground`]).
 pub fn spawn_scene(app: &mut App, scene: &Scene) -> SceneTarget {
     let camera = &scene.camera;
     let image = float_target(app, camera.width, camera.height);
@@ -212,8 +212,17 @@ pub fn spawn_scene(app: &mut App, scene: &Scene) -> SceneTarget {
     for light in &scene.lights {
         spawn_light(app, light.direction, light.irradiance);
     }
-    // The background is a uniform sky that lights the clouds (docs/physics.md).
+    // The background is a uniform sky that lights the clouds (docs/physics.md), and the widest
+    // lit object their ground (docs/illumination.md §4).
     app.insert_resource(CloudSkyLight::from_radiance(scene.background));
+    match scene.cloud_ground() {
+        Some(ground) => {
+            app.insert_resource(ground);
+        }
+        None => {
+            app.world_mut().remove_resource::<crate::CloudGround>();
+        }
+    }
     let mut drawable_clouds = 0;
     for cloud in &scene.clouds {
         if cloud.medium.extinction > 0.0 && cloud.particles.iter().any(|p| p.density > 0.0) {

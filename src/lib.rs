@@ -1,9 +1,10 @@
 //! # bevy_particle_clouds
 //!
 //! Participating media — clouds, smoke, fog, snow — made of particles, rendered by Bevy on the GPU:
-//! lit by any number of directional lights and a sky ([`CloudSkyLight`]), self-shadowed and
-//! shadowing each other, with multiple scattering (through each other's media where clouds
-//! overlap); the medium scatters isotropically or forward ([`Medium::anisotropy`]).
+//! lit by any number of directional lights, a sky ([`CloudSkyLight`]) and the ground below
+//! ([`CloudGround`]), self-shadowed and shadowing each other, with multiple scattering (through
+//! each other's media where clouds overlap); the medium scatters isotropically or forward
+//! ([`Medium::anisotropy`]).
 //! It follows Remes, Umenhoffer and Szécsi, *GPU based particle rendering system for isotropic
 //! participating media*: per cloud the particles' density is voxelized, each light shades a
 //! light-aligned volume slice by slice, the lights are gathered into one illumination volume,
@@ -55,6 +56,7 @@
 pub mod cloud;
 pub mod fog;
 pub mod generators;
+pub mod ground;
 #[cfg(feature = "headless")]
 pub mod headless;
 #[cfg(feature = "image")]
@@ -81,6 +83,7 @@ use bevy::prelude::*;
 pub use cloud::{
     CloudSkyLight, CloudSystems, InvalidCloud, NotCloudLight, ParticleCloud, Particles,
 };
+pub use ground::CloudGround;
 pub use lod::{CloudLevelOfDetail, CloudLod};
 pub use particle::{LightSample, Medium, Particle};
 pub use settings::{
@@ -93,10 +96,10 @@ pub use stats::{CloudPass, CloudPassCounters, PASSES};
 /// Everything a Bevy user needs.
 pub mod prelude {
     pub use crate::{
-        CloudLevelOfDetail, CloudLod, CloudQualitySettings, CloudRelightBudget, CloudShadowMaps,
-        CloudSkyLight, CloudSystems, CloudTargetScale, Compositing, DefaultCloudQuality, Medium,
-        NotCloudLight, Particle, ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil,
-        generators,
+        CloudGround, CloudLevelOfDetail, CloudLod, CloudQualitySettings, CloudRelightBudget,
+        CloudShadowMaps, CloudSkyLight, CloudSystems, CloudTargetScale, Compositing,
+        DefaultCloudQuality, Medium, NotCloudLight, Particle, ParticleCloud, ParticleCloudsPlugin,
+        Particles, ScatterStencil, generators,
     };
 }
 
@@ -115,6 +118,7 @@ impl Plugin for ParticleCloudsPlugin {
             .register_type::<NotCloudLight>()
             .register_type::<CloudSkyLight>()
             .init_resource::<CloudSkyLight>()
+            .register_type::<CloudGround>()
             .register_type::<CloudQualitySettings>()
             .register_type::<CloudTargetScale>()
             .register_type::<DefaultCloudQuality>()

@@ -505,6 +505,29 @@ fn resolve_path(base_dir: &Path, file: &str) -> PathBuf {
 }
 
 impl Scene {
+    /// The ground that lights its clouds from below in the real-time renderer (docs/scene-format.md,
+    /// "Lit objects"): the top face of its widest lit cuboid (its `reflectance` not black), as
+    /// the horizontal plane [`CloudGround`](crate::CloudGround); `None` without one. The path
+    /// tracer needs none: its light reflects off every lit object as it is.
+    pub fn cloud_ground(&self) -> Option<crate::CloudGround> {
+        let width = |o: &&SceneObject| match o.shape {
+            ObjectShape::Cuboid(size) => size.x * size.z,
+            ObjectShape::Sphere(_) => 0.0,
+        };
+        let widest = self
+            .objects
+            .iter()
+            .filter(|o| o.reflectance.max_element() > 0.0 && width(o) > 0.0)
+            .max_by(|a, b| width(a).total_cmp(&width(b)))?;
+        let ObjectShape::Cuboid(size) = widest.shape else {
+            return None;
+        };
+        Some(crate::CloudGround {
+            height: widest.translation.y + 0.5 * size.y,
+            reflectance: widest.reflectance,
+        })
+    }
+
     /// Reads, parses and validates a scene file; particle files are resolved relative to its
     /// directory. Nothing invalid gets through: see [`SceneError`].
     pub fn load(path: &Path) -> Result<Scene, SceneError> {
@@ -686,6 +709,37 @@ mod tests {
 
     fn example_file() -> SceneFile {
         ron::from_str(EXAMPLE).unwrap()
+    }
+
+    /// The clouds' ground is the top face of the widest lit cuboid: unlit objects and spheres
+    /// are not grounds.
+    #[test]
+    fn the_widest_lit_cuboid_is_the_clouds_ground() {
+        let mut scene = Scene::from_ron_str(MINIMAL, here()).unwrap();
+        assert_eq!(scene.cloud_ground(), None);
+        let object = |shape, y: f32, reflectance: Vec3| SceneObject {
+            shape,
+            translation: Vec3::new(3.0, y, -1.0),
+            color: Vec3::ZERO,
+            reflectance,
+        };
+        let lit = Vec3::new(0.3, 0.35, 0.25);
+        scene.objects = vec![
+            object(
+                ObjectShape::Cuboid(Vec3::new(100.0, 1.0, 100.0)),
+                5.0,
+                Vec3::ZERO,
+            ),
+            object(ObjectShape::Sphere(50.0), 0.0, lit),
+            object(
+                ObjectShape::Cuboid(Vec3::new(2.0, 4.0, 2.0)),
+                0.0,
+                Vec3::ONE,
+            ),
+            object(ObjectShape::Cuboid(Vec3::new(30.0, 1.0, 30.0)), -0.5, lit),
+        ];
+        let ground = scene.cloud_ground().expect("a ground");
+        assert_eq!((ground.height, ground.reflectance), (0.0, lit));
     }
 
     #[test]

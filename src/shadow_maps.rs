@@ -1,7 +1,7 @@
 //! Cloud shadow maps (docs/illumination.md §10): per directional light, the optical depth of every
 //! cloud along the light, over a square of texels across it that covers every cloud. Surfaces
 //! read them to take the clouds' shadows: the scene files' lit objects do
-//! (`headless::LitObjectMaterial`), and so can a game's own materials.
+//! (`lit_object::LitObjectMaterial`), and so can a game's own materials.
 //!
 //! Off by default ([`CloudShadowMaps::resolution`] 0): then nothing is computed. On, every cloud
 //! that casts shadows is illuminated, seen or not, since its shadow may fall in view. The main

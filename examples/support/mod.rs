@@ -30,8 +30,8 @@ use bevy::{
     },
 };
 use bevy_particle_clouds::{
-    CloudPass, CloudPassCounters, CloudShadowMaps, CloudSkyLight, CloudTargetScale, PASSES,
-    ParticleCloud, ParticleCloudsPlugin, Particles,
+    CloudGround, CloudPass, CloudPassCounters, CloudShadowMaps, CloudSkyLight, CloudTargetScale,
+    PASSES, ParticleCloud, ParticleCloudsPlugin, Particles,
     headless::{self, FrameRecorder},
     image_io,
     lit_object::{LitObjectMaterial, LitObjectPlugin, LitSurface},
@@ -217,9 +217,10 @@ const SKY_NITS: f32 = 375.0;
 /// The outdoor examples' ground albedo, linear RGB: grass.
 pub const GROUND_ALBEDO: Vec3 = Vec3::new(0.03, 0.055, 0.02);
 
-/// The outdoor set of the sky examples: `ground` (a green plane), a sun of [`SUN_LUX`] turned
-/// with the arrow keys from `azimuth` and `elevation` (radians), a blue sky that lights the
-/// clouds (`CloudSkyLight`) and, with the same radiance, the meshes (Bevy's
+/// The outdoor set of the sky examples: `ground` (a green plane at `y = 0` of
+/// [`GROUND_ALBEDO`], which lights the clouds from below: `CloudGround`), a sun of [`SUN_LUX`]
+/// turned with the arrow keys from `azimuth` and `elevation` (radians), a blue sky that lights
+/// the clouds (`CloudSkyLight`) and, with the same radiance, the meshes (Bevy's
 /// `GlobalAmbientLight`), and the camera on `orbit` (exposure ev100 9.3), drawing its clouds at
 /// half its size as a game would. Returns the camera.
 pub fn spawn_outdoor(
@@ -248,6 +249,10 @@ pub fn spawn_outdoor(
     commands.insert_resource(CloudSkyLight {
         color: sky,
         brightness: SKY_NITS,
+    });
+    commands.insert_resource(CloudGround {
+        height: 0.0,
+        reflectance: GROUND_ALBEDO,
     });
     commands.insert_resource(GlobalAmbientLight {
         color: sky,

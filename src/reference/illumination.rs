@@ -14,12 +14,14 @@ use std::ops::{Add, Mul};
 use bevy::math::{DQuat, DVec3};
 use rayon::prelude::*;
 
+use crate::ground::CloudGround;
 use crate::math::{
     density_level, density_level_sizes, henyey_greenstein, kernel_u2, level_kernel_radius,
     light_basis,
 };
 use crate::particle::{DeltaEddington, LightSample, Medium, Particle};
 use crate::reference::composite::CloudPlacement;
+use crate::reference::ground::GroundLight;
 use crate::settings::{CloudQualitySettings, ScatterStencil};
 use crate::shadow_maps::ShadowMapPlacement;
 
@@ -888,6 +890,35 @@ impl<'a> SweptMedium<'a> {
     }
 }
 
+/// What enters a cloud's grid from outside in an iteration that brings the boundary in (section
+/// 4): the sky's radiance from every side, and with a ground, the ground's on the lattice lines
+/// that climb.
+#[derive(Clone, Copy)]
+struct Boundary<'a> {
+    sky: DVec3,
+    ground: Option<&'a GroundLight>,
+}
+
+impl Boundary<'_> {
+    /// Nothing enters: the later iterations.
+    const NONE: Self = Self {
+        sky: DVec3::ZERO,
+        ground: None,
+    };
+
+    /// The sky alone.
+    fn sky(sky: DVec3) -> Self {
+        Self { sky, ground: None }
+    }
+
+    /// The radiance entering `grid` on the line whose first voxel is `v`, travelling along `w`.
+    fn entering(&self, grid: &DensityGrid, v: [usize; 3], w: DVec3, half_step: f64) -> DVec3 {
+        self.ground
+            .and_then(|g| g.entering(grid, v, w, half_step))
+            .unwrap_or(self.sky)
+    }
+}
+
 /// The unit direction the radiance of sweep direction `o` travels in: `-o / |o|` (it arrives
 /// from the `+o` side).
 fn travel(o: [i64; 3]) -> DVec3 {
@@ -900,7 +931,12 @@ fn travel(o: [i64; 3]) -> DVec3 {
 /// [`SweptMedium::source`] towards the radiance's travel direction `-o`, with
 /// `tau = K_local (rho_v + rho_{v+o}) / 2 h |o|` and density, `S` and `I_o` zero outside the grid
 /// (with other clouds' media, `rho` and `albedo` are the voxel's over all of them).
-fn sweep_direction(medium: SweptMedium, o: [i64; 3], s: &Moments, sky: DVec3) -> Vec<DVec3> {
+fn sweep_direction(
+    medium: SweptMedium,
+    o: [i64; 3],
+    s: &Moments,
+    boundary: Boundary,
+) -> Vec<DVec3> {
     let grid = medium.grid;
     let n = grid.n as i64;
     let step = grid.h * ((o[0] * o[0] + o[1] * o[1] + o[2] * o[2]) as f64).sqrt();
@@ -919,10 +955,15 @@ fn sweep_direction(medium: SweptMedium, o: [i64; 3], s: &Moments, sky: DVec3) ->
                     .iter()
                     .all(|&c| (0..n).contains(&c))
                     .then(|| grid.index(u[0] as usize, u[1] as usize, u[2] as usize));
-                // Outside the grid: no medium, and the sky's radiance arriving.
-                let (rho_u, j_u, i_u) = upwind.map_or((0.0, DVec3::ZERO, sky), |j| {
-                    (medium.density(j), medium.source(s, j, w), radiance[j])
-                });
+                // Outside the grid: no medium, and the boundary's radiance arriving.
+                let (rho_u, j_u, i_u) = match upwind {
+                    Some(j) => (medium.density(j), medium.source(s, j, w), radiance[j]),
+                    None => {
+                        let first = v.map(|c| c as usize);
+                        let entering = boundary.entering(grid, first, w, 0.5 * step);
+                        (0.0, DVec3::ZERO, entering)
+                    }
+                };
                 let j = medium.source(s, idx, w);
                 let tau = medium.k_local * (medium.density(idx) + rho_u) * 0.5 * step;
                 let (constant, linear) = segment_weights(tau);
@@ -937,9 +978,9 @@ fn sweep_direction(medium: SweptMedium, o: [i64; 3], s: &Moments, sky: DVec3) ->
 /// One discrete-ordinates iteration (section 4): the next order's moments over the 26 lattice
 /// directions, each weighing `1/26`, `mean = sum_o I_o / 26`, and for an anisotropic medium (one
 /// whose source has a flux) `F = sum_o I_o w_o / 26` and the quadrupole
-/// `sum_o I_o (w_o w_o^T - I/3) / 26`, `w_o` the radiance's travel direction; the radiance `sky`
-/// entering the grid from outside.
-fn sweep(medium: SweptMedium, s: &Moments, sky: DVec3) -> (Moments, Vec<Quadrupole>) {
+/// `sum_o I_o (w_o w_o^T - I/3) / 26`, `w_o` the radiance's travel direction; the radiance
+/// `boundary` gives entering the grid from outside.
+fn sweep(medium: SweptMedium, s: &Moments, boundary: Boundary) -> (Moments, Vec<Quadrupole>) {
     let directional = !s.flux.is_empty();
     let voxels = s.mean.len();
     let empty = || Swept {
@@ -950,7 +991,7 @@ fn sweep(medium: SweptMedium, s: &Moments, sky: DVec3) -> (Moments, Vec<Quadrupo
     let swept = lattice_directions()
         .into_par_iter()
         .map(|o| {
-            let radiance = sweep_direction(medium, o, s, sky);
+            let radiance = sweep_direction(medium, o, s, boundary);
             let mut out = empty();
             let w = travel(o);
             let q = quadrupole_basis(w);
@@ -1108,7 +1149,7 @@ pub fn scatter_under_sky(
         medium,
         stencil,
         &Moments::isotropic(s0.to_vec()),
-        sky,
+        Boundary::sky(sky),
         iterations,
     )
 }
@@ -1127,7 +1168,7 @@ pub fn scatter_medium(
     iterations: u32,
 ) -> MultipleScattering {
     let medium = SweptMedium::alone(grid, k_local, albedo, g);
-    scatter_through(medium, stencil, s0, sky, iterations)
+    scatter_through(medium, stencil, s0, Boundary::sky(sky), iterations)
 }
 
 /// [`scatter_medium`] through `medium`.
@@ -1135,7 +1176,7 @@ fn scatter_through(
     medium: SweptMedium,
     stencil: ScatterStencil,
     s0: &Moments,
-    sky: DVec3,
+    boundary: Boundary,
     iterations: u32,
 ) -> MultipleScattering {
     let grid = medium.grid;
@@ -1154,7 +1195,7 @@ fn scatter_through(
     let (mut total, mut last, mut before) = (zero.clone(), s0.clone(), s0.mean.clone());
     let mut orders: Vec<Vec<DVec3>> = Vec::with_capacity(iterations as usize);
     for k in 0..iterations {
-        let entering = if k == 0 { sky } else { DVec3::ZERO };
+        let entering = if k == 0 { boundary } else { Boundary::NONE };
         let (next, q) = scatter_once(medium, stencil, &last, entering);
         total = total.plus(&next, DVec3::ONE);
         for (t, q) in quadrupole.iter_mut().zip(&q) {
@@ -1187,10 +1228,10 @@ fn scatter_once(
     medium: SweptMedium,
     stencil: ScatterStencil,
     s: &Moments,
-    sky: DVec3,
+    boundary: Boundary,
 ) -> (Moments, Vec<Quadrupole>) {
     match stencil {
-        ScatterStencil::DiscreteOrdinates => sweep(medium, s, sky),
+        ScatterStencil::DiscreteOrdinates => sweep(medium, s, boundary),
         ScatterStencil::Paper => (
             Moments::isotropic(paper_stencil(
                 medium.grid,
@@ -1258,9 +1299,10 @@ pub fn scatter_warm_medium(
         s0.mean.len(),
         "one previous value per voxel"
     );
-    let (once, q_once) = scatter_once(medium, stencil, &s0.plus(previous, DVec3::ONE), sky);
+    let entering = Boundary::sky(sky);
+    let (once, q_once) = scatter_once(medium, stencil, &s0.plus(previous, DVec3::ONE), entering);
     let correction = once.plus(previous, DVec3::splat(-1.0));
-    let series = scatter_through(medium, stencil, &correction, DVec3::ZERO, iterations - 1);
+    let series = scatter_through(medium, stencil, &correction, Boundary::NONE, iterations - 1);
     // Clamped at 0 like the GPU's: the truncated correction may overshoot where the light fell.
     let total = zip_with(&once.mean, &series.total, |k, t| (*k + *t).max(DVec3::ZERO));
     let flux = zip_with(&once.flux, &series.flux, |k, t| {
@@ -1387,7 +1429,7 @@ pub fn illuminate_under_sky(
     settings: &CloudQualitySettings,
 ) -> Option<CloudIllumination> {
     shade_cloud(particles, medium, scale, lights_local, settings)
-        .map(|shaded| shaded.finish(sky, settings, None))
+        .map(|shaded| shaded.finish((sky, None), settings, None))
 }
 
 /// One of several clouds illuminated together ([`illuminate_clouds_under_sky`]).
@@ -1414,6 +1456,19 @@ pub fn illuminate_clouds_under_sky(
     lights: &[LightSample],
     sky: DVec3,
 ) -> Vec<Option<CloudIllumination>> {
+    illuminate_clouds_over_ground(clouds, lights, sky, None)
+}
+
+/// [`illuminate_clouds_under_sky`] over `ground` (section 4, "The ground"): each cloud's
+/// multiple scattering takes the ground's radiance in on the lattice lines that climb into its
+/// grid ([`GroundLight`], from its light volumes once the other clouds' shadows are in them),
+/// the sky's on the others. `None`: no ground, the sky's from every side.
+pub fn illuminate_clouds_over_ground(
+    clouds: &[PlacedCloud],
+    lights: &[LightSample],
+    sky: DVec3,
+    ground: Option<&CloudGround>,
+) -> Vec<Option<CloudIllumination>> {
     let mut shaded: Vec<Option<ShadedCloud>> = clouds
         .iter()
         .map(|cloud| {
@@ -1439,7 +1494,10 @@ pub fn illuminate_clouds_under_sky(
         .into_iter()
         .zip(clouds)
         .zip(&foreign)
-        .map(|((s, cloud), foreign)| s.map(|s| s.finish(sky, &cloud.settings, foreign.as_deref())))
+        .map(|((s, cloud), foreign)| {
+            let boundary = (sky, ground.map(|g| (g, cloud.placement)));
+            s.map(|s| s.finish(boundary, &cloud.settings, foreign.as_deref()))
+        })
         .collect()
 }
 
@@ -1582,14 +1640,20 @@ impl ShadedCloud {
     }
 
     /// Sections 3 and 4: the source gathered from the light volumes, and its multiple scattering
-    /// under the sky `sky`,
+    /// under the sky `sky` and, with a ground, over it (the cloud placed by the placement given),
     /// and with `foreign`, other clouds' media in the scattering grid (section 4).
     fn finish(
         self,
-        sky: DVec3,
+        (sky, ground): (DVec3, Option<(&CloudGround, CloudPlacement)>),
         settings: &CloudQualitySettings,
         foreign: Option<&[[f64; 2]]>,
     ) -> CloudIllumination {
+        let ground = ground
+            .map(|(g, placement)| GroundLight::new(g, placement, &self.grid, &self.lights, sky));
+        let boundary = Boundary {
+            sky,
+            ground: ground.as_ref(),
+        };
         let delta = self.delta();
         let source = gather_source(&self.grid, &self.fine, &self.lights, delta);
         let medium = SweptMedium {
@@ -1601,7 +1665,7 @@ impl ShadedCloud {
         };
         let stencil = settings.scatter_stencil;
         let iterations = settings.scatter_iterations;
-        let multiple = scatter_through(medium, stencil, &source, sky, iterations);
+        let multiple = scatter_through(medium, stencil, &source, boundary, iterations);
         CloudIllumination {
             grid: self.grid,
             fine: self.fine,
@@ -1627,8 +1691,8 @@ pub fn illuminate_scene_cloud(
     illuminate_scene(scene, settings).swap_remove(index)
 }
 
-/// Every cloud of `scene`, illuminated together ([`illuminate_clouds_under_sky`]), with the
-/// scene's lights and its background as the sky.
+/// Every cloud of `scene`, illuminated together ([`illuminate_clouds_over_ground`]), with the
+/// scene's lights, its background as the sky and its ground ([`Scene::cloud_ground`](crate::scene::Scene::cloud_ground)).
 pub fn illuminate_scene(
     scene: &crate::scene::Scene,
     settings: &CloudQualitySettings,
@@ -1644,7 +1708,8 @@ pub fn illuminate_scene(
         })
         .collect();
     let sky = scene.background.as_dvec3();
-    illuminate_clouds_under_sky(&clouds, &scene.lights, sky)
+    let ground = scene.cloud_ground();
+    illuminate_clouds_over_ground(&clouds, &scene.lights, sky, ground.as_ref())
 }
 
 impl CloudIllumination {
@@ -2138,7 +2203,7 @@ mod tests {
         let medium = SweptMedium::alone(&grid, k, albedo, g);
         let delta = medium.delta;
         assert!((delta.anisotropy - g / (1.0 + g)).abs() < 1e-12);
-        let (next, quadrupole) = sweep(medium, &s, DVec3::ZERO);
+        let (next, quadrupole) = sweep(medium, &s, Boundary::NONE);
         let centre = grid.index(n / 2, n / 2, n / 2);
         let close = |a: DVec3, b: DVec3| (a - b).abs().max_element() < 2e-3 * b.abs().max_element();
         assert!(close(next.mean[centre], s.mean[centre] * delta.albedo));
@@ -2207,7 +2272,8 @@ mod tests {
             .collect();
         for o in [[1, 0, 0], [0, -1, 1], [-1, 1, 1]] {
             let medium = SweptMedium::alone(&grid, sigma, albedo, 0.0);
-            let radiance = sweep_direction(medium, o, &Moments::isotropic(s.clone()), DVec3::ZERO);
+            let radiance =
+                sweep_direction(medium, o, &Moments::isotropic(s.clone()), Boundary::NONE);
             let d = DVec3::new(o[0] as f64, o[1] as f64, o[2] as f64).normalize();
             // the centre: 12 steps (optical depth >= 18) from every edge
             let v = grid.index(n / 2, n / 2, n / 2);

@@ -11,6 +11,7 @@ use bevy::{
 
 use crate::{
     cloud::{CloudSkyLight, InvalidCloud, ParticleCloud, Particles, ParticlesValidity},
+    ground::CloudGround,
     lod::{CloudLevelOfDetail, CloudLod},
     settings::{CloudQualitySettings, DefaultCloudQuality},
     shadow_maps::{CloudLightQuery, cloud_lights},
@@ -88,6 +89,8 @@ pub struct ExtractedCloudLights {
     pub lights: Vec<CloudLight>,
     /// Linear RGB radiance of the sky ([`CloudSkyLight`]), black when refused.
     pub sky: Vec3,
+    /// The ground that lights the clouds from below ([`CloudGround`]), if any and valid.
+    pub ground: Option<CloudGround>,
 }
 
 impl ExtractedCloudLights {
@@ -194,8 +197,10 @@ pub(crate) fn extract_cloud_lights(
     mut lights: ResMut<ExtractedCloudLights>,
     query: Extract<CloudLightQuery>,
     sky: Extract<Res<CloudSkyLight>>,
-    mut refused_sky: Local<Option<String>>,
+    ground: Extract<Option<Res<CloudGround>>>,
+    mut refused: Local<[Option<String>; 2]>,
 ) {
+    let [refused_sky, refused_ground] = &mut *refused;
     lights.sky = match sky.radiance() {
         Ok(radiance) => {
             *refused_sky = None;
@@ -207,6 +212,19 @@ pub(crate) fn extract_cloud_lights(
                 *refused_sky = Some(problem);
             }
             Vec3::ZERO
+        }
+    };
+    lights.ground = match ground.as_deref().map(CloudGround::validate) {
+        Some(Err(problem)) => {
+            if refused_ground.as_ref() != Some(&problem) {
+                warn!("{problem}; the clouds are lit as if there were no ground");
+                *refused_ground = Some(problem);
+            }
+            None
+        }
+        valid => {
+            *refused_ground = None;
+            valid.and_then(Result::ok)
         }
     };
     // Hidden, dark or broken lights cost nothing.

@@ -258,7 +258,7 @@ mod tests {
                 direction: Vec3::NEG_Y,
                 irradiance: Vec3::splat(2.0),
             }],
-            sky: Vec3::ZERO,
+            ..default()
         };
         let params = CloudFogParams::new(&fog, &lights);
         assert_eq!(params.light_count, 1);

@@ -105,6 +105,8 @@ struct PoolBatches {
     /// Other clouds' media in the grids of this frame's scattering, one batch per pool the
     /// neighbours lie in (first first).
     overlap: Vec<Batch>,
+    /// The ground's radiance under the clouds of this frame's sweeps that a ground lights.
+    ground: Option<Batch>,
     scatter: Vec<ScatterBatch>,
 }
 
@@ -152,6 +154,8 @@ struct PoolWork {
     cast: HashMap<PoolId, CastWork>,
     overlap: HashMap<PoolId, OverlapWork>,
     gather: Vec<u32>,
+    /// The clouds a ground lights whose scattering runs (their ground maps are filled first).
+    ground: Vec<u32>,
     scatter: HashMap<(u32, ScatterStencil, bool), Vec<u32>>,
 }
 
@@ -214,6 +218,9 @@ pub(crate) fn prepare_illumination_bind_groups(
         if let Some(iterations) = plan.scatter.filter(|&i| i > 0) {
             let key = (iterations, plan.stencil, plan.warm);
             w.scatter.entry(key).or_default().push(slot);
+            if lights.ground.is_some() && plan.stencil == ScatterStencil::DiscreteOrdinates {
+                w.ground.push(slot);
+            }
             if v.params.foreign != 0 {
                 add_overlaps(
                     &mut w.overlap,
@@ -310,6 +317,18 @@ pub(crate) fn prepare_illumination_bind_groups(
                 )),
             )
         });
+        let ground = Batch::new(&device, &w.ground, |work| {
+            bind(
+                &pipelines.ground,
+                &BindGroupEntries::sequential((
+                    pool.slots.as_entire_binding(),
+                    pool.lights.as_entire_binding(),
+                    pool.optical_depth.as_entire_binding(),
+                    pool.ground.as_entire_binding(),
+                    work.binding(),
+                )),
+            )
+        });
         let scatter = w
             .scatter
             .into_iter()
@@ -349,6 +368,7 @@ pub(crate) fn prepare_illumination_bind_groups(
             cast,
             gather,
             overlap,
+            ground,
             scatter,
         });
     }
@@ -480,6 +500,7 @@ fn scatter_batch(
                 pool.multiple.as_entire_binding(),
                 work.binding(),
                 pool.foreign.as_entire_binding(),
+                pool.ground.as_entire_binding(),
             )),
         )
     };
@@ -705,6 +726,16 @@ pub(crate) fn illuminate_clouds(
                             pass.set_bind_group(0, &batch.group, &[offset]);
                             dispatch_linear(pass, b.n.pow(3), items);
                         }
+                    }
+                }
+                // The ground's radiance under the clouds it lights, once their light volumes
+                // hold every shadow.
+                pass.set_pipeline(ready.ground);
+                let side = crate::ground::GROUND_MAP_SIDE;
+                for batch in batches.pools.iter().filter_map(|b| b.ground.as_ref()) {
+                    for (offset, items) in batch.work.chunks() {
+                        pass.set_bind_group(0, &batch.group, &[offset]);
+                        dispatch_linear(pass, side * side, items);
                     }
                 }
                 let mut runs = 0;

@@ -4,9 +4,10 @@
 use bevy::render::render_resource::ShaderType;
 
 use super::{
-    cloud_target::CloudTargetParams, draw::DrawParams, fog::CloudFogParams, particles::GpuParticle,
-    pipelines::SweepDirection, pools::Slot, sort::SortParams, view_volume::ViewVolumeParams,
-    volumes::CloudParams, volumes::DensityLevels, volumes::LightParams,
+    cloud_target::CloudTargetParams, draw::DrawParams, fog::CloudFogParams,
+    ground::ground_map_bytes, particles::GpuParticle, pipelines::SweepDirection, pools::Slot,
+    sort::SortParams, view_volume::ViewVolumeParams, volumes::CloudParams, volumes::DensityLevels,
+    volumes::LightParams,
 };
 
 const WGSL: [&str; 5] = [
@@ -16,8 +17,9 @@ const WGSL: [&str; 5] = [
     include_str!("sort.wgsl"),
     include_str!("scatter.wgsl"),
 ];
-const RUST: [&str; 9] = [
+const RUST: [&str; 10] = [
     include_str!("fog.rs"),
+    include_str!("ground.rs"),
     include_str!("volumes.rs"),
     include_str!("pools.rs"),
     include_str!("draw.rs"),
@@ -117,6 +119,12 @@ fn rust_mirrors_have_the_wgsl_layout() {
         "CloudTargetParams",
         CloudTargetParams::min_size().get(),
     );
+    // A slot's ground map: the frame, then the radiance of GROUND_MAP_SIDE² texels.
+    let (size, mut fields) = wgsl_layout("GroundMap");
+    assert_eq!(fields.pop().as_deref(), Some("radiance"));
+    let frame = field_names(block(&RUST, "pub struct ", "GroundFrame"), "pub ");
+    assert_eq!(frame, fields, "GroundFrame and WGSL GroundMap: fields");
+    assert_eq!(ground_map_bytes(), size as u64, "GroundMap: size");
     // The particle buffer is plain bytes (bytemuck), laid out as `Particle`.
     let (size, _) = wgsl_layout("Particle");
     assert_eq!(std::mem::size_of::<GpuParticle>() as u32, size);

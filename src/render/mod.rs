@@ -29,6 +29,7 @@ pub mod draw;
 pub mod extract;
 pub mod fog;
 pub mod gpu;
+pub mod ground;
 pub mod illumination;
 pub mod overlap;
 pub mod particles;
@@ -153,7 +154,7 @@ pub(crate) fn build(app: &mut App) {
 }
 
 /// Why an adapter cannot run the plugin: the passes need compute shaders, storage buffers in the
-/// vertex stage and seven storage buffers per stage (the scattering's closure).
+/// vertex stage and eight storage buffers per stage (the sweep's; WebGPU's default limit).
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum Unsupported {
     /// No compute shaders (WebGL2, for example).
@@ -163,7 +164,7 @@ pub enum Unsupported {
     #[error("the adapter cannot read storage buffers in vertex shaders")]
     VertexStorage,
     /// Too few storage buffers per shader stage.
-    #[error("the adapter allows {0} storage buffers per shader stage; 7 are needed")]
+    #[error("the adapter allows {0} storage buffers per shader stage; 8 are needed")]
     StorageBuffers(u32),
 }
 
@@ -178,7 +179,7 @@ fn check_adapter(render_app: &SubApp) -> Result<(), Unsupported> {
     if !flags.contains(DownlevelFlags::VERTEX_STORAGE) {
         return Err(Unsupported::VertexStorage);
     }
-    if limits.max_storage_buffers_per_shader_stage < 7 {
+    if limits.max_storage_buffers_per_shader_stage < 8 {
         return Err(Unsupported::StorageBuffers(
             limits.max_storage_buffers_per_shader_stage,
         ));

@@ -107,9 +107,12 @@ pub struct SweepDirection {
     pub first: u32,
     /// 1 to add the iteration's order to `multiple`; 0 for a warm restart's first sweep.
     pub accumulate: u32,
-    /// Linear RGB radiance entering the grid from outside: the sky's for the sweeps of an
-    /// iteration that brings the sky in (docs/illumination.md §4), else 0.
+    /// Linear RGB radiance of the sky, for the sweeps of an iteration that brings the boundary
+    /// in (docs/illumination.md §4), else 0.
     pub sky: Vec3,
+    /// 1 for the sweeps of an iteration that brings the light entering the grid in (the sky's,
+    /// and the ground's on lines that climb), else 0.
+    pub boundary: u32,
 }
 
 /// The dynamic offset of the `SweepDirection` of direction pair `index` (of
@@ -155,6 +158,8 @@ pub struct IlluminationPipelines {
     pub gather: ByMoments,
     /// `overlap.wgsl`, `overlap_media`: other clouds' media in a cloud's scattering grid.
     pub overlap: ComputeStage,
+    /// `ground.wgsl`, `ground_radiance`: the radiance of the ground under each cloud.
+    pub ground: ComputeStage,
     /// `scatter.wgsl`, `sweep` (the discrete-ordinates stencil).
     pub sweep: ByMoments,
     /// `scatter.wgsl`, `scatter_paper` (the paper's stencil; same layout as `sweep`).
@@ -190,6 +195,8 @@ pub struct ReadyPipelines<'a> {
     pub gather: [&'a ComputePipeline; 2],
     /// Overlap.
     pub overlap: &'a ComputePipeline,
+    /// The ground's radiance.
+    pub ground: &'a ComputePipeline,
     /// Sweep.
     pub sweep: [&'a ComputePipeline; 2],
     /// The paper's stencil.
@@ -214,6 +221,7 @@ impl IlluminationPipelines {
             cast: self.cast.get(cache)?,
             gather: self.gather.get(cache)?,
             overlap: self.overlap.get(cache)?,
+            ground: self.ground.get(cache)?,
             sweep: self.sweep.get(cache)?,
             scatter_paper: self.scatter_paper.get(cache)?,
             warm_start: self.warm_start.get(cache)?,
@@ -236,6 +244,7 @@ fn sweep_direction_entries(sky: Vec3) -> impl Iterator<Item = SweepDirection> {
                 // The inverse of `sweep_direction_offset`'s set.
                 accumulate: (set < 2) as u32,
                 sky: if set % 2 == 0 { sky } else { Vec3::ZERO },
+                boundary: (set % 2 == 0) as u32,
             })
     })
 }
@@ -317,7 +326,15 @@ pub(crate) fn init_illumination_pipelines(
                 write(),
                 work(),
                 read(),
+                read(),
             ),
+        ),
+    );
+    let ground = BindGroupLayoutDescriptor::new(
+        "particle_clouds_ground_layout",
+        &BindGroupLayoutEntries::sequential(
+            ShaderStages::COMPUTE,
+            (read(), read(), read(), write(), work()),
         ),
     );
     let overlap = BindGroupLayoutDescriptor::new(
@@ -348,6 +365,7 @@ pub(crate) fn init_illumination_pipelines(
         cast: stage(&shaders.cast, "cast_shadows", &cast),
         gather: ByMoments::new(cache, &shaders.gather, "gather", &gather),
         overlap: stage(&shaders.overlap, "overlap_media", &overlap),
+        ground: stage(&shaders.ground, "ground_radiance", &ground),
         sweep: ByMoments::new(cache, &shaders.scatter, "sweep", &scatter),
         scatter_paper: stage(&shaders.scatter, "scatter_paper", &scatter),
         warm_start: ByMoments::new(cache, &shaders.scatter, "warm_start", &scatter),
@@ -398,6 +416,7 @@ mod tests {
                     assert_eq!(entry.first, (i == 0) as u32);
                     assert_eq!(entry.accumulate, accumulate as u32);
                     assert_eq!(entry.sky, if brings_sky { sky } else { Vec3::ZERO });
+                    assert_eq!(entry.boundary, brings_sky as u32);
                 }
             }
         }

@@ -42,15 +42,16 @@ impl StageKeys {
     /// This frame's keys of a cloud with the uniform `params`, its lights' uniforms `lights` (in
     /// slot order), the key of what other clouds cast on it along each light (`casters[i]`: 0, or
     /// missing, when none does; [`cast`](super::cast)), the key of the media of the clouds that
-    /// overlap it (`media`: 0 when none does; [`overlap`](super::overlap)), the sky's radiance
-    /// `sky`, its particles' upload `generation` and its `settings`.
+    /// overlap it (`media`: 0 when none does; [`overlap`](super::overlap)), what enters its grid
+    /// from outside (the sky's radiance, and the key of the ground under it: 0 for none;
+    /// [`ground`](super::ground)), its particles' upload `generation` and its `settings`.
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         params: &CloudParams,
         lights: &[LightParams],
         casters: &[u64],
         media: u64,
-        sky: Vec3,
+        (sky, ground): (Vec3, u64),
         generation: u64,
         settings: &CloudQualitySettings,
     ) -> Self {
@@ -113,7 +114,7 @@ impl StageKeys {
             lights: keys,
             casts,
             gather,
-            scatter: key_of((gather, medium, bits(sky))),
+            scatter: key_of((gather, medium, bits(sky), ground)),
             medium,
         }
     }
@@ -277,7 +278,15 @@ mod tests {
     }
 
     fn keys(lights: &[LightParams], generation: u64, settings: &CloudQualitySettings) -> StageKeys {
-        StageKeys::new(&params(), lights, &[], 0, Vec3::ZERO, generation, settings)
+        StageKeys::new(
+            &params(),
+            lights,
+            &[],
+            0,
+            (Vec3::ZERO, 0),
+            generation,
+            settings,
+        )
     }
 
     #[test]
@@ -371,7 +380,7 @@ mod tests {
                 &[light(w, 1.0, 0)],
                 &[],
                 0,
-                Vec3::ZERO,
+                (Vec3::ZERO, 0),
                 1,
                 &settings,
             )
@@ -393,8 +402,9 @@ mod tests {
     fn another_clouds_shadow_recasts_without_reshading() {
         let settings = CloudQualitySettings::default();
         let two = [light(Vec3::X, 1.0, 0), light(Vec3::Y, 2.0, 1)];
-        let cast =
-            |casts: &[u64]| StageKeys::new(&params(), &two, casts, 0, Vec3::ZERO, 1, &settings);
+        let cast = |casts: &[u64]| {
+            StageKeys::new(&params(), &two, casts, 0, (Vec3::ZERO, 0), 1, &settings)
+        };
         let mut state = CloudIllumination::default();
         // The first frame: both shaded; light 1 has casters, so it is cast too.
         state.update(cast(&[0, 7]), &settings);

@@ -19,6 +19,7 @@ use bevy::{
 
 use super::{
     gpu::storage,
+    ground::ground_map_bytes,
     volumes::{CloudParams, DensityLevels, LightParams},
 };
 
@@ -228,6 +229,9 @@ pub struct VolumePool {
     /// vec2 per voxel of the scattering grid: other clouds' media there (extinction, scattering;
     /// [`overlap`](super::overlap)).
     pub foreign: Buffer,
+    /// `GroundMap` per slot: the ground under the cloud and its radiance
+    /// ([`ground`](super::ground)).
+    pub ground: Buffer,
 }
 
 impl VolumePool {
@@ -253,10 +257,11 @@ impl VolumePool {
             multiple: storage(device, "particle_clouds_multiple", b.multiple * c),
             order_ratios: storage(device, "particle_clouds_order_ratios", 16 * c),
             foreign: storage(device, "particle_clouds_foreign", b.foreign * c),
+            ground: storage(device, "particle_clouds_ground", ground_map_bytes() * c),
         }
     }
 
-    fn buffers(&self) -> [&Buffer; 11] {
+    fn buffers(&self) -> [&Buffer; 12] {
         [
             &self.slots,
             &self.lights,
@@ -269,6 +274,7 @@ impl VolumePool {
             &self.multiple,
             &self.order_ratios,
             &self.foreign,
+            &self.ground,
         ]
     }
 
@@ -394,6 +400,12 @@ impl VolumePool {
         let b = self.shape.bytes();
         let size = LightParams::min_size().get() * self.shape.lights.max(1) as u64;
         Self::range(&self.lights, index, b.lights, 0, size)
+    }
+
+    /// Slot `index`'s `GroundMap`.
+    pub fn ground(&self, index: u32) -> BufferRange {
+        let size = ground_map_bytes();
+        Self::range(&self.ground, index, size, 0, size)
     }
 
     /// Slot `index`'s closure ratio.

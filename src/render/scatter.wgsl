@@ -4,18 +4,20 @@
 // An anisotropic medium's volumes hold angular moments beside their means (shader def MOMENTS):
 // the sweep's source takes the P1 phase function of the transformed medium, and each order's
 // flux (and in `multiple` the quadrupole) is gathered from the radiance of every direction.
-#import bevy_particle_clouds::types::{CloudParams, Slot, voxel_index, flat_invocation, flux_element, quadrupole_element, quadrupole_basis}
+#import bevy_particle_clouds::types::{CloudParams, Slot, GroundMap, GROUND_MAP_SIDE, voxel_index, flat_invocation, flux_element, quadrupole_element, quadrupole_basis, affine_point, affine_vector}
 
 // One direction pair (o, -o) of the discrete-ordinates sweep, o's first non-zero component
 // positive; `first` is 1 for the first of an iteration's 13 dispatches (it overwrites S_{n+1});
 // `accumulate` is 0 for the first sweep of a warm restart, which leaves `multiple` alone; `sky`
-// is the radiance entering the grid from outside: the sky's in the first iteration of a series
-// (so S_1 = K S_0 + the sky's single scattering), else 0.
+// is the sky's radiance and `boundary` 1 in the first iteration of a series, where the light
+// entering the grid from outside (the sky's, and the ground's on lines that climb) comes in (so
+// S_1 = K S_0 + their single scattering); else 0 and nothing enters.
 struct SweepDirection {
     o: vec3<i32>,
     first: u32,
     accumulate: u32,
     sky: vec3<f32>,
+    boundary: u32,
 }
 
 @group(0) @binding(0) var<storage, read> slots: array<Slot>;
@@ -28,12 +30,16 @@ struct SweepDirection {
 @group(0) @binding(6) var<storage, read> work: array<u32>;
 // Other clouds' media per voxel (overlap.wgsl), read where `cloud.foreign` is 1.
 @group(0) @binding(7) var<storage, read> foreign: array<vec2<f32>>;
+// Per slot, the ground under the cloud and its radiance (ground.wgsl).
+@group(0) @binding(8) var<storage, read> grounds: array<GroundMap>;
 
+var<private> slot_index: u32;
 var<private> slot: Slot;
 var<private> cloud: CloudParams;
 
 fn begin(item: u32) {
-    slot = slots[work[item]];
+    slot_index = work[item];
+    slot = slots[slot_index];
     cloud = slot.cloud;
 }
 
@@ -83,14 +89,51 @@ fn segment_weights(tau: f32) -> vec2<f32> {
     return vec2(1.0 - e, (1.0 - e) / tau - e);
 }
 
+// The ground's radiance at world (x, z): bilinear in the cloud's ground map, its edge texels
+// extending outwards.
+fn ground_radiance(xz: vec2<f32>) -> vec3<f32> {
+    let plane = grounds[slot_index].plane;
+    let side = f32(GROUND_MAP_SIDE);
+    let c = clamp((xz - plane.yz + vec2(plane.w)) / (2.0 * plane.w) * side - 0.5, vec2(0.0), vec2(side - 1.0));
+    let base = min(vec2<u32>(floor(c)), vec2(GROUND_MAP_SIDE - 2u));
+    let f = c - vec2<f32>(base);
+    let at = base.x + GROUND_MAP_SIDE * base.y;
+    let row0 = mix(grounds[slot_index].radiance[at].xyz, grounds[slot_index].radiance[at + 1u].xyz, f.x);
+    let row1 = mix(grounds[slot_index].radiance[at + GROUND_MAP_SIDE].xyz, grounds[slot_index].radiance[at + GROUND_MAP_SIDE + 1u].xyz, f.x);
+    return mix(row0, row1, f.y);
+}
+
+// The radiance entering the grid on a lattice line whose first voxel is `v`, travelling along
+// the cloud-local unit direction w, `half_step` before that voxel's centre: nothing but in an
+// iteration that brings the boundary in; then the sky's, or where a ground lights the cloud and
+// the line climbs (in the world), the ground's where the line, continued backwards, meets it.
+fn entering(v: vec3<u32>, w: vec3<f32>, half_step: f32) -> vec3<f32> {
+    if direction.boundary == 0u {
+        return vec3(0.0);
+    }
+    let ground = grounds[slot_index].reflectance.w != 0.0;
+    let to_world = grounds[slot_index].world_from_local;
+    let travel = affine_vector(to_world, w);
+    if !ground || travel.y <= 0.0 {
+        return direction.sky;
+    }
+    let p = cloud.grid_origin + (vec3<f32>(v) + 0.5) * cloud.h - w * half_step;
+    let entry = affine_point(to_world, p);
+    let t = max(entry.y - grounds[slot_index].plane.x, 0.0) / travel.y;
+    return ground_radiance(entry.xz - travel.xz * t);
+}
+
 // The voxel at position t along a lattice line: `start` is the line's point at t = 0 in the
 // frame where o has no negative component (`flip` marks the mirrored axes).
-fn line_voxel(start: vec3<i32>, t: i32, flip: vec3<bool>) -> u32 {
+fn line_position(start: vec3<i32>, t: i32, flip: vec3<bool>) -> vec3<u32> {
     let n = i32(cloud.n);
     let step = vec3<i32>(abs(direction.o));
     let mirrored = start + t * step;
-    let v = select(mirrored, vec3(n - 1) - mirrored, flip);
-    return voxel_index(vec3<u32>(v), cloud.n);
+    return vec3<u32>(select(mirrored, vec3(n - 1) - mirrored, flip));
+}
+
+fn line_voxel(start: vec3<i32>, t: i32, flip: vec3<bool>) -> u32 {
+    return voxel_index(line_position(start, t, flip), cloud.n);
 }
 
 // Radiance arriving at a voxel from its upwind neighbour's side: what arrived there, attenuated
@@ -183,8 +226,8 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
     let half_step = 0.5 * cloud.h * length(vec3<f32>(o));
     // The direction the radiance arriving from the +o side travels in.
     let w = -normalize(vec3<f32>(o));
-    // Against o: radiance arriving from the +o side, `sky` entering the grid.
-    var radiance = direction.sky;
+    // Against o: radiance arriving from the +o side, the boundary's entering the grid.
+    var radiance = entering(line_position(start, t1 - 1, flip), w, half_step);
     var m_up = vec2(0.0);
     var s_up = vec3(0.0);
     for (var t = t1 - 1; t >= t0; t--) {
@@ -197,7 +240,7 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
         s_up = s;
     }
     // Along o: radiance arriving from the -o side.
-    radiance = direction.sky;
+    radiance = entering(line_position(start, t0, flip), -w, half_step);
     m_up = vec2(0.0);
     s_up = vec3(0.0);
     for (var t = t0; t < t1; t++) {

@@ -26,6 +26,8 @@ pub struct CloudShaders {
     pub gather: Handle<Shader>,
     /// `overlap.wgsl`.
     pub overlap: Handle<Shader>,
+    /// `ground.wgsl`.
+    pub ground: Handle<Shader>,
     /// `scatter.wgsl`.
     pub scatter: Handle<Shader>,
     /// `closure.wgsl`.
@@ -52,6 +54,7 @@ impl CloudShaders {
         embedded_asset!(app, "cast.wgsl");
         embedded_asset!(app, "gather.wgsl");
         embedded_asset!(app, "overlap.wgsl");
+        embedded_asset!(app, "ground.wgsl");
         embedded_asset!(app, "scatter.wgsl");
         embedded_asset!(app, "closure.wgsl");
         embedded_asset!(app, "sort.wgsl");
@@ -67,6 +70,7 @@ impl CloudShaders {
             cast: load_embedded_asset!(&*app, "cast.wgsl"),
             gather: load_embedded_asset!(&*app, "gather.wgsl"),
             overlap: load_embedded_asset!(&*app, "overlap.wgsl"),
+            ground: load_embedded_asset!(&*app, "ground.wgsl"),
             scatter: load_embedded_asset!(&*app, "scatter.wgsl"),
             closure: load_embedded_asset!(&*app, "closure.wgsl"),
             sort: load_embedded_asset!(&*app, "sort.wgsl"),

@@ -289,3 +289,39 @@ fn relative_depth_difference(a: f32, b: f32) -> f32 {
     }
     return abs(a - b) / far;
 }
+
+// Texels per side of a cloud's ground map (Rust: `ground::GROUND_MAP_SIDE`).
+const GROUND_MAP_SIDE: u32 = 32u;
+
+// A cloud's ground (docs/illumination.md §4, "The ground"): where the plane under it lies, and
+// per texel of a map of it the radiance it reflects. The CPU writes the frame, the ground pass
+// the radiance. Rust mirror of the frame: `GroundFrame` in src/render/ground.rs.
+struct GroundMap {
+    // Rows of the cloud's world-from-local affine map (translation in w), and of its inverse.
+    world_from_local: array<vec4<f32>, 3>,
+    local_from_world: array<vec4<f32>, 3>,
+    // The plane's world height (x); the map's centre, world x and z (y, z); its half-width (w).
+    // Metres.
+    plane: vec4<f32>,
+    // Lambertian reflectance (xyz); w: 1 when a ground lights the cloud, else 0.
+    reflectance: vec4<f32>,
+    // The sky's radiance (xyz), which the ground reflects.
+    sky: vec4<f32>,
+    // Texel i + GROUND_MAP_SIDE j (i along world x, j along z): the ground's radiance (xyz).
+    radiance: array<vec4<f32>, 1024>,
+}
+
+fn affine_point(rows: array<vec4<f32>, 3>, p: vec3<f32>) -> vec3<f32> {
+    let q = vec4(p, 1.0);
+    return vec3(dot(rows[0], q), dot(rows[1], q), dot(rows[2], q));
+}
+
+fn affine_vector(rows: array<vec4<f32>, 3>, v: vec3<f32>) -> vec3<f32> {
+    return vec3(dot(rows[0].xyz, v), dot(rows[1].xyz, v), dot(rows[2].xyz, v));
+}
+
+// World (x, z) of texel (i, j)'s centre.
+fn ground_texel_centre(plane: vec4<f32>, texel: vec2<u32>) -> vec2<f32> {
+    let size = 2.0 * plane.w / f32(GROUND_MAP_SIDE);
+    return plane.yz - vec2(plane.w) + (vec2<f32>(texel) + 0.5) * size;
+}

@@ -18,6 +18,7 @@ use super::{
     cast::{CloudSphere, WorldCloud, casters_of, casts_on},
     extract::{CloudLight, ExtractedCloud, ExtractedCloudLights},
     gpu::{dynamic_uniform, storage, storage_bytes, uniform, uniform_bytes},
+    ground::{ground_frame, ground_key, ground_map_bytes},
     overlap::{neighbours_of, overlaps},
     particles::{CloudBounds, GpuParticles},
     plan::{CloudIllumination, StageKeys, plan},
@@ -590,13 +591,14 @@ fn plan_cloud(
     // Slot i shades the i-th light (none: the cloud only absorbs, and the plan zeroes its
     // multiple scattering once).
     let light_params = light_params(&params, cloud, lights);
+    let ground = ground_frame(cloud, &params, lights.ground.as_ref(), lights.sky);
     state.update(
         StageKeys::new(
             &params,
             &light_params,
             &others.cast_keys,
             others.media,
-            lights.sky,
+            (lights.sky, ground_key(&ground)),
             gpu.generation,
             &cloud.settings,
         ),
@@ -628,6 +630,10 @@ fn plan_cloud(
     if !light_params.is_empty() {
         let first = slot.lights as u64 * LightParams::min_size().get();
         queue.write_buffer(&pool.lights, first, &storage_bytes(&light_params));
+    }
+    if state.plan.scatter.is_some() {
+        let at = index as u64 * ground_map_bytes();
+        queue.write_buffer(&pool.ground, at, &storage_bytes(&[ground]));
     }
     volumes.lights = light_params;
 }
@@ -691,12 +697,13 @@ fn frame_keys(
     media: u64,
 ) -> StageKeys {
     let params = cloud_params(cloud, gpu, bounds, lights);
+    let ground = ground_frame(cloud, &params, lights.ground.as_ref(), lights.sky);
     StageKeys::new(
         &params,
         &light_params(&params, cloud, lights),
         casts,
         media,
-        lights.sky,
+        (lights.sky, ground_key(&ground)),
         gpu.generation,
         &cloud.settings,
     )

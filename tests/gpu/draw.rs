@@ -15,7 +15,8 @@ use bevy::{
 use bevy_particle_clouds::fog::{Falloff, Fog};
 use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
-    CloudPass, CloudQualitySettings, CloudSkyLight, Compositing, LightSample, Medium, Particle,
+    CloudGround, CloudPass, CloudQualitySettings, CloudSkyLight, Compositing, LightSample, Medium,
+    Particle,
     generators::SplitMix64,
     image_io::LinearImage,
     reference::{
@@ -23,7 +24,7 @@ use bevy_particle_clouds::{
         composite::{
             BillboardCloud, BillboardCompositing, CloudPlacement, ViewFog, composite_fogged,
         },
-        illumination::{PlacedCloud, illuminate_clouds_under_sky},
+        illumination::{PlacedCloud, illuminate_clouds_over_ground},
         metrics::relative_rmse,
     },
     render::gpu::StagePass,
@@ -150,6 +151,9 @@ pub(crate) struct Setup {
     pub(crate) sky: Vec3,
     /// The camera's `DistanceFog`: none but in the fog test.
     pub(crate) fog: Option<Fog>,
+    /// The ground that lights the clouds from below ([`CloudGround`]): none but in the ground
+    /// tests.
+    pub(crate) ground: Option<CloudGround>,
     pub(crate) settings: CloudQualitySettings,
 }
 
@@ -175,6 +179,9 @@ pub(crate) fn spawn_clouds(setup: &Setup, clouds: &[SetupCloud]) -> (App, SceneT
 /// `app` with the setup's camera, lights and objects, and these clouds.
 pub(crate) fn spawn_into(mut app: App, setup: &Setup, clouds: &[SetupCloud]) -> (App, SceneTarget) {
     app.insert_resource(CloudSkyLight::from_radiance(setup.sky));
+    if let Some(ground) = setup.ground {
+        app.insert_resource(ground);
+    }
     let image = headless::float_target(&mut app, W, H);
     let camera =
         headless::spawn_linear_camera(&mut app, image.clone(), setup.camera, FOV, setup.background);
@@ -247,7 +254,8 @@ pub(crate) fn reference_of_clouds(setup: &Setup, clouds: &[SetupCloud]) -> Vec<[
         })
         .collect();
     let sky = setup.sky.as_dvec3();
-    let illuminations: Vec<_> = illuminate_clouds_under_sky(&placed, &setup.lights, sky)
+    let ground = setup.ground.as_ref();
+    let illuminations: Vec<_> = illuminate_clouds_over_ground(&placed, &setup.lights, sky, ground)
         .into_iter()
         .map(|i| i.expect("a cloud with density"))
         .collect();
@@ -297,7 +305,7 @@ pub(crate) fn reference_of_clouds(setup: &Setup, clouds: &[SetupCloud]) -> Vec<[
 }
 
 /// A cloud's `Transform` (uniform scale) as the CPU reference places clouds.
-fn placement(transform: &Transform) -> CloudPlacement {
+pub(crate) fn placement(transform: &Transform) -> CloudPlacement {
     CloudPlacement {
         translation: transform.translation.as_dvec3(),
         rotation: transform.rotation.as_dquat(),
@@ -336,6 +344,7 @@ pub(crate) fn cloud_setup(seed: u64, camera: Transform) -> Setup {
         background: Vec3::new(0.05, 0.1, 0.2),
         sky: Vec3::ZERO,
         fog: None,
+        ground: None,
         settings: common::quality(16, 4),
     }
 }
@@ -490,6 +499,7 @@ fn two_overlapping_particles_composite_alike_from_either_side_in_either_order() 
                 background: Vec3::ZERO,
                 sky: Vec3::ZERO,
                 fog: None,
+                ground: None,
                 settings: common::quality(16, 2),
             };
             setup.settings.compositing = compositing;

@@ -7,6 +7,7 @@ mod budget;
 mod cloud_target;
 mod common;
 mod draw;
+mod ground;
 mod illumination;
 mod lit_objects;
 mod loader;
