@@ -147,6 +147,10 @@ pub(crate) struct Args {
     /// shadows costs and what its absence does to the error.
     #[arg(long)]
     pub(crate) no_cloud_shadows: bool,
+    /// No ground lights the clouds from below (no `CloudGround`, though the scene has lit
+    /// objects): what the ground's light costs and what its absence does to the error.
+    #[arg(long)]
+    pub(crate) no_ground: bool,
     /// Texels per side of the cloud shadow maps of scenes with lit objects (default: each
     /// scene's `shadow_map_resolution`).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]
@@ -283,6 +287,9 @@ fn run() -> Result<(), String> {
         let mut b = Bench::with_shadow_maps(&scene, args.shadow_map_resolution);
         if args.no_cloud_shadows {
             b.without_cloud_shadows();
+        }
+        if args.no_ground {
+            b.without_ground();
         }
         adapter = b.adapter.clone();
         let _ = WALL_AXIS.set(adapter.contains("llvmpipe"));

@@ -187,6 +187,12 @@ impl Bench {
         }
     }
 
+    /// No ground lights the clouds (`CloudGround` removed).
+    pub(crate) fn without_ground(&mut self) {
+        let world = self.app.world_mut();
+        world.remove_resource::<bevy_particle_clouds::CloudGround>();
+    }
+
     /// Marks every cloud's particles changed: the next frame reruns every pass.
     pub(crate) fn touch_particles(&mut self) {
         for (_, handle) in &self.clouds {
