@@ -4,7 +4,7 @@
 //! Every particle is a camera-facing disc whose opacity along a pixel ray is `1 - exp(-tau)`, `tau`
 //! the optical depth of the ray's chord through the particle's sphere. Its colour is the
 //! scattered light along that chord, cut into `K` equal segments. Two compositings
-//! ([`Compositing`](crate::settings::Compositing)):
+//! ([`Compositing`]):
 //!
 //! - view transmittance: each segment's light is seen through the whole cloud's optical depth
 //!   towards the camera (a [`ViewVolume`]), shares the segment's extinction with the other
@@ -94,7 +94,7 @@ pub struct BillboardCloud<'a> {
     pub compositing: BillboardCompositing<'a>,
 }
 
-/// [`Compositing`](crate::settings::Compositing) with what it needs.
+/// [`Compositing`] with what it needs.
 #[derive(Clone, Copy)]
 pub enum BillboardCompositing<'a> {
     /// Through the view transmittance marched in this fine density grid (cloud-local, `rho`).

@@ -265,7 +265,7 @@ fn support_bounds(particles: &[Particle]) -> Option<(DVec3, DVec3)> {
 /// which its radius spans at most 16 voxels, [`density_level`]): large particles (`r >= h`) spread it
 /// with kernel-shaped weights over the level's voxel centres inside their support, sub-voxel
 /// particles (`r < h`) with the trilinear weights of their centre. The levels are then enlarged
-/// into the fine grid, coarsest first ([`upsample_into`]), which keeps their mass. Returns `None`
+/// into the fine grid, coarsest first (`upsample_into`), which keeps their mass. Returns `None`
 /// when no particle has `density > 0` (there is no medium to bound). Panics if `n == 0`.
 pub fn voxelize(particles: &[Particle], n: usize) -> Option<DensityGrid> {
     assert!(n > 0, "volume resolution must be > 0");
