@@ -21,7 +21,7 @@ use bevy::{math::Affine3A, prelude::*};
 #[derive(Resource, Clone, Copy, Debug, PartialEq, Reflect)]
 #[reflect(Resource, Default, Debug, PartialEq)]
 pub struct CloudGround {
-    /// World height of the plane, metres (its `y`). Default 0.
+    /// World height of the plane, metres (its `y`), within ±[`MAX_GROUND_HEIGHT`]. Default 0.
     pub height: f32,
     /// Lambertian reflectance (albedo), linear RGB, each in `[0, 1]`. Default 0.3, bare soil and
     /// grass.
@@ -40,9 +40,9 @@ impl Default for CloudGround {
 impl CloudGround {
     /// Itself, or why it is refused (the field, its value and what is allowed).
     pub fn validate(&self) -> Result<Self, String> {
-        if !self.height.is_finite() {
+        if !(self.height.abs() <= MAX_GROUND_HEIGHT) {
             return Err(format!(
-                "`CloudGround::height` is {}; it must be finite",
+                "`CloudGround::height` is {} m; it must be within ±{MAX_GROUND_HEIGHT:e} m",
                 self.height
             ));
         }
@@ -55,6 +55,10 @@ impl CloudGround {
         Ok(*self)
     }
 }
+
+/// The largest `|CloudGround::height|`, metres: far beyond any world, and far enough from f32's
+/// range that the map under a cloud stays finite.
+pub const MAX_GROUND_HEIGHT: f32 = 1e9;
 
 /// Texels per side of a cloud's ground map.
 pub const GROUND_MAP_SIDE: u32 = 32;
@@ -146,7 +150,16 @@ mod tests {
         assert!(
             high.validate()
                 .unwrap_err()
-                .contains("`CloudGround::height` is NaN")
+                .contains("`CloudGround::height` is NaN m")
+        );
+        let deep = CloudGround {
+            height: -3e38,
+            ..default()
+        };
+        let problem = deep.validate().unwrap_err();
+        assert!(
+            problem.contains("height` is -3") && problem.contains("±1e9 m"),
+            "{problem}"
         );
         let bright = CloudGround {
             reflectance: Vec3::new(0.2, 1.5, 0.2),

@@ -380,8 +380,13 @@ fn invalid_values_through_the_api_are_refused_and_others_render() {
         },
         2.0,
     );
-    // A sky that is not finite is refused (taken as black): the valid cloud still renders.
+    // A sky that is not finite is refused (taken as black), and so is a ground beyond the
+    // range (taken as none): the valid cloud still renders.
     app.insert_resource(CloudSkyLight::from_radiance(Vec3::new(0.1, f32::NAN, -1.0)));
+    app.insert_resource(bevy_particle_clouds::CloudGround {
+        height: f32::NEG_INFINITY,
+        reflectance: Vec3::new(0.3, 2.0, f32::NAN),
+    });
     let mut frames = FrameRecorder::default();
     for _ in 0..5 {
         frames.frame(&mut app).unwrap();
@@ -394,6 +399,6 @@ fn invalid_values_through_the_api_are_refused_and_others_render() {
     let shot = headless::capture(&mut app, &mut frames, &image).unwrap();
     assert!(
         shot.pixels.iter().flatten().all(|v| v.is_finite()),
-        "a refused sky leaves no NaN"
+        "a refused sky or ground leaves no NaN"
     );
 }
