@@ -510,18 +510,12 @@ impl Scene {
     /// the horizontal plane [`CloudGround`](crate::CloudGround); `None` without one. The path
     /// tracer needs none: its light reflects off every lit object as it is.
     pub fn cloud_ground(&self) -> Option<crate::CloudGround> {
-        let width = |o: &&SceneObject| match o.shape {
-            ObjectShape::Cuboid(size) => size.x * size.z,
-            ObjectShape::Sphere(_) => 0.0,
-        };
-        let widest = self
-            .objects
-            .iter()
-            .filter(|o| o.reflectance.max_element() > 0.0 && width(o) > 0.0)
-            .max_by(|a, b| width(a).total_cmp(&width(b)))?;
-        let ObjectShape::Cuboid(size) = widest.shape else {
-            return None;
-        };
+        let lit_cuboids = self.objects.iter().filter_map(|o| match o.shape {
+            ObjectShape::Cuboid(size) if o.reflectance.max_element() > 0.0 => Some((size, o)),
+            _ => None,
+        });
+        let (size, widest) =
+            lit_cuboids.max_by(|(a, _), (b, _)| (a.x * a.z).total_cmp(&(b.x * b.z)))?;
         Some(crate::CloudGround {
             height: widest.translation.y + 0.5 * size.y,
             reflectance: widest.reflectance,
