@@ -492,6 +492,7 @@ fn run_headless(
         return Err("the rendered picture has non-finite pixels".into());
     }
     image_io::write_image(&picture, path).map_err(|e| e.to_string())?;
+    eprintln!("{}: {}", example.title, last_gpu_times(&recorder));
     eprintln!(
         "{}: wrote {} ({}x{}) in {:.1} s",
         example.title,
@@ -501,6 +502,23 @@ fn run_headless(
         start.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// Each pass's GPU time in the last recorded frame that ran it, as the on-screen text shows them.
+fn last_gpu_times(recorder: &FrameRecorder) -> String {
+    let times: Vec<String> = CloudPass::ALL
+        .iter()
+        .map(|&pass| {
+            let ms = recorder
+                .frames
+                .iter()
+                .rev()
+                .find_map(|frame| frame.gpu_ms.get(&pass));
+            let ms = ms.map_or("-".to_string(), |ms| format!("{ms:.1}"));
+            format!("{} {ms}", pass.name())
+        })
+        .collect();
+    format!("GPU ms, each pass's last run: {}", times.join(", "))
 }
 
 /// Clouds whose particles are loaded and carry density.
