@@ -504,7 +504,8 @@ fn run_headless(
     Ok(())
 }
 
-/// Each pass's GPU time in the last recorded frame that ran it, as the on-screen text shows them.
+/// Each pass's GPU time in the last recorded frame that ran it (the on-screen text shows them
+/// smoothed over frames).
 fn last_gpu_times(recorder: &FrameRecorder) -> String {
     let times: Vec<String> = CloudPass::ALL
         .iter()
