@@ -163,6 +163,15 @@ pub(crate) const SCENES: &[BenchScene] = &[
         quick: false,
     },
     BenchScene {
+        name: "clouds_in_depth",
+        // Its second cloud reads paper_3100.ply, which `load_scene` writes from paper_3100.
+        particle_file: "cumulus.csv",
+        generate: cumulus_2000,
+        error_downsample: 2,
+        spp: 2048,
+        quick: false,
+    },
+    BenchScene {
         name: "cloud_over_ground",
         particle_file: "cumulus.csv",
         generate: cumulus_2000,

@@ -165,6 +165,19 @@ fn sort_cloud<'a>(camera: &PinholeCamera, cloud: &'a BillboardCloud<'a>) -> Sort
     }
 }
 
+/// Fills each view volume's front map from the other clouds' volumes wholly in front of it, as
+/// the GPU does once per view.
+fn sum_fronts(sorted: &mut [SortedCloud]) {
+    let views: Vec<ViewVolume> = sorted.iter().filter_map(|s| s.view.clone()).collect();
+    for view in sorted.iter_mut().filter_map(|s| s.view.as_mut()) {
+        let fronts: Vec<&ViewVolume> = views
+            .iter()
+            .filter(|v| v.wholly_in_front_of(view))
+            .collect();
+        view.sum_front(fronts.into_iter());
+    }
+}
+
 /// `F(s) = q² s - 2 q s³ / (3 R²) + s⁵ / (5 R⁴)`, the antiderivative of `(q - s²/R²)²`.
 fn chord_antiderivative(q: f64, r: f64, s: f64) -> f64 {
     let (r2, s2) = (r * r, s * s);
@@ -375,9 +388,16 @@ fn shade_ray<'c>(
             }
             continue;
         }
-        let view_depth = |x: DVec3| views.iter().map(|v| v.optical_depth_at(x)).sum::<f64>();
         let (mut light, mut transmittance) = (DVec3::ZERO, 1.0);
         for (sorted, billboards) in run {
+            // The clouds wholly in front of this one through its front map, the others looked up.
+            let Some(own) = sorted.view.as_ref() else {
+                continue;
+            };
+            let view_depth = |x: DVec3| {
+                let others = views.iter().filter(|v| !v.wholly_in_front_of(own));
+                own.front_at(x) + others.map(|v| v.optical_depth_at(x)).sum::<f64>()
+            };
             for (bb, chord, cloud) in visible(sorted, billboards) {
                 let (l, alpha) =
                     particle_light_through_view(camera, w, bb, &chord, cloud, &view_depth, seen);
@@ -448,7 +468,8 @@ pub fn composite_fogged(
     exposure: f64,
     fog: Option<ViewFog>,
 ) -> Vec<[f32; 4]> {
-    let sorted: Vec<SortedCloud> = clouds.iter().map(|c| sort_cloud(camera, c)).collect();
+    let mut sorted: Vec<SortedCloud> = clouds.iter().map(|c| sort_cloud(camera, c)).collect();
+    sum_fronts(&mut sorted);
     let width = camera.width as usize;
     let mut image = vec![[0.0f32; 4]; width * camera.height as usize];
     image

@@ -30,6 +30,9 @@ pub struct ViewVolume {
     pub d: usize,
     /// World optical depth at node `(i, j, k)`, index `i + n (j + n k)`.
     pub optical_depth: Vec<f64>,
+    /// The front map: at column `(i, j)`, index `i + n j`, the optical depth along its ray of the
+    /// clouds wholly in front of this one ([`Self::sum_front`]); empty when none is.
+    pub front: Vec<f64>,
 }
 
 /// The cube of `fine` in world space, its 8 corners.
@@ -131,7 +134,87 @@ impl ViewVolume {
             n,
             d,
             optical_depth,
+            front: Vec::new(),
         })
+    }
+
+    /// Whether this cloud lies wholly in front of `behind`: its last slice before the other's
+    /// first, so all of its optical depth along a ray is in front of every point of `behind`.
+    pub fn wholly_in_front_of(&self, behind: &ViewVolume) -> bool {
+        self.depth[1] <= behind.depth[0]
+    }
+
+    /// View-space tangents `(u, v)` and depth of world point `x`.
+    fn tangents(&self, x: DVec3) -> (f64, f64, f64) {
+        let p = x - self.eye;
+        let z = p.dot(self.basis[2]);
+        (p.dot(self.basis[0]) / z, p.dot(self.basis[1]) / z, z)
+    }
+
+    /// The four columns about the ray of tangents `(u, v)`, clamped to the rectangle of rays:
+    /// `(i, j, weight)`.
+    fn columns(&self, u: f64, v: f64) -> [(usize, usize, f64); 4] {
+        let r = &self.rect;
+        let at = |t: f64| {
+            let g = (t * (self.n - 1) as f64).clamp(0.0, (self.n - 1) as f64);
+            let i = (g.floor() as usize).min(self.n - 2);
+            (i, g - i as f64)
+        };
+        let ((i, fu), (j, fv)) = (
+            at((u - r[0]) / (r[1] - r[0])),
+            at((v - r[2]) / (r[3] - r[2])),
+        );
+        [
+            (i, j, (1.0 - fu) * (1.0 - fv)),
+            (i + 1, j, fu * (1.0 - fv)),
+            (i, j + 1, (1.0 - fu) * fv),
+            (i + 1, j + 1, fu * fv),
+        ]
+    }
+
+    /// Optical depth along the whole ray of tangents `(u, v)`: bilinear in the last slice, 0 off
+    /// the rectangle of rays.
+    pub fn along(&self, u: f64, v: f64) -> f64 {
+        let r = &self.rect;
+        if u < r[0] || u > r[1] || v < r[2] || v > r[3] {
+            return 0.0;
+        }
+        let last = self.n * self.n * (self.d - 1);
+        self.columns(u, v)
+            .iter()
+            .map(|&(i, j, w)| w * self.optical_depth[last + i + self.n * j])
+            .sum()
+    }
+
+    /// Fills the front map from the clouds wholly in front of this one: at each column, the sum
+    /// of their optical depth along its ray. The GPU sums it once per view (`sum_front`), so each
+    /// pixel reads it instead of looking each of them up.
+    pub fn sum_front<'v>(&mut self, fronts: impl Iterator<Item = &'v ViewVolume>) {
+        let fronts: Vec<&ViewVolume> = fronts.collect();
+        if fronts.is_empty() {
+            self.front.clear();
+            return;
+        }
+        let n = self.n;
+        self.front = (0..n * n)
+            .map(|c| {
+                let u = node(c % n, n, self.rect[0], self.rect[1]);
+                let v = node(c / n, n, self.rect[2], self.rect[3]);
+                fronts.iter().map(|f| f.along(u, v)).sum()
+            })
+            .collect();
+    }
+
+    /// The front map at world point `x`'s ray: bilinear, clamped to the rectangle of rays.
+    pub fn front_at(&self, x: DVec3) -> f64 {
+        if self.front.is_empty() {
+            return 0.0;
+        }
+        let (u, v, _) = self.tangents(x);
+        self.columns(u, v)
+            .iter()
+            .map(|&(i, j, w)| w * self.front[i + self.n * j])
+            .sum()
     }
 
     /// Optical depth from the camera to world point `x`: trilinear between nodes, clamped to the
@@ -139,9 +222,7 @@ impl ViewVolume {
     /// of rays, whose edges only graze the cloud's cube (the view volume of another cloud is
     /// looked up there).
     pub fn optical_depth_at(&self, x: DVec3) -> f64 {
-        let p = x - self.eye;
-        let z = p.dot(self.basis[2]);
-        let (u, v) = (p.dot(self.basis[0]) / z, p.dot(self.basis[1]) / z);
+        let (u, v, z) = self.tangents(x);
         let r = &self.rect;
         if z <= self.depth[0] || u < r[0] || u > r[1] || v < r[2] || v > r[3] {
             return 0.0;

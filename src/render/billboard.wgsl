@@ -15,7 +15,7 @@
 //
 // DISTANCE_FOG: every piece of every chord is fogged at its own distance (fog.wgsl).
 #import bevy_particle_clouds::fog::{CloudFog, fog_colour, fogged}
-#import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, ViewVolumeParams, CloudTargetParams, grid_coords, henyey_greenstein, flux_element, quadrupole_element, quadrupole_weights, light_coords, clamped_lookup, clamped_corner, corner_weight, opacity, voxel_index, view_volume_coords, cloud_target_depth_pixel}
+#import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, ViewVolumeParams, CloudTargetParams, grid_coords, henyey_greenstein, flux_element, quadrupole_element, quadrupole_weights, light_coords, clamped_lookup, clamped_corner, corner_weight, opacity, voxel_index, view_volume_coords, front_map_index, view_columns, column_corner, cloud_target_depth_pixel}
 
 struct DrawParams {
     world_from_local: mat4x4<f32>,
@@ -307,24 +307,37 @@ fn optical_depth_along(k: u32, uv: vec2<f32>) -> f32 {
     if any(uv < rect.xz) || any(uv > rect.yw) {
         return 0.0;
     }
-    let n = view_volumes[k].n;
-    let first = view_volumes[k].offset;
-    let g = clamp((uv - rect.xz) / (rect.yw - rect.xz), vec2(0.0), vec2(1.0)) * f32(n - 1u);
-    let base = min(vec2<u32>(floor(g)), vec2(n - 2u));
-    let f = g - vec2<f32>(base);
+    let volume = view_volumes[k];
+    let n = volume.n;
+    let columns = view_columns(volume, uv);
     var tau = 0.0;
-    for (var corner = 0u; corner < 4u; corner++) {
-        let o = vec2<u32>(corner & 1u, corner >> 1u);
-        let w = select(1.0 - f, f, vec2<bool>(o));
-        tau += w.x * w.y * view_optical_depth[first + voxel_index(vec3(base + o, n - 1u), n)];
+    for (var c = 0u; c < 4u; c++) {
+        let corner = column_corner(columns, c);
+        tau += corner.weight * view_optical_depth[volume.offset + voxel_index(vec3(corner.column, n - 1u), n)];
+    }
+    return tau;
+}
+
+// Optical depth along the ray of tangent `uv` of the neighbours wholly in front of this cloud's
+// volume: its front map (view_volume.wgsl, `sum_front`), bilinear.
+fn front_optical_depth(uv: vec2<f32>) -> f32 {
+    if view_volume.front_count == 0u {
+        return 0.0;
+    }
+    let columns = view_columns(view_volume, uv);
+    var tau = 0.0;
+    for (var c = 0u; c < 4u; c++) {
+        let corner = column_corner(columns, c);
+        tau += corner.weight * view_optical_depth[front_map_index(view_volume, corner.column)];
     }
     return tau;
 }
 
 // What the cloud's neighbours hold along one pixel's chord: `front`, the optical depth of those
-// wholly in front of the chord (their last slice before its near end: all of their depth along
-// the ray is in front of every point of it), and `mask`, bit i set for neighbour i < 32 that
-// overlaps the chord in depth and holds some optical depth along the ray (those past 32 are
+// wholly in front of the chord (the front map's, for those in front of the whole volume; then
+// those whose last slice lies before the chord's near end: all of their depth along the ray is
+// in front of every point of it), and `mask`, bit j set for the j-th other neighbour (j < 32)
+// that overlaps the chord in depth and holds some optical depth along the ray (those past 32 are
 // always looked up). A column of nodes' optical depth grows with depth, so one that is 0 at the
 // last slice is 0 all along: what is left out adds exactly nothing. So each chord point looks up
 // only the clouds that interpenetrate it, and the others cost at most one bilinear read per pixel.
@@ -337,9 +350,10 @@ fn neighbours_along(c: Chord) -> RayNeighbours {
     let near = (view.view_from_world * vec4(world_at(c, c.s0), 1.0)).xyz;
     let far = -(view.view_from_world * vec4(world_at(c, c.s1), 1.0)).z;
     let uv = near.xy / -near.z;
-    var r = RayNeighbours(0.0, 0u);
-    for (var i = 0u; i < min(view_volume.neighbour_count, 32u); i++) {
-        let k = neighbours[view_volume.first_neighbour + i];
+    var r = RayNeighbours(front_optical_depth(uv), 0u);
+    let others = view_volume.neighbour_count - view_volume.front_count;
+    for (var j = 0u; j < min(others, 32u); j++) {
+        let k = neighbours[view_volume.first_neighbour + view_volume.front_count + j];
         let depth = view_volumes[k].depth;
         if depth.x >= far {
             continue;
@@ -351,7 +365,7 @@ fn neighbours_along(c: Chord) -> RayNeighbours {
         if depth.y <= -near.z {
             r.front += along;
         } else {
-            r.mask |= 1u << i;
+            r.mask |= 1u << j;
         }
     }
     return r;
@@ -363,11 +377,12 @@ fn neighbours_along(c: Chord) -> RayNeighbours {
 fn view_optical_depth_at(x: vec3<f32>, r: RayNeighbours) -> f32 {
     let p = (view.view_from_world * vec4(x, 1.0)).xyz;
     var tau = r.front;
-    for (var i = 0u; i < view_volume.neighbour_count; i++) {
-        if i < 32u && (r.mask & (1u << i)) == 0u {
+    let others = view_volume.neighbour_count - view_volume.front_count;
+    for (var j = 0u; j < others; j++) {
+        if j < 32u && (r.mask & (1u << j)) == 0u {
             continue;
         }
-        tau += optical_depth_through(neighbours[view_volume.first_neighbour + i], p);
+        tau += optical_depth_through(neighbours[view_volume.first_neighbour + view_volume.front_count + j], p);
     }
     return tau;
 }

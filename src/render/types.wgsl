@@ -246,7 +246,44 @@ struct ViewVolumeParams {
     // clouds may lie in front of some point of this cloud (docs/illumination.md §5).
     first_neighbour: u32,
     neighbour_count: u32,
-    _padding: u32,
+    // The first `front_count` neighbours lie wholly in front of this volume (their last slice
+    // before its first): their optical depth is summed into this volume's front map.
+    front_count: u32,
+}
+
+// Element of column (i, j) of a view volume's front map: after its n^3 optical depths, n^2
+// sums of the optical depth of the neighbours wholly in front of it (src/render/view_volume.rs,
+// `view_volume_len`).
+fn front_map_index(volume: ViewVolumeParams, column: vec2<u32>) -> u32 {
+    let n = volume.n;
+    return volume.offset + n * n * n + column.x + n * column.y;
+}
+
+// The ray of tangent `uv` among a view volume's columns: the lower column of the four about it
+// and the bilinear weights' fractions, clamped to the volume's rectangle of rays.
+struct ViewColumns {
+    base: vec2<u32>,
+    f: vec2<f32>,
+}
+
+fn view_columns(volume: ViewVolumeParams, uv: vec2<f32>) -> ViewColumns {
+    let n = volume.n;
+    let g = clamp((uv - volume.rect.xz) / (volume.rect.yw - volume.rect.xz), vec2(0.0), vec2(1.0)) * f32(n - 1u);
+    let base = min(vec2<u32>(floor(g)), vec2(n - 2u));
+    return ViewColumns(base, g - vec2<f32>(base));
+}
+
+// Corner `c` (0..4: x in bit 0, y in bit 1) of the four columns about a ray, and its bilinear
+// weight.
+struct ColumnCorner {
+    column: vec2<u32>,
+    weight: f32,
+}
+
+fn column_corner(columns: ViewColumns, c: u32) -> ColumnCorner {
+    let o = vec2<u32>(c & 1u, c >> 1u);
+    let w = select(1.0 - columns.f, columns.f, vec2<bool>(o));
+    return ColumnCorner(columns.base + o, w.x * w.y);
 }
 
 // Continuous node coordinates of view-space point `p` (view looks down -z), clamped to the volume.

@@ -16,13 +16,14 @@ use bevy::{
 use super::{
     gpu::{storage, storage_bytes},
     key_of,
-    view_volume::{UNLIT, ViewVolumeParams},
+    view_volume::{UNLIT, ViewVolumeParams, view_volume_len},
 };
 
 /// Every transmittance volume of one view in shared buffers, so that a cloud's billboards can
 /// see through the clouds that overlap it (docs/illumination.md §5, "Overlapping clouds").
 pub struct ViewVolumeAtlas {
-    /// `f32` optical depths from the camera, each volume's `n³` from its `offset`.
+    /// `f32` optical depths from the camera, each volume's `n³` from its `offset`, then its front
+    /// map ([`view_volume_len`]).
     pub optical_depth: Buffer,
     /// Every volume's `ViewVolumeParams`, indexed by the neighbour lists.
     pub volumes: Buffer,
@@ -35,6 +36,11 @@ pub struct ViewVolumeAtlas {
     /// Per cloud, its group: clouds that overlap on screen, directly or through others. A group
     /// is drawn as one (docs/illumination.md §5).
     pub groups: HashMap<Entity, u32>,
+    /// `[volume, n]` of each volume with neighbours wholly in front of it, whose front map
+    /// `sum_front` fills.
+    pub(crate) fronts: Vec<[u32; 2]>,
+    /// The front maps must be summed again: the volumes or their lists changed since.
+    pub(crate) fronts_stale: bool,
 }
 
 /// Every view's [`ViewVolumeAtlas`].
@@ -75,8 +81,15 @@ fn may_hide(front: &ViewVolumeParams, behind: &ViewVolumeParams) -> bool {
     rects_overlap(front.rect, behind.rect) && front.depth.x < behind.depth.y
 }
 
-/// Fills the neighbour range of each entry seen through and returns the lists; groups the
-/// entries by screen overlap (union-find), each entry's group the smallest index in it.
+/// Whether cloud `front` lies wholly in front of cloud `behind`: its last slice before the
+/// other's first, so all of its optical depth along a ray is in front of every point of `behind`.
+fn wholly_in_front(front: &ViewVolumeParams, behind: &ViewVolumeParams) -> bool {
+    front.depth.y <= behind.depth.x
+}
+
+/// Fills the neighbour range of each entry seen through and returns the lists, the neighbours
+/// wholly in front of it first (`front_count` of them); groups the entries by screen overlap
+/// (union-find), each entry's group the smallest index in it.
 pub(crate) fn link_neighbours(entries: &mut [AtlasEntry]) -> (Vec<u32>, Vec<u32>) {
     let mut lists = Vec::new();
     let mut group: Vec<u32> = (0..entries.len() as u32).collect();
@@ -92,10 +105,15 @@ pub(crate) fn link_neighbours(entries: &mut [AtlasEntry]) -> (Vec<u32>, Vec<u32>
             continue;
         }
         let first = lists.len() as u32;
+        let mut others = Vec::new();
         for j in 0..entries.len() {
             let (a, b) = (&entries[j], &entries[i]);
             if a.seen_through() && may_hide(&a.params, &b.params) {
-                lists.push(j as u32);
+                if wholly_in_front(&a.params, &b.params) {
+                    lists.push(j as u32);
+                } else {
+                    others.push(j as u32);
+                }
             }
             if a.seen_through() && rects_overlap(a.params.rect, b.params.rect) {
                 let (ri, rj) = (root(&mut group, i as u32), root(&mut group, j as u32));
@@ -103,6 +121,8 @@ pub(crate) fn link_neighbours(entries: &mut [AtlasEntry]) -> (Vec<u32>, Vec<u32>
             }
         }
         entries[i].params.first_neighbour = first;
+        entries[i].params.front_count = lists.len() as u32 - first;
+        lists.extend(others);
         entries[i].params.neighbour_count = lists.len() as u32 - first;
     }
     let groups = (0..entries.len() as u32)
@@ -124,6 +144,8 @@ impl ViewVolumeAtlas {
             layout: Vec::new(),
             written: 0,
             groups: HashMap::default(),
+            fronts: Vec::new(),
+            fronts_stale: false,
         }
     }
 
@@ -142,7 +164,7 @@ impl ViewVolumeAtlas {
                 _ => placed.push((entry.entity, entry.params.n)),
             }
         }
-        let size = |n: u32| (n as u64).pow(3);
+        let size = view_volume_len;
         let mut end = kept.iter().map(|&(_, n, o)| o as u64 + size(n)).max();
         let needed: u64 = placed.iter().map(|&(_, n)| size(n)).sum();
         let capacity = self.optical_depth.size() / 4;
@@ -184,10 +206,17 @@ impl ViewVolumeAtlas {
         let params: Vec<ViewVolumeParams> = entries.iter().map(|e| e.params).collect();
         let (params, lists) = (storage_bytes(&params), storage_bytes(lists));
         let key = key_of((&params, &lists));
+        self.fronts = entries
+            .iter()
+            .enumerate()
+            .filter(|(_, e)| e.params.front_count > 0)
+            .map(|(i, e)| [i as u32, e.params.n])
+            .collect();
         if key == self.written {
             return;
         }
         self.written = key;
+        self.fronts_stale = true;
         let fit = |buffer: &mut Buffer, label, bytes: &[u8]| {
             if bytes.len() as u64 > buffer.size() {
                 *buffer = storage(device, label, (bytes.len() as u64).next_power_of_two());
@@ -249,6 +278,9 @@ mod tests {
         assert_eq!(neighbours(1), [0, 1]);
         // 0 and 1 both begin before 2 ends; 2 begins after 1 ends, so 1 does not see through it.
         assert_eq!(neighbours(2), [0, 1, 2]);
+        // 0 and 1 end before 2 begins: they come first, summed into 2's front map.
+        assert_eq!(entries[2].params.front_count, 2);
+        assert_eq!(entries[0].params.front_count, 0);
         assert_eq!(neighbours(3), [3]);
         assert_eq!(neighbours(4), [] as [u32; 0]);
         // 0, 1 and 2 overlap on screen, directly or through 1: one group, drawn as one.

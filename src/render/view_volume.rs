@@ -60,11 +60,20 @@ pub struct ViewVolumeParams {
     /// Its neighbours: the view volumes (its own among them) whose clouds may lie in front of
     /// some point of this cloud. Its billboards see through all of them.
     pub neighbour_count: u32,
-    /// Storage-array padding.
-    pub _padding: u32,
+    /// The first `front_count` neighbours lie wholly in front of this volume: their optical
+    /// depth along each of its columns is summed once into its front map.
+    pub front_count: u32,
 }
 
-/// The march's compute pipeline.
+/// Elements a view volume of `n` rays per side and `n` slices takes in its atlas: its `n³`
+/// optical depths, then its front map, `n²` sums of the optical depth of the neighbours wholly in
+/// front of it along each column's ray (`view_volume.wgsl`, `sum_front`).
+pub fn view_volume_len(n: u32) -> u64 {
+    let n = n as u64;
+    n * n * n + n * n
+}
+
+/// The march's and the front maps' compute pipelines.
 #[derive(Resource)]
 pub struct ViewVolumePipeline {
     /// A pool's `Slot`s, an atlas's `ViewVolumeParams`, the pool's densities, the atlas's optical
@@ -72,6 +81,11 @@ pub struct ViewVolumePipeline {
     pub layout: BindGroupLayoutDescriptor,
     /// `march`.
     pub march: CachedComputePipelineId,
+    /// An atlas's `ViewVolumeParams` (binding 1), its optical depths (3), the work list (4) and
+    /// its neighbour lists (5).
+    pub front_layout: BindGroupLayoutDescriptor,
+    /// `sum_front`.
+    pub sum_front: CachedComputePipelineId,
 }
 
 pub(crate) fn init_view_volume_pipeline(
@@ -92,15 +106,40 @@ pub(crate) fn init_view_volume_pipeline(
             ),
         ),
     );
-    let march = cache.queue_compute_pipeline(ComputePipelineDescriptor {
-        label: Some("particle_clouds_view_volume".into()),
-        layout: vec![layout.clone()],
-        shader: shaders.view_volume.clone(),
-        shader_defs: workgroups::shader_defs(),
-        entry_point: Some("march".into()),
-        ..default()
+    let front_layout = BindGroupLayoutDescriptor::new(
+        "particle_clouds_view_volume_front_layout",
+        &BindGroupLayoutEntries::with_indices(
+            ShaderStages::COMPUTE,
+            (
+                (1, storage_buffer_read_only_sized(false, None)),
+                (3, storage_buffer_sized(false, None)),
+                (4, storage_buffer_read_only_sized(true, None)),
+                (5, storage_buffer_read_only_sized(false, None)),
+            ),
+        ),
+    );
+    let compute = |label: &'static str, layout: &BindGroupLayoutDescriptor, entry: &'static str| {
+        cache.queue_compute_pipeline(ComputePipelineDescriptor {
+            label: Some(label.into()),
+            layout: vec![layout.clone()],
+            shader: shaders.view_volume.clone(),
+            shader_defs: workgroups::shader_defs(),
+            entry_point: Some(entry.into()),
+            ..default()
+        })
+    };
+    let march = compute("particle_clouds_view_volume", &layout, "march");
+    let sum_front = compute(
+        "particle_clouds_view_volume_front",
+        &front_layout,
+        "sum_front",
+    );
+    commands.insert_resource(ViewVolumePipeline {
+        layout,
+        march,
+        front_layout,
+        sum_front,
     });
-    commands.insert_resource(ViewVolumePipeline { layout, march });
 }
 
 /// The key of an unlit cloud's volume.
@@ -368,13 +407,16 @@ pub(crate) fn march_view_volumes(
     mut clouds: Query<(&CloudIllumination, &CloudVolumes, &mut CloudViewVolumes)>,
     pipeline: Option<Res<ViewVolumePipeline>>,
     pipeline_cache: Res<PipelineCache>,
-    atlases: Res<ViewVolumeAtlases>,
+    mut atlases: ResMut<ViewVolumeAtlases>,
     pools: Res<VolumePools>,
     device: Res<RenderDevice>,
     counters: Res<CloudPassCounters>,
 ) {
     let Some(pipeline) = pipeline else { return };
-    let Some(march) = pipeline_cache.get_compute_pipeline(pipeline.march) else {
+    let (Some(march), Some(sum_front)) = (
+        pipeline_cache.get_compute_pipeline(pipeline.march),
+        pipeline_cache.get_compute_pipeline(pipeline.sum_front),
+    ) else {
         return;
     };
     let mut batches: HashMap<(RetainedViewEntity, PoolId), MarchBatch> = HashMap::default();
@@ -391,7 +433,15 @@ pub(crate) fn march_view_volumes(
             volume.ready = true;
         }
     }
-    if batches.is_empty() {
+    // A view's front maps are summed again after any of its volumes was marched, or when its
+    // volumes or lists changed.
+    for ((view, _), _) in &batches {
+        if let Some(atlas) = atlases.0.get_mut(view) {
+            atlas.fronts_stale = true;
+        }
+    }
+    let fronts = front_batches(&mut atlases, &device, &pipeline_cache, &pipeline);
+    if batches.is_empty() && fronts.is_empty() {
         return;
     }
     let layout = pipeline_cache.get_bind_group_layout(&pipeline.layout);
@@ -421,14 +471,50 @@ pub(crate) fn march_view_volumes(
         &counters,
         CloudPass::ViewVolume,
         |pass| {
-            pass.set_pipeline(march);
-            for (group, work, n) in &batches {
-                for (offset, items) in work.chunks() {
-                    pass.set_bind_group(0, group, &[offset]);
-                    workgroups::dispatch_columns(pass, *n, items);
+            for (pipeline, dispatches) in [(march, &batches), (sum_front, &fronts)] {
+                pass.set_pipeline(pipeline);
+                for (group, work, n) in dispatches {
+                    for (offset, items) in work.chunks() {
+                        pass.set_bind_group(0, group, &[offset]);
+                        workgroups::dispatch_columns(pass, *n, items);
+                    }
                 }
             }
             batches.iter().map(|(_, work, _)| work.items).sum()
         },
     );
+}
+
+/// One dispatch of `sum_front` per stale view and volume size, over its volumes that have
+/// neighbours wholly in front of them; every view's front maps are then current.
+fn front_batches(
+    atlases: &mut ViewVolumeAtlases,
+    device: &RenderDevice,
+    pipeline_cache: &PipelineCache,
+    pipeline: &ViewVolumePipeline,
+) -> Vec<(BindGroup, WorkList, u32)> {
+    let layout = pipeline_cache.get_bind_group_layout(&pipeline.front_layout);
+    let mut batches = Vec::new();
+    for atlas in atlases.0.values_mut().filter(|a| a.fronts_stale) {
+        atlas.fronts_stale = false;
+        let mut by_size: HashMap<u32, Vec<[u32; 2]>> = HashMap::default();
+        for &[volume, n] in &atlas.fronts {
+            by_size.entry(n).or_default().push([volume, 0]);
+        }
+        for (n, items) in by_size {
+            let work = WorkList::new(device, &items);
+            let group = device.create_bind_group(
+                "particle_clouds_view_volume_front_bind_group",
+                &layout,
+                &BindGroupEntries::with_indices((
+                    (1, atlas.volumes.as_entire_binding()),
+                    (3, atlas.optical_depth.as_entire_binding()),
+                    (4, work.binding()),
+                    (5, atlas.neighbours.as_entire_binding()),
+                )),
+            );
+            batches.push((group, work, n));
+        }
+    }
+    batches
 }

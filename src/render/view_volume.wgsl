@@ -4,17 +4,22 @@
 // The billboards read it to see each piece of a particle through every particle in front of it,
 // of this cloud and of the clouds that overlap it, so every view volume of a view sits in one
 // buffer (the view's atlas), each from its `offset`.
+// Then `sum_front` fills each volume's front map: at each of its columns, the optical depth along
+// the column's ray of the neighbours wholly in front of it, the same for every point of the
+// volume, so the billboards read it once per pixel instead of walking those neighbours.
 // Every volume of one view whose cloud is in one volume pool in one dispatch: z workgroup i
 // marches `work[i]`.
-#import bevy_particle_clouds::types::{Slot, ViewVolumeParams, voxel_index}
+#import bevy_particle_clouds::types::{Slot, ViewVolumeParams, voxel_index, front_map_index, view_columns, column_corner}
 #import bevy_particle_clouds::density::density_at
 
 // The pool's slots; the atlas's volumes; the pool's densities at binding 2 (density.wgsl).
 @group(0) @binding(0) var<storage, read> slots: array<Slot>;
 @group(0) @binding(1) var<storage, read> volumes: array<ViewVolumeParams>;
 @group(0) @binding(3) var<storage, read_write> view_optical_depth: array<f32>;
-// (atlas volume, slot) per z workgroup.
+// (atlas volume, slot) per z workgroup (`sum_front`: the slot unused).
 @group(0) @binding(4) var<storage, read> work: array<vec2<u32>>;
+// The neighbour lists (`sum_front` only).
+@group(0) @binding(5) var<storage, read> neighbours: array<u32>;
 
 @compute @workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)
 fn march(@builtin(global_invocation_id) id: vec3<u32>) {
@@ -41,4 +46,36 @@ fn march(@builtin(global_invocation_id) id: vec3<u32>) {
         view_optical_depth[volume.offset + voxel_index(vec3(id.xy, k), n)] = tau;
         before = here;
     }
+}
+
+// Optical depth along the whole ray of tangent `uv` through volume `k`: bilinear in its last
+// slice; none off its rectangle of rays.
+fn along(k: u32, uv: vec2<f32>) -> f32 {
+    let volume = volumes[k];
+    if any(uv < volume.rect.xz) || any(uv > volume.rect.yw) {
+        return 0.0;
+    }
+    let n = volume.n;
+    let columns = view_columns(volume, uv);
+    var tau = 0.0;
+    for (var c = 0u; c < 4u; c++) {
+        let corner = column_corner(columns, c);
+        tau += corner.weight * view_optical_depth[volume.offset + voxel_index(vec3(corner.column, n - 1u), n)];
+    }
+    return tau;
+}
+
+@compute @workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)
+fn sum_front(@builtin(global_invocation_id) id: vec3<u32>) {
+    let volume = volumes[work[id.z].x];
+    let n = volume.n;
+    if id.x >= n || id.y >= n {
+        return;
+    }
+    let uv = mix(volume.rect.xz, volume.rect.yw, vec2<f32>(id.xy) / f32(n - 1u));
+    var tau = 0.0;
+    for (var i = 0u; i < volume.front_count; i++) {
+        tau += along(neighbours[volume.first_neighbour + i], uv);
+    }
+    view_optical_depth[front_map_index(volume, id.xy)] = tau;
 }

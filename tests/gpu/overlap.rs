@@ -4,7 +4,7 @@
 
 use bevy::prelude::*;
 use bevy_particle_clouds::{
-    Medium, Particle,
+    CloudPass, Medium, Particle,
     headless::{self, FrameRecorder},
     image_io::LinearImage,
     reference::metrics::relative_rmse,
@@ -93,10 +93,47 @@ fn interpenetrating_clouds_in_a_half_size_cloud_target_stay_close_to_the_referen
 #[test]
 fn a_cloud_wholly_behind_another_is_seen_through_it_in_either_order() {
     // Apart in depth, one behind the other on screen: each pixel of the far cloud sees the near
-    // one's whole optical depth along its ray (`RayNeighbours::front` in billboard.wgsl).
+    // one's whole optical depth along its ray, from the far volume's front map (`sum_front` in
+    // view_volume.wgsl), which the CPU reference mirrors.
     let (setup, particles) = interleaved();
     let [mut bright, mut dark] = clouds(&particles);
     bright.transform.translation = Vec3::new(-0.2, 0.0, -1.4);
     dark.transform.translation = Vec3::new(0.3, 0.1, 1.3);
     assert_either_order_matches(&setup, [bright, dark], ["far first", "near first"]);
+}
+
+#[test]
+fn a_cloud_wholly_behind_another_reads_the_other_from_its_front_map() {
+    // Far enough apart that the near cloud's volume ends before the far one's begins: the near
+    // cloud is summed once into the far volume's front map (one `sum_front` dispatch beside the
+    // march's) instead of being looked up by each of the far cloud's pixels. Interpenetrating
+    // clouds have no front map. The image equals the CPU reference, which mirrors the map.
+    let (setup, particles) = interleaved();
+    let view_volume_dispatches = |clouds: &[SetupCloud]| {
+        let (mut app, target) = spawn_clouds(&setup, clouds);
+        let mut frames = FrameRecorder::default();
+        headless::render_until_steady(&mut app, &mut frames, target.drawable_clouds, 20).unwrap();
+        let image = headless::capture(&mut app, &mut frames, &target.image).unwrap();
+        let dispatches: u32 = frames
+            .frames
+            .iter()
+            .map(|f| f.dispatches(CloudPass::ViewVolume))
+            .sum();
+        (dispatches, image)
+    };
+    let [mut bright, mut dark] = clouds(&particles);
+    let (interpenetrating, _) = view_volume_dispatches(&[bright, dark]);
+    bright.transform.translation = Vec3::new(-0.2, 0.0, -4.0);
+    dark.transform.translation = Vec3::new(0.3, 0.1, 1.8);
+    let (apart, image) = view_volume_dispatches(&[bright, dark]);
+    assert_eq!(
+        apart,
+        interpenetrating + 1,
+        "view-volume dispatches: {apart} apart, {interpenetrating} interpenetrating"
+    );
+    assert_images_match(
+        &image,
+        &reference_of_clouds(&setup, &[bright, dark]),
+        "apart",
+    );
 }
