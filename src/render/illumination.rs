@@ -1,8 +1,8 @@
 //! The illumination passes (the paper's Algorithm 1, lines 2–6): voxelize, shade per light,
 //! gather and multiple scattering. Only the stages planned for this frame run
-//! ([`plan`](super::plan)). Voxelize runs per cloud (each cloud's particles are their own
-//! buffer); shade, gather and scatter are batched: one dispatch covers every cloud of a volume
-//! pool ([`pools`](super::pools)), its z workgroups walking a work list. Their bind groups and
+//! ([`plan`](super::plan)). Every pass is batched: one dispatch covers every cloud of a volume
+//! pool ([`pools`](super::pools)), its z workgroups walking a work list (voxelize first copies
+//! the clouds' particles into one buffer, [`voxelize`](super::voxelize)). Their bind groups and
 //! work lists are made in `PrepareBindGroups`; the system in the `RenderGraph` schedule, once per
 //! frame before any camera, only records.
 
@@ -23,7 +23,7 @@ use bevy::{
 use super::{
     cast::{CastStart, CastTarget, CastWork, Caster, CasterVolume, add_cast, by_pool},
     extract::{ExtractedCloud, ExtractedCloudLights},
-    gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, WorkList, record_stage, storage_init},
+    gpu::{StagePass, WorkList, record_stage, storage_init},
     overlap::{Neighbour, OverlapItem},
     particles::GpuParticles,
     pipelines::{
@@ -33,8 +33,11 @@ use super::{
     plan::CloudIllumination,
     pools::{PoolId, VolumePool, VolumePools},
     shadow_maps::{LitCloud, ShadowMapCasts, ShadowMapKeys, shadow_map_casts},
-    volumes::{CloudVolumes, DensityLevels},
-    workgroups::{self, dispatch_columns, dispatch_linear},
+    volumes::CloudVolumes,
+    voxelize::{
+        VoxelizeCloud, VoxelizeRound, VoxelizeScratch, prepare_round, record_round, voxelize_rounds,
+    },
+    workgroups::{dispatch_columns, dispatch_linear},
 };
 use crate::{
     particle::DeltaEddington,
@@ -42,14 +45,6 @@ use crate::{
     shadow_maps::CloudShadowMaps,
     stats::{CloudPass, CloudPassCounters},
 };
-
-/// The voxelize bind group of a cloud whose density is rebuilt this frame (render world
-/// component); the batched passes' bind groups are in [`IlluminationBatches`].
-#[derive(Component, Default)]
-pub struct IlluminationBindGroups {
-    /// Voxelize (all three of its entry points).
-    voxelize: Option<BindGroup>,
-}
 
 /// One batched pass over a pool: its bind group and work list.
 pub(crate) struct Batch {
@@ -114,6 +109,8 @@ struct PoolBatches {
 /// resource, made in `PrepareBindGroups`).
 #[derive(Resource, Default)]
 pub struct IlluminationBatches {
+    /// The clouds whose density is rebuilt, in rounds whose particles fit one binding.
+    voxelize: Vec<VoxelizeRound>,
     pools: Vec<PoolBatches>,
     maps: ShadowMapCasts,
 }
@@ -159,12 +156,12 @@ struct PoolWork {
     scatter: HashMap<(u32, ScatterStencil, bool), Vec<u32>>,
 }
 
-/// Makes the voxelize bind group of every cloud whose density is rebuilt, and the bind groups
-/// and work lists of every pool's batched passes.
+/// Makes the bind groups and work lists of every pool's batched passes, voxelize's included.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn prepare_illumination_bind_groups(
     mut commands: Commands,
     clouds: Query<(Entity, &ExtractedCloud, &CloudVolumes, &CloudIllumination)>,
+    mut scratch: ResMut<VoxelizeScratch>,
     particles: Res<RenderAssets<GpuParticles>>,
     pools: Res<VolumePools>,
     pipelines: Option<Res<IlluminationPipelines>>,
@@ -178,33 +175,18 @@ pub(crate) fn prepare_illumination_bind_groups(
         device.create_bind_group(None, &layout, entries)
     };
     let mut work: HashMap<PoolId, PoolWork> = HashMap::default();
+    let mut voxelizing: HashMap<PoolId, Vec<VoxelizeCloud>> = HashMap::default();
     let placed: HashMap<Entity, (&ExtractedCloud, &CloudVolumes)> =
         clouds.iter().map(|(e, c, v, _)| (e, (c, v))).collect();
-    for (entity, cloud, v, state) in &clouds {
+    for (_, cloud, v, state) in &clouds {
         let plan = &state.plan;
         let Some(gpu) = particles.get(cloud.particles).filter(|_| !plan.is_empty()) else {
             continue;
         };
-        let pool = pools.pool(&v.slot);
-        let voxelize = plan.voxelize.then(|| {
-            bind(
-                &pipelines.voxelize,
-                &BindGroupEntries::sequential((
-                    v.fine_params_buffer.as_entire_binding(),
-                    gpu.buffer.as_entire_binding(),
-                    pool.fine_density(v.slot.index).binding(),
-                    v.kernel_sums.as_entire_binding(),
-                    BufferBinding {
-                        buffer: &v.density_levels,
-                        offset: 0,
-                        size: Some(DensityLevels::min_size()),
-                    },
-                )),
-            )
-        });
-        commands
-            .entity(entity)
-            .insert(IlluminationBindGroups { voxelize });
+        if plan.voxelize {
+            let clouds = voxelizing.entry(v.slot.pool).or_default();
+            clouds.push(VoxelizeCloud::new(gpu, v));
+        }
         let slot = v.slot.index;
         let w = work.entry(v.slot.pool).or_default();
         w.shade.extend(plan.shade.iter().map(|&l| [slot, l as u32]));
@@ -264,6 +246,14 @@ pub(crate) fn prepare_illumination_bind_groups(
         ),
         None => ShadowMapCasts::default(),
     };
+    let voxelize = voxelize_rounds(
+        &device,
+        &mut scratch,
+        &pools,
+        voxelizing,
+        device.limits().max_storage_buffer_binding_size,
+        |entries| bind(&pipelines.voxelize, entries),
+    );
     let mut batches = Vec::new();
     for (id, w) in work {
         let pool = &pools.0[&id];
@@ -373,6 +363,7 @@ pub(crate) fn prepare_illumination_bind_groups(
         });
     }
     commands.insert_resource(IlluminationBatches {
+        voxelize,
         pools: batches,
         maps,
     });
@@ -537,12 +528,7 @@ fn scatter_batch(
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn illuminate_clouds(
     mut ctx: RenderContext,
-    mut clouds: Query<(
-        &ExtractedCloud,
-        &CloudVolumes,
-        &mut CloudIllumination,
-        Option<&IlluminationBindGroups>,
-    )>,
+    mut clouds: Query<(&ExtractedCloud, &CloudVolumes, &mut CloudIllumination)>,
     batches: Option<Res<IlluminationBatches>>,
     pools: Res<VolumePools>,
     particles: Res<RenderAssets<GpuParticles>>,
@@ -556,7 +542,7 @@ pub(crate) fn illuminate_clouds(
     let maps_pending = batches
         .as_ref()
         .is_some_and(|b| !b.maps.clears.is_empty() || !b.maps.batches.is_empty());
-    if clouds.iter().all(|(_, _, s, _)| s.plan.is_empty()) && !maps_pending {
+    if clouds.iter().all(|(_, _, s)| s.plan.is_empty()) && !maps_pending {
         return;
     }
     let brute_force = shading.is_some_and(|s| *s == ShadingMethod::BruteForce);
@@ -571,56 +557,31 @@ pub(crate) fn illuminate_clouds(
         batches,
     ) else {
         // Not compiled yet: forget the plan so that the next frame does all of it.
-        clouds
-            .iter_mut()
-            .for_each(|(_, _, mut s, _)| s.invalidate());
+        clouds.iter_mut().for_each(|(_, _, mut s)| s.invalidate());
         *map_keys = ShadowMapKeys::default();
         return;
     };
     let recorder = ctx.diagnostic_recorder();
     let mut clouds: Vec<_> = clouds
         .iter_mut()
-        .filter(|(_, _, s, _)| !s.plan.is_empty())
-        .filter_map(|(cloud, v, s, groups)| Some((particles.get(cloud.particles)?, v, s, groups?)))
+        .filter(|(_, _, s)| !s.plan.is_empty())
+        .filter(|(cloud, _, _)| particles.get(cloud.particles).is_some())
+        .map(|(_, v, s)| (v, s))
         .collect();
 
-    // Voxelize (docs/illumination.md §1): clear, then every particle deposits its mass on its
-    // density level, one row of its support per invocation: the kernel's sums, then the deposit.
-    // Then the coarse levels are enlarged into the fine grid, coarsest first.
-    let voxelizing: Vec<_> = clouds
-        .iter()
-        .filter_map(|(gpu, v, _, g)| Some((gpu, v, g.voxelize.as_ref()?)))
-        .collect();
-    if !voxelizing.is_empty() {
-        for (_, v, _) in &voxelizing {
-            let fine = pools.pool(&v.slot).fine_density(v.slot.index);
-            let encoder = ctx.command_encoder();
-            encoder.clear_buffer(&fine.buffer, fine.offset, Some(fine.size));
-            encoder.clear_buffer(&v.kernel_sums, 0, None);
-        }
+    // Voxelize (docs/illumination.md §1): clear, copy the particles together, then every
+    // particle deposits its mass on its density level, one row of its support per invocation:
+    // the kernel's sums, then the deposit. Then the coarse levels are enlarged into the fine
+    // grid, coarsest first.
+    for round in &batches.voxelize {
+        prepare_round(&mut ctx, round);
+        let voxelize = [ready.kernel_sums, ready.voxelize, ready.upsample];
         record_stage(
             &mut ctx,
             recorder.as_deref(),
             &counters,
             CloudPass::Voxelize,
-            |pass| {
-                for pipeline in [ready.kernel_sums, ready.voxelize] {
-                    pass.set_pipeline(pipeline);
-                    for (gpu, v, group) in &voxelizing {
-                        let rows = v.fine_params.rows;
-                        pass.set_bind_group(0, group, &[0]);
-                        pass.dispatch(gpu.count.div_ceil(workgroups::LINEAR).max(1), rows, rows);
-                    }
-                }
-                pass.set_pipeline(ready.upsample);
-                for (_, v, group) in &voxelizing {
-                    for coarse in (1..v.levels_in_use).rev() {
-                        pass.set_bind_group(0, group, &[coarse as u32 * DYNAMIC_UNIFORM_STRIDE]);
-                        workgroups::dispatch_volume(pass, v.level_sizes[coarse - 1]);
-                    }
-                }
-                voxelizing.len() as u32
-            },
+            |pass| record_round(pass, voxelize, round),
         );
     }
 
@@ -700,7 +661,7 @@ pub(crate) fn illuminate_clouds(
 
     // Multiple scattering (§4): the iterations, then the series' closure. A warm restart starts
     // from what `multiple` holds; the full series from zero.
-    for (_, v, s, _) in &clouds {
+    for (v, s) in &clouds {
         if (s.plan.scatter.is_some() && !s.plan.warm) || s.plan.unlit {
             let pool = pools.pool(&v.slot);
             let multiple = pool.multiple(v.slot.index);
@@ -750,7 +711,7 @@ pub(crate) fn illuminate_clouds(
         );
     }
 
-    for (_, _, s, _) in &mut clouds {
+    for (_, s) in &mut clouds {
         s.ready |= s.plan.scatter.is_some() || s.plan.unlit;
         s.plan = default();
     }

@@ -11,6 +11,7 @@
 //! | `overlap.rs` | clouds that overlap: each cloud's multiple scattering goes through the others' media too |
 //! | `plan.rs` | which stages rerun this frame: cache keys per stage, a pure planning function |
 //! | `pipelines.rs` | compute pipelines of the illumination passes |
+//! | `voxelize.rs` | the clouds' particles copied together, deposited on their density grids, batched per pool |
 //! | `illumination.rs` | voxelize, then shade, gather, scatter batched per pool (the `RenderGraph` schedule) |
 //! | `sort.rs` | per-view GPU radix sort of the particles (`Compositing::Sorted`) |
 //! | `view_volume.rs` | per-view optical depth from the camera (`Compositing::ViewTransmittance`) |
@@ -42,6 +43,7 @@ pub mod sort;
 pub mod view_atlas;
 pub mod view_volume;
 pub mod volumes;
+pub mod voxelize;
 pub mod workgroups;
 
 #[cfg(test)]
@@ -77,7 +79,6 @@ impl SyncComponent for ParticleCloud {
         ExtractedCloud,
         volumes::CloudVolumes,
         plan::CloudIllumination,
-        illumination::IlluminationBindGroups,
         sort::CloudSorts,
         view_volume::CloudViewVolumes,
         draw::CloudDrawBindGroups,
@@ -200,6 +201,7 @@ pub(crate) fn finish(app: &mut App) {
     render_app
         .init_resource::<extract::ExtractedCloudLights>()
         .init_resource::<pools::VolumePools>()
+        .init_resource::<voxelize::VoxelizeScratch>()
         .init_resource::<shadow_maps::ShadowMapKeys>()
         .init_resource::<view_atlas::ViewVolumeAtlases>()
         .init_resource::<SpecializedRenderPipelines<draw::BillboardPipeline>>()

@@ -76,7 +76,8 @@ impl RenderAsset for GpuParticles {
         let buffer = device.create_buffer_with_data(&BufferInitDescriptor {
             label: Some("particle_clouds_particles"),
             contents: bytemuck::cast_slice(&data),
-            usage: BufferUsages::STORAGE | BufferUsages::COPY_DST,
+            // Copied into voxelize's scratch, where every voxelized cloud's particles meet.
+            usage: BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC,
         });
         let max_radius = source
             .particles

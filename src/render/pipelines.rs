@@ -12,10 +12,7 @@ use bevy::{
         render_resource::{
             BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, CachedComputePipelineId,
             ComputePipeline, ComputePipelineDescriptor, PipelineCache, ShaderStages, ShaderType,
-            binding_types::{
-                storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer,
-                uniform_buffer_sized,
-            },
+            binding_types::{storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer},
         },
         renderer::{RenderDevice, RenderQueue},
     },
@@ -274,7 +271,6 @@ pub(crate) fn init_illumination_pipelines(
     pipeline_cache: Res<PipelineCache>,
     device: Res<RenderDevice>,
 ) {
-    let uniform = || uniform_buffer_sized(false, None);
     let read = || storage_buffer_read_only_sized(false, None);
     let write = || storage_buffer_sized(false, None);
     // The batched passes' work list, a chunk of it per dispatch (illumination.rs, `WorkList`).
@@ -284,11 +280,12 @@ pub(crate) fn init_illumination_pipelines(
         &BindGroupLayoutEntries::sequential(
             ShaderStages::COMPUTE,
             (
-                uniform(),
+                read(),
                 read(),
                 write(),
                 write(),
                 uniform_buffer::<DensityLevels>(true),
+                work(),
             ),
         ),
     );

@@ -3,8 +3,7 @@
 //! then covers every cloud of a pool in one dispatch, whose z workgroups walk a list of slots
 //! (docs/illumination.md §9): the dispatch count grows with the shapes in use, not with the
 //! clouds. A slot's region of each buffer starts on a [`SLOT_ALIGNMENT`] boundary, so the
-//! per-cloud passes (voxelize, view volume, draw) bind it on its own, as if it were the cloud's
-//! own buffer.
+//! per-cloud passes (the draw) bind it on its own, as if it were the cloud's own buffer.
 
 use std::sync::{Arc, Mutex};
 
@@ -18,7 +17,7 @@ use bevy::{
 };
 
 use super::{
-    gpu::storage,
+    gpu::{dynamic_uniform, storage},
     ground::ground_map_bytes,
     volumes::{CloudParams, DensityLevels, LightParams},
 };
@@ -232,6 +231,9 @@ pub struct VolumePool {
     /// `GroundMap` per slot: the ground under the cloud and its radiance
     /// ([`ground`](super::ground)).
     pub ground: Buffer,
+    /// The `DensityLevels` uniform of the shape's fine grid, one entry per `upsample_from`,
+    /// `DYNAMIC_UNIFORM_STRIDE` bytes apart (voxelize).
+    pub density_levels: Buffer,
 }
 
 impl VolumePool {
@@ -258,6 +260,11 @@ impl VolumePool {
             order_ratios: storage(device, "particle_clouds_order_ratios", 16 * c),
             foreign: storage(device, "particle_clouds_foreign", b.foreign * c),
             ground: storage(device, "particle_clouds_ground", ground_map_bytes() * c),
+            density_levels: dynamic_uniform(
+                device,
+                "particle_clouds_density_levels",
+                DensityLevels::entries(shape.m).0,
+            ),
         }
     }
 

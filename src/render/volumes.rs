@@ -17,7 +17,7 @@ use super::{
     budget::{RelightCandidate, relit_this_frame},
     cast::{CloudSphere, WorldCloud, casters_of, casts_on},
     extract::{CloudLight, ExtractedCloud, ExtractedCloudLights},
-    gpu::{dynamic_uniform, storage, storage_bytes, uniform, uniform_bytes},
+    gpu::{storage_bytes, uniform, uniform_bytes},
     ground::{ground_frame, ground_key, ground_map_bytes},
     overlap::{neighbours_of, overlaps},
     particles::{CloudBounds, GpuParticles},
@@ -105,7 +105,7 @@ impl DensityLevels {
 
     /// The levels of a fine grid of `m` voxels per side, one entry per value of `upsample_from`
     /// (`0..count`); and the elements of the density buffer that holds them all.
-    fn entries(m: u32) -> (Vec<DensityLevels>, u64) {
+    pub(crate) fn entries(m: u32) -> (Vec<DensityLevels>, u64) {
         let sizes = density_level_sizes(m);
         let mut size_offset = [UVec4::ZERO; MAX_DENSITY_LEVELS];
         let mut elements = 0;
@@ -188,20 +188,13 @@ pub struct CloudVolumes {
     pub params: CloudParams,
     /// The `CloudParams` uniform (the billboards).
     pub params_buffer: Buffer,
-    /// The fine grid's uniform: `CloudParams` with `m` voxels per side of size `h / f`.
+    /// The fine grid's uniform: `CloudParams` with `m` voxels per side of size `h / f` (on the
+    /// GPU in the slot's `fine`, which voxelize and shade read; the view volume's pass reads it
+    /// here).
     pub fine_params: CloudParams,
-    /// Its buffer (voxelize and the view volume).
-    pub fine_params_buffer: Buffer,
-    /// Voxels per side of each density level, the fine grid's `m` first.
-    pub level_sizes: Vec<u32>,
     /// The levels that hold particles (the fine grid and the coarser ones down to the largest
     /// particle's): only these are enlarged, so a cloud of small particles does no upsampling.
     pub levels_in_use: usize,
-    /// The `DensityLevels` uniform, one entry per `upsample_from`, `DYNAMIC_UNIFORM_STRIDE`
-    /// bytes apart.
-    pub density_levels: Buffer,
-    /// One f32 per particle: its kernel's sum over the fine voxel centres in its support (voxelize).
-    pub kernel_sums: Buffer,
     /// Its lights' uniforms as its light volumes were last shaded (the cast reads them when
     /// this cloud shadows another).
     pub lights: Vec<LightParams>,
@@ -221,7 +214,6 @@ impl CloudVolumes {
     ) -> Option<Self> {
         let max_binding = device.limits().max_storage_buffer_binding_size;
         let slot = pools.allocate(device, queue, shape, max_binding)?;
-        let (levels, _) = DensityLevels::entries(shape.m);
         Some(Self {
             params: CloudParams {
                 n: shape.n,
@@ -236,19 +228,7 @@ impl CloudVolumes {
                 CloudParams::min_size().get(),
             ),
             fine_params: CloudParams::default(),
-            fine_params_buffer: uniform(
-                device,
-                "particle_clouds_fine_params",
-                CloudParams::min_size().get(),
-            ),
-            level_sizes: density_level_sizes(shape.m),
             levels_in_use: 1,
-            density_levels: dynamic_uniform(device, "particle_clouds_density_levels", levels),
-            kernel_sums: storage(
-                device,
-                "particle_clouds_kernel_sums",
-                particle_count as u64 * 4,
-            ),
             lights: Vec::new(),
             slot,
         })
@@ -615,10 +595,7 @@ fn plan_cloud(
     }
     volumes.levels_in_use = levels_in_use(bounds, params.light_n);
     let fine = fine_params(&params);
-    if fine != volumes.fine_params {
-        queue.write_buffer(&volumes.fine_params_buffer, 0, &uniform_bytes(&fine));
-        volumes.fine_params = fine;
-    }
+    volumes.fine_params = fine;
     let index = volumes.slot.index;
     let slot = pool.slot(index, params, fine);
     let slot_bytes = Slot::min_size().get();
@@ -742,20 +719,22 @@ fn levels_in_use(bounds: CloudBounds, m: u32) -> usize {
     density_level(r_over_h * (1.0 + 1e-4), density_level_sizes(m).len()) + 1
 }
 
-/// Rows per axis of the largest support on its density level, in a fine grid of `m` voxels per
-/// side over `bounds`: at most `2 r / h_l + 1` voxel centres, and no more than the fine grid
-/// holds. Particles on finer levels than the largest one's span up to
-/// `MAX_RADIUS_IN_LEVEL_VOXELS`.
+/// Rows per axis of the widest support of a cloud's particles, in a fine grid of `m` voxels per
+/// side over `bounds`: the largest particle's on its level (at most `2 r / h_l + 1` voxel
+/// centres, and no more than the level holds), and, when that level is coarse, those of the
+/// particles on finer levels, which span up to `MAX_RADIUS_IN_LEVEL_VOXELS` of their own voxels
+/// (no more than the fine grid holds). So at most 33: the voxelize dispatch takes rows² along y,
+/// at most 65535.
 fn support_rows(bounds: CloudBounds, m: u32) -> u32 {
     let (r_over_h, level) = largest_particle(bounds, m);
     let on_level = r_over_h / (1u32 << level) as f64;
-    let widest = if level == 0 {
-        on_level
+    let largest = (2.0 * on_level.ceil() + 1.0).min(density_level_sizes(m)[level] as f64);
+    let finer = if level == 0 {
+        0.0
     } else {
-        on_level.max(MAX_RADIUS_IN_LEVEL_VOXELS)
+        (2.0 * MAX_RADIUS_IN_LEVEL_VOXELS + 1.0).min(m as f64)
     };
-    let rows = 2.0 * widest.ceil() + 1.0;
-    (rows as u32).clamp(1, m + 1)
+    (largest.max(finer) as u32).max(1)
 }
 
 /// The uniform of a cloud's illumination passes.
@@ -793,6 +772,7 @@ fn cloud_params(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::settings::{MAX_VOLUME_RESOLUTION, MIN_VOLUME_RESOLUTION};
 
     fn bounds(max_radius: f32) -> CloudBounds {
         CloudBounds {
@@ -819,7 +799,23 @@ mod tests {
             );
         }
         // One level only (m < 8): the fine grid bounds the rows.
-        assert_eq!(support_rows(bounds(1.0), 6), 7);
+        assert_eq!(support_rows(bounds(1.0), 6), 6);
+        // Whatever the grid and the particle, rows² fits the dispatch's y workgroups.
+        for m in [
+            MIN_VOLUME_RESOLUTION,
+            7,
+            8,
+            9,
+            33,
+            100,
+            255,
+            MAX_VOLUME_RESOLUTION,
+        ] {
+            for r in [0.01, 0.5, 1.0, 2.0, 100.0] {
+                let rows = support_rows(bounds(r), m);
+                assert!((1..=33).contains(&rows), "m {m}, r {r}: {rows} rows");
+            }
+        }
     }
 
     #[test]

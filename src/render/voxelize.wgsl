@@ -1,19 +1,36 @@
-// Voxelize: every particle deposits its mass into the cloud's (fine) density grid
+// Voxelize: every particle deposits its mass into its cloud's (fine) density grid
 // (docs/illumination.md §1). A particle wider than 16 voxels deposits on a coarser density level
 // instead, so that none visits more than 33³ voxels; the levels are then enlarged into the fine
 // grid, coarsest first. One invocation per row of voxels of a particle's support, in two passes
 // (the kernel's sum over the support, then the deposit); float atomics by compare-exchange.
-#import bevy_particle_clouds::types::{Particle, CloudParams, DensityLevels, KERNEL_VOLUME, kernel, voxel_index, zero_border_lookup, corner_weight, corner_voxel}
+// Every cloud of a volume pool in one dispatch: z workgroup i voxelizes `work[i]`, whose particles
+// were copied into `particles` from element `work[i].y` on.
+#import bevy_particle_clouds::types::{Particle, CloudParams, DensityLevels, Slot, KERNEL_VOLUME, kernel, voxel_index, zero_border_lookup, corner_weight, corner_voxel}
 
-@group(0) @binding(0) var<uniform> cloud: CloudParams;
+@group(0) @binding(0) var<storage, read> slots: array<Slot>;
+// The particles of every cloud voxelized this frame, one after the other.
 @group(0) @binding(1) var<storage, read> particles: array<Particle>;
-// Every density level, f32 bits, the fine grid first; cleared to zero before the passes.
+// Every slot's density levels, f32 bits, the fine grid first; a slot's are cleared to zero before
+// the passes.
 @group(0) @binding(2) var<storage, read_write> density: array<atomic<u32>>;
-// Per particle, the kernel's sum over the voxel centres in its support (f32 bits); cleared to
-// zero before the passes.
+// Per particle of `particles`, the kernel's sum over the voxel centres in its support (f32 bits);
+// cleared to zero before the passes.
 @group(0) @binding(3) var<storage, read_write> totals: array<atomic<u32>>;
-// The levels' sizes; `upsample_from` differs per upsample dispatch (a dynamic offset).
+// The levels' sizes (the same for every slot of a pool); `upsample_from` differs per upsample
+// dispatch (a dynamic offset).
 @group(0) @binding(4) var<uniform> levels: DensityLevels;
+// (slot, first particle) per z workgroup.
+@group(0) @binding(5) var<storage, read> work: array<vec2<u32>>;
+
+// The fine grid's uniform of the item's cloud, and the first element of its levels in `density`.
+var<private> cloud: CloudParams;
+var<private> first_density: u32;
+
+fn begin(item: u32) {
+    let slot = slots[work[item].x];
+    cloud = slot.fine;
+    first_density = slot.fine_density;
+}
 
 // One density level: voxels per side, its first element in `density`, and its voxel size.
 struct Level {
@@ -24,7 +41,7 @@ struct Level {
 
 fn level_at(l: u32) -> Level {
     let size = levels.size_offset[l];
-    return Level(size.x, size.y, cloud.h * f32(1u << l));
+    return Level(size.x, first_density + size.y, cloud.h * f32(1u << l));
 }
 
 // The finest level on which a particle of radius `r` spans at most `max_radius` voxels, else the
@@ -107,9 +124,19 @@ fn footprint(particle: Particle) -> Footprint {
 
 // The row (y, z) of a particle's support that invocation `id` handles: each invocation handles
 // one row of one particle, so no invocation loops over more than a row (software rasterisers
-// such as lavapipe cut loops off after 65535 iterations per invocation).
+// such as lavapipe cut loops off after 65535 iterations per invocation). `id.y` counts the rows
+// of the cloud's largest support, `cloud.rows` per axis; the dispatch covers the pool's largest.
 fn row(id: vec3<u32>, f: Footprint) -> vec2<i32> {
-    return f.lo.yz + vec2<i32>(id.yz);
+    return f.lo.yz + vec2<i32>(vec2(id.y % cloud.rows, id.y / cloud.rows));
+}
+
+// The item's particle that invocation `id` handles, or none (-1).
+fn particle_index(id: vec3<u32>) -> i32 {
+    begin(id.z);
+    if id.x >= cloud.particle_count || id.y >= cloud.rows * cloud.rows {
+        return -1;
+    }
+    return i32(work[id.z].y + id.x);
 }
 
 // Kernel weight of voxel x of a row.
@@ -122,10 +149,11 @@ fn row_weight(f: Footprint, x: i32, yz: vec2<i32>) -> f32 {
 // the deposit mass-exact).
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn kernel_sums(@builtin(global_invocation_id) id: vec3<u32>) {
-    let index = id.x;
-    if index >= cloud.particle_count {
+    let i = particle_index(id);
+    if i < 0 {
         return;
     }
+    let index = u32(i);
     let particle = particles[index];
     let f = footprint(particle);
     let yz = row(id, f);
@@ -145,10 +173,11 @@ fn kernel_sums(@builtin(global_invocation_id) id: vec3<u32>) {
 // support holds no voxel centre) is splatted by its first row.
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn deposit(@builtin(global_invocation_id) id: vec3<u32>) {
-    let index = id.x;
-    if index >= cloud.particle_count {
+    let i = particle_index(id);
+    if i < 0 {
         return;
     }
+    let index = u32(i);
     let particle = particles[index];
     let eta = particle.density.x;
     let f = footprint(particle);
@@ -160,7 +189,7 @@ fn deposit(@builtin(global_invocation_id) id: vec3<u32>) {
     let density_per_voxel = KERNEL_VOLUME * eta * f.r_voxels * f.r_voxels * f.r_voxels;
     let total = bitcast<f32>(atomicLoad(&totals[index]));
     if f.r_voxels < 1.0 || total <= 0.0 {
-        if all(id.yz == vec2(0u)) {
+        if id.y == 0u {
             splat(f, density_per_voxel);
         }
         return;
@@ -200,33 +229,35 @@ fn prolongation(i: u32, fine_n: u32, coarse_n: u32) -> vec3<f32> {
 }
 
 // Pass 3, once per coarse level, coarsest first: level `upsample_from` enlarged by
-// `prolongation` on every axis is added to the level below. One invocation per voxel of the
-// level below, which only it writes.
-@compute @workgroup_size(#{VOXEL_WORKGROUP}, #{VOXEL_WORKGROUP}, #{VOXEL_WORKGROUP})
+// `prolongation` on every axis is added to the level below. One invocation per column of the
+// level below, whose voxels only it writes; z workgroup i enlarges `work[i]`'s levels.
+@compute @workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)
 fn upsample(@builtin(global_invocation_id) id: vec3<u32>) {
+    begin(id.z);
     let coarse = level_at(levels.upsample_from);
     let fine = level_at(levels.upsample_from - 1u);
-    if any(id >= vec3(fine.n)) {
+    if any(id.xy >= vec2(fine.n)) {
         return;
     }
-    var w = array(
-        prolongation(id.x, fine.n, coarse.n),
-        prolongation(id.y, fine.n, coarse.n),
-        prolongation(id.z, fine.n, coarse.n),
-    );
-    let base = vec3<i32>(id >> vec3(1u)) - 1;
-    var sum = 0.0;
-    for (var c = 0; c < 3; c++) {
-        for (var b = 0; b < 3; b++) {
-            for (var a = 0; a < 3; a++) {
-                let weight = w[0][a] * w[1][b] * w[2][c];
-                if weight > 0.0 {
-                    let j = vec3<u32>(base + vec3(a, b, c));
-                    sum += weight * bitcast<f32>(atomicLoad(&density[coarse.offset + voxel_index(j, coarse.n)]));
+    let wx = prolongation(id.x, fine.n, coarse.n);
+    let wy = prolongation(id.y, fine.n, coarse.n);
+    for (var z = 0u; z < fine.n; z++) {
+        let v = vec3(id.xy, z);
+        let wz = prolongation(z, fine.n, coarse.n);
+        let base = vec3<i32>(v >> vec3(1u)) - 1;
+        var sum = 0.0;
+        for (var c = 0; c < 3; c++) {
+            for (var b = 0; b < 3; b++) {
+                for (var a = 0; a < 3; a++) {
+                    let weight = wx[a] * wy[b] * wz[c];
+                    if weight > 0.0 {
+                        let j = vec3<u32>(base + vec3(a, b, c));
+                        sum += weight * bitcast<f32>(atomicLoad(&density[coarse.offset + voxel_index(j, coarse.n)]));
+                    }
                 }
             }
         }
+        let i = fine.offset + voxel_index(v, fine.n);
+        atomicStore(&density[i], bitcast<u32>(bitcast<f32>(atomicLoad(&density[i])) + sum));
     }
-    let i = fine.offset + voxel_index(id, fine.n);
-    atomicStore(&density[i], bitcast<u32>(bitcast<f32>(atomicLoad(&density[i])) + sum));
 }

@@ -9,10 +9,8 @@ use super::gpu::StagePass;
 /// Invocations per workgroup of the one-dimensional kernels (per particle, per lattice line, per
 /// tile); the shaders flatten `(x, y)` workgroups with `flat_invocation`.
 pub const LINEAR: u32 = 64;
-/// Edge of the cubic workgroups of the per-voxel kernels (gather, paper scatter, brute-force shade).
-pub const VOXEL: u32 = 4;
-/// Edge of the square workgroups of the kernels that march one column per invocation (shade, view
-/// volume).
+/// Edge of the square workgroups of the kernels that march one column per invocation (shade,
+/// voxelize's upsample, view volume).
 pub const SLICE: u32 = 8;
 /// Elements per tile of the radix sort, each walked in order by one invocation.
 pub const SORT_TILE: u32 = 256;
@@ -21,7 +19,6 @@ pub const SORT_TILE: u32 = 256;
 pub fn shader_defs() -> Vec<ShaderDefVal> {
     vec![
         ShaderDefVal::UInt("LINEAR_WORKGROUP".into(), LINEAR),
-        ShaderDefVal::UInt("VOXEL_WORKGROUP".into(), VOXEL),
         ShaderDefVal::UInt("SLICE_WORKGROUP".into(), SLICE),
         ShaderDefVal::UInt("SORT_TILE".into(), SORT_TILE),
     ]
@@ -39,12 +36,6 @@ pub fn linear_groups(count: u32) -> [u32; 3] {
 pub(crate) fn dispatch_linear(pass: &mut StagePass, count: u32, items: u32) {
     let [x, y, _] = linear_groups(count);
     pass.dispatch(x, y, items);
-}
-
-/// Dispatches one invocation per voxel of an `n³` volume ([`VOXEL`]³ workgroups).
-pub(crate) fn dispatch_volume(pass: &mut StagePass, n: u32) {
-    let g = n.div_ceil(VOXEL);
-    pass.dispatch(g, g, g);
 }
 
 /// Dispatches one invocation per column of an `n × n` slice ([`SLICE`]² workgroups), for each
@@ -72,7 +63,6 @@ mod tests {
         ];
         let allowed = [
             "@workgroup_size(#{LINEAR_WORKGROUP})",
-            "@workgroup_size(#{VOXEL_WORKGROUP}, #{VOXEL_WORKGROUP}, #{VOXEL_WORKGROUP})",
             "@workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)",
             // Single-workgroup reductions, dispatched as (1, 1, 1): their size is their own.
             "@workgroup_size(256)",

@@ -5,7 +5,11 @@
 use bevy::{prelude::*, render::sync_world::RenderEntity};
 use bevy_particle_clouds::headless::{self, FrameRecorder};
 use bevy_particle_clouds::render::{pools::VolumePools, volumes::CloudVolumes};
-use bevy_particle_clouds::{CloudPass, reference::metrics::max_relative_difference};
+use bevy_particle_clouds::{
+    CloudPass, CloudQualitySettings, Medium, Particle,
+    generators::SplitMix64,
+    reference::{illumination::voxelize, metrics::max_relative_difference},
+};
 
 use crate::{common, plugin::small_cloud};
 
@@ -29,13 +33,14 @@ fn spawn(app: &mut App, x: f32, variant: u32, resolution: u32) -> Entity {
     cloud
 }
 
-/// Runs and dispatches of the batched passes (shade, gather, scatter, view volume) until the
-/// scene is steady (counted by `recorder` from where it stands).
-fn illuminate(app: &mut App, recorder: &mut FrameRecorder, clouds: u32) -> ([u32; 4], [u32; 4]) {
+/// Runs and dispatches of the batched passes (voxelize, shade, gather, scatter, view volume)
+/// until the scene is steady (counted by `recorder` from where it stands).
+fn illuminate(app: &mut App, recorder: &mut FrameRecorder, clouds: u32) -> ([u32; 5], [u32; 5]) {
     let first = recorder.frames.len();
     headless::render_until_steady(app, recorder, clouds, 20).unwrap();
     let frames = &recorder.frames[first..];
     let passes = [
+        CloudPass::Voxelize,
         CloudPass::Shade,
         CloudPass::Gather,
         CloudPass::Scatter,
@@ -75,17 +80,17 @@ fn the_dispatches_stay_flat_in_clouds_of_one_shape() {
     let mut one = scene();
     spawn(&mut one, 0.0, 0, 12);
     let (runs_one, dispatches_one) = illuminate(&mut one, &mut FrameRecorder::default(), 1);
-    // One light, 3 iterations of 13 sweep directions, then the closure's two dispatches; one
-    // view volume.
-    assert_eq!(runs_one, [1, 1, 3, 1]);
-    assert_eq!(dispatches_one, [1, 1, 3 * 13 + 2, 1]);
+    // Voxelize's kernel sums and deposit (its particles all on the fine grid); one light, 3
+    // iterations of 13 sweep directions, then the closure's two dispatches; one view volume.
+    assert_eq!(runs_one, [1, 1, 1, 3, 1]);
+    assert_eq!(dispatches_one, [2, 1, 1, 3 * 13 + 2, 1]);
 
     let mut six = scene();
     for i in 0..6 {
         spawn(&mut six, 3.0 * i as f32 - 7.5, i, 12);
     }
     let (runs_six, dispatches_six) = illuminate(&mut six, &mut FrameRecorder::default(), 6);
-    assert_eq!(runs_six, [6, 6, 18, 6]);
+    assert_eq!(runs_six, [6, 6, 6, 18, 6]);
     assert_eq!(dispatches_six, dispatches_one);
 
     // A second shape is a second pool: one more dispatch per pass, whatever its clouds.
@@ -99,7 +104,7 @@ fn the_dispatches_stay_flat_in_clouds_of_one_shape() {
         );
     }
     let (runs_mixed, dispatches_mixed) = illuminate(&mut mixed, &mut FrameRecorder::default(), 6);
-    assert_eq!(runs_mixed, [6, 6, 18, 6]);
+    assert_eq!(runs_mixed, [6, 6, 6, 18, 6]);
     assert_eq!(dispatches_mixed, dispatches_one.map(|d| 2 * d));
 }
 
@@ -139,7 +144,7 @@ fn a_growing_pool_keeps_what_its_clouds_hold() {
     }
     let (runs, _) = illuminate(&mut app, &mut recorder, 4);
     // The view's atlas grows too, so the first cloud's view volume is marched again.
-    assert_eq!(runs, [3, 3, 9, 4], "only the new clouds are lit");
+    assert_eq!(runs, [3, 3, 3, 9, 4], "only the new clouds are lit");
     let after = volumes_of(&mut app, first);
     assert_eq!(after, before);
 
@@ -157,5 +162,101 @@ fn a_growing_pool_keeps_what_its_clouds_hold() {
     let (runs, _) = illuminate(&mut app, &mut recorder, 4);
     assert_eq!(slot_of(&mut app, next), freed);
     // Where the atlas has room, the other clouds' view volumes keep their places.
-    assert_eq!(runs, [1, 1, 3, 1], "only the new cloud is lit and marched");
+    assert_eq!(
+        runs,
+        [1, 1, 1, 3, 1],
+        "only the new cloud is lit and marched"
+    );
+}
+
+/// Clouds of one pool whose particles lie on different density levels are voxelized by the same
+/// dispatches (each coarse level enlarged only in the clouds that use it), and each gets its own
+/// density: the CPU reference's, voxel by voxel.
+#[test]
+fn clouds_on_different_density_levels_are_voxelized_together() {
+    let mut app = scene();
+    // A fine grid of 72³ (24³ at supersampling 3): levels of 72, 36, 18, 9 and 5 voxels per side.
+    let settings = CloudQualitySettings {
+        light_supersampling: 3,
+        ..common::quality(24, 2)
+    };
+    let medium = Medium {
+        extinction: 2.0,
+        albedo: 0.9,
+        ..default()
+    };
+    // Small particles in a ball, and at its centre one of radius `largest`: about 8, 20 and 36
+    // fine voxels (its cube is at least 1.3 and 2.2 m wide), on levels 0, 1 and 2.
+    let mut rng = SplitMix64::new(5);
+    let mut particles = |largest: f32| -> Vec<Particle> {
+        (0..40)
+            .map(|i| Particle {
+                position: if i == 0 {
+                    Vec3::ZERO
+                } else {
+                    rng.in_unit_ball() * 0.5
+                },
+                radius: match i {
+                    0 => largest,
+                    // Beside a particle on level 2 (18 voxels per side), one on the fine grid
+                    // whose support spans about 29 rows of it.
+                    1 if largest > 1.0 => 0.45,
+                    _ => 0.06 + 0.1 * rng.next_f32(),
+                },
+                density: 0.2 + rng.next_f32(),
+            })
+            .collect()
+    };
+    let sets = [particles(0.05), particles(0.4), particles(1.1)];
+    let clouds: Vec<Entity> = sets
+        .iter()
+        .zip([-5.0, 0.0, 5.0])
+        .map(|(p, x)| {
+            let at = Transform::from_xyz(x, 0.0, 0.0);
+            headless::spawn_cloud(&mut app, p.clone(), medium, settings, at)
+        })
+        .collect();
+    let mut recorder = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut recorder, 3, 20).unwrap();
+    let count = |f: fn(&headless::FrameStats, CloudPass) -> u32| -> u32 {
+        recorder
+            .frames
+            .iter()
+            .map(|s| f(s, CloudPass::Voxelize))
+            .sum()
+    };
+    let levels = |app: &mut App, cloud: Entity| {
+        let render = app.world().get::<RenderEntity>(cloud).unwrap().id();
+        common::with_render_world(app, |world| {
+            let v = world.get::<CloudVolumes>(render).unwrap();
+            (v.levels_in_use, v.slot.pool)
+        })
+    };
+    let (in_use, pools): (Vec<usize>, Vec<_>) = clouds.iter().map(|&c| levels(&mut app, c)).unzip();
+    assert_eq!(in_use, [1, 2, 3]);
+    assert!(pools.iter().all(|p| *p == pools[0]), "one pool");
+    // Three clouds voxelized once each; the kernels' sums, the deposit, and levels 2 and 1
+    // enlarged: four dispatches, as for the one cloud with three levels.
+    assert_eq!(
+        (count(|s, p| s.runs(p)), count(|s, p| s.dispatches(p))),
+        (3, 4)
+    );
+
+    let m = settings.light_resolution() as usize;
+    for (cloud, particles) in clouds.into_iter().zip(&sets) {
+        let render = app.world().get::<RenderEntity>(cloud).unwrap().id();
+        let range = common::with_render_world(&mut app, |world| {
+            let volumes = world.get::<CloudVolumes>(render).unwrap();
+            let pool = world.resource::<VolumePools>().pool(&volumes.slot);
+            pool.fine_density(volumes.slot.index)
+        });
+        let bytes = headless::read_buffer_range(&mut app, &range).unwrap();
+        let gpu: Vec<f64> = headless::floats(&bytes)
+            .into_iter()
+            .map(f64::from)
+            .collect();
+        let cpu = voxelize(particles, m).expect("density");
+        let difference = max_relative_difference(&gpu[..m.pow(3)], &cpu.rho);
+        assert!(difference < 2e-4, "{difference}");
+    }
 }
