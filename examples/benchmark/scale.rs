@@ -225,8 +225,8 @@ fn write_scale(args: &Args, adapter: &str, rows: &[ScaleRow]) -> Result<(), Stri
         "Adapter: `{adapter}`. GPU ms per pass: median of {} frames that rerun every pass (the \
          particles touched); draw: a static frame's. Runs: how many times each pass ran in a \
          re-lit frame (per cloud, per light, per scattering iteration, per view); dispatches: the \
-         compute dispatches of that frame (shade, gather and scatter batch every cloud of a volume \
-         shape). Particles: 640×360, radii ∝ count^(-1/3); clouds sweep: `volume_resolution` 16, \
+         compute dispatches of that frame (voxelize, shade, gather and scatter batch every cloud of \
+         a volume shape). Particles: 640×360, radii ∝ count^(-1/3); clouds sweep: `volume_resolution` 16, \
          8 iterations; the others: default settings.\n\n\
          | sweep | configuration | voxelize | shade | gather | scatter | sort + view volume | draw (static) | GPU total | wall | static wall | pass runs | dispatches |\n\
          |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
