@@ -90,10 +90,13 @@ fn real_time_with(
     let mut fine = scene.clone();
     fine.camera.width *= 2;
     fine.camera.height *= 2;
+    let cloud = &scene.clouds[0];
+    let camera = (scene.camera.position - cloud.translation).as_dvec3();
+    let seen = illumination.seen_from(camera, settings.compositing);
     let pixels = composite_scene_cloud(
         &fine,
         0,
-        &|x, ray| illumination.scattered_at(x, ray),
+        &|x, ray| seen.scattered_at(x, ray),
         settings,
         &illumination.fine,
     );

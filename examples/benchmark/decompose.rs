@@ -98,6 +98,8 @@ fn real_time_orders(
     if ill.anisotropy != 0.0 {
         // Albedo 0 in the depth scale: the beam through the whole optical depth.
         let exact = |x, ray| single_scattering_towards(&ill.lights, x, (0.0, ill.anisotropy), ray);
+        let camera = (scene.camera.position - scene.clouds[0].translation).as_dvec3();
+        let seen = ill.seen_from(camera, settings.compositing);
         return vec![
             billboards(
                 scene,
@@ -108,7 +110,7 @@ fn real_time_orders(
             ),
             billboards(
                 scene,
-                &|x, ray| ill.scattered_at(x, ray) - exact(x, ray) * albedo,
+                &|x, ray| seen.scattered_at(x, ray) - exact(x, ray) * albedo,
                 settings,
                 &ill.fine,
                 factor,

@@ -22,7 +22,7 @@ use crate::math::{
 use crate::particle::{DeltaEddington, LightSample, Medium, Particle};
 use crate::reference::composite::CloudPlacement;
 use crate::reference::ground::GroundLight;
-use crate::settings::{CloudQualitySettings, ScatterStencil};
+use crate::settings::{CloudQualitySettings, Compositing, ScatterStencil};
 use crate::shadow_maps::ShadowMapPlacement;
 
 // ---------------------------------------------------------------------------------------------
@@ -1738,6 +1738,58 @@ impl CloudIllumination {
         let quadrupole = self.grid.sample_clamped_array(&m.quadrupole, p);
         (mean + flux_along(&flux, w) * (3.0 * g) + quadrupole_along(&quadrupole, w) * (7.5 * g * g))
             .max(DVec3::ZERO)
+    }
+
+    /// `S_m` of every voxel of the scattering grid scattered towards a camera at local point
+    /// `camera` (section 5, "An anisotropic cloud seen from the camera"):
+    /// [`multiple_towards`](Self::multiple_towards) at the voxel's centre, towards the camera
+    /// (the mean alone where the camera is at the centre). `None` for an isotropic medium, whose
+    /// `S_m` is the same in every direction.
+    pub fn multiple_seen_from(&self, camera: DVec3) -> Option<Vec<DVec3>> {
+        if self.multiple.flux.is_empty() {
+            return None;
+        }
+        let seen = (0..self.multiple.total.len()).into_par_iter().map(|i| {
+            let centre = self.grid.voxel_centre_linear(i);
+            self.multiple_towards(centre, (camera - centre).normalize_or_zero())
+        });
+        Some(seen.collect())
+    }
+
+    /// What the billboards of this cloud see from a camera at local point `camera` with
+    /// `compositing`: through the view transmittance, an anisotropic cloud's `S_m` comes from
+    /// [`multiple_seen_from`](Self::multiple_seen_from), as on the GPU; otherwise the light is
+    /// [`scattered_at`](Self::scattered_at).
+    pub fn seen_from(&self, camera: DVec3, compositing: Compositing) -> SeenIllumination<'_> {
+        let seen = match compositing {
+            Compositing::ViewTransmittance => self.multiple_seen_from(camera),
+            Compositing::Sorted => None,
+        };
+        SeenIllumination {
+            illumination: self,
+            multiple: seen,
+        }
+    }
+}
+
+/// A cloud's illumination as the billboards of one camera see it
+/// ([`CloudIllumination::seen_from`]).
+pub struct SeenIllumination<'a> {
+    illumination: &'a CloudIllumination,
+    /// `S_m` per voxel towards the camera, where the billboards read it from a volume.
+    multiple: Option<Vec<DVec3>>,
+}
+
+impl SeenIllumination<'_> {
+    /// [`CloudIllumination::scattered_at`], with `S_m` trilinear in the volume seen from the
+    /// camera where there is one.
+    pub fn scattered_at(&self, p: DVec3, ray: DVec3) -> DVec3 {
+        let ill = self.illumination;
+        let Some(multiple) = &self.multiple else {
+            return ill.scattered_at(p, ray);
+        };
+        let single = single_scattering_towards(&ill.lights, p, (ill.albedo, ill.anisotropy), ray);
+        (single + ill.grid.sample_clamped(multiple, p)) * ill.albedo
     }
 }
 

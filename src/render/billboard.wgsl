@@ -15,7 +15,7 @@
 //
 // DISTANCE_FOG: every piece of every chord is fogged at its own distance (fog.wgsl).
 #import bevy_particle_clouds::fog::{CloudFog, fog_colour, fogged}
-#import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, ViewVolumeParams, CloudTargetParams, grid_coords, henyey_greenstein, flux_element, quadrupole_element, quadrupole_weights, light_coords, clamped_lookup, clamped_corner, corner_weight, opacity, voxel_index, view_volume_coords, front_map_index, view_columns, column_corner, cloud_target_depth_pixel}
+#import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, ViewVolumeParams, CloudTargetParams, grid_coords, henyey_greenstein, flux_element, quadrupole_element, phase_on_moments, light_coords, clamped_lookup, clamped_corner, corner_weight, opacity, voxel_index, view_volume_coords, front_map_index, view_columns, column_corner, cloud_target_depth_pixel}
 
 struct DrawParams {
     world_from_local: mat4x4<f32>,
@@ -53,7 +53,8 @@ struct DrawParams {
 @group(1) @binding(4) var<storage, read> lights: array<LightParams>;
 @group(1) @binding(5) var<storage, read> optical_depth: array<f32>;
 // Multiple scattering S_m per voxel of the density grid (its means; with moments, then its flux
-// and its quadrupole).
+// and its quadrupole); through the view transmittance, an anisotropic cloud's S_m seen from the
+// camera instead, the view's volumes of them from `view_volume.seen_offset` (view_volume.wgsl).
 @group(1) @binding(6) var<storage, read> multiple: array<vec4<f32>>;
 #ifdef VIEW_TRANSMITTANCE
 // Optical depth from the camera at the nodes of every view volume of this view, each from its
@@ -154,34 +155,54 @@ fn single_scattering_at(p: vec3<f32>, ray: vec3<f32>) -> vec3<f32> {
     return sum;
 }
 
+// Whether `multiple` holds the cloud's S_m seen from the camera (docs/illumination.md §5), and
+// its first element.
+#ifdef VIEW_TRANSMITTANCE
+fn seen_from_camera() -> bool {
+    return view_volume.seen_n > 0u;
+}
+
+fn first_multiple() -> u32 {
+    return select(0u, view_volume.seen_offset, seen_from_camera());
+}
+#else
+fn seen_from_camera() -> bool {
+    return false;
+}
+
+fn first_multiple() -> u32 {
+    return 0u;
+}
+#endif
+
 // S_m at a cloud-local point towards the unit direction w: its mean, and with moments the
 // Henyey-Greenstein phase function on its first three angular moments,
-// max(mean + 3 g F . w + (15/2) g^2 w^T Q w, 0) (docs/illumination.md §5).
+// max(mean + 3 g F . w + (15/2) g^2 w^T Q w, 0) (docs/illumination.md §5); all trilinear. Seen
+// from the camera, the volume holds that towards the camera already.
 fn multiple_towards(p: vec3<f32>, w: vec3<f32>) -> vec3<f32> {
     let t = clamped_lookup(grid_coords(cloud, p), cloud.n);
     let n = cloud.n;
+    let first = first_multiple();
     var s_m = vec3(0.0);
     for (var corner = 0u; corner < 8u; corner++) {
-        s_m += corner_weight(t, corner) * multiple[clamped_corner(t, corner, n)].xyz;
+        s_m += corner_weight(t, corner) * multiple[first + clamped_corner(t, corner, n)].xyz;
     }
-    if cloud.moments == 0u {
+    if cloud.moments == 0u || seen_from_camera() {
         return s_m;
     }
-    let g = cloud.anisotropy;
-    var q = quadrupole_weights(w);
-    var directional = vec3(0.0);
+    var flux = array<vec3<f32>, 3>();
+    var quadrupole = array<vec3<f32>, 5>();
     for (var corner = 0u; corner < 8u; corner++) {
         let i = clamped_corner(t, corner, n);
-        var at = vec3(0.0);
+        let weight = corner_weight(t, corner);
         for (var axis = 0u; axis < 3u; axis++) {
-            at += 3.0 * g * w[axis] * multiple[flux_element(0u, n, i, axis)].xyz;
+            flux[axis] += weight * multiple[flux_element(0u, n, i, axis)].xyz;
         }
         for (var c = 0u; c < 5u; c++) {
-            at += 7.5 * g * g * q[c] * multiple[quadrupole_element(0u, n, i, c)].xyz;
+            quadrupole[c] += weight * multiple[quadrupole_element(0u, n, i, c)].xyz;
         }
-        directional += corner_weight(t, corner) * at;
     }
-    return max(s_m + directional, vec3(0.0));
+    return max(s_m + phase_on_moments(cloud.anisotropy, w, flux, quadrupole), vec3(0.0));
 }
 
 // albedo (S_1 + S_m) at a cloud-local point, seen along `ray`.

@@ -28,12 +28,12 @@ use bevy::{
         },
         render_resource::{
             BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries,
-            BlendComponent, BlendFactor, BlendOperation, BlendState, Buffer, BufferInitDescriptor,
-            BufferUsages, CachedRenderPipelineId, ColorTargetState, ColorWrites, CompareFunction,
-            DepthBiasState, DepthStencilState, FragmentState, MultisampleState, PipelineCache,
-            PrimitiveState, PrimitiveTopology, RenderPipeline, RenderPipelineDescriptor,
-            ShaderStages, ShaderType, SpecializedRenderPipeline, SpecializedRenderPipelines,
-            StencilState, TextureFormat, VertexState,
+            BindingResource, BlendComponent, BlendFactor, BlendOperation, BlendState, Buffer,
+            BufferInitDescriptor, BufferUsages, CachedRenderPipelineId, ColorTargetState,
+            ColorWrites, CompareFunction, DepthBiasState, DepthStencilState, FragmentState,
+            MultisampleState, PipelineCache, PrimitiveState, PrimitiveTopology, RenderPipeline,
+            RenderPipelineDescriptor, ShaderStages, ShaderType, SpecializedRenderPipeline,
+            SpecializedRenderPipelines, StencilState, TextureFormat, VertexState,
             binding_types::{storage_buffer_read_only_sized, uniform_buffer, uniform_buffer_sized},
         },
         renderer::RenderDevice,
@@ -327,18 +327,29 @@ pub struct CloudDrawBindGroups {
 pub struct BillboardViewBindGroup(BindGroup);
 
 /// Per view, the buffers that make a cloud's group 1 differ between views: the sorted order, or
-/// the view volume's uniform and the view's atlas (optical depths, volumes, neighbour lists).
+/// the view volume's uniform and the view's atlas (optical depths, volumes, neighbour lists,
+/// and for an anisotropic cloud its multiple scattering seen from the camera).
+struct PerView<'a> {
+    view: RetainedViewEntity,
+    buffers: [&'a Buffer; 4],
+    seen_multiple: Option<&'a Buffer>,
+}
+
 fn per_view_buffers<'a>(
     sorts: Option<&'a CloudSorts>,
     view_volumes: Option<&'a CloudViewVolumes>,
     atlases: &'a ViewVolumeAtlases,
     compositing: Compositing,
-) -> Vec<(RetainedViewEntity, [&'a Buffer; 4])> {
+) -> Vec<PerView<'a>> {
     match compositing {
         Compositing::Sorted => sorts
             .into_iter()
             .flat_map(|s| &s.0)
-            .map(|(view, sort)| (*view, [sort.buffers.sorted_values(); 4]))
+            .map(|(view, sort)| PerView {
+                view: *view,
+                buffers: [sort.buffers.sorted_values(); 4],
+                seen_multiple: None,
+            })
             .collect(),
         Compositing::ViewTransmittance => view_volumes
             .into_iter()
@@ -346,7 +357,11 @@ fn per_view_buffers<'a>(
             .filter_map(|(view, volume)| {
                 let atlas = atlases.0.get(view)?;
                 let buffers = [&atlas.optical_depth, &atlas.volumes, &atlas.neighbours];
-                Some((*view, [&volume.params, buffers[0], buffers[1], buffers[2]]))
+                Some(PerView {
+                    view: *view,
+                    buffers: [&volume.params, buffers[0], buffers[1], buffers[2]],
+                    seen_multiple: volume.sees_multiple().then_some(&atlas.seen_multiple),
+                })
             })
             .collect(),
     }
@@ -409,7 +424,10 @@ pub(crate) fn prepare_billboard_bind_groups(
         // Order-independent over the views (a hash map's order is arbitrary).
         let views = per_view
             .iter()
-            .map(|(view, buffers)| key_of((view, buffers.map(|b| b.id()))))
+            .map(|p| {
+                let seen = p.seen_multiple.map(|b| b.id());
+                key_of((p.view, p.buffers.map(|b| b.id()), seen))
+            })
             .fold(0, |a, h| a ^ h);
         let key = key_of((
             params.world_from_local.to_cols_array().map(f32::to_bits),
@@ -432,7 +450,16 @@ pub(crate) fn prepare_billboard_bind_groups(
         let groups = per_view
             .into_iter()
             .map(
-                |(view, [a, atlas_depth, atlas_volumes, atlas_neighbours])| {
+                |PerView {
+                     view,
+                     buffers,
+                     seen_multiple,
+                 }| {
+                    let [a, atlas_depth, atlas_volumes, atlas_neighbours] = buffers;
+                    let multiple = match seen_multiple {
+                        Some(seen) => seen.as_entire_binding(),
+                        None => BindingResource::Buffer(multiple.binding()),
+                    };
                     let shared = (
                         params.as_entire_binding(),
                         volumes.params_buffer.as_entire_binding(),
@@ -440,7 +467,7 @@ pub(crate) fn prepare_billboard_bind_groups(
                         a.as_entire_binding(),
                         lights.binding(),
                         optical_depth.binding(),
-                        multiple.binding(),
+                        multiple,
                     );
                     let group = match compositing {
                         Compositing::Sorted => device.create_bind_group(

@@ -712,7 +712,9 @@ pub(crate) fn illuminate_clouds(
     }
 
     for (_, s) in &mut clouds {
-        s.ready |= s.plan.scatter.is_some() || s.plan.unlit;
+        let scattered = s.plan.scatter.is_some() || s.plan.unlit;
+        s.ready |= scattered;
+        s.scattered = s.scattered.wrapping_add(scattered as u32);
         s.plan = default();
     }
 }

@@ -212,6 +212,9 @@ pub struct CloudIllumination {
     pub plan: WorkPlan,
     /// The volumes hold a finished illumination: the cloud may be drawn.
     pub ready: bool,
+    /// Counts (wrapping) the frames whose work changed its multiple scattering: what a view's
+    /// evaluation of it towards the camera was made from (`view_volume.rs`).
+    pub scattered: u32,
     /// Frames its pending work has been put off by the re-light budget.
     pub waited: u32,
     /// Per light slot, the clouds (render entities) that cast their shadow on this one this

@@ -134,6 +134,17 @@ fn quadrupole_weights(w: vec3<f32>) -> array<f32, 5> {
     return array(w.x * w.x - w.z * w.z, w.y * w.y - w.z * w.z, 2.0 * w.x * w.y, 2.0 * w.x * w.z, 2.0 * w.y * w.z);
 }
 
+// What the Henyey-Greenstein phase function of anisotropy g adds to the mean of S_m towards the
+// unit direction w, from its flux F (per axis) and quadrupole Q (xx, yy, xy, xz, yz):
+// 3 g F . w + (15/2) g^2 w^T Q w, its Legendre expansion to second order (docs/illumination.md
+// §5). Zero for w = 0.
+fn phase_on_moments(g: f32, w: vec3<f32>, flux: array<vec3<f32>, 3>, quadrupole: array<vec3<f32>, 5>) -> vec3<f32> {
+    let q = quadrupole_weights(w);
+    let along = w.x * flux[0] + w.y * flux[1] + w.z * flux[2];
+    let spread = q[0] * quadrupole[0] + q[1] * quadrupole[1] + q[2] * quadrupole[2] + q[3] * quadrupole[3] + q[4] * quadrupole[4];
+    return 3.0 * g * along + 7.5 * g * g * spread;
+}
+
 // Linear index of voxel `v` in an n^3 volume.
 fn voxel_index(v: vec3<u32>, n: u32) -> u32 {
     return v.x + n * (v.y + n * v.z);
@@ -249,6 +260,11 @@ struct ViewVolumeParams {
     // The first `front_count` neighbours lie wholly in front of this volume (their last slice
     // before its first): their optical depth is summed into this volume's front map.
     front_count: u32,
+    // First vec4 of the cloud's multiple scattering seen from the camera in its view's
+    // `seen_multiple` (an anisotropic cloud's), and that volume's voxels per side (the
+    // scattering grid's N; 0: none, the billboards read the mean S_m).
+    seen_offset: u32,
+    seen_n: u32,
 }
 
 // Element of column (i, j) of a view volume's front map: after its n^3 optical depths, n^2

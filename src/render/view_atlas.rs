@@ -29,8 +29,13 @@ pub struct ViewVolumeAtlas {
     pub volumes: Buffer,
     /// The volumes' neighbour lists, concatenated: indices into `volumes`.
     pub neighbours: Buffer,
-    /// The clouds and sizes `optical_depth` is laid out for, and their offsets.
-    layout: Vec<(Entity, u32, u32)>,
+    /// vec4 multiple scattering of each anisotropic cloud seen from the camera, `N³` from its
+    /// `seen_offset` (docs/illumination.md §5).
+    pub seen_multiple: Buffer,
+    /// Where each cloud's optical depths lie in `optical_depth` (in f32).
+    depth_regions: Regions,
+    /// Where each anisotropic cloud's multiple scattering lies in `seen_multiple` (in vec4).
+    seen_regions: Regions,
     /// What `volumes` and `neighbours` hold.
     written: u64,
     /// Per cloud, its group: clouds that overlap on screen, directly or through others. A group
@@ -53,6 +58,8 @@ pub(crate) struct AtlasEntry {
     pub(crate) params: ViewVolumeParams,
     /// Key of the march's inputs (`UNLIT` for a zero volume).
     pub(crate) key: u64,
+    /// Key of where the camera sees the cloud's multiple scattering from (0: it has none).
+    pub(crate) seen_key: u64,
     /// The cloud is drawn this frame.
     pub(crate) drawn: bool,
 }
@@ -67,6 +74,53 @@ impl AtlasEntry {
     /// Whether other clouds' billboards see through it: it is marched and drawn.
     fn seen_through(&self) -> bool {
         self.drawn && self.occupies()
+    }
+}
+
+/// Regions of a buffer shared by a view's clouds, one per cloud: `(cloud, length, offset)`.
+#[derive(Default)]
+struct Regions(Vec<(Entity, u64, u64)>);
+
+impl Regions {
+    /// Places the `wanted` regions `(cloud, length)` in a buffer of `capacity` elements: a
+    /// region keeps its offset while its length holds, and new regions go after the last one
+    /// kept; when they do not fit, every region is packed anew, the buffer growing by doubling
+    /// if needed. Returns each cloud's offset, and the capacity the buffer must grow to, if any.
+    fn place(
+        &mut self,
+        wanted: &[(Entity, u64)],
+        capacity: u64,
+    ) -> (HashMap<Entity, u64>, Option<u64>) {
+        let previous: HashMap<Entity, (u64, u64)> =
+            self.0.iter().map(|&(e, len, o)| (e, (len, o))).collect();
+        let (mut kept, mut placed) = (Vec::new(), Vec::new());
+        for &(entity, len) in wanted {
+            match previous.get(&entity) {
+                Some(&(l, offset)) if l == len => kept.push((entity, len, offset)),
+                _ => placed.push((entity, len)),
+            }
+        }
+        let mut end = kept.iter().map(|&(_, len, o)| o + len).max().unwrap_or(0);
+        let needed: u64 = placed.iter().map(|&(_, len)| len).sum();
+        let mut grown = None;
+        if end + needed > capacity {
+            placed = kept
+                .drain(..)
+                .map(|(e, len, _)| (e, len))
+                .chain(placed)
+                .collect();
+            end = 0;
+            let total: u64 = placed.iter().map(|&(_, len)| len).sum();
+            if total > capacity {
+                grown = Some(total.next_power_of_two().max(capacity * 2));
+            }
+        }
+        for (entity, len) in placed {
+            kept.push((entity, len, end));
+            end += len;
+        }
+        self.0 = kept;
+        (self.0.iter().map(|&(e, _, o)| (e, o)).collect(), grown)
     }
 }
 
@@ -141,7 +195,9 @@ impl ViewVolumeAtlas {
                 ViewVolumeParams::min_size().get(),
             ),
             neighbours: storage(device, "particle_clouds_view_volume_neighbours", 4),
-            layout: Vec::new(),
+            seen_multiple: storage(device, "particle_clouds_view_seen_multiple", 16),
+            depth_regions: Regions::default(),
+            seen_regions: Regions::default(),
             written: 0,
             groups: HashMap::default(),
             fronts: Vec::new(),
@@ -149,48 +205,41 @@ impl ViewVolumeAtlas {
         }
     }
 
-    /// Gives each occupying entry its offset. A volume keeps its offset while its size holds, and
-    /// new volumes go after the last one kept; when they do not fit, every volume is packed anew,
-    /// the buffer growing by doubling if needed. A volume whose offset or buffer changed is
-    /// marched again, since its key holds both: so a cloud entering the view costs one march of
-    /// its own, not of every cloud.
+    /// Gives each occupying entry its offsets: of its optical depths, and of its multiple
+    /// scattering seen from the camera if it has one ([`Regions::place`]). A volume whose offset
+    /// or buffer changed is marched (or seen) again, since its key holds both: so a cloud entering
+    /// the view costs one march of its own, not of every cloud.
     pub(crate) fn lay_out(&mut self, device: &RenderDevice, entries: &mut [AtlasEntry]) {
-        let previous: HashMap<Entity, (u32, u32)> =
-            self.layout.iter().map(|&(e, n, o)| (e, (n, o))).collect();
-        let (mut kept, mut placed) = (Vec::new(), Vec::new());
-        for entry in entries.iter().filter(|e| e.occupies()) {
-            match previous.get(&entry.entity) {
-                Some(&(n, offset)) if n == entry.params.n => kept.push((entry.entity, n, offset)),
-                _ => placed.push((entry.entity, entry.params.n)),
-            }
+        let occupying = || entries.iter().filter(|e| e.occupies());
+        let depths: Vec<_> = occupying()
+            .map(|e| (e.entity, view_volume_len(e.params.n)))
+            .collect();
+        let seen: Vec<_> = occupying()
+            .filter(|e| e.params.seen_n > 0)
+            .map(|e| (e.entity, (e.params.seen_n as u64).pow(3)))
+            .collect();
+        let (depth_offsets, grown) = self
+            .depth_regions
+            .place(&depths, self.optical_depth.size() / 4);
+        if let Some(elements) = grown {
+            self.optical_depth =
+                storage(device, "particle_clouds_view_optical_depth", elements * 4);
         }
-        let size = view_volume_len;
-        let mut end = kept.iter().map(|&(_, n, o)| o as u64 + size(n)).max();
-        let needed: u64 = placed.iter().map(|&(_, n)| size(n)).sum();
-        let capacity = self.optical_depth.size() / 4;
-        if end.unwrap_or(0) + needed > capacity {
-            placed = kept
-                .drain(..)
-                .map(|(e, n, _)| (e, n))
-                .chain(placed)
-                .collect();
-            end = None;
-            let total: u64 = placed.iter().map(|&(_, n)| size(n)).sum();
-            if total > capacity {
-                let bytes = total.next_power_of_two().max(capacity * 2) * 4;
-                self.optical_depth = storage(device, "particle_clouds_view_optical_depth", bytes);
-            }
+        let (seen_offsets, grown) = self
+            .seen_regions
+            .place(&seen, self.seen_multiple.size() / 16);
+        if let Some(elements) = grown {
+            self.seen_multiple =
+                storage(device, "particle_clouds_view_seen_multiple", elements * 16);
         }
-        let mut end = end.unwrap_or(0);
-        for (entity, n) in placed {
-            kept.push((entity, n, end as u32));
-            end += size(n);
-        }
-        self.layout = kept;
-        let offsets: HashMap<Entity, u32> = self.layout.iter().map(|l| (l.0, l.2)).collect();
         for entry in entries.iter_mut().filter(|e| e.occupies()) {
-            entry.params.offset = offsets[&entry.entity];
+            entry.params.offset = depth_offsets[&entry.entity] as u32;
             entry.key = key_of((entry.key, entry.params.offset, self.optical_depth.id()));
+            if let Some(&offset) = seen_offsets.get(&entry.entity) {
+                entry.params.seen_offset = offset as u32;
+                let buffer = self.seen_multiple.id();
+                entry.seen_key = key_of((entry.seen_key, offset, buffer));
+            }
         }
     }
 
@@ -248,6 +297,7 @@ mod tests {
                 ..default()
             },
             key: index as u64,
+            seen_key: 0,
             drawn,
         }
     }
@@ -285,5 +335,34 @@ mod tests {
         assert_eq!(neighbours(4), [] as [u32; 0]);
         // 0, 1 and 2 overlap on screen, directly or through 1: one group, drawn as one.
         assert_eq!(groups, [0, 0, 0, 3, 4]);
+    }
+
+    #[test]
+    fn a_region_keeps_its_place_while_it_fits_and_all_are_packed_when_not() {
+        let cloud = |i| Entity::from_raw_u32(i).unwrap();
+        let mut regions = Regions::default();
+        let (offsets, grown) = regions.place(&[(cloud(0), 4), (cloud(1), 8)], 16);
+        assert_eq!(
+            (offsets[&cloud(0)], offsets[&cloud(1)], grown),
+            (0, 4, None)
+        );
+        // 0 leaves, 2 comes after the last one kept, 1 stays where it was.
+        let (offsets, grown) = regions.place(&[(cloud(1), 8), (cloud(2), 4)], 16);
+        assert_eq!(
+            (offsets[&cloud(1)], offsets[&cloud(2)], grown),
+            (4, 12, None)
+        );
+        // 1 changes size: it no longer fits after 2, so both are packed anew from 0.
+        let (offsets, grown) = regions.place(&[(cloud(1), 6), (cloud(2), 4)], 16);
+        assert_eq!(
+            (offsets[&cloud(2)], offsets[&cloud(1)], grown),
+            (0, 4, None)
+        );
+        // More than the buffer holds: packed, and the buffer doubles (at least).
+        let (offsets, grown) = regions.place(&[(cloud(1), 6), (cloud(3), 20)], 16);
+        assert_eq!(
+            (offsets[&cloud(1)], offsets[&cloud(3)], grown),
+            (0, 6, Some(32))
+        );
     }
 }

@@ -28,7 +28,7 @@ use super::{
     gpu::{WorkList, record_stage, uniform_bytes},
     key_of,
     plan::CloudIllumination,
-    pools::{PoolId, VolumePools},
+    pools::{PoolId, VolumePool, VolumePools},
     shaders::CloudShaders,
     view_atlas::{AtlasEntry, ViewVolumeAtlas, ViewVolumeAtlases, link_neighbours},
     volumes::CloudVolumes,
@@ -63,6 +63,12 @@ pub struct ViewVolumeParams {
     /// The first `front_count` neighbours lie wholly in front of this volume: their optical
     /// depth along each of its columns is summed once into its front map.
     pub front_count: u32,
+    /// First vec4 of the cloud's multiple scattering seen from the camera in
+    /// [`ViewVolumeAtlas::seen_multiple`] (an anisotropic cloud's).
+    pub seen_offset: u32,
+    /// Voxels per side of that volume (the scattering grid's `N`); 0 when the cloud has none
+    /// (isotropic: its billboards read the mean `S_m`).
+    pub seen_n: u32,
 }
 
 /// Elements a view volume of `n` rays per side and `n` slices takes in its atlas: its `n³`
@@ -86,6 +92,11 @@ pub struct ViewVolumePipeline {
     pub front_layout: BindGroupLayoutDescriptor,
     /// `sum_front`.
     pub sum_front: CachedComputePipelineId,
+    /// A pool's `Slot`s (binding 0), an atlas's `ViewVolumeParams` (1), the work list (4), the
+    /// pool's multiple scattering (6) and the atlas's `seen_multiple` (7).
+    pub seen_layout: BindGroupLayoutDescriptor,
+    /// `see_multiple`.
+    pub see_multiple: CachedComputePipelineId,
 }
 
 pub(crate) fn init_view_volume_pipeline(
@@ -118,6 +129,19 @@ pub(crate) fn init_view_volume_pipeline(
             ),
         ),
     );
+    let seen_layout = BindGroupLayoutDescriptor::new(
+        "particle_clouds_view_volume_seen_layout",
+        &BindGroupLayoutEntries::with_indices(
+            ShaderStages::COMPUTE,
+            (
+                (0, storage_buffer_read_only_sized(false, None)),
+                (1, storage_buffer_read_only_sized(false, None)),
+                (4, storage_buffer_read_only_sized(true, None)),
+                (6, storage_buffer_read_only_sized(false, None)),
+                (7, storage_buffer_sized(false, None)),
+            ),
+        ),
+    );
     let compute = |label: &'static str, layout: &BindGroupLayoutDescriptor, entry: &'static str| {
         cache.queue_compute_pipeline(ComputePipelineDescriptor {
             label: Some(label.into()),
@@ -134,11 +158,18 @@ pub(crate) fn init_view_volume_pipeline(
         &front_layout,
         "sum_front",
     );
+    let see_multiple = compute(
+        "particle_clouds_view_volume_seen",
+        &seen_layout,
+        "see_multiple",
+    );
     commands.insert_resource(ViewVolumePipeline {
         layout,
         march,
         front_layout,
         sum_front,
+        seen_layout,
+        see_multiple,
     });
 }
 
@@ -160,6 +191,33 @@ pub struct ViewVolume {
     pub ready: bool,
     /// Its index in its view's atlas (`ViewVolumeAtlas::volumes`).
     entry: u32,
+    /// Key of where the camera sees the cloud's multiple scattering from and where it is
+    /// written (an anisotropic cloud's; 0 for none).
+    seen_key: u64,
+    /// The multiple scattering seen from the camera must be evaluated again: the camera moved,
+    /// or its place in the atlas did.
+    seen_pending: bool,
+    /// The [`CloudIllumination::scattered`] it was last evaluated from.
+    seen_from: Option<u32>,
+}
+
+impl ViewVolume {
+    /// The uniform as last written (`None` before the first).
+    pub fn uniform(&self) -> Option<ViewVolumeParams> {
+        self.written
+    }
+
+    /// Whether the billboards read the cloud's multiple scattering seen from the camera from the
+    /// view's atlas (an anisotropic cloud), not the pool's.
+    pub fn sees_multiple(&self) -> bool {
+        self.written.is_some_and(|p| p.seen_n > 0)
+    }
+
+    /// Whether the multiple scattering seen from the camera must be evaluated this frame, its
+    /// cloud's last scattering being `scattered`.
+    fn must_see(&self, scattered: u32) -> bool {
+        self.sees_multiple() && (self.seen_pending || self.seen_from != Some(scattered))
+    }
 }
 
 /// Every view's transmittance volume of one cloud (render world component on the cloud).
@@ -304,10 +362,16 @@ fn atlas_entry(
         return None;
     }
     let (params, key) = view_params(cloud, volumes, illumination.keys.density, view)?;
+    // Where the camera is in cloud-local space: what the multiple scattering is seen from.
+    let seen_key = (params.seen_n > 0).then(|| {
+        let camera = params.local_from_view.w_axis;
+        key_of((camera.to_array().map(f32::to_bits), params.seen_n))
+    });
     Some(AtlasEntry {
         entity,
         params,
         key,
+        seen_key: seen_key.unwrap_or(0),
         // As `queue_cloud_billboards` decides (illumination ready, some extinction).
         drawn: illumination.ready && cloud.extinction > 0.0,
     })
@@ -329,6 +393,10 @@ fn update_volume(volume: &mut ViewVolume, index: u32, entry: &AtlasEntry, queue:
     } else if entry.key != volume.key {
         volume.key = entry.key;
         volume.pending = true;
+    }
+    if entry.seen_key != volume.seen_key {
+        volume.seen_key = entry.seen_key;
+        volume.seen_pending = true;
     }
 }
 
@@ -362,6 +430,13 @@ fn view_params(
         depth,
         extinction: cloud.extinction,
         n: fine.n.max(2),
+        // An anisotropic cloud's billboards see its multiple scattering through the phase
+        // function: evaluated once per voxel towards the camera (docs/illumination.md §5).
+        seen_n: if volumes.params.moments != 0 {
+            volumes.params.n
+        } else {
+            0
+        },
         ..default()
     };
     let key = key_of((
@@ -387,20 +462,29 @@ fn new_volume(device: &RenderDevice) -> ViewVolume {
         pending: false,
         ready: false,
         entry: 0,
+        seen_key: 0,
+        seen_pending: false,
+        seen_from: None,
     }
 }
 
-/// The pending volumes of one view whose clouds share a volume pool: marched in one dispatch.
+/// The pending volumes of one view whose clouds share a volume pool: marched (or seen) in one
+/// dispatch.
 #[derive(Default)]
 struct MarchBatch {
     /// `(atlas volume, slot)` per volume.
     items: Vec<[u32; 2]>,
-    /// Rays per side (the pool's fine grid).
+    /// Rays per side (the pool's fine grid), or voxels per side (its scattering grid).
     n: u32,
 }
 
-/// Marches every pending view volume whose cloud's illumination is ready (once per frame, after
-/// the illumination, before the cameras draw): one dispatch per view and volume pool.
+/// One dispatch's bind group, work list and columns per side.
+type Dispatch = (BindGroup, WorkList, u32);
+
+/// Marches every pending view volume whose cloud's illumination is ready, and evaluates the
+/// multiple scattering of anisotropic clouds seen from the camera where the camera or the
+/// scattering changed (once per frame, after the illumination, before the cameras draw): one
+/// dispatch per view and volume pool each.
 #[allow(clippy::too_many_arguments)] // a render system's resources
 pub(crate) fn march_view_volumes(
     mut ctx: RenderContext,
@@ -413,57 +497,81 @@ pub(crate) fn march_view_volumes(
     counters: Res<CloudPassCounters>,
 ) {
     let Some(pipeline) = pipeline else { return };
-    let (Some(march), Some(sum_front)) = (
+    let (Some(march), Some(sum_front), Some(see_multiple)) = (
         pipeline_cache.get_compute_pipeline(pipeline.march),
         pipeline_cache.get_compute_pipeline(pipeline.sum_front),
+        pipeline_cache.get_compute_pipeline(pipeline.see_multiple),
     ) else {
         return;
     };
-    let mut batches: HashMap<(RetainedViewEntity, PoolId), MarchBatch> = HashMap::default();
+    let mut marches: HashMap<(RetainedViewEntity, PoolId), MarchBatch> = HashMap::default();
+    let mut sights: HashMap<(RetainedViewEntity, PoolId), MarchBatch> = HashMap::default();
+    let mut runs = 0;
     for (illumination, volumes, mut all) in &mut clouds {
-        if !illumination.ready || !all.0.values().any(|v| v.pending) {
+        let scattered = illumination.scattered;
+        let due = |v: &ViewVolume| v.pending || v.must_see(scattered);
+        if !illumination.ready || !all.0.values().any(due) {
             continue;
         }
-        let n = volumes.fine_params.n.max(2);
-        for (view, volume) in all.0.iter_mut().filter(|(_, v)| v.pending) {
-            let batch = batches.entry((*view, volumes.slot.pool)).or_default();
-            batch.items.push([volume.entry, volumes.slot.index]);
-            batch.n = n;
+        let slot = volumes.slot.index;
+        for (view, volume) in all.0.iter_mut().filter(|(_, v)| due(v)) {
+            let at = (*view, volumes.slot.pool);
+            if volume.pending {
+                let batch = marches.entry(at).or_default();
+                batch.items.push([volume.entry, slot]);
+                batch.n = volumes.fine_params.n.max(2);
+            }
+            if volume.must_see(scattered) {
+                let batch = sights.entry(at).or_default();
+                batch.items.push([volume.entry, slot]);
+                batch.n = volumes.params.n;
+                volume.seen_pending = false;
+                volume.seen_from = Some(scattered);
+            }
             volume.pending = false;
             volume.ready = true;
+            runs += 1;
         }
     }
     // A view's front maps are summed again after any of its volumes was marched, or when its
     // volumes or lists changed.
-    for ((view, _), _) in &batches {
+    for (view, _) in marches.keys() {
         if let Some(atlas) = atlases.0.get_mut(view) {
             atlas.fronts_stale = true;
         }
     }
     let fronts = front_batches(&mut atlases, &device, &pipeline_cache, &pipeline);
-    if batches.is_empty() && fronts.is_empty() {
+    if marches.is_empty() && sights.is_empty() && fronts.is_empty() {
         return;
     }
     let layout = pipeline_cache.get_bind_group_layout(&pipeline.layout);
-    let batches: Vec<(BindGroup, WorkList, u32)> = batches
-        .into_iter()
-        .filter_map(|((view, pool), batch)| {
-            let (atlas, pool) = (atlases.0.get(&view)?, pools.0.get(&pool)?);
-            let work = WorkList::new(&device, &batch.items);
-            let group = device.create_bind_group(
-                "particle_clouds_view_volume_bind_group",
-                &layout,
-                &BindGroupEntries::sequential((
-                    pool.slots.as_entire_binding(),
-                    atlas.volumes.as_entire_binding(),
-                    pool.densities.as_entire_binding(),
-                    atlas.optical_depth.as_entire_binding(),
-                    work.binding(),
-                )),
-            );
-            Some((group, work, batch.n))
-        })
-        .collect();
+    let marches = dispatches(marches, &atlases, &pools, &device, |atlas, pool, work| {
+        device.create_bind_group(
+            "particle_clouds_view_volume_bind_group",
+            &layout,
+            &BindGroupEntries::sequential((
+                pool.slots.as_entire_binding(),
+                atlas.volumes.as_entire_binding(),
+                pool.densities.as_entire_binding(),
+                atlas.optical_depth.as_entire_binding(),
+                work.binding(),
+            )),
+        )
+    });
+    let layout = pipeline_cache.get_bind_group_layout(&pipeline.seen_layout);
+    let sights = dispatches(sights, &atlases, &pools, &device, |atlas, pool, work| {
+        device.create_bind_group(
+            "particle_clouds_view_volume_seen_bind_group",
+            &layout,
+            &BindGroupEntries::with_indices((
+                (0, pool.slots.as_entire_binding()),
+                (1, atlas.volumes.as_entire_binding()),
+                (4, work.binding()),
+                (6, pool.multiple.as_entire_binding()),
+                (7, atlas.seen_multiple.as_entire_binding()),
+            )),
+        )
+    });
     let recorder = ctx.diagnostic_recorder();
     record_stage(
         &mut ctx,
@@ -471,7 +579,11 @@ pub(crate) fn march_view_volumes(
         &counters,
         CloudPass::ViewVolume,
         |pass| {
-            for (pipeline, dispatches) in [(march, &batches), (sum_front, &fronts)] {
+            for (pipeline, dispatches) in [
+                (march, &marches),
+                (sum_front, &fronts),
+                (see_multiple, &sights),
+            ] {
                 pass.set_pipeline(pipeline);
                 for (group, work, n) in dispatches {
                     for (offset, items) in work.chunks() {
@@ -480,9 +592,27 @@ pub(crate) fn march_view_volumes(
                     }
                 }
             }
-            batches.iter().map(|(_, work, _)| work.items).sum()
+            runs
         },
     );
+}
+
+/// One dispatch per batch: its work list, and the bind group `group` makes for it.
+fn dispatches(
+    batches: HashMap<(RetainedViewEntity, PoolId), MarchBatch>,
+    atlases: &ViewVolumeAtlases,
+    pools: &VolumePools,
+    device: &RenderDevice,
+    group: impl Fn(&ViewVolumeAtlas, &VolumePool, &WorkList) -> BindGroup,
+) -> Vec<Dispatch> {
+    batches
+        .into_iter()
+        .filter_map(|((view, pool), batch)| {
+            let (atlas, pool) = (atlases.0.get(&view)?, pools.0.get(&pool)?);
+            let work = WorkList::new(device, &batch.items);
+            Some((group(atlas, pool, &work), work, batch.n))
+        })
+        .collect()
 }
 
 /// One dispatch of `sum_front` per stale view and volume size, over its volumes that have
@@ -492,7 +622,7 @@ fn front_batches(
     device: &RenderDevice,
     pipeline_cache: &PipelineCache,
     pipeline: &ViewVolumePipeline,
-) -> Vec<(BindGroup, WorkList, u32)> {
+) -> Vec<Dispatch> {
     let layout = pipeline_cache.get_bind_group_layout(&pipeline.front_layout);
     let mut batches = Vec::new();
     for atlas in atlases.0.values_mut().filter(|a| a.fronts_stale) {

@@ -7,9 +7,12 @@
 // Then `sum_front` fills each volume's front map: at each of its columns, the optical depth along
 // the column's ray of the neighbours wholly in front of it, the same for every point of the
 // volume, so the billboards read it once per pixel instead of walking those neighbours.
+// For an anisotropic cloud, `see_multiple` evaluates its S_m towards the camera at every voxel of
+// its scattering grid (the phase function on its moments), which the billboards then read like
+// an isotropic cloud's mean instead of the moments at every chord point.
 // Every volume of one view whose cloud is in one volume pool in one dispatch: z workgroup i
-// marches `work[i]`.
-#import bevy_particle_clouds::types::{Slot, ViewVolumeParams, voxel_index, front_map_index, view_columns, column_corner}
+// marches (or sees) `work[i]`.
+#import bevy_particle_clouds::types::{Slot, ViewVolumeParams, voxel_index, front_map_index, view_columns, column_corner, flux_element, quadrupole_element, phase_on_moments}
 #import bevy_particle_clouds::density::density_at
 
 // The pool's slots; the atlas's volumes; the pool's densities at binding 2 (density.wgsl).
@@ -20,6 +23,10 @@
 @group(0) @binding(4) var<storage, read> work: array<vec2<u32>>;
 // The neighbour lists (`sum_front` only).
 @group(0) @binding(5) var<storage, read> neighbours: array<u32>;
+// The pool's multiple scattering with its moments, and the view's S_m seen from the camera
+// (`see_multiple` only).
+@group(0) @binding(6) var<storage, read> multiple: array<vec4<f32>>;
+@group(0) @binding(7) var<storage, read_write> seen_multiple: array<vec4<f32>>;
 
 @compute @workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)
 fn march(@builtin(global_invocation_id) id: vec3<u32>) {
@@ -78,4 +85,36 @@ fn sum_front(@builtin(global_invocation_id) id: vec3<u32>) {
         tau += along(neighbours[volume.first_neighbour + i], uv);
     }
     view_optical_depth[front_map_index(volume, id.xy)] = tau;
+}
+
+// S_m of each voxel of the scattering grid towards the camera: max(mean + 3 g F . u + (15/2) g^2
+// u^T Q u, 0), u the unit direction from the voxel's centre to the camera (the mean alone where
+// the camera is at the centre). One invocation per column of the grid.
+@compute @workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)
+fn see_multiple(@builtin(global_invocation_id) id: vec3<u32>) {
+    let item = work[id.z];
+    let volume = volumes[item.x];
+    let slot = slots[item.y];
+    let n = slot.cloud.n;
+    if id.x >= n || id.y >= n {
+        return;
+    }
+    let camera = (volume.local_from_view * vec4(0.0, 0.0, 0.0, 1.0)).xyz;
+    let first = slot.multiple;
+    for (var z = 0u; z < n; z++) {
+        let v = vec3(id.xy, z);
+        let i = voxel_index(v, n);
+        let towards = camera - (slot.cloud.grid_origin + (vec3<f32>(v) + 0.5) * slot.cloud.h);
+        let u = select(vec3(0.0), normalize(towards), dot(towards, towards) > 0.0);
+        var flux = array<vec3<f32>, 3>();
+        for (var axis = 0u; axis < 3u; axis++) {
+            flux[axis] = multiple[flux_element(first, n, i, axis)].xyz;
+        }
+        var quadrupole = array<vec3<f32>, 5>();
+        for (var c = 0u; c < 5u; c++) {
+            quadrupole[c] = multiple[quadrupole_element(first, n, i, c)].xyz;
+        }
+        let s_m = multiple[first + i].xyz + phase_on_moments(slot.cloud.anisotropy, u, flux, quadrupole);
+        seen_multiple[volume.seen_offset + i] = vec4(max(s_m, vec3(0.0)), 0.0);
+    }
 }

@@ -259,9 +259,18 @@ pub(crate) fn reference_of_clouds(setup: &Setup, clouds: &[SetupCloud]) -> Vec<[
         .into_iter()
         .map(|i| i.expect("a cloud with density"))
         .collect();
-    let scattered: Vec<_> = illuminations
+    let eye = setup.camera.translation;
+    let seen: Vec<_> = clouds
         .iter()
-        .map(|i| move |x: DVec3, ray: DVec3| i.scattered_at(x, ray))
+        .zip(&illuminations)
+        .map(|(cloud, i)| {
+            let camera = placement(&cloud.transform).local_point(eye.as_dvec3());
+            i.seen_from(camera, setup.settings.compositing)
+        })
+        .collect();
+    let scattered: Vec<_> = seen
+        .iter()
+        .map(|s| move |x: DVec3, ray: DVec3| s.scattered_at(x, ray))
         .collect();
     let billboards: Vec<BillboardCloud> = clouds
         .iter()
@@ -276,7 +285,6 @@ pub(crate) fn reference_of_clouds(setup: &Setup, clouds: &[SetupCloud]) -> Vec<[
             compositing: BillboardCompositing::new(setup.settings.compositing, &illumination.fine),
         })
         .collect();
-    let eye = setup.camera.translation;
     let camera = PinholeCamera::looking_at(
         eye.as_dvec3(),
         (eye + setup.camera.forward().as_vec3()).as_dvec3(),

@@ -14,6 +14,7 @@ mod loader;
 mod lod;
 mod overlap;
 mod plugin;
+mod seen_multiple;
 mod shading_method;
 mod sky;
 mod stress;
