@@ -255,16 +255,17 @@ impl ViewVolumeAtlas {
         let params: Vec<ViewVolumeParams> = entries.iter().map(|e| e.params).collect();
         let (params, lists) = (storage_bytes(&params), storage_bytes(lists));
         let key = key_of((&params, &lists));
+        if key == self.written {
+            // Same params: the same volumes have fronts.
+            return;
+        }
+        self.written = key;
         self.fronts = entries
             .iter()
             .enumerate()
             .filter(|(_, e)| e.params.front_count > 0)
             .map(|(i, e)| [i as u32, e.params.n])
             .collect();
-        if key == self.written {
-            return;
-        }
-        self.written = key;
         self.fronts_stale = true;
         let fit = |buffer: &mut Buffer, label, bytes: &[u8]| {
             if bytes.len() as u64 > buffer.size() {
