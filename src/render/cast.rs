@@ -245,9 +245,9 @@ impl CastTarget {
         }
     }
 
-    /// Points in all.
-    pub fn points(&self) -> u32 {
-        self.size_x * self.size_y * self.size_z
+    /// Columns along z (the light's travel for a light volume): the cast's invocations.
+    pub fn columns(&self) -> u32 {
+        self.size_x * self.size_y
     }
 }
 
@@ -403,7 +403,7 @@ pub(crate) mod tests {
             + b * Vec3::from(t.step_y)
             + c * Vec3::from(t.step_z);
         assert!((point - expected).length() < 1e-5, "{point} vs {expected}");
-        assert_eq!((t.first, t.points()), (100, 512));
+        assert_eq!((t.first, t.columns(), t.size_z), (100, 64, 8));
     }
 
     #[test]

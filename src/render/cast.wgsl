@@ -1,10 +1,10 @@
 // Cast: the shadows clouds cast (docs/illumination.md §2, "Clouds shadow each other"). Optical
 // depths add along a line, so a light volume of a cloud that others shadow is its own optical
 // depth plus, at each voxel centre, every caster's own volume looked up there; and a cloud shadow
-// map (§10) is the sum of every cloud's at each texel's column. One invocation per point of a
-// target's lattice (a light volume's voxels, a map's texels); z workgroup i does target `work[i]`
-// with its casters that lie in the pool bound as `caster_depth` (one dispatch per pool they lie
-// in).
+// map (§10) is the sum of every cloud's at each texel's column. One invocation per column of a
+// target's lattice (a light volume's columns along the light, a map's texels); z workgroup i does
+// target `work[i]` with its casters that lie in the pool bound as `caster_depth` (one dispatch
+// per pool they lie in).
 #import bevy_particle_clouds::types::{flat_invocation, clamped_lookup, clamped_corner, corner_weight}
 
 // Rust mirror: `Caster` in cast.rs.
@@ -49,11 +49,15 @@ struct CastTarget {
 const START_ZERO: u32 = 0u;
 const START_OWN: u32 = 1u;
 
-// The optical depth `caster` casts on point `p` of the target's space: 0 beside its light box or
-// before it (its column holds none of the caster there); inside or past it, the clamped lookup,
-// whose last slice (the whole column) carries on past the box.
-fn cast_depth(caster: Caster, p: vec3<f32>) -> f32 {
-    let g = (caster.coords_from_receiver * vec4(p, 1.0)).xyz;
+// The caster's light-box voxel coordinates of point `p` of the target's space.
+fn caster_coords(caster: Caster, p: vec3<f32>) -> vec3<f32> {
+    return (caster.coords_from_receiver * vec4(p, 1.0)).xyz;
+}
+
+// The optical depth `caster` casts on the point of its light-box coordinates `g`: 0 beside its
+// light box or before it (its column holds none of the caster there); inside or past it, the
+// clamped lookup, whose last slice (the whole column) carries on past the box.
+fn cast_depth(caster: Caster, g: vec3<f32>) -> f32 {
     let edge = f32(caster.n) - 0.5;
     if g.x < -0.5 || g.x > edge || g.y < -0.5 || g.y > edge || g.z < -0.5 {
         return 0.0;
@@ -66,25 +70,55 @@ fn cast_depth(caster: Caster, p: vec3<f32>) -> f32 {
     return tau;
 }
 
+// Whether the whole column from light-box coordinates `g` on lies past the caster's last slice:
+// the lattice's z steps travel with the light, so every point of it takes the same whole column.
+fn wholly_past(caster: Caster, g: vec3<f32>) -> bool {
+    return g.z >= f32(caster.n - 1u);
+}
+
+// One invocation per column (x, y) of a target's lattice, walking its points along z, which
+// travel with the light (a light volume's slices; a shadow map has one): a caster the column
+// lies wholly past adds the same depth to each point, so it is looked up once per column
+// instead of once per point (the clouds in front of a cloud along the light, most of its
+// casters). The others are looked up at every point.
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn cast_shadows(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let lattice = work[id.z];
     let i = flat_invocation(id, groups);
-    if i >= lattice.size_x * lattice.size_y * lattice.size_z {
+    let columns = lattice.size_x * lattice.size_y;
+    if i >= columns {
         return;
     }
-    let v = vec3(i % lattice.size_x, (i / lattice.size_x) % lattice.size_y, i / (lattice.size_x * lattice.size_y));
-    let p = lattice.origin + f32(v.x) * lattice.step_x + f32(v.y) * lattice.step_y + f32(v.z) * lattice.step_z;
-    var tau = 0.0;
+    let top = lattice.origin + f32(i % lattice.size_x) * lattice.step_x + f32(i / lattice.size_x) * lattice.step_y;
+    var past = 0.0;
     for (var k = 0u; k < lattice.casters; k++) {
-        tau += cast_depth(casters[lattice.first_caster + k], p);
+        let caster = casters[lattice.first_caster + k];
+        let g = caster_coords(caster, top);
+        if wholly_past(caster, g) {
+            past += cast_depth(caster, g);
+        }
     }
-    let at = lattice.first + i;
-    var held = 0.0;
-    if lattice.start == START_OWN {
-        held = own_depth[at];
-    } else if lattice.start != START_ZERO {
-        held = optical_depth[at];
+    for (var z = 0u; z < lattice.size_z; z++) {
+        let at = lattice.first + i + columns * z;
+        var held = 0.0;
+        if lattice.start == START_OWN {
+            held = own_depth[at];
+        } else if lattice.start != START_ZERO {
+            held = optical_depth[at];
+        }
+        optical_depth[at] = held + past;
     }
-    optical_depth[at] = held + tau;
+    for (var k = 0u; k < lattice.casters; k++) {
+        let caster = casters[lattice.first_caster + k];
+        if wholly_past(caster, caster_coords(caster, top)) {
+            continue;
+        }
+        for (var z = 0u; z < lattice.size_z; z++) {
+            let tau = cast_depth(caster, caster_coords(caster, top + f32(z) * lattice.step_z));
+            if tau > 0.0 {
+                let at = lattice.first + i + columns * z;
+                optical_depth[at] += tau;
+            }
+        }
+    }
 }

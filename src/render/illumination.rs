@@ -622,12 +622,13 @@ pub(crate) fn illuminate_clouds(
                 // and the shadow maps (§10).
                 pass.set_pipeline(ready.cast);
                 let pools = batches.pools.iter();
-                let light_volumes = pools.flat_map(|b| b.cast.iter().map(move |c| (c, b.m.pow(3))));
-                let map_texels = maps.batches.iter().map(|(c, points)| (c, *points));
-                for (batch, points) in light_volumes.chain(map_texels) {
+                // One invocation per column along the light (`cast.wgsl`).
+                let light_volumes = pools.flat_map(|b| b.cast.iter().map(move |c| (c, b.m.pow(2))));
+                let map_texels = maps.batches.iter().map(|(c, columns)| (c, *columns));
+                for (batch, columns) in light_volumes.chain(map_texels) {
                     for (offset, items) in batch.work.chunks() {
                         pass.set_bind_group(0, &batch.group, &[offset]);
-                        dispatch_linear(pass, points, items);
+                        dispatch_linear(pass, columns, items);
                     }
                 }
                 runs

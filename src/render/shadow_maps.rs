@@ -108,9 +108,9 @@ pub(crate) fn shadow_map_casts<'a>(
     let mut work: Vec<_> = work.into_iter().collect();
     work.sort_by_key(|(pool, _)| *pool);
     for (pool, w) in work {
-        let points = w.targets.iter().map(CastTarget::points).max().unwrap_or(0);
+        let columns = w.targets.iter().map(CastTarget::columns).max().unwrap_or(0);
         if let Some(batch) = Batch::new(device, &w.targets, |list| bind(&w.casters, pool, list)) {
-            casts.batches.push((batch, points));
+            casts.batches.push((batch, columns));
         }
     }
     casts

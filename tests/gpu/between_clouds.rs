@@ -278,6 +278,34 @@ fn not_shadow_caster_and_not_shadow_receiver_opt_clouds_out() {
 /// Two clouds that interpenetrate, under a sky alone (so that neither shadows the other): each
 /// one's multiple scattering goes through both media, as the CPU reference's does; alone, a cloud
 /// scatters far more where the other, darker one stands.
+/// Clouds that interpenetrate along the light cast on each other both ways: a column of one lies
+/// partly before, inside and past the other, which is looked up point by point there (and once
+/// per column where the column lies wholly past it). Both light volumes equal the CPU's.
+#[test]
+fn interpenetrating_clouds_cast_on_each_other_point_by_point() {
+    let (setup, casters) = stacked();
+    let at = Vec3::new(0.3, 0.9, 0.2);
+    let clouds = [setup.cloud(), caster(&casters[0], at, 16)];
+    let (mut app, _) = spawn_clouds(&setup, &clouds);
+    render(&mut app, &mut FrameRecorder::default(), 2);
+    let swapped = [clouds[1], clouds[0]];
+    for (translation, clouds) in [(Vec3::ZERO, &clouds), (at, &swapped)] {
+        let gpu = light_volumes(&mut app, translation);
+        let cpu = cpu_light_volumes(&setup, clouds);
+        let error = max_relative_difference(&gpu[..cpu.len()], &cpu);
+        assert!(
+            error <= TOLERANCE,
+            "light volume at {translation}: {error:e}"
+        );
+        let own = cpu_light_volumes(&setup, &clouds[..1]);
+        let ratio = cpu.iter().sum::<f64>() / own.iter().sum::<f64>();
+        assert!(
+            ratio > 1.2,
+            "at {translation}, the other casts too little: {ratio}"
+        );
+    }
+}
+
 #[test]
 fn interpenetrating_clouds_scatter_through_each_others_media() {
     let (mut setup, casters) = stacked();
