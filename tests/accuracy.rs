@@ -250,7 +250,9 @@ fn images_are_within_the_goal_and_no_worse_at_finer_resolutions() {
 /// The silver lining: the same cloud with the sun behind it (travelling almost towards the
 /// camera) in a forward-scattering medium (Henyey–Greenstein g = 0.7). The path tracer, which
 /// samples the phase function exactly, shows the glow (the cloud at least twice as bright as
-/// isotropic); the real-time image follows it in brightness and shape.
+/// isotropic); the real-time image follows it in brightness and shape, within the benchmark's
+/// goal of 0.05 (0.036 here; 0.065 while the δ-Eddington beam's excess was seen collimated,
+/// docs/illumination.md §5).
 #[test]
 fn a_cloud_lit_from_behind_glows_as_the_path_tracer_says() {
     let mut scene = scene();
@@ -281,7 +283,7 @@ fn a_cloud_lit_from_behind_glows_as_the_path_tracer_says() {
         "the reference is too noisy to compare: {noise}"
     );
     assert!((ratio - 1.0).abs() < 0.15, "real-time / truth {ratio}");
-    assert!(denoised < 0.1, "relative RMSE {denoised}");
+    assert!(denoised < 0.05, "relative RMSE {denoised}");
 }
 
 /// A forward-scattering cloud (g = 0.7) lit from the side and from the front: its multiply
@@ -290,7 +292,8 @@ fn a_cloud_lit_from_behind_glows_as_the_path_tracer_says() {
 /// the error of the isotropic multiple scattering it replaced (0.35 and 0.85 here), and within
 /// 0.1. (This cloud is thinner than the benchmark's cumulus, optical depth about 5 through its
 /// core, and its multiply scattered light more forward-peaked than three moments hold: the
-/// benchmark's goal of 0.05 is not met here; see README "Limitations".)
+/// benchmark's goal of 0.05 is not met lit from the side, 0.090; from the front 0.049; see
+/// README "Limitations".)
 #[test]
 fn a_forward_scattering_cloud_lit_from_the_side_or_the_front_follows_the_path_tracer() {
     use bevy_particle_clouds::reference::illumination::{gather, scatter};

@@ -97,7 +97,8 @@ fn real_time_orders(
     let grid = &ill.grid;
     if ill.anisotropy != 0.0 {
         // Albedo 0 in the depth scale: the beam through the whole optical depth.
-        let exact = |x, ray| single_scattering_towards(&ill.lights, x, (0.0, ill.anisotropy), ray);
+        let exact =
+            |x, ray| single_scattering_towards(&ill.lights, x, (0.0, ill.anisotropy), ray, None);
         let camera = (scene.camera.position - scene.clouds[0].translation).as_dvec3();
         let seen = ill.seen_from(camera, settings.compositing);
         return vec![
@@ -119,7 +120,9 @@ fn real_time_orders(
     }
     let mut images = vec![billboards(
         scene,
-        &|x, ray| single_scattering_towards(&ill.lights, x, (albedo, ill.anisotropy), ray) * albedo,
+        &|x, ray| {
+            single_scattering_towards(&ill.lights, x, (albedo, ill.anisotropy), ray, None) * albedo
+        },
         settings,
         &ill.fine,
         factor,

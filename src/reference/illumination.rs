@@ -14,6 +14,7 @@ use std::ops::{Add, Mul};
 use bevy::math::{DQuat, DVec3};
 use rayon::prelude::*;
 
+use crate::beam_phase::BeamPhase;
 use crate::ground::CloudGround;
 use crate::math::{
     density_level, density_level_sizes, henyey_greenstein, kernel_u2, level_kernel_radius,
@@ -637,20 +638,27 @@ pub fn single_scattering_at(lights: &[(LightVolume, DVec3)], p: DVec3) -> DVec3 
 }
 
 /// Single scattering towards the camera at local point `p` of a medium of albedo `albedo` and
-/// anisotropy `g` (section 5): `S_1(p, w) = sum_l p_HG(g, d_l . (-w)) E_l exp(-c tau_l(p))`,
-/// `w` the unit local direction of the view ray (from the camera), `d_l` the light's travel
-/// direction and `c` the δ-Eddington depth scale ([`DeltaEddington::depth_scale`]).
-/// [`single_scattering_at`] for `g = 0`.
+/// anisotropy `g` (section 5): `S_1(p, w) = sum_l p_HG(g, d_l . (-w)) E_l (exp(-tau_l(p)) +
+/// (exp(-c tau_l(p)) - exp(-tau_l(p))) r)`, `w` the unit local direction of the view ray (from
+/// the camera), `d_l` the light's travel direction, `c` the δ-Eddington depth scale
+/// ([`DeltaEddington::depth_scale`]) and `r` the `beam` table's spread of the excess at
+/// `m = (1 - c) tau_l` (1 without a table). [`single_scattering_at`] for `g = 0`.
 pub fn single_scattering_towards(
     lights: &[(LightVolume, DVec3)],
     p: DVec3,
     (albedo, g): (f64, f64),
     ray: DVec3,
+    beam: Option<&BeamPhase>,
 ) -> DVec3 {
     let scale = DeltaEddington::new(albedo, g).depth_scale;
     lights.iter().fold(DVec3::ZERO, |acc, (vol, e)| {
-        let phase = henyey_greenstein(g, -vol.basis[2].dot(ray));
-        acc + *e * ((-vol.optical_depth_at(p) * scale).exp() * phase)
+        let cos = -vol.basis[2].dot(ray);
+        let phase = henyey_greenstein(g, cos);
+        let tau = vol.optical_depth_at(p);
+        let unscattered = (-tau).exp();
+        let excess = (-tau * scale).exp() - unscattered;
+        let spread = beam.map_or(1.0, |table| table.ratio(cos, tau * (1.0 - scale)));
+        acc + *e * ((unscattered + excess * spread) * phase)
     })
 }
 
@@ -1393,6 +1401,9 @@ pub struct CloudIllumination {
     pub source: Moments,
     /// Multiple scattering per voxel (section 4).
     pub multiple: MultipleScattering,
+    /// How the camera sees the δ-Eddington beam's excess (section 5); `None` for a medium the
+    /// transform does not truncate.
+    pub beam: Option<BeamPhase>,
 }
 
 /// [`illuminate_under_sky`] under a black sky.
@@ -1676,6 +1687,7 @@ impl ShadedCloud {
             own_lights: self.own,
             source,
             multiple,
+            beam: BeamPhase::new(self.anisotropy),
         }
     }
 }
@@ -1719,7 +1731,7 @@ impl CloudIllumination {
     /// trilinear and clamped to the edge. Radiance in the units of `E`.
     pub fn scattered_at(&self, p: DVec3, ray: DVec3) -> DVec3 {
         let medium = (self.albedo, self.anisotropy);
-        let single = single_scattering_towards(&self.lights, p, medium, ray);
+        let single = single_scattering_towards(&self.lights, p, medium, ray, self.beam.as_ref());
         (single + self.multiple_towards(p, -ray)) * self.albedo
     }
 
@@ -1788,7 +1800,8 @@ impl SeenIllumination<'_> {
         let Some(multiple) = &self.multiple else {
             return ill.scattered_at(p, ray);
         };
-        let single = single_scattering_towards(&ill.lights, p, (ill.albedo, ill.anisotropy), ray);
+        let medium = (ill.albedo, ill.anisotropy);
+        let single = single_scattering_towards(&ill.lights, p, medium, ray, ill.beam.as_ref());
         (single + ill.grid.sample_clamped(multiple, p)) * ill.albedo
     }
 }
@@ -2704,7 +2717,13 @@ mod tests {
         let scale = DeltaEddington::new(ill.albedo, ill.anisotropy).depth_scale;
         assert!((scale - (1.0 - 0.9 * 0.49)).abs() < 1e-6);
         let (vol, e) = &ill.lights[0];
-        let beam = *e * (-vol.optical_depth_at(x) * scale).exp();
+        let tau = vol.optical_depth_at(x);
+        let table = ill.beam.as_ref().expect("g > 0 truncates the peak");
+        // The beam that never scattered, and its excess spread by the peak scatterings.
+        let beam = |cos| {
+            let excess = (-tau * scale).exp() - (-tau).exp();
+            *e * ((-tau).exp() + excess * table.ratio(cos, tau * (1.0 - scale)))
+        };
         let m = &ill.multiple;
         let (mean, flux, quadrupole) = (
             ill.grid.sample_clamped(&m.total, x),
@@ -2718,7 +2737,7 @@ mod tests {
                 + quadrupole_along(&quadrupole, w) * (7.5 * g * g))
                 .max(DVec3::ZERO);
             assert_eq!(ill.multiple_towards(x, w), seen);
-            let expected = (beam * henyey_greenstein(ill.anisotropy, cos) + seen) * ill.albedo;
+            let expected = (beam(cos) * henyey_greenstein(ill.anisotropy, cos) + seen) * ill.albedo;
             let got = ill.scattered_at(x, ray);
             assert!(
                 (got - expected).length() < 1e-12 * expected.length(),
@@ -2740,7 +2759,7 @@ mod tests {
         };
         let iso = illuminate(&particles, &isotropic, 1.0, &[light], &settings).unwrap();
         assert!(iso.source.flux.is_empty() && iso.multiple.flux.is_empty());
-        assert!(iso.multiple.quadrupole.is_empty());
+        assert!(iso.multiple.quadrupole.is_empty() && iso.beam.is_none());
         let plain = scatter(
             &iso.grid,
             iso.k_local,

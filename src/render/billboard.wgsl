@@ -63,6 +63,14 @@ struct DrawParams {
 @group(1) @binding(8) var<storage, read> view_volumes: array<ViewVolumeParams>;
 @group(1) @binding(9) var<storage, read> neighbours: array<u32>;
 #endif
+// The spread of the delta-Eddington beam's excess relative to the phase function,
+// BEAM_PHASE_ANGLES x BEAM_PHASE_DEPTHS, angle-major (src/beam_phase.rs); one element when the
+// medium has no excess.
+#ifdef VIEW_TRANSMITTANCE
+@group(1) @binding(10) var<storage, read> beam_phase: array<f32>;
+#else
+@group(1) @binding(7) var<storage, read> beam_phase: array<f32>;
+#endif
 
 struct VertexOutput {
     @builtin(position) clip_position: vec4<f32>,
@@ -136,10 +144,27 @@ fn chord_integral(s: f32, q: f32, r: f32) -> f32 {
     return r * (q * q * x - 2.0 * q * x * x * x / 3.0 + x * x * x * x * x / 5.0);
 }
 
+// The spread of the beam's excess at cosine `cos` between the light's travel direction and the
+// direction towards the camera, `m` peak scatterings on average: bilinear in the table, sampled
+// at sin(theta / 2) and m / (m + 1) (BeamPhase::ratio).
+fn beam_spread(cos: f32, m: f32) -> f32 {
+    let x = min(sqrt(max(0.5 - 0.5 * cos, 0.0)), 1.0) * f32(#{BEAM_PHASE_ANGLES}u - 1u);
+    let depth = clamp(m, 0.0, 1e20);
+    let y = depth / (depth + 1.0) * f32(#{BEAM_PHASE_DEPTHS}u - 1u);
+    let i = min(u32(x), #{BEAM_PHASE_ANGLES}u - 2u);
+    let j = min(u32(y), #{BEAM_PHASE_DEPTHS}u - 2u);
+    let f = vec2(x - f32(i), y - f32(j));
+    let row = i * #{BEAM_PHASE_DEPTHS}u + j;
+    let near = mix(beam_phase[row], beam_phase[row + 1u], f.y);
+    let far = mix(beam_phase[row + #{BEAM_PHASE_DEPTHS}u], beam_phase[row + #{BEAM_PHASE_DEPTHS}u + 1u], f.y);
+    return mix(near, far, f.x);
+}
+
 // S_1 at a cloud-local point towards the camera, straight from the light volumes: each light's
 // share weighted by the phase function between its travel direction and -ray, `ray` the view
-// ray's cloud-local unit direction, its beam through `depth_scale` of the optical depth (the
-// delta-Eddington beam; 1 for an isotropic medium; docs/illumination.md §5).
+// ray's cloud-local unit direction. Its beam goes through `depth_scale` of the optical depth
+// (the delta-Eddington beam; 1 for an isotropic medium), and the excess over the light that
+// never scattered is seen spread by the peak scatterings it took (docs/illumination.md §5).
 fn single_scattering_at(p: vec3<f32>, ray: vec3<f32>) -> vec3<f32> {
     var sum = vec3(0.0);
     for (var l = 0u; l < cloud.light_count; l++) {
@@ -149,8 +174,14 @@ fn single_scattering_at(p: vec3<f32>, ray: vec3<f32>) -> vec3<f32> {
         for (var corner = 0u; corner < 8u; corner++) {
             tau += corner_weight(t, corner) * optical_depth[light.offset + clamped_corner(t, corner, cloud.light_n)];
         }
-        let phase = henyey_greenstein(cloud.anisotropy, -dot(light.w, ray));
-        sum += light.irradiance * (exp(-tau * cloud.depth_scale) * phase);
+        let cos = -dot(light.w, ray);
+        let phase = henyey_greenstein(cloud.anisotropy, cos);
+        var beam = exp(-tau);
+        if cloud.depth_scale < 1.0 {
+            let excess = exp(-tau * cloud.depth_scale) - beam;
+            beam += excess * beam_spread(cos, tau * (1.0 - cloud.depth_scale));
+        }
+        sum += light.irradiance * (beam * phase);
     }
     return sum;
 }

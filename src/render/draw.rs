@@ -45,6 +45,8 @@ use bevy::{
     },
 };
 
+use crate::beam_phase::BeamPhase;
+
 use super::{
     cloud_target::{ViewCloudDraws, ViewCloudTarget},
     extract::ExtractedCloud,
@@ -123,7 +125,16 @@ pub(crate) fn init_billboard_pipeline(mut commands: Commands, shaders: Res<Cloud
         "particle_clouds_billboard_sorted_layout",
         &BindGroupLayoutEntries::sequential(
             ShaderStages::VERTEX_FRAGMENT,
-            (uniform(), uniform(), read(), read(), read(), read(), read()),
+            (
+                uniform(),
+                uniform(),
+                read(),
+                read(),
+                read(),
+                read(),
+                read(),
+                read(),
+            ),
         ),
     );
     let view_transmittance_layout = BindGroupLayoutDescriptor::new(
@@ -135,6 +146,7 @@ pub(crate) fn init_billboard_pipeline(mut commands: Commands, shaders: Res<Cloud
                 uniform(),
                 read(),
                 uniform(),
+                read(),
                 read(),
                 read(),
                 read(),
@@ -318,6 +330,8 @@ impl SpecializedRenderPipeline for BillboardPipeline {
 pub struct CloudDrawBindGroups {
     key: u64,
     _params: Buffer,
+    /// The cloud's [`BeamPhase`] table (one element for a medium without one).
+    _beam_phase: Buffer,
     /// Group 1 of the billboard pipeline, per view.
     pub groups: HashMap<RetainedViewEntity, BindGroup>,
 }
@@ -367,6 +381,32 @@ fn per_view_buffers<'a>(
     }
 }
 
+/// Each anisotropy's [`BeamPhase`] table on the GPU, built once while some cloud has that
+/// medium (building one sums a Legendre series per entry).
+#[derive(Default)]
+pub(crate) struct BeamPhaseBuffers(HashMap<u32, Buffer>);
+
+impl BeamPhaseBuffers {
+    /// Drops the tables no cloud of `anisotropies` uses.
+    fn keep_only(&mut self, anisotropies: impl Iterator<Item = f32>) {
+        let used: Vec<u32> = anisotropies.map(f32::to_bits).collect();
+        self.0.retain(|g, _| used.contains(g));
+    }
+
+    /// The table of anisotropy `g` (one element where the medium has none).
+    fn get(&mut self, device: &RenderDevice, g: f32) -> Buffer {
+        let buffer = self.0.entry(g.to_bits()).or_insert_with(|| {
+            let ratios = BeamPhase::new(g as f64).map_or(vec![1.0], |t| t.ratios);
+            device.create_buffer_with_data(&BufferInitDescriptor {
+                label: Some("particle_clouds_beam_phase"),
+                contents: bytemuck::cast_slice(&ratios),
+                usage: BufferUsages::STORAGE,
+            })
+        });
+        buffer.clone()
+    }
+}
+
 /// What the billboards of one cloud bind: its volumes and its per-view sorts or view volumes.
 type BillboardSources = (
     Entity,
@@ -389,8 +429,10 @@ pub(crate) fn prepare_billboard_bind_groups(
     particles: Res<RenderAssets<GpuParticles>>,
     pools: Res<VolumePools>,
     atlases: Res<ViewVolumeAtlases>,
+    mut beam_phases: Local<BeamPhaseBuffers>,
 ) {
     let Some(pipeline) = pipeline else { return };
+    beam_phases.keep_only(clouds.iter().map(|c| c.1.anisotropy));
     let (Some(view_binding), Some(fog_binding)) =
         (view_uniforms.uniforms.binding(), fog_uniforms.0.binding())
     else {
@@ -438,10 +480,12 @@ pub(crate) fn prepare_billboard_bind_groups(
             [&lights, &optical_depth, &multiple].map(|r| (r.buffer.id(), r.offset)),
             views,
             compositing,
+            cloud.anisotropy.to_bits(),
         ));
         if existing.is_some_and(|e| e.key == key) {
             continue;
         }
+        let beam_phase = beam_phases.get(&device, cloud.anisotropy);
         let params = device.create_buffer_with_data(&BufferInitDescriptor {
             label: Some("particle_clouds_draw_params"),
             contents: &uniform_bytes(&params),
@@ -468,6 +512,7 @@ pub(crate) fn prepare_billboard_bind_groups(
                         lights.binding(),
                         optical_depth.binding(),
                         multiple,
+                        beam_phase.as_entire_binding(),
                     );
                     let group = match compositing {
                         Compositing::Sorted => device.create_bind_group(
@@ -476,7 +521,7 @@ pub(crate) fn prepare_billboard_bind_groups(
                             &BindGroupEntries::sequential(shared),
                         ),
                         Compositing::ViewTransmittance => {
-                            let (p, c, g, a, l, o, m) = shared;
+                            let (p, c, g, a, l, o, m, b) = shared;
                             device.create_bind_group(
                                 "particle_clouds_billboard_bind_group",
                                 &layout,
@@ -491,6 +536,7 @@ pub(crate) fn prepare_billboard_bind_groups(
                                     atlas_depth.as_entire_binding(),
                                     atlas_volumes.as_entire_binding(),
                                     atlas_neighbours.as_entire_binding(),
+                                    b,
                                 )),
                             )
                         }
@@ -502,6 +548,7 @@ pub(crate) fn prepare_billboard_bind_groups(
         commands.entity(entity).insert(CloudDrawBindGroups {
             key,
             _params: params,
+            _beam_phase: beam_phase,
             groups,
         });
     }

@@ -1,8 +1,10 @@
-//! Workgroup sizes and the sort's tile: defined once here, handed to every shader as shader defs
-//! (`#{LINEAR_WORKGROUP}` …), so that a dispatch and the `@workgroup_size` it assumes cannot
-//! disagree.
+//! Workgroup sizes, the sort's tile and the beam's spread table: defined once here, handed to
+//! every shader as shader defs (`#{LINEAR_WORKGROUP}` …), so that a dispatch and the
+//! `@workgroup_size` it assumes, or a table and its reader, cannot disagree.
 
 use bevy::shader::ShaderDefVal;
+
+use crate::beam_phase::{BEAM_PHASE_ANGLES, BEAM_PHASE_DEPTHS};
 
 use super::gpu::StagePass;
 
@@ -21,6 +23,8 @@ pub fn shader_defs() -> Vec<ShaderDefVal> {
         ShaderDefVal::UInt("LINEAR_WORKGROUP".into(), LINEAR),
         ShaderDefVal::UInt("SLICE_WORKGROUP".into(), SLICE),
         ShaderDefVal::UInt("SORT_TILE".into(), SORT_TILE),
+        ShaderDefVal::UInt("BEAM_PHASE_ANGLES".into(), BEAM_PHASE_ANGLES),
+        ShaderDefVal::UInt("BEAM_PHASE_DEPTHS".into(), BEAM_PHASE_DEPTHS),
     ]
 }
 
