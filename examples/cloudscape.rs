@@ -96,33 +96,19 @@ fn main() -> ExitCode {
     })
 }
 
-/// `clouds` cumulus of `particles / clouds` particles each, 25–60 m across, their bases at
-/// 70–110 m, on a jittered grid 80 m apart.
+/// The clouds of [`generators::cloudscape`]: `clouds` cumulus of `particles / clouds` particles
+/// each, 25–60 m across, their bases at 70–110 m, on a jittered grid 80 m apart.
 fn spawn_clouds(
     mut commands: Commands,
     mut assets: ResMut<Assets<Particles>>,
     clouds: u32,
     particles: u32,
 ) {
-    let side = (clouds as f32).sqrt().ceil() as u32;
-    let per_cloud = (particles / clouds).max(1) as usize;
-    let mut rng = generators::SplitMix64::new(7);
-    for i in 0..clouds {
-        let size = 25.0 + 35.0 * rng.next_f32();
-        let cell = Vec2::new((i % side) as f32, (i / side) as f32) - (side as f32 - 1.0) / 2.0;
-        let jitter = Vec2::new(rng.next_f32(), rng.next_f32()) - 0.5;
-        let at = (cell + 0.6 * jitter) * 80.0;
-        let handle = assets.add(generators::cumulus(size, per_cloud, 1000 + i as u64));
+    for cloud in generators::cloudscape(clouds, particles, 7) {
+        let handle = assets.add(cloud.particles);
         commands.spawn((
-            // Optical thickness independent of size: extinction ∝ 1 / size.
-            ParticleCloud::new(handle).with_medium(Medium {
-                extinction: 20.0 / size,
-                albedo: 0.99,
-                ..Default::default()
-            }),
-            Transform::from_xyz(at.x, 70.0 + 40.0 * rng.next_f32(), at.y).with_rotation(
-                Quat::from_rotation_y(rng.next_f32() * std::f32::consts::TAU),
-            ),
+            ParticleCloud::new(handle).with_medium(cloud.medium),
+            Transform::from_translation(cloud.translation),
         ));
     }
 }

@@ -7,18 +7,19 @@
 //! |---|---|
 //! | [`sphere`], [`cuboid`] | a ball, a box |
 //! | [`cumulus`] | a flat-bottomed heap of puffs |
+//! | [`cloudscape`] | a sky of cumulus on a jittered grid |
 //! | [`from_sdf`] | the inside of any signed-distance function, e.g. [`bunny_sdf`] |
 //! | [`from_mesh_volume`] | the inside of a closed triangle [`Mesh`] |
 
 use bevy::{
-    math::Vec3,
+    math::{Quat, Vec2, Vec3},
     mesh::{Mesh, MeshTrianglesError},
 };
 #[cfg(feature = "parallel")]
 use rayon::prelude::*;
 
 pub use crate::math::SplitMix64;
-use crate::{Particles, particle::Particle};
+use crate::{Medium, Particles, particle::Particle};
 
 /// `count` particles of radius `particle_radius` filling a ball of radius `radius` (metres),
 /// density 1.
@@ -58,6 +59,51 @@ pub fn cuboid(extents: Vec3, particle_radius: f32, count: usize, seed: u64) -> P
 /// `count` particles. Puffs are larger and denser at the core and thin out towards the edges.
 pub fn cumulus(size: f32, count: usize, seed: u64) -> Particles {
     cumulus_with_puffs(size, count, seed, |size, core| size * (0.07 + 0.06 * core))
+}
+
+/// One cloud of a [`cloudscape`].
+#[derive(Clone, Debug)]
+pub struct PlacedCloud {
+    /// World position of the cloud's local origin, metres.
+    pub translation: Vec3,
+    /// Its medium: extinction `20 / size` per metre, so that every cloud has the same optical
+    /// thickness whatever its size.
+    pub medium: Medium,
+    /// Its particles, in cloud-local metres.
+    pub particles: Particles,
+}
+
+/// A sky of `clouds` cumulus of `particles / clouds` particles each (at least 1), 25–60 m across,
+/// their bases at 70–110 m, on a jittered grid 80 m apart centred on the origin, each turned
+/// about the vertical by a random angle (baked into its particles). The `cloudscape` example's
+/// and the benchmark's sky.
+pub fn cloudscape(clouds: u32, particles: u32, seed: u64) -> Vec<PlacedCloud> {
+    let side = (clouds as f32).sqrt().ceil() as u32;
+    let per_cloud = (particles / clouds.max(1)).max(1) as usize;
+    let mut rng = SplitMix64::new(seed);
+    (0..clouds)
+        .map(|i| {
+            let size = 25.0 + 35.0 * rng.next_f32();
+            let cell = Vec2::new((i % side) as f32, (i / side) as f32) - (side as f32 - 1.0) / 2.0;
+            let jitter = Vec2::new(rng.next_f32(), rng.next_f32()) - 0.5;
+            let at = (cell + 0.6 * jitter) * 80.0;
+            let base = 70.0 + 40.0 * rng.next_f32();
+            let turn = Quat::from_rotation_y(rng.next_f32() * std::f32::consts::TAU);
+            let mut cloud = cumulus(size, per_cloud, 1000 + i as u64);
+            for p in &mut cloud.particles {
+                p.position = turn * p.position;
+            }
+            PlacedCloud {
+                translation: Vec3::new(at.x, base, at.y),
+                medium: Medium {
+                    extinction: 20.0 / size,
+                    albedo: 0.99,
+                    ..Default::default()
+                },
+                particles: cloud,
+            }
+        })
+        .collect()
 }
 
 /// [`cumulus`] with the puffs' radius (metres) given by `radius(size, core)`, `core` in `[0, 1]`

@@ -9,6 +9,7 @@
 //! cargo run --example benchmark -- --illumination [--out DIR]
 //! cargo run --example benchmark -- --voxelize [--out DIR]
 //! cargo run --example benchmark -- --scale [--out DIR]
+//! cargo run --example benchmark -- --frame-budget [--view 1920x1080] [--bandwidth 4.8] [--out DIR]
 //! cargo run --example benchmark -- --warm-start [--scenes a,b] [--out DIR]
 //! cargo run --example benchmark -- --decompose [--scenes a,b] [--spp N] [--out DIR]
 //! ```
@@ -32,6 +33,7 @@
 mod cloud_target_scale;
 mod decompose;
 mod fog;
+mod frame_budget;
 mod illumination;
 mod plot;
 mod reference_cache;
@@ -74,6 +76,7 @@ use bevy_particle_clouds::{
 use clap::Parser;
 use cloud_target_scale::*;
 use fog::*;
+use frame_budget::*;
 use illumination::*;
 use indicatif::{ProgressBar, ProgressStyle};
 use plot::*;
@@ -127,6 +130,19 @@ pub(crate) struct Args {
     /// With --replot: only redraw DIR/scale.png from DIR/scale.csv.
     #[arg(long, conflicts_with_all = ["decompose", "illumination", "cloud_target", "voxelize"])]
     pub(crate) scale: bool,
+    /// What three game-sized scenes cost per frame (the paper's 38,000 particles with 5 lights
+    /// at 128³, the 1.2-million-particle snow bunny, the 100-cloud cloudscape), pass by pass,
+    /// beside each pass's memory-bandwidth floor, instead of the sweep. `--scenes` picks among
+    /// `paper`, `paper-half` (drawn at half size), `snow`, `cloudscape`.
+    #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "scale", "voxelize"])]
+    pub(crate) frame_budget: bool,
+    /// With --frame-budget: the view's size, pixels.
+    #[arg(long, default_value = "1920x1080", value_parser = parse_view)]
+    pub(crate) view: (u32, u32),
+    /// With --frame-budget: the memory bandwidth the floors are computed at, TB/s (default: an
+    /// H200's HBM3e).
+    #[arg(long, default_value_t = 4.8)]
+    pub(crate) bandwidth: f64,
     /// The voxelize pass's cost against particle size (r/h from 1 to 64) instead of the sweep.
     #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target"])]
     pub(crate) voxelize: bool,
@@ -165,6 +181,17 @@ impl Args {
     /// `--frames` as a count.
     pub(crate) fn frames(&self) -> usize {
         self.frames as usize
+    }
+}
+
+/// `1920x1080`: a view's width and height, each 1–8192.
+fn parse_view(text: &str) -> Result<(u32, u32), String> {
+    let size = text
+        .split_once(['x', '×'])
+        .and_then(|(w, h)| Some((w.parse::<u32>().ok()?, h.parse::<u32>().ok()?)));
+    match size {
+        Some((w, h)) if (1..=8192).contains(&w) && (1..=8192).contains(&h) => Ok((w, h)),
+        _ => Err(format!("`{text}` is not WIDTHxHEIGHT with each in 1..=8192")),
     }
 }
 
@@ -235,6 +262,9 @@ fn run() -> Result<(), String> {
     }
     if args.cloud_target {
         return cloud_target_benchmark(&args);
+    }
+    if args.frame_budget {
+        return frame_budget_benchmark(&args);
     }
     if args.voxelize {
         return voxelize_benchmark(&args);

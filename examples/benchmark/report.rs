@@ -46,8 +46,13 @@ pub(crate) fn setting_label(s: &CloudQualitySettings) -> String {
         Compositing::ViewTransmittance => "",
         Compositing::Sorted => " sorted",
     };
+    let target = if s.cloud_target_scale < 1.0 {
+        format!(" target ×{}", s.cloud_target_scale)
+    } else {
+        String::new()
+    };
     format!(
-        "{}³ ×{} {stencil} K{} L{}{compositing}",
+        "{}³ ×{} {stencil} K{} L{}{compositing}{target}",
         s.volume_resolution, s.scatter_iterations, s.chord_segments, s.light_supersampling
     )
 }

@@ -357,23 +357,73 @@ pub(crate) fn cloud_setup(seed: u64, camera: Transform) -> Setup {
     }
 }
 
+/// Pixels whose centre lies within about a sixth of a pixel of an opaque object's silhouette:
+/// whether the object covers them is the rasteriser's call (Vulkan may snap vertices to 1/16
+/// pixel, and adapters break such ties differently), so a test of the clouds leaves them out.
+/// They are the pixels whose CPU reference changes by more than 1e-3 when every object grows or
+/// shrinks by 0.5 %.
+pub(crate) fn object_edges(setup: &mut Setup) -> Vec<bool> {
+    let original = setup.objects.clone();
+    let mut scaled = |factor: f32| {
+        setup.objects = original
+            .iter()
+            .cloned()
+            .map(|mut object| {
+                object.shape = match object.shape {
+                    ObjectShape::Cuboid(extents) => ObjectShape::Cuboid(extents * factor),
+                    ObjectShape::Sphere(radius) => ObjectShape::Sphere(radius * factor),
+                };
+                object
+            })
+            .collect();
+        reference(setup)
+    };
+    let (grown, shrunk) = (scaled(1.005), scaled(0.995));
+    setup.objects = original;
+    // A face that moves by a fraction of a millimetre changes its fog by far less than this.
+    let changed = |a: &[f32; 4], b: &[f32; 4]| (0..3).any(|c| (a[c] - b[c]).abs() > 1e-3);
+    grown.iter().zip(&shrunk).map(|(a, b)| changed(a, b)).collect()
+}
+
 pub(crate) fn assert_images_match(gpu: &LinearImage, cpu: &[[f32; 4]], what: &str) {
-    let rgb = |p: &[[f32; 4]]| {
-        p.iter()
-            .map(|c| [c[0], c[1], c[2], 1.0])
+    assert_images_match_except(gpu, cpu, what, &vec![false; cpu.len()]);
+}
+
+/// [`assert_images_match`] over the pixels that `skip` does not mark.
+pub(crate) fn assert_images_match_except(
+    gpu: &LinearImage,
+    cpu: &[[f32; 4]],
+    what: &str,
+    skip: &[bool],
+) {
+    let kept = |pixels: &[[f32; 4]]| {
+        pixels
+            .iter()
+            .zip(skip)
+            .filter(|(_, skip)| !**skip)
+            .map(|(c, _)| [c[0], c[1], c[2], 1.0])
             .collect::<Vec<_>>()
     };
-    let error = relative_rmse(&rgb(&gpu.pixels), &rgb(cpu));
+    let error = relative_rmse(&kept(&gpu.pixels), &kept(cpu));
     let max = cpu
         .iter()
         .flat_map(|c| &c[..3])
         .fold(0.0f32, |m, v| m.max(*v));
-    let worst = gpu
+    let (worst, at) = gpu
         .pixels
         .iter()
         .zip(cpu)
-        .flat_map(|(g, c)| (0..3).map(move |i| (g[i] - c[i]).abs()))
-        .fold(0.0, f32::max);
+        .enumerate()
+        .filter(|(p, _)| !skip[*p])
+        .flat_map(|(p, (g, c))| (0..3).map(move |i| ((g[i] - c[i]).abs(), p)))
+        .fold((0.0, 0), |a, b| if b.0 > a.0 { b } else { a });
+    eprintln!(
+        "{what}: worst at pixel ({}, {}): GPU {:?}, CPU {:?}",
+        at as u32 % W,
+        at as u32 / W,
+        gpu.pixels[at],
+        cpu[at]
+    );
     // f16 output (2^-11 relative: measured RMSE 4e-4 to 2.5e-3, the most with the camera inside
     // the cloud) and f32 illumination; rasterisation samples pixel centres as the CPU does.
     eprintln!("{what}: relative RMSE {error:e}, worst {worst:e} of max {max}");
@@ -463,7 +513,12 @@ fn a_fogged_cloud_equals_the_cpu_billboard_reference() {
         let (_, _, gpu) = render(&setup);
         let fogged = reference(&setup);
         let what = format!("{falloff:?}, {compositing:?}");
-        assert_images_match(&gpu.image, &fogged, &what);
+        let edges = object_edges(&mut setup);
+        assert!(
+            edges.iter().filter(|e| **e).count() < edges.len() / 10,
+            "{what}: the object's edges cover more than a tenth of the image"
+        );
+        assert_images_match_except(&gpu.image, &fogged, &what, &edges);
         let change = relative_rmse(&fogged, &clear);
         assert!(
             change > 0.1,

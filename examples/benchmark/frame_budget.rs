@@ -1,0 +1,446 @@
+//! `--frame-budget`: what three game-sized scenes cost per frame, pass by pass, beside each
+//! pass's memory-bandwidth floor (issue #11's real-GPU table):
+//!
+//! - **paper 38k**: `paper_38k_5lights` (the paper's 38,000 particles, 128³ volumes, 5 lights)
+//!   at 1920×1080, and again drawn at half size (`cloud_target_scale` 0.5);
+//! - **snow bunny**: the paper's Figure 5, 1.2 million particles filling a bunny, 128³, 5
+//!   scattering iterations, two lights, 1920×1080 (the `snow_bunny` example's big bunny);
+//! - **cloudscape**: the `cloudscape` example's sky, 100 cumulus of 3,000 particles over a lit
+//!   ground under a blue sky, 32³ × 8 iterations with level of detail (2 pixels per voxel),
+//!   drawn at half size, 1920×1080.
+//!
+//! `--view WxH` measures them at another size; `--settings` replaces the chosen scenes' quality
+//! settings, one row per `--settings`.
+//!
+//! Re-lit: frames that rerun every pass for every cloud (the particles touched, which a moving
+//! light's re-lighting is a part of). Static: a frame where nothing changed, the draw only.
+//!
+//! The floor of a pass is the bytes it must at least read and write once, at `--bandwidth`
+//! (default 4.8 TB/s, an H200's HBM3e), summed over the clouds at their chosen resolutions:
+//! [`floor_bytes`] says what each pass counts. Writes `DIR/frame_budget.csv` and `.md`.
+
+use std::fmt::Write as _;
+
+use bevy_particle_clouds::{
+    CloudLevelOfDetail, CloudLod, LightSample, Medium, scene::ResolvedCloud,
+    scene::SceneCamera, scene::SceneObject,
+};
+
+use super::*;
+
+/// Bytes of one particle as the shaders read it (`GpuParticle`: two vec4).
+const PARTICLE_BYTES: f64 = 32.0;
+/// Bytes of a pixel of the cloud target (`Rgba16Float`).
+const PIXEL_BYTES: f64 = 8.0;
+/// The frame goals of issue #11 for the paper's scene on a real GPU, ms.
+const GOAL_RELIT_MS: f64 = 2.0;
+const GOAL_STATIC_MS: f64 = 0.5;
+
+/// One scene of the frame budget.
+struct BudgetScene {
+    name: &'static str,
+    scene: Scene,
+    /// Level of detail, pixels per scattering voxel.
+    lod: Option<f32>,
+}
+
+fn camera_at(position: Vec3, look_at: Vec3) -> SceneCamera {
+    SceneCamera {
+        position,
+        look_at,
+        up: Vec3::Y,
+        vertical_fov_degrees: 40.0,
+        width: 1920,
+        height: 1080,
+    }
+}
+
+/// The unit travel direction of a light at `azimuth` and `elevation` (degrees).
+fn travel(azimuth: f32, elevation: f32) -> Vec3 {
+    let (a, e) = (azimuth.to_radians(), elevation.to_radians());
+    -Vec3::new(e.cos() * a.cos(), e.sin(), e.cos() * a.sin())
+}
+
+/// [`paper_38k`] drawn at half size (`cloud_target_scale` 0.5): the fill-rate saving.
+fn paper_38k_half() -> Result<BudgetScene, String> {
+    let mut b = paper_38k()?;
+    b.scene.settings.cloud_target_scale = 0.5;
+    b.name = "paper 38k, 5 lights, ½ target";
+    Ok(b)
+}
+
+fn paper_38k() -> Result<BudgetScene, String> {
+    let bench = SCENES
+        .iter()
+        .find(|s| s.name == "paper_38k_5lights")
+        .ok_or("no paper_38k_5lights scene")?;
+    let scene = load_scene(bench)?;
+    Ok(BudgetScene {
+        name: "paper 38k, 5 lights",
+        scene,
+        lod: None,
+    })
+}
+
+/// The `snow_bunny` example's big bunny: 1.2 million particles of radius 25 mm.
+fn snow_bunny() -> BudgetScene {
+    const COUNT: usize = 1_200_000;
+    let (lo, hi) = generators::BUNNY_BOUNDS;
+    let batch = 100_000;
+    let particles = (0..COUNT / batch)
+        .flat_map(|i| {
+            eprintln!("benchmark: frame budget, bunny particles {} / {COUNT}", i * batch);
+            generators::from_sdf(generators::bunny_sdf, lo, hi, 0.025, batch, 1000 + i as u64)
+                .particles
+        })
+        .collect();
+    BudgetScene {
+        name: "snow bunny, 1.2M",
+        scene: Scene {
+            camera: camera_at(Vec3::new(2.7, 2.0, 5.4), Vec3::new(0.4, 1.0, 0.4)),
+            background: Vec3::new(0.03, 0.05, 0.1),
+            lights: vec![
+                LightSample {
+                    direction: travel(60.0, 35.0),
+                    irradiance: Vec3::new(3.0, 2.6, 2.1),
+                },
+                LightSample {
+                    direction: travel(200.0, 25.0),
+                    irradiance: Vec3::new(1.1, 1.4, 2.0),
+                },
+            ],
+            clouds: vec![ResolvedCloud {
+                translation: Vec3::ZERO,
+                medium: Medium {
+                    extinction: 1.5,
+                    albedo: 0.99,
+                    ..Default::default()
+                },
+                particles,
+            }],
+            objects: Vec::new(),
+            fog: None,
+            shadow_map_resolution: bevy_particle_clouds::scene::DEFAULT_SHADOW_MAP_RESOLUTION,
+            settings: CloudQualitySettings {
+                volume_resolution: 128,
+                scatter_iterations: 5,
+                ..default()
+            },
+        },
+        lod: None,
+    }
+}
+
+/// The `cloudscape` example's sky and settings, seen from its camera's starting place.
+fn cloudscape() -> BudgetScene {
+    let clouds = generators::cloudscape(100, 300_000, 7)
+        .into_iter()
+        .map(|c| ResolvedCloud {
+            translation: c.translation,
+            medium: c.medium,
+            particles: c.particles.particles,
+        })
+        .collect();
+    let ground = SceneObject {
+        shape: bevy_particle_clouds::scene::ObjectShape::Cuboid(Vec3::new(5000.0, 1.0, 5000.0)),
+        translation: Vec3::new(0.0, -0.5, 0.0),
+        color: Vec3::ZERO,
+        reflectance: Vec3::new(0.03, 0.055, 0.02),
+    };
+    let target = Vec3::new(0.0, 90.0, 0.0);
+    let offset = Quat::from_euler(EulerRot::YXZ, 0.3, -0.12, 0.0) * Vec3::Z * 420.0;
+    BudgetScene {
+        name: "cloudscape, 100 clouds",
+        scene: Scene {
+            camera: camera_at(target + offset, target),
+            background: Vec3::new(0.2, 0.35, 0.6),
+            lights: vec![LightSample {
+                direction: travel(30.0, 30.0),
+                irradiance: Vec3::new(3.0, 2.9, 2.7),
+            }],
+            clouds,
+            objects: vec![ground],
+            fog: None,
+            shadow_map_resolution: bevy_particle_clouds::scene::DEFAULT_SHADOW_MAP_RESOLUTION,
+            settings: CloudQualitySettings {
+                volume_resolution: 32,
+                scatter_iterations: 8,
+                light_supersampling: 2,
+                cloud_target_scale: 0.5,
+                ..default()
+            },
+        },
+        lod: Some(2.0),
+    }
+}
+
+/// What one cloud holds, for the floor.
+#[derive(Clone, Copy, Debug)]
+struct CloudShape {
+    particles: f64,
+    /// Voxels per side of the scattering grid and of the fine grid (each light volume).
+    n: f64,
+    m: f64,
+    /// vec4 per voxel of a scattering order: 4 with angular moments (an anisotropic medium).
+    order_vec4: f64,
+}
+
+/// The bytes `pass` must at least read and write once in a re-lit frame (the draw: a static
+/// frame's), given every cloud's shape, `lights`, each cloud's scattering iterations and the
+/// cloud target's pixels:
+///
+/// - voxelize: the particles read, the fine and the scattering grid's density written;
+/// - shade: the fine density read, one optical depth per light written (4 B a voxel each);
+/// - gather: each light's optical depth read at the scattering grid's voxels, its density
+///   read, the source written;
+/// - scatter: per iteration the previous order and the density read, the next order written;
+/// - sort: the particles read, their order written; view volume: the density read, the
+///   optical depth from the camera written;
+/// - draw: the particles read, every target pixel read and written once.
+fn floor_bytes(
+    pass: CloudPass,
+    clouds: &[CloudShape],
+    lights: f64,
+    iterations: f64,
+    pixels: f64,
+) -> f64 {
+    let per_cloud = |c: &CloudShape| {
+        let (n3, m3) = (c.n.powi(3), c.m.powi(3));
+        match pass {
+            CloudPass::Voxelize => c.particles * PARTICLE_BYTES + 4.0 * (m3 + n3),
+            CloudPass::Shade => 4.0 * m3 * (1.0 + lights),
+            CloudPass::Gather => n3 * (4.0 * lights + 4.0 + 16.0 * c.order_vec4),
+            CloudPass::Scatter => iterations * n3 * (32.0 * c.order_vec4 + 4.0),
+            CloudPass::Sort => c.particles * (PARTICLE_BYTES + 4.0),
+            CloudPass::ViewVolume => n3 * 8.0,
+            CloudPass::Draw => c.particles * PARTICLE_BYTES,
+        }
+    };
+    let sum: f64 = clouds.iter().map(per_cloud).sum();
+    if pass == CloudPass::Draw {
+        sum + 2.0 * PIXEL_BYTES * pixels
+    } else {
+        sum
+    }
+}
+
+/// One measured scene.
+struct BudgetRow {
+    name: String,
+    timing: Timing,
+    runs: [u32; PASSES],
+    dispatches: [u32; PASSES],
+    floor_ms: [f64; PASSES],
+    particles: usize,
+    resolutions: String,
+}
+
+fn measure(b: &BudgetScene, frames: usize, bandwidth: f64, adapter: &mut String) -> BudgetRow {
+    let mut bench = Bench::new(&b.scene);
+    *adapter = bench.adapter.clone();
+    if let Some(pixels_per_voxel) = b.lod {
+        bench.app.insert_resource(CloudLevelOfDetail {
+            pixels_per_voxel,
+            min_resolution: 12,
+        });
+    }
+    let (_, timing) = bench.measure(frames);
+    bench.touch_particles();
+    let i = bench.frame();
+    let frame = &bench.recorder.frames[i];
+    let runs = CloudPass::ALL.map(|p| frame.runs(p));
+    let dispatches = CloudPass::ALL.map(|p| frame.dispatches(p));
+    // Each cloud at the resolution its level of detail chose, else the scene's.
+    let world = bench.app.world_mut();
+    let chosen: Vec<u32> = world
+        .query::<&CloudLod>()
+        .iter(world)
+        .map(|l| l.resolution)
+        .collect();
+    let settings = b.scene.settings;
+    let shapes: Vec<CloudShape> = b
+        .scene
+        .clouds
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let settings = CloudQualitySettings {
+                volume_resolution: chosen.get(i).copied().unwrap_or(settings.volume_resolution),
+                ..settings
+            };
+            CloudShape {
+                particles: c.particles.len() as f64,
+                n: settings.volume_resolution as f64,
+                m: settings.light_resolution() as f64,
+                order_vec4: if c.medium.anisotropy != 0.0 { 4.0 } else { 1.0 },
+            }
+        })
+        .collect();
+    let scale = settings.cloud_target_scale as f64;
+    let pixels = (b.scene.camera.width * b.scene.camera.height) as f64 * scale * scale;
+    let clouds = shapes.len().max(1) as f64;
+    let iterations = runs[CloudPass::Scatter as usize] as f64 / clouds;
+    let floor_ms = CloudPass::ALL.map(|p| {
+        let bytes = floor_bytes(p, &shapes, b.scene.lights.len() as f64, iterations, pixels);
+        // A pass that did not run has no floor; a view pass reads only the clouds in view.
+        match (p, runs[p as usize]) {
+            (CloudPass::Draw, _) => 1e3 * bytes / bandwidth,
+            (_, 0) => 0.0,
+            (CloudPass::Sort | CloudPass::ViewVolume, r) => {
+                1e3 * bytes / bandwidth * (r as f64 / clouds).min(1.0)
+            }
+            _ => 1e3 * bytes / bandwidth,
+        }
+    });
+    let mut resolutions: Vec<u32> = shapes.iter().map(|s| s.n as u32).collect();
+    resolutions.sort_unstable();
+    resolutions.dedup();
+    BudgetRow {
+        name: b.name.to_string(),
+        timing,
+        runs,
+        dispatches,
+        floor_ms,
+        particles: b.scene.clouds.iter().map(|c| c.particles.len()).sum(),
+        resolutions: resolutions
+            .iter()
+            .map(|r| format!("{r}³"))
+            .collect::<Vec<_>>()
+            .join(", "),
+    }
+}
+
+pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
+    let bandwidth = args.bandwidth * 1e12;
+    let wanted = |key: &str| {
+        args.scenes
+            .as_ref()
+            .is_none_or(|names| names.iter().any(|n| n == key))
+    };
+    let builders: [(&str, fn() -> Result<BudgetScene, String>); 4] = [
+        ("paper", paper_38k),
+        ("paper-half", paper_38k_half),
+        ("snow", || Ok(snow_bunny())),
+        ("cloudscape", || Ok(cloudscape())),
+    ];
+    let mut adapter = String::new();
+    let mut rows = Vec::new();
+    for (key, build) in builders {
+        if !wanted(key) {
+            continue;
+        }
+        let mut scene = build()?;
+        (scene.scene.camera.width, scene.scene.camera.height) = (args.view.0, args.view.1);
+        // `--settings`: each replaces the scene's own, one row each.
+        let variants: Vec<Option<CloudQualitySettings>> = if args.settings.is_empty() {
+            vec![None]
+        } else {
+            args.settings.iter().copied().map(Some).collect()
+        };
+        for settings in variants {
+            let mut label = scene.name.to_string();
+            if let Some(settings) = settings {
+                scene.scene.settings = settings;
+                label = format!("{label}: {}", setting_label(&settings));
+            }
+            eprintln!("benchmark: frame budget, {label}");
+            let mut row = measure(&scene, args.frames(), bandwidth, &mut adapter);
+            row.name = label;
+            eprintln!(
+                "benchmark: frame budget, {}: re-lit {:.2} ms, static {:.2} ms (GPU)",
+                row.name, row.timing.gpu_ms_total, row.timing.gpu_ms_static
+            );
+            rows.push(row);
+        }
+    }
+    write_frame_budget(args, &adapter, &rows)
+}
+
+fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<(), String> {
+    let mut csv = String::from(
+        "adapter,scene,particles,resolutions,pass,gpu_ms,floor_ms,runs,dispatches,gpu_ms_relit,gpu_ms_static\n",
+    );
+    let mut md = format!(
+        "Adapter: `{adapter}`, {}×{}. GPU ms: median of {} frames that rerun every pass (the \
+         draw: a static frame's). Floor: the bytes the pass must at least read and write once, \
+         at {} TB/s. Runs and dispatches: in a re-lit frame.\n\n\
+         | scene | pass | GPU ms | floor ms | GPU ÷ floor | runs | dispatches |\n\
+         |---|---|---:|---:|---:|---:|---:|\n",
+        args.view.0,
+        args.view.1,
+        args.frames(),
+        args.bandwidth
+    );
+    for r in rows {
+        for (i, pass) in CloudPass::ALL.iter().enumerate() {
+            let (ms, floor) = (r.timing.pass_ms[i], r.floor_ms[i]);
+            let _ = writeln!(
+                csv,
+                "\"{adapter}\",\"{}\",{},\"{}\",{},{ms:.4},{floor:.4},{},{},{:.4},{:.4}",
+                r.name,
+                r.particles,
+                r.resolutions,
+                pass.name(),
+                r.runs[i],
+                r.dispatches[i],
+                r.timing.gpu_ms_total,
+                r.timing.gpu_ms_static
+            );
+            if r.runs[i] == 0 && *pass != CloudPass::Draw {
+                continue;
+            }
+            let ratio = if floor > 0.0 {
+                format!("{:.0}×", ms / floor)
+            } else {
+                "–".into()
+            };
+            let _ = writeln!(
+                md,
+                "| {} | {} | {ms:.3} | {floor:.3} | {ratio} | {} | {} |",
+                r.name,
+                pass.name(),
+                r.runs[i],
+                r.dispatches[i]
+            );
+        }
+        let floor: f64 = r.floor_ms.iter().sum();
+        let _ = writeln!(
+            md,
+            "| **{}** ({} particles, {}) | **re-lit frame** | **{:.3}** | {floor:.3} | {:.0}× | | |",
+            r.name,
+            r.particles,
+            r.resolutions,
+            r.timing.gpu_ms_total,
+            r.timing.gpu_ms_total / floor.max(1e-9)
+        );
+        let _ = writeln!(
+            md,
+            "| **{}** | **static frame** | **{:.3}** | {:.3} | | | |",
+            r.name, r.timing.gpu_ms_static, r.floor_ms[6]
+        );
+    }
+    if let Some(paper) = rows.iter().find(|r| r.name.starts_with("paper")) {
+        let mark = |ok: bool| if ok { "✓" } else { "✗" };
+        let _ = writeln!(
+            md,
+            "\nThe paper's scene against issue #11's goals: re-lit {:.3} ms (goal ≤ {GOAL_RELIT_MS}) {}, \
+             static {:.3} ms (goal ≤ {GOAL_STATIC_MS}) {}.",
+            paper.timing.gpu_ms_total,
+            mark(paper.timing.gpu_ms_total <= GOAL_RELIT_MS),
+            paper.timing.gpu_ms_static,
+            mark(paper.timing.gpu_ms_static <= GOAL_STATIC_MS)
+        );
+    }
+    std::fs::create_dir_all(&args.out)
+        .map_err(|e| format!("cannot create {}: {e}", args.out.display()))?;
+    for (name, text) in [("frame_budget.csv", &csv), ("frame_budget.md", &md)] {
+        let path = args.out.join(name);
+        std::fs::write(&path, text).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+    }
+    println!("{md}");
+    eprintln!(
+        "benchmark: wrote frame_budget.csv and frame_budget.md in {}",
+        args.out.display()
+    );
+    Ok(())
+}
