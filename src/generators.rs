@@ -444,6 +444,42 @@ mod tests {
     }
 
     #[test]
+    fn cloudscape_lays_out_equal_clouds_on_a_grid() {
+        let sky = cloudscape(9, 900, 7);
+        assert_eq!(sky.len(), 9);
+        for (i, cloud) in sky.iter().enumerate() {
+            assert_eq!(cloud.particles.particles.len(), 100);
+            // Its grid cell (3 × 3, 80 m apart), jittered by at most 0.3 of a cell.
+            let cell = Vec2::new((i % 3) as f32 - 1.0, (i / 3) as f32 - 1.0) * 80.0;
+            let at = Vec2::new(cloud.translation.x, cloud.translation.z);
+            assert!(
+                (at - cell).abs().max_element() <= 24.0 + 1e-3,
+                "{at} off {cell}"
+            );
+            assert!((70.0..=110.0).contains(&cloud.translation.y));
+            // Extinction 20 / size for a size of 25–60 m; the particles within that size.
+            let size = 20.0 / cloud.medium.extinction;
+            assert!((25.0..=60.0).contains(&size), "size {size}");
+            assert!(
+                cloud
+                    .particles
+                    .particles
+                    .iter()
+                    .all(|p| p.position.length() < size)
+            );
+        }
+        // The particles' turn keeps their distances from the cloud's origin.
+        let turned = &sky[0].particles.particles;
+        let size = 20.0 / sky[0].medium.extinction;
+        let unturned = cumulus(size, 100, 1000);
+        for (a, b) in turned.iter().zip(&unturned.particles) {
+            assert!((a.position.length() - b.position.length()).abs() < 1e-4);
+            assert!((a.position.y - b.position.y).abs() < 1e-4);
+        }
+        assert_eq!(sky[3].translation, cloudscape(9, 900, 7)[3].translation);
+    }
+
+    #[test]
     fn from_sdf_fills_only_the_inside() {
         let ball = |p: Vec3| p.length() - 1.0;
         let p = from_sdf(ball, Vec3::splat(-1.5), Vec3::splat(1.5), 0.05, 10_000, 5);

@@ -7,13 +7,15 @@
 //!   scattering iterations, two lights, 1920×1080 (the `snow_bunny` example's big bunny);
 //! - **cloudscape**: the `cloudscape` example's sky, 100 cumulus of 3,000 particles over a lit
 //!   ground under a blue sky, 32³ × 8 iterations with level of detail (2 pixels per voxel),
-//!   drawn at half size, 1920×1080.
+//!   drawn at half size, at most 10 clouds re-lit a frame, 1920×1080.
 //!
 //! `--view WxH` measures them at another size; `--settings` replaces the chosen scenes' quality
 //! settings, one row per `--settings`.
 //!
-//! Re-lit: frames that rerun every pass for every cloud (the particles touched, which a moving
-//! light's re-lighting is a part of). Static: a frame where nothing changed, the draw only.
+//! Re-lit: frames that rerun every pass for every cloud (the particles touched). Lights moving:
+//! frames where every light turns by a degree, which rerun what a light's turn needs (shade,
+//! gather, the scattering's warm restart) within the scene's re-light budget, and the draw.
+//! Static: a frame where nothing changed, the draw only.
 //!
 //! The floor of a pass is the bytes it must at least read and write once, at `--bandwidth`
 //! (default 4.8 TB/s, an H200's HBM3e), summed over the clouds at their chosen resolutions:
@@ -22,7 +24,7 @@
 use std::fmt::Write as _;
 
 use bevy_particle_clouds::{
-    CloudLevelOfDetail, CloudLod, LightSample, Medium, scene::ResolvedCloud,
+    CloudLevelOfDetail, CloudLod, CloudRelightBudget, LightSample, Medium, scene::ResolvedCloud,
     scene::SceneCamera, scene::SceneObject,
 };
 
@@ -42,6 +44,8 @@ struct BudgetScene {
     scene: Scene,
     /// Level of detail, pixels per scattering voxel.
     lod: Option<f32>,
+    /// Clouds re-lit per frame (`CloudRelightBudget`); none: no limit.
+    relight_budget: Option<u32>,
 }
 
 fn camera_at(position: Vec3, look_at: Vec3) -> SceneCamera {
@@ -79,6 +83,7 @@ fn paper_38k() -> Result<BudgetScene, String> {
         name: "paper 38k, 5 lights",
         scene,
         lod: None,
+        relight_budget: None,
     })
 }
 
@@ -89,7 +94,10 @@ fn snow_bunny() -> BudgetScene {
     let batch = 100_000;
     let particles = (0..COUNT / batch)
         .flat_map(|i| {
-            eprintln!("benchmark: frame budget, bunny particles {} / {COUNT}", i * batch);
+            eprintln!(
+                "benchmark: frame budget, bunny particles {} / {COUNT}",
+                i * batch
+            );
             generators::from_sdf(generators::bunny_sdf, lo, hi, 0.025, batch, 1000 + i as u64)
                 .particles
         })
@@ -128,6 +136,7 @@ fn snow_bunny() -> BudgetScene {
             },
         },
         lod: None,
+        relight_budget: None,
     }
 }
 
@@ -171,6 +180,7 @@ fn cloudscape() -> BudgetScene {
             },
         },
         lod: Some(2.0),
+        relight_budget: Some(10),
     }
 }
 
@@ -228,11 +238,43 @@ fn floor_bytes(
 struct BudgetRow {
     name: String,
     timing: Timing,
+    /// Per pass, GPU ms of a frame where every light turned (median), and that frame's total.
+    moving_ms: [f64; PASSES],
+    moving_total_ms: f64,
     runs: [u32; PASSES],
     dispatches: [u32; PASSES],
     floor_ms: [f64; PASSES],
     particles: usize,
     resolutions: String,
+}
+
+/// Every light turns by a degree each frame (a moving sun): the median GPU ms of each pass over
+/// `frames` such frames, after two that settle into it, and of their totals. What reruns is what a
+/// light's turn needs (shade, gather, the scattering's warm restart, the draw); with a re-light
+/// budget, only that many clouds a frame.
+fn moving_lights(bench: &mut Bench, frames: usize) -> ([f64; PASSES], f64) {
+    let mut ids = Vec::new();
+    for k in 0..frames + 2 {
+        bench.turn_lights(1.0);
+        let i = bench.frame();
+        if k >= 2 {
+            ids.push(i);
+        }
+    }
+    for _ in 0..4 {
+        bench
+            .recorder
+            .drain(&mut bench.app)
+            .expect("the benchmark scene renders"); // late GPU timestamps
+    }
+    let stats: Vec<&FrameStats> = ids.iter().map(|&i| &bench.recorder.frames[i]).collect();
+    let ms = |f: &FrameStats, p: CloudPass| f.gpu_ms.get(&p).copied().unwrap_or(0.0);
+    let per_pass = CloudPass::ALL.map(|p| median(stats.iter().map(|f| ms(f, p)).collect()));
+    let totals = stats
+        .iter()
+        .map(|f| CloudPass::ALL.iter().map(|&p| ms(f, p)).sum())
+        .collect();
+    (per_pass, median(totals))
 }
 
 fn measure(b: &BudgetScene, frames: usize, bandwidth: f64, adapter: &mut String) -> BudgetRow {
@@ -245,11 +287,17 @@ fn measure(b: &BudgetScene, frames: usize, bandwidth: f64, adapter: &mut String)
         });
     }
     let (_, timing) = bench.measure(frames);
+    // Every cloud re-lit at once: the counts of such a frame.
     bench.touch_particles();
     let i = bench.frame();
     let frame = &bench.recorder.frames[i];
     let runs = CloudPass::ALL.map(|p| frame.runs(p));
     let dispatches = CloudPass::ALL.map(|p| frame.dispatches(p));
+    // A game's moving sun: the clouds take turns within the re-light budget.
+    if let Some(clouds) = b.relight_budget {
+        bench.app.insert_resource(CloudRelightBudget(clouds));
+    }
+    let (moving_ms, moving_total_ms) = moving_lights(&mut bench, frames);
     // Each cloud at the resolution its level of detail chose, else the scene's.
     let world = bench.app.world_mut();
     let chosen: Vec<u32> = world
@@ -279,18 +327,22 @@ fn measure(b: &BudgetScene, frames: usize, bandwidth: f64, adapter: &mut String)
     let scale = settings.cloud_target_scale as f64;
     let pixels = (b.scene.camera.width * b.scene.camera.height) as f64 * scale * scale;
     let clouds = shapes.len().max(1) as f64;
-    let iterations = runs[CloudPass::Scatter as usize] as f64 / clouds;
+    let lights = b.scene.lights.len() as f64;
+    let iterations = settings.scatter_iterations as f64;
     let floor_ms = CloudPass::ALL.map(|p| {
-        let bytes = floor_bytes(p, &shapes, b.scene.lights.len() as f64, iterations, pixels);
-        // A pass that did not run has no floor; a view pass reads only the clouds in view.
-        match (p, runs[p as usize]) {
-            (CloudPass::Draw, _) => 1e3 * bytes / bandwidth,
-            (_, 0) => 0.0,
-            (CloudPass::Sort | CloudPass::ViewVolume, r) => {
-                1e3 * bytes / bandwidth * (r as f64 / clouds).min(1.0)
-            }
-            _ => 1e3 * bytes / bandwidth,
-        }
+        let bytes = floor_bytes(p, &shapes, lights, iterations, pixels);
+        // The share of the clouds' work that ran: the clouds in view for the view passes,
+        // those re-lit and their iterations for the others.
+        let all_runs = match p {
+            CloudPass::Shade => clouds * lights,
+            CloudPass::Scatter => clouds * iterations,
+            _ => clouds,
+        };
+        let share = match p {
+            CloudPass::Draw => 1.0,
+            _ => (runs[p as usize] as f64 / all_runs.max(1.0)).min(1.0),
+        };
+        1e3 * bytes * share / bandwidth
     });
     let mut resolutions: Vec<u32> = shapes.iter().map(|s| s.n as u32).collect();
     resolutions.sort_unstable();
@@ -298,6 +350,8 @@ fn measure(b: &BudgetScene, frames: usize, bandwidth: f64, adapter: &mut String)
     BudgetRow {
         name: b.name.to_string(),
         timing,
+        moving_ms,
+        moving_total_ms,
         runs,
         dispatches,
         floor_ms,
@@ -310,6 +364,9 @@ fn measure(b: &BudgetScene, frames: usize, bandwidth: f64, adapter: &mut String)
     }
 }
 
+/// Makes one of the scenes (the paper's reads its particle file).
+type SceneBuilder = fn() -> Result<BudgetScene, String>;
+
 pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
     let bandwidth = args.bandwidth * 1e12;
     let wanted = |key: &str| {
@@ -317,7 +374,7 @@ pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
             .as_ref()
             .is_none_or(|names| names.iter().any(|n| n == key))
     };
-    let builders: [(&str, fn() -> Result<BudgetScene, String>); 4] = [
+    let builders: [(&str, SceneBuilder); 4] = [
         ("paper", paper_38k),
         ("paper-half", paper_38k_half),
         ("snow", || Ok(snow_bunny())),
@@ -358,14 +415,14 @@ pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
 
 fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<(), String> {
     let mut csv = String::from(
-        "adapter,scene,particles,resolutions,pass,gpu_ms,floor_ms,runs,dispatches,gpu_ms_relit,gpu_ms_static\n",
+        "adapter,scene,particles,resolutions,pass,gpu_ms,floor_ms,runs,dispatches,gpu_ms_relit,gpu_ms_static,gpu_ms_moving,gpu_ms_moving_frame\n",
     );
     let mut md = format!(
         "Adapter: `{adapter}`, {}×{}. GPU ms: median of {} frames that rerun every pass (the \
          draw: a static frame's). Floor: the bytes the pass must at least read and write once, \
          at {} TB/s. Runs and dispatches: in a re-lit frame.\n\n\
-         | scene | pass | GPU ms | floor ms | GPU ÷ floor | runs | dispatches |\n\
-         |---|---|---:|---:|---:|---:|---:|\n",
+         | scene | pass | GPU ms | floor ms | GPU ÷ floor | runs | dispatches | lights moving, GPU ms |\n\
+         |---|---|---:|---:|---:|---:|---:|---:|\n",
         args.view.0,
         args.view.1,
         args.frames(),
@@ -376,7 +433,7 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
             let (ms, floor) = (r.timing.pass_ms[i], r.floor_ms[i]);
             let _ = writeln!(
                 csv,
-                "\"{adapter}\",\"{}\",{},\"{}\",{},{ms:.4},{floor:.4},{},{},{:.4},{:.4}",
+                "\"{adapter}\",\"{}\",{},\"{}\",{},{ms:.4},{floor:.4},{},{},{:.4},{:.4},{:.4},{:.4}",
                 r.name,
                 r.particles,
                 r.resolutions,
@@ -384,7 +441,9 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
                 r.runs[i],
                 r.dispatches[i],
                 r.timing.gpu_ms_total,
-                r.timing.gpu_ms_static
+                r.timing.gpu_ms_static,
+                r.moving_ms[i],
+                r.moving_total_ms
             );
             if r.runs[i] == 0 && *pass != CloudPass::Draw {
                 continue;
@@ -396,26 +455,28 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
             };
             let _ = writeln!(
                 md,
-                "| {} | {} | {ms:.3} | {floor:.3} | {ratio} | {} | {} |",
+                "| {} | {} | {ms:.3} | {floor:.3} | {ratio} | {} | {} | {:.3} |",
                 r.name,
                 pass.name(),
                 r.runs[i],
-                r.dispatches[i]
+                r.dispatches[i],
+                r.moving_ms[i]
             );
         }
         let floor: f64 = r.floor_ms.iter().sum();
         let _ = writeln!(
             md,
-            "| **{}** ({} particles, {}) | **re-lit frame** | **{:.3}** | {floor:.3} | {:.0}× | | |",
+            "| **{}** ({} particles, {}) | **re-lit frame** | **{:.3}** | {floor:.3} | {:.0}× | | | **{:.3}** |",
             r.name,
             r.particles,
             r.resolutions,
             r.timing.gpu_ms_total,
-            r.timing.gpu_ms_total / floor.max(1e-9)
+            r.timing.gpu_ms_total / floor.max(1e-9),
+            r.moving_total_ms
         );
         let _ = writeln!(
             md,
-            "| **{}** | **static frame** | **{:.3}** | {:.3} | | | |",
+            "| **{}** | **static frame** | **{:.3}** | {:.3} | | | | |",
             r.name, r.timing.gpu_ms_static, r.floor_ms[6]
         );
     }
@@ -423,10 +484,11 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
         let mark = |ok: bool| if ok { "✓" } else { "✗" };
         let _ = writeln!(
             md,
-            "\nThe paper's scene against issue #11's goals: re-lit {:.3} ms (goal ≤ {GOAL_RELIT_MS}) {}, \
-             static {:.3} ms (goal ≤ {GOAL_STATIC_MS}) {}.",
+            "\nThe paper's scene against issue #11's goals: its 5 lights moving {:.3} ms and everything \
+             re-lit {:.3} ms (goal ≤ {GOAL_RELIT_MS}) {}, static {:.3} ms (goal ≤ {GOAL_STATIC_MS}) {}.",
+            paper.moving_total_ms,
             paper.timing.gpu_ms_total,
-            mark(paper.timing.gpu_ms_total <= GOAL_RELIT_MS),
+            mark(paper.timing.gpu_ms_total.max(paper.moving_total_ms) <= GOAL_RELIT_MS),
             paper.timing.gpu_ms_static,
             mark(paper.timing.gpu_ms_static <= GOAL_STATIC_MS)
         );

@@ -191,7 +191,9 @@ fn parse_view(text: &str) -> Result<(u32, u32), String> {
         .and_then(|(w, h)| Some((w.parse::<u32>().ok()?, h.parse::<u32>().ok()?)));
     match size {
         Some((w, h)) if (1..=8192).contains(&w) && (1..=8192).contains(&h) => Ok((w, h)),
-        _ => Err(format!("`{text}` is not WIDTHxHEIGHT with each in 1..=8192")),
+        _ => Err(format!(
+            "`{text}` is not WIDTHxHEIGHT with each in 1..=8192"
+        )),
     }
 }
 

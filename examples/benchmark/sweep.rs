@@ -193,6 +193,18 @@ impl Bench {
         world.remove_resource::<bevy_particle_clouds::CloudGround>();
     }
 
+    /// Turns every light of the scene by `degrees` about the world's vertical.
+    pub(crate) fn turn_lights(&mut self, degrees: f32) {
+        let turn = Quat::from_rotation_y(degrees.to_radians());
+        let mut lights = self
+            .app
+            .world_mut()
+            .query_filtered::<&mut Transform, With<DirectionalLight>>();
+        for mut transform in lights.iter_mut(self.app.world_mut()) {
+            transform.rotation = turn * transform.rotation;
+        }
+    }
+
     /// Marks every cloud's particles changed: the next frame reruns every pass.
     pub(crate) fn touch_particles(&mut self) {
         for (_, handle) in &self.clouds {

@@ -30,18 +30,6 @@ struct WarmRow {
     reference_spp: u32,
 }
 
-/// Turns every light of the bench's scene by `degrees` about the world's vertical.
-fn turn_lights(b: &mut Bench, degrees: f32) {
-    let turn = Quat::from_rotation_y(degrees.to_radians());
-    let mut lights = b
-        .app
-        .world_mut()
-        .query_filtered::<&mut Transform, With<DirectionalLight>>();
-    for mut transform in lights.iter_mut(b.app.world_mut()) {
-        transform.rotation = turn * transform.rotation;
-    }
-}
-
 /// The GPU scatter time of the first frame from `first` on whose scattering ran.
 fn scatter_ms(b: &Bench, first: usize) -> Option<f64> {
     b.recorder.frames[first..]
@@ -75,9 +63,9 @@ pub(crate) fn warm_start_benchmark(args: &Args) -> Result<(), String> {
                     warm_scatter_iterations: iterations,
                     ..default()
                 });
-                turn_lights(&mut b, step);
+                b.turn_lights(step);
                 b.image();
-                turn_lights(&mut b, -step);
+                b.turn_lights(-step);
                 let warm_frame = b.recorder.frames.len();
                 let warm = headless::capture(&mut b.app, &mut b.recorder, &b.target.image)
                     .map_err(|e| e.to_string())?;

@@ -382,7 +382,11 @@ pub(crate) fn object_edges(setup: &mut Setup) -> Vec<bool> {
     setup.objects = original;
     // A face that moves by a fraction of a millimetre changes its fog by far less than this.
     let changed = |a: &[f32; 4], b: &[f32; 4]| (0..3).any(|c| (a[c] - b[c]).abs() > 1e-3);
-    grown.iter().zip(&shrunk).map(|(a, b)| changed(a, b)).collect()
+    grown
+        .iter()
+        .zip(&shrunk)
+        .map(|(a, b)| changed(a, b))
+        .collect()
 }
 
 pub(crate) fn assert_images_match(gpu: &LinearImage, cpu: &[[f32; 4]], what: &str) {
