@@ -32,7 +32,8 @@ const PARTICLE_BYTES: u64 = 32;
 
 /// The scratch buffers of the voxelize rounds (render world resource): each round's particles,
 /// one cloud after the other, and their kernel sums. Grown when a frame needs more and kept for
-/// the next, so a cloud whose particles change every frame allocates nothing.
+/// the next, so a cloud whose particles change every frame allocates nothing; shrunk when a
+/// frame needs a quarter or less (see [`scratch_capacity`]).
 #[derive(Resource, Default)]
 pub struct VoxelizeScratch(Vec<ScratchBuffers>);
 
@@ -54,15 +55,10 @@ impl VoxelizeScratch {
         particles: u64,
         max_particles: u64,
     ) -> ScratchBuffers {
-        if self.0.get(round).is_some_and(|s| s.capacity >= particles) {
+        let current = self.0.get(round).map(|s| s.capacity);
+        let Some(capacity) = scratch_capacity(current, particles, max_particles) else {
             return self.0[round].clone();
-        }
-        // Grown by doubling, so particles that change every frame allocate only now and then.
-        let capacity = particles
-            .max(1)
-            .next_power_of_two()
-            .min(max_particles)
-            .max(particles);
+        };
         let buffer = |label, bytes: u64| {
             device.create_buffer(&BufferDescriptor {
                 label: Some(label),
@@ -82,6 +78,24 @@ impl VoxelizeScratch {
             self.0.push(buffers.clone());
         }
         buffers
+    }
+}
+
+/// The particles a round's scratch should be reallocated to hold, or `None` to keep its
+/// `current` capacity: grown to the next power of two when `particles` do not fit (so particles
+/// that change every frame allocate only now and then), shrunk the same way once they need a
+/// quarter of it or less (so one big scene does not hold its memory for ever, and counts that
+/// halve and double again keep their buffer); never above `max_particles`, never below what
+/// `particles` need.
+fn scratch_capacity(current: Option<u64>, particles: u64, max_particles: u64) -> Option<u64> {
+    let wanted = particles
+        .max(1)
+        .next_power_of_two()
+        .min(max_particles)
+        .max(particles);
+    match current {
+        Some(capacity) if capacity >= particles && particles.max(1) > capacity / 4 => None,
+        _ => Some(wanted),
     }
 }
 
@@ -312,7 +326,25 @@ pub(crate) fn record_round(
 
 #[cfg(test)]
 mod tests {
-    use super::round_of_each;
+    use super::{round_of_each, scratch_capacity};
+
+    #[test]
+    fn the_scratch_grows_by_doubling_and_shrinks_below_a_quarter() {
+        // None yet, or too small: the next power of two, within one binding.
+        assert_eq!(scratch_capacity(None, 1000, 1 << 20), Some(1024));
+        assert_eq!(scratch_capacity(Some(1024), 1025, 1 << 20), Some(2048));
+        assert_eq!(scratch_capacity(Some(1024), 3000, 2500), Some(3000));
+        assert_eq!(scratch_capacity(None, 0, 100), Some(1));
+        // Enough, and more than a quarter used: kept.
+        assert_eq!(scratch_capacity(Some(4096), 4096, 1 << 20), None);
+        assert_eq!(scratch_capacity(Some(4096), 1025, 1 << 20), None);
+        // A quarter or less: shrunk to what a doubling would have given.
+        assert_eq!(scratch_capacity(Some(4096), 1024, 1 << 20), Some(1024));
+        assert_eq!(scratch_capacity(Some(1 << 21), 3, 1 << 22), Some(4));
+        // Halving and doubling again keeps the buffer.
+        assert_eq!(scratch_capacity(Some(2048), 1000, 1 << 20), None);
+        assert_eq!(scratch_capacity(Some(2048), 2000, 1 << 20), None);
+    }
 
     #[test]
     fn a_round_holds_what_one_binding_does_and_at_least_one_cloud() {
