@@ -24,8 +24,8 @@
 use std::fmt::Write as _;
 
 use bevy_particle_clouds::{
-    CloudLevelOfDetail, CloudLod, CloudRelightBudget, LightSample, Medium, scene::ResolvedCloud,
-    scene::SceneCamera, scene::SceneObject,
+    CloudLod, CloudRelightBudget, LightSample, Medium, scene::ResolvedCloud, scene::SceneCamera,
+    scene::SceneObject,
 };
 
 use super::*;
@@ -281,18 +281,10 @@ fn measure(b: &BudgetScene, frames: usize, bandwidth: f64, adapter: &mut String)
     let mut bench = Bench::new(&b.scene);
     *adapter = bench.adapter.clone();
     if let Some(pixels_per_voxel) = b.lod {
-        bench.app.insert_resource(CloudLevelOfDetail {
-            pixels_per_voxel,
-            min_resolution: 12,
-        });
+        bench.set_level_of_detail(pixels_per_voxel, 12);
     }
     let (_, timing) = bench.measure(frames);
-    // Every cloud re-lit at once: the counts of such a frame.
-    bench.touch_particles();
-    let i = bench.frame();
-    let frame = &bench.recorder.frames[i];
-    let runs = CloudPass::ALL.map(|p| frame.runs(p));
-    let dispatches = CloudPass::ALL.map(|p| frame.dispatches(p));
+    let (runs, dispatches) = bench.relit_counts();
     // A game's moving sun: the clouds take turns within the re-light budget.
     if let Some(clouds) = b.relight_budget {
         bench.app.insert_resource(CloudRelightBudget(clouds));

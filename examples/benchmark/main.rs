@@ -59,8 +59,8 @@ use bevy::{
 use bevy_particle_clouds::headless::{self, FrameRecorder, FrameStats};
 use bevy_particle_clouds::reference::path_tracer::Progress;
 use bevy_particle_clouds::{
-    CloudPass, CloudQualitySettings, Compositing, PASSES, Particle, ParticleCloud, Particles,
-    ScatterStencil,
+    CloudLevelOfDetail, CloudPass, CloudQualitySettings, Compositing, PASSES, Particle,
+    ParticleCloud, Particles, ScatterStencil,
     fog::Fog,
     generators,
     image_io::{ImageMetadata, LinearImage, read_exr, write_exr_with_metadata, write_png},

@@ -15,7 +15,7 @@
 
 use std::fmt::Write as _;
 
-use bevy_particle_clouds::{CloudLevelOfDetail, LightSample, Medium, scene::ResolvedCloud};
+use bevy_particle_clouds::{LightSample, Medium, scene::ResolvedCloud};
 
 use super::*;
 
@@ -138,20 +138,11 @@ fn measure(
     let mut b = Bench::new(scene);
     *adapter = b.adapter.clone();
     if let Some(pixels_per_voxel) = lod {
-        b.app.insert_resource(CloudLevelOfDetail {
-            pixels_per_voxel,
-            min_resolution: 8,
-        });
+        b.set_level_of_detail(pixels_per_voxel, 8);
     }
     let (_, timing) = b.measure(frames);
-    b.touch_particles();
-    let i = b.frame();
-    let frame = &b.recorder.frames[i];
-    (
-        timing,
-        CloudPass::ALL.map(|p| frame.runs(p)),
-        CloudPass::ALL.map(|p| frame.dispatches(p)),
-    )
+    let (runs, dispatches) = b.relit_counts();
+    (timing, runs, dispatches)
 }
 
 pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {

@@ -193,6 +193,26 @@ impl Bench {
         world.remove_resource::<bevy_particle_clouds::CloudGround>();
     }
 
+    /// Level of detail at `pixels_per_voxel`, no coarser than `min_resolution` voxels per side.
+    pub(crate) fn set_level_of_detail(&mut self, pixels_per_voxel: f32, min_resolution: u32) {
+        self.app.insert_resource(CloudLevelOfDetail {
+            pixels_per_voxel,
+            min_resolution,
+        });
+    }
+
+    /// Each pass's runs and compute dispatches in a frame where every pass reruns (the
+    /// particles touched).
+    pub(crate) fn relit_counts(&mut self) -> ([u32; PASSES], [u32; PASSES]) {
+        self.touch_particles();
+        let i = self.frame();
+        let frame = &self.recorder.frames[i];
+        (
+            CloudPass::ALL.map(|p| frame.runs(p)),
+            CloudPass::ALL.map(|p| frame.dispatches(p)),
+        )
+    }
+
     /// Turns every light of the scene by `degrees` about the world's vertical.
     pub(crate) fn turn_lights(&mut self, degrees: f32) {
         let turn = Quat::from_rotation_y(degrees.to_radians());
