@@ -88,8 +88,8 @@ pub use ground::CloudGround;
 pub use lod::{CloudLevelOfDetail, CloudLod};
 pub use particle::{LightSample, Medium, Particle};
 pub use settings::{
-    CloudQualitySettings, CloudRelightBudget, CloudTargetScale, Compositing, DefaultCloudQuality,
-    ScatterStencil,
+    BillboardShading, CloudQualitySettings, CloudRelightBudget, CloudTargetScale, Compositing,
+    DefaultCloudQuality, ScatterStencil,
 };
 pub use shadow_maps::CloudShadowMaps;
 pub use stats::{CloudPass, CloudPassCounters, PASSES};
@@ -97,7 +97,7 @@ pub use stats::{CloudPass, CloudPassCounters, PASSES};
 /// Everything a Bevy user needs.
 pub mod prelude {
     pub use crate::{
-        CloudGround, CloudLevelOfDetail, CloudLod, CloudQualitySettings, CloudRelightBudget,
+        BillboardShading, CloudGround, CloudLevelOfDetail, CloudLod, CloudQualitySettings, CloudRelightBudget,
         CloudShadowMaps, CloudSkyLight, CloudSystems, CloudTargetScale, Compositing,
         DefaultCloudQuality, Medium, NotCloudLight, Particle, ParticleCloud, ParticleCloudsPlugin,
         Particles, ScatterStencil, generators,

@@ -50,6 +50,23 @@ pub enum Compositing {
     ViewTransmittance,
 }
 
+/// Where a billboard evaluates the light its particle scatters towards the camera
+/// (docs/illumination.md §5).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect, Deserialize)]
+#[reflect(Default, Debug, PartialEq)]
+pub enum BillboardShading {
+    /// At `chord_segments` points along each pixel's chord through the particle: a big particle
+    /// shows its lit and its dark side. Each point reads every light's optical depth and the
+    /// multiple scattering. The default.
+    #[default]
+    Chord,
+    /// Once per particle, at its centre towards the camera (the paper's): every pixel of the
+    /// billboard takes that light, so the pixels read no illumination volume and the draw costs
+    /// a fraction of `Chord`'s; a particle large against the light's variation shows one tone.
+    /// Alpha stays exact, and the view transmittance still weighs each chord segment.
+    Centre,
+}
+
 /// Per-cloud quality knobs. Missing fields in scene files take these defaults.
 #[derive(Component, Clone, Copy, Debug, PartialEq, Reflect, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -93,6 +110,9 @@ pub struct CloudQualitySettings {
     pub chord_segments: u32,
     /// How the billboards are composited. Default [`Compositing::ViewTransmittance`].
     pub compositing: Compositing,
+    /// Where the billboards evaluate the scattered light: along each pixel's chord, or once per
+    /// particle at its centre. Default [`BillboardShading::Chord`].
+    pub billboard_shading: BillboardShading,
     /// The billboards are drawn into a target of this fraction of the view's size per axis, then
     /// enlarged onto the view with a depth-aware upsample (the paper's §4 fill-rate
     /// optimisation; docs/illumination.md §6). A view draws all its clouds at one scale: its
@@ -126,6 +146,7 @@ impl Default for CloudQualitySettings {
             light_supersampling: 3,
             chord_segments: 8,
             compositing: Compositing::ViewTransmittance,
+            billboard_shading: BillboardShading::Chord,
             cloud_target_scale: 1.0,
         }
     }

@@ -46,13 +46,17 @@ pub(crate) fn setting_label(s: &CloudQualitySettings) -> String {
         Compositing::ViewTransmittance => "",
         Compositing::Sorted => " sorted",
     };
+    let shading = match s.billboard_shading {
+        BillboardShading::Chord => "",
+        BillboardShading::Centre => " centre",
+    };
     let target = if s.cloud_target_scale < 1.0 {
         format!(" target ×{}", s.cloud_target_scale)
     } else {
         String::new()
     };
     format!(
-        "{}³ ×{} {stencil} K{} L{}{compositing}{target}",
+        "{}³ ×{} {stencil} K{} L{}{compositing}{shading}{target}",
         s.volume_resolution, s.scatter_iterations, s.chord_segments, s.light_supersampling
     )
 }

@@ -33,7 +33,7 @@ use crate::reference::geometry::nearest_object;
 use crate::reference::illumination::DensityGrid;
 use crate::reference::view_volume::ViewVolume;
 use crate::scene::{Scene, SceneObject};
-use crate::settings::{CloudQualitySettings, Compositing};
+use crate::settings::{BillboardShading, CloudQualitySettings, Compositing};
 
 /// A cloud's `Transform`: world point = `translation + rotation * (scale * local)`.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -92,6 +92,22 @@ pub struct BillboardCloud<'a> {
     pub segments: u32,
     /// How the particles are composited.
     pub compositing: BillboardCompositing<'a>,
+    /// Where the scattered light is evaluated (`billboard_shading`).
+    pub shading: BillboardShading,
+}
+
+impl BillboardCloud<'_> {
+    /// The scattered light the billboard of the particle centred at world `centre` shows at world
+    /// point `x` of a pixel's ray along world `w` from a camera at `eye`: evaluated there, or with
+    /// [`BillboardShading::Centre`] at the centre towards the camera.
+    fn shade(&self, x: DVec3, w: DVec3, eye: DVec3, centre: DVec3) -> DVec3 {
+        let (at, along) = match self.shading {
+            BillboardShading::Chord => (x, w),
+            BillboardShading::Centre => (centre, (centre - eye).normalize()),
+        };
+        let local = &self.world_from_local;
+        (self.scattered)(local.local_point(at), local.local_direction(along))
+    }
 }
 
 /// [`Compositing`] with what it needs.
@@ -257,12 +273,11 @@ fn particle_radiance(
     seen: &Seen,
 ) -> (DVec3, f64) {
     let (mut colour, mut transmittance) = (DVec3::ZERO, 1.0);
-    let ray = cloud.world_from_local.local_direction(w);
     for (a, b, tau) in segments(bb, chord, cloud) {
         let t = chord.t_c + 0.5 * (a + b);
         let x = camera.position + w * t;
         let coverage = transmittance * -(-tau).exp_m1();
-        let light = (cloud.scattered)(cloud.world_from_local.local_point(x), ray) * coverage;
+        let light = cloud.shade(x, w, camera.position, bb.centre) * coverage;
         colour += seen.piece(light, coverage, t);
         transmittance -= coverage;
     }
@@ -333,8 +348,7 @@ fn particle_light_through_view(
     seen: &Seen,
 ) -> (DVec3, f64) {
     let at = |s: f64| camera.position + w * (chord.t_c + s);
-    let ray = cloud.world_from_local.local_direction(w);
-    let scattered = |s: f64| (cloud.scattered)(cloud.world_from_local.local_point(at(s)), ray);
+    let scattered = |s: f64| cloud.shade(at(s), w, camera.position, bb.centre);
     let (mut light, mut own) = (DVec3::ZERO, 0.0);
     let (mut view_before, mut s_before) = (view_depth(at(chord.s0)), scattered(chord.s0));
     for (a, b, tau) in segments(bb, chord, cloud) {
@@ -509,6 +523,7 @@ pub fn composite_scene_cloud(
         scattered,
         segments: settings.chord_segments,
         compositing: BillboardCompositing::new(settings.compositing, fine),
+        shading: settings.billboard_shading,
     };
     composite(
         &PinholeCamera::from_scene(&scene.camera),
@@ -568,6 +583,7 @@ mod tests {
             scattered,
             segments: 4,
             compositing: BillboardCompositing::Sorted,
+            shading: BillboardShading::Chord,
         }
     }
 
@@ -605,6 +621,38 @@ mod tests {
         assert!(close(pixel(&image, px, py), expected));
         // A corner pixel misses the particle and shows the background.
         assert!(close(pixel(&image, 0, 0), background));
+    }
+
+    #[test]
+    fn centre_shading_shows_the_light_at_the_centre_over_the_whole_billboard() {
+        let cam = camera();
+        let particles = [particle(DVec3::new(0.2, 0.0, -4.0), 1.0, 1.5)];
+        // Brighter towards +x; the ray argument must be the direction to the centre.
+        let field = |x: DVec3, ray: DVec3| DVec3::new(1.0, 0.5, 0.25) * (1.0 + x.x) * (1.0 - ray.z);
+        let mut c = cloud(&particles, &field, 0.8);
+        c.shading = BillboardShading::Centre;
+        let image = composite(&cam, DVec3::ZERO, &[], &[c], 1.0);
+        let centre = particles[0].position.as_dvec3();
+        let shown = field(centre, centre.normalize());
+        let mut covered = 0;
+        for py in 0..H {
+            for px in 0..W {
+                let w = cam.pixel_ray(px, py);
+                let b = (centre - w * centre.dot(w)).length();
+                if b >= 1.0 {
+                    continue;
+                }
+                let alpha = 1.0 - f64::exp(-particle_optical_depth(0.8, 1.5, 1.0, b));
+                assert!(close(pixel(&image, px, py), shown * alpha));
+                covered += 1;
+            }
+        }
+        assert!(covered > 10);
+        // Along the chord, the side towards +x is brighter than the centre's light.
+        c.shading = BillboardShading::Chord;
+        let chord = composite(&cam, DVec3::ZERO, &[], &[c], 1.0);
+        let (px, py) = (W / 2 + 3, H / 2);
+        assert!(pixel(&chord, px, py).x > pixel(&image, px, py).x * 1.05);
     }
 
     #[test]

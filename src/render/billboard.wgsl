@@ -26,7 +26,8 @@ struct DrawParams {
     extinction: f32,
     // Segments of each chord at which the illumination is evaluated.
     segments: u32,
-    _padding: u32,
+    // 1: the illumination is evaluated once per particle, at its centre (the vertex shader's).
+    centre_shading: u32,
 }
 
 @group(0) @binding(0) var<uniform> view: View;
@@ -80,6 +81,8 @@ struct VertexOutput {
     @location(2) @interpolate(flat) density: f32,
     // 1 when the billboard sits on the near plane (the particle reaches it).
     @location(3) @interpolate(flat) on_near_plane: u32,
+    // With centre shading: albedo (S_1 + S_m) at the particle's centre towards the camera.
+    @location(4) @interpolate(flat) centre_light: vec3<f32>,
 }
 
 fn near_plane() -> f32 {
@@ -108,6 +111,11 @@ fn vertex(@builtin(vertex_index) vertex_index: u32, @builtin(instance_index) ins
     var out: VertexOutput;
     out.centre_radius = vec4(centre, radius);
     out.density = particle.density.x;
+    out.centre_light = vec3(0.0);
+    if params.centre_shading != 0u {
+        let ray = normalize((params.local_from_world * vec4(to_centre, 0.0)).xyz);
+        out.centre_light = scattered_at(particle.position_radius.xyz, ray);
+    }
     if depth + radius <= near_plane() {
         // Entirely behind the near plane: a degenerate triangle, culled before rasterisation.
         out.clip_position = vec4(2.0, 2.0, 2.0, 1.0);
@@ -239,6 +247,15 @@ fn multiple_towards(p: vec3<f32>, w: vec3<f32>) -> vec3<f32> {
 // albedo (S_1 + S_m) at a cloud-local point, seen along `ray`.
 fn scattered_at(p: vec3<f32>, ray: vec3<f32>) -> vec3<f32> {
     return cloud.albedo * (single_scattering_at(p, ray) + multiple_towards(p, -ray));
+}
+
+// albedo (S_1 + S_m) for chord point s: evaluated there, or with centre shading the particle's
+// (BillboardShading::Centre; a uniform branch).
+fn shading_point(in: VertexOutput, c: Chord, s: f32, ray: vec3<f32>) -> vec3<f32> {
+    if params.centre_shading != 0u {
+        return in.centre_light;
+    }
+    return scattered_at(local_at(c, s), ray);
 }
 
 // The chord's ray direction in cloud-local space (unit).
@@ -488,7 +505,7 @@ fn emit(in: VertexOutput) -> @location(0) vec4<f32> {
     if !c.seen {
         discard;
     }
-    return vec4(emitted(c), 0.0);
+    return vec4(emitted(in, c), 0.0);
 }
 
 // Into a cloud target, which holds only clouds (cleared to no cloud), both at once: the light
@@ -500,28 +517,28 @@ fn accumulate(in: VertexOutput) -> @location(0) vec4<f32> {
     if !c.seen {
         discard;
     }
-    return vec4(emitted(c), opacity(own_depth(c, c.s1)));
+    return vec4(emitted(in, c), opacity(own_depth(c, c.s1)));
 }
 
 // The particle's light as the image shows it: piece k of the chord adds
 // mean S * tau_k / tau_all * exp(-tau_view(a_k)) * (1 - exp(-tau_all)), tau_all the piece's
 // optical depth with every particle (the view volume's, at least the particle's own tau_k),
 // exposed and fogged at its midpoint.
-fn emitted(c: Chord) -> vec3<f32> {
+fn emitted(in: VertexOutput, c: Chord) -> vec3<f32> {
     let ds = (c.s1 - c.s0) / f32(params.segments);
     var light = vec3(0.0);
     var own_before = 0.0;
     let ray = neighbours_along(c);
     var view_before = view_optical_depth_at(world_at(c, c.s0), ray);
     let direction = local_ray(c);
-    var s_before = scattered_at(local_at(c, c.s0), direction);
+    var s_before = shading_point(in, c, c.s0, direction);
     let f = ray_fog_colour(c);
     for (var k = 1u; k <= params.segments; k++) {
         let end = c.s0 + ds * f32(k);
         let own_after = own_depth(c, end);
         let tau = max(own_after - own_before, 0.0);
         let view_after = view_optical_depth_at(world_at(c, end), ray);
-        let s_after = scattered_at(local_at(c, end), direction);
+        let s_after = shading_point(in, c, end, direction);
         let all = max(view_after - view_before, tau);
         let coverage = tau * exp(-view_before) * mean_attenuation(all);
         let piece = segment_mean(s_before, s_after, all) * coverage;
@@ -552,7 +569,7 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
         let middle = end - 0.5 * ds;
         let depth_after = own_depth(c, end);
         let coverage = transmittance * opacity(max(depth_after - depth_before, 0.0));
-        let piece = coverage * scattered_at(local_at(c, middle), direction);
+        let piece = coverage * shading_point(in, c, middle, direction);
         colour += shown(c, piece, coverage, middle, f);
         transmittance -= coverage;
         depth_before = depth_after;

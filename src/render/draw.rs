@@ -64,7 +64,7 @@ use super::{
 };
 use crate::{
     cloud::ParticleCloud,
-    settings::Compositing,
+    settings::{BillboardShading, Compositing},
     stats::{CloudPass, CloudPassCounters},
 };
 
@@ -81,8 +81,9 @@ pub struct DrawParams {
     pub extinction: f32,
     /// Segments of each chord at which the illumination is evaluated (`chord_segments`).
     pub segments: u32,
-    /// Uniform-buffer padding.
-    pub _padding: u32,
+    /// 1 when the illumination is evaluated once per particle, at its centre
+    /// (`BillboardShading::Centre`).
+    pub centre_shading: u32,
 }
 
 /// The billboard render pipeline's layouts and shader (specialized per view target).
@@ -460,7 +461,7 @@ pub(crate) fn prepare_billboard_bind_groups(
             scale: cloud.scale(),
             extinction: cloud.extinction,
             segments: cloud.settings.chord_segments,
-            _padding: 0,
+            centre_shading: (cloud.settings.billboard_shading == BillboardShading::Centre) as u32,
         };
         let per_view = per_view_buffers(sorts, view_volumes, &atlases, compositing);
         // Order-independent over the views (a hash map's order is arbitrary).

@@ -15,7 +15,8 @@ use bevy::{
 use bevy_particle_clouds::fog::{Falloff, Fog};
 use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
-    CloudGround, CloudPass, CloudQualitySettings, CloudSkyLight, Compositing, LightSample, Medium,
+    BillboardShading, CloudGround, CloudPass, CloudQualitySettings, CloudSkyLight, Compositing,
+    LightSample, Medium,
     Particle,
     generators::SplitMix64,
     image_io::LinearImage,
@@ -283,6 +284,7 @@ pub(crate) fn reference_of_clouds(setup: &Setup, clouds: &[SetupCloud]) -> Vec<[
             scattered,
             segments: setup.settings.chord_segments,
             compositing: BillboardCompositing::new(setup.settings.compositing, &illumination.fine),
+            shading: setup.settings.billboard_shading,
         })
         .collect();
     let camera = PinholeCamera::looking_at(
@@ -453,6 +455,32 @@ fn a_cloud_image_equals_the_cpu_billboard_reference() {
         setup.settings.compositing = compositing;
         let (_, _, gpu) = render(&setup);
         assert_images_match(&gpu.image, &reference(&setup), &format!("{compositing:?}"));
+    }
+}
+
+/// Shaded once per particle at its centre (`BillboardShading::Centre`), isotropic and
+/// forward-scattering, both compositings: the GPU's vertex-stage light equals the CPU's, and it
+/// is not the chord's image.
+#[test]
+fn a_cloud_shaded_at_particle_centres_equals_the_cpu_billboard_reference() {
+    for (i, compositing) in COMPOSITINGS.into_iter().enumerate() {
+        let mut setup = cloud_setup(
+            21,
+            Transform::from_xyz(0.3, 0.4, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
+        );
+        setup.settings.compositing = compositing;
+        setup.medium.anisotropy = [0.0, 0.6][i];
+        let chord = reference(&setup);
+        setup.settings.billboard_shading = BillboardShading::Centre;
+        let (_, _, gpu) = render(&setup);
+        let centre = reference(&setup);
+        let what = format!("{compositing:?}, centre shading");
+        assert_images_match(&gpu.image, &centre, &what);
+        let change = relative_rmse(&centre, &chord);
+        assert!(
+            change > 0.01,
+            "{what}: centre shading changes the image by only {change}"
+        );
     }
 }
 
