@@ -97,10 +97,10 @@ pub use stats::{CloudPass, CloudPassCounters, PASSES};
 /// Everything a Bevy user needs.
 pub mod prelude {
     pub use crate::{
-        BillboardShading, CloudGround, CloudLevelOfDetail, CloudLod, CloudQualitySettings, CloudRelightBudget,
-        CloudShadowMaps, CloudSkyLight, CloudSystems, CloudTargetScale, Compositing,
-        DefaultCloudQuality, Medium, NotCloudLight, Particle, ParticleCloud, ParticleCloudsPlugin,
-        Particles, ScatterStencil, generators,
+        BillboardShading, CloudGround, CloudLevelOfDetail, CloudLod, CloudQualitySettings,
+        CloudRelightBudget, CloudShadowMaps, CloudSkyLight, CloudSystems, CloudTargetScale,
+        Compositing, DefaultCloudQuality, Medium, NotCloudLight, Particle, ParticleCloud,
+        ParticleCloudsPlugin, Particles, ScatterStencil, generators,
     };
 }
 

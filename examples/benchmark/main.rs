@@ -59,8 +59,8 @@ use bevy::{
 use bevy_particle_clouds::headless::{self, FrameRecorder, FrameStats};
 use bevy_particle_clouds::reference::path_tracer::Progress;
 use bevy_particle_clouds::{
-    CloudLevelOfDetail, CloudPass, CloudQualitySettings, Compositing, PASSES, Particle,
-    ParticleCloud, Particles, ScatterStencil,
+    BillboardShading, CloudLevelOfDetail, CloudPass, CloudQualitySettings, Compositing, PASSES,
+    Particle, ParticleCloud, Particles, ScatterStencil,
     fog::Fog,
     generators,
     image_io::{ImageMetadata, LinearImage, read_exr, write_exr_with_metadata, write_png},
@@ -598,8 +598,10 @@ fn replot(args: &Args) -> Result<(), String> {
         segments?,
         supersampling?,
     );
-    // Results written before the compositing knob existed were all sorted.
+    // Results written before the compositing knob existed were all sorted, and before the
+    // billboard shading knob all shaded along the chord.
     let compositing = compositing.ok();
+    let shading = table.column("billboard_shading").ok();
     let (gpu, wall, rmse, noise, spp, pareto, axis) =
         (gpu?, wall?, rmse?, noise?, spp?, pareto?, axis?);
     let mut rows = Vec::new();
@@ -632,6 +634,10 @@ fn replot(args: &Args) -> Result<(), String> {
             compositing: match compositing.map(f) {
                 Some("ViewTransmittance") => Compositing::ViewTransmittance,
                 _ => Compositing::Sorted,
+            },
+            billboard_shading: match shading.map(f) {
+                Some("Centre") => BillboardShading::Centre,
+                _ => BillboardShading::Chord,
             },
             // The sweep draws at full size; `--cloud-target` measures the scales.
             cloud_target_scale: 1.0,

@@ -13,6 +13,7 @@ pub(crate) const PREVIOUS_DEFAULT: CloudQualitySettings = CloudQualitySettings {
     light_supersampling: 2,
     chord_segments: 4,
     compositing: Compositing::Sorted,
+    billboard_shading: BillboardShading::Chord,
     cloud_target_scale: 1.0,
 };
 

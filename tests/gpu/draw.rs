@@ -16,8 +16,7 @@ use bevy_particle_clouds::fog::{Falloff, Fog};
 use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
     BillboardShading, CloudGround, CloudPass, CloudQualitySettings, CloudSkyLight, Compositing,
-    LightSample, Medium,
-    Particle,
+    LightSample, Medium, Particle,
     generators::SplitMix64,
     image_io::LinearImage,
     reference::{
