@@ -472,10 +472,10 @@ pub(crate) fn prepare_billboard_bind_groups(
                 key_of((p.view, p.buffers.map(|b| b.id()), seen))
             })
             .fold(0, |a, h| a ^ h);
+        // The whole uniform, so that no field of it can be left out of the key.
+        let params_bytes = uniform_bytes(&params);
         let key = key_of((
-            params.world_from_local.to_cols_array().map(f32::to_bits),
-            params.extinction.to_bits(),
-            params.segments,
+            &params_bytes,
             gpu.buffer.id(),
             volumes.params_buffer.id(),
             [&lights, &optical_depth, &multiple].map(|r| (r.buffer.id(), r.offset)),
@@ -489,7 +489,7 @@ pub(crate) fn prepare_billboard_bind_groups(
         let beam_phase = beam_phases.get(&device, cloud.anisotropy);
         let params = device.create_buffer_with_data(&BufferInitDescriptor {
             label: Some("particle_clouds_draw_params"),
-            contents: &uniform_bytes(&params),
+            contents: &params_bytes,
             usage: BufferUsages::UNIFORM,
         });
         let groups = per_view
