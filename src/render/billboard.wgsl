@@ -112,10 +112,12 @@ fn vertex(@builtin(vertex_index) vertex_index: u32, @builtin(instance_index) ins
     out.centre_radius = vec4(centre, radius);
     out.density = particle.density.x;
     out.centre_light = vec3(0.0);
+#ifndef ALPHA_ONLY
     if params.centre_shading != 0u {
         let ray = normalize((params.local_from_world * vec4(to_centre, 0.0)).xyz);
         out.centre_light = scattered_at(particle.position_radius.xyz, ray);
     }
+#endif
     if depth + radius <= near_plane() {
         // Entirely behind the near plane: a degenerate triangle, culled before rasterisation.
         out.clip_position = vec4(2.0, 2.0, 2.0, 1.0);

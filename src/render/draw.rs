@@ -263,6 +263,10 @@ impl SpecializedRenderPipeline for BillboardPipeline {
         if let Some(fog) = key.fog {
             shader_defs.extend(fog.shader_defs().map(Into::into));
         }
+        // The attenuating draw writes alpha only: its vertices need no centre shading.
+        if key.blend == BillboardBlend::Attenuate {
+            shader_defs.push("ALPHA_ONLY".into());
+        }
         let (view_layout, format, samples, depth_stencil) = match key.target {
             BillboardTarget::View { format, samples } => (
                 self.view_layout.clone(),
