@@ -10,7 +10,9 @@
 //!   drawn at half size, at most 10 clouds re-lit a frame, 1920×1080.
 //!
 //! `--view WxH` measures them at another size; `--settings` replaces the chosen scenes' quality
-//! settings, one row per `--settings`.
+//! settings, one row per `--settings`; `--sweep-walk` sets the scattering sweep's
+//! [`SweepWalk`], one row per walk. The draw's fragments (the billboards' projected squares,
+//! overlaps counted) give its time per fragment, a rate to hold against the adapter's.
 //!
 //! Re-lit: frames that rerun every pass for every cloud (the particles touched). Lights moving:
 //! frames where every light turns by a degree, which rerun what a light's turn needs (shade,
@@ -234,6 +236,37 @@ fn floor_bytes(
     }
 }
 
+/// The pixels the particles' billboards cover in a target of `scale` times the view's size,
+/// overlaps counted each time: the draw's fragments, about. Each billboard is taken as the
+/// square of the particle's projected diameter (the vertex stage widens it off-axis; particles
+/// crossing the near plane are left out).
+fn billboard_fragments(scene: &Scene, scale: f32) -> f64 {
+    let camera = &scene.camera;
+    let forward = (camera.look_at - camera.position).normalize();
+    let right = forward.cross(camera.up).normalize();
+    let up = right.cross(forward);
+    let (width, height) = (camera.width as f32 * scale, camera.height as f32 * scale);
+    // Pixels per unit of (lateral offset ÷ depth).
+    let focal = 0.5 * height / (0.5 * camera.vertical_fov_degrees.to_radians()).tan();
+    let mut fragments = 0.0;
+    for cloud in &scene.clouds {
+        for p in &cloud.particles {
+            let to_centre = cloud.translation + p.position - camera.position;
+            let depth = to_centre.dot(forward);
+            if depth <= p.radius {
+                continue;
+            }
+            let x = 0.5 * width + focal * to_centre.dot(right) / depth;
+            let y = 0.5 * height + focal * to_centre.dot(up) / depth;
+            let half = focal * p.radius / depth;
+            let covered =
+                |c: f32, extent: f32| ((c + half).min(extent) - (c - half).max(0.0)).max(0.0);
+            fragments += (covered(x, width) * covered(y, height)) as f64;
+        }
+    }
+    fragments
+}
+
 /// One measured scene.
 struct BudgetRow {
     name: String,
@@ -246,6 +279,10 @@ struct BudgetRow {
     floor_ms: [f64; PASSES],
     particles: usize,
     resolutions: String,
+    /// The draw's fragments in a static frame, about ([`billboard_fragments`]).
+    fragments: f64,
+    /// The cloud target's size over the view's.
+    target_scale: f32,
 }
 
 /// Every light turns by a degree each frame (a moving sun): the median GPU ms of each pass over
@@ -277,8 +314,17 @@ fn moving_lights(bench: &mut Bench, frames: usize) -> ([f64; PASSES], f64) {
     (per_pass, median(totals))
 }
 
-fn measure(b: &BudgetScene, frames: usize, bandwidth: f64, adapter: &mut String) -> BudgetRow {
+fn measure(
+    b: &BudgetScene,
+    walk: Option<SweepWalk>,
+    frames: usize,
+    bandwidth: f64,
+    adapter: &mut String,
+) -> BudgetRow {
     let mut bench = Bench::new(&b.scene);
+    if let Some(walk) = walk {
+        bench.app.insert_resource(walk);
+    }
     *adapter = bench.adapter.clone();
     if let Some(pixels_per_voxel) = b.lod {
         bench.set_level_of_detail(pixels_per_voxel, 12);
@@ -348,6 +394,8 @@ fn measure(b: &BudgetScene, frames: usize, bandwidth: f64, adapter: &mut String)
         dispatches,
         floor_ms,
         particles: b.scene.clouds.iter().map(|c| c.particles.len()).sum(),
+        fragments: billboard_fragments(&b.scene, settings.cloud_target_scale),
+        target_scale: settings.cloud_target_scale,
         resolutions: resolutions
             .iter()
             .map(|r| format!("{r}³"))
@@ -386,14 +434,26 @@ pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
         } else {
             args.settings.iter().copied().map(Some).collect()
         };
-        for settings in variants {
+        // `--sweep-walk`: one row each.
+        let walks: Vec<Option<SweepWalk>> = if args.sweep_walk.is_empty() {
+            vec![None]
+        } else {
+            args.sweep_walk.iter().copied().map(Some).collect()
+        };
+        let variants = variants
+            .iter()
+            .flat_map(|s| walks.iter().map(move |w| (*s, *w)));
+        for (settings, walk) in variants {
             let mut label = scene.name.to_string();
             if let Some(settings) = settings {
                 scene.scene.settings = settings;
                 label = format!("{label}: {}", setting_label(&settings));
             }
+            if let Some(walk) = walk {
+                label = format!("{label}, {walk:?} sweep");
+            }
             eprintln!("benchmark: frame budget, {label}");
-            let mut row = measure(&scene, args.frames(), bandwidth, &mut adapter);
+            let mut row = measure(&scene, walk, args.frames(), bandwidth, &mut adapter);
             row.name = label;
             eprintln!(
                 "benchmark: frame budget, {}: re-lit {:.2} ms, static {:.2} ms (GPU)",
@@ -470,6 +530,27 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
             md,
             "| **{}** | **static frame** | **{:.3}** | {:.3} | | | | |",
             r.name, r.timing.gpu_ms_static, r.floor_ms[6]
+        );
+    }
+    // The draw per fragment: a rate to hold against the adapter's fill rate.
+    let _ = writeln!(
+        md,
+        "\nBillboard fragments of a static frame (the billboards' projected squares, overlaps \
+         counted) and the draw's time per fragment:\n\n\
+         | scene | fragments (millions) | per pixel of the target | draw ns per fragment |\n\
+         |---|---:|---:|---:|"
+    );
+    for r in rows {
+        let draw_ms = r.timing.pass_ms[CloudPass::Draw as usize];
+        let scale = r.target_scale as f64;
+        let pixels = (args.view.0 * args.view.1) as f64 * scale * scale;
+        let _ = writeln!(
+            md,
+            "| {} | {:.1} | {:.1} | {:.2} |",
+            r.name,
+            r.fragments / 1e6,
+            r.fragments / pixels,
+            1e6 * draw_ms / r.fragments.max(1.0)
         );
     }
     if let Some(paper) = rows.iter().find(|r| r.name.starts_with("paper")) {

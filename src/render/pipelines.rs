@@ -102,7 +102,8 @@ pub struct SweepDirection {
     pub o: IVec3,
     /// 1 for the first dispatch of an iteration (it overwrites `S_{n+1}`), else 0.
     pub first: u32,
-    /// 1 to add the iteration's order to `multiple`; 0 for a warm restart's first sweep.
+    /// 1 when the iteration's order goes into `multiple` (its quadrupole in the sweeps, the rest
+    /// in `accumulate_order` after them); 0 for a warm restart's first sweep.
     pub accumulate: u32,
     /// Linear RGB radiance of the sky, for the sweeps of an iteration that brings the boundary
     /// in (docs/illumination.md §4), else 0.
@@ -130,7 +131,7 @@ pub fn sweep_directions() -> impl Iterator<Item = IVec3> {
         })
 }
 
-/// Lattice lines of direction `o` in an `n³` grid (one sweep invocation each).
+/// Lattice lines of direction `o` in an `n³` grid (a sweep invocation or workgroup each).
 pub fn sweep_lines(o: IVec3, n: u32) -> u32 {
     let moving = (o.abs().element_sum()) as u32;
     n.pow(3 - moving) * (2 * n - 1).pow(moving - 1)
@@ -157,9 +158,14 @@ pub struct IlluminationPipelines {
     pub overlap: ComputeStage,
     /// `ground.wgsl`, `ground_radiance`: the radiance of the ground under each cloud.
     pub ground: ComputeStage,
-    /// `scatter.wgsl`, `sweep` (the discrete-ordinates stencil).
-    pub sweep: ByMoments,
-    /// `scatter.wgsl`, `scatter_paper` (the paper's stencil; same layout as `sweep`).
+    /// `scatter.wgsl`, `sweep_serial` (the discrete-ordinates stencil, `SweepWalk::Serial`).
+    pub sweep_serial: ByMoments,
+    /// `scatter.wgsl`, `sweep_scan` (the same, `SweepWalk::Scan`; same layout).
+    pub sweep_scan: ByMoments,
+    /// `scatter.wgsl`, `accumulate_order`: an iteration's order added to `multiple` after its
+    /// sweeps (same layout).
+    pub accumulate_order: ByMoments,
+    /// `scatter.wgsl`, `scatter_paper` (the paper's stencil; same layout as the sweeps).
     pub scatter_paper: ComputeStage,
     /// `scatter.wgsl`, `warm_start` (a warm restart's start; same layout).
     pub warm_start: ByMoments,
@@ -194,8 +200,12 @@ pub struct ReadyPipelines<'a> {
     pub overlap: &'a ComputePipeline,
     /// The ground's radiance.
     pub ground: &'a ComputePipeline,
-    /// Sweep.
-    pub sweep: [&'a ComputePipeline; 2],
+    /// The sweep, one invocation per line.
+    pub sweep_serial: [&'a ComputePipeline; 2],
+    /// The sweep, one workgroup per line.
+    pub sweep_scan: [&'a ComputePipeline; 2],
+    /// The sweeps' accumulation into `multiple`.
+    pub accumulate_order: [&'a ComputePipeline; 2],
     /// The paper's stencil.
     pub scatter_paper: &'a ComputePipeline,
     /// A warm restart's start.
@@ -219,7 +229,9 @@ impl IlluminationPipelines {
             gather: self.gather.get(cache)?,
             overlap: self.overlap.get(cache)?,
             ground: self.ground.get(cache)?,
-            sweep: self.sweep.get(cache)?,
+            sweep_serial: self.sweep_serial.get(cache)?,
+            sweep_scan: self.sweep_scan.get(cache)?,
+            accumulate_order: self.accumulate_order.get(cache)?,
             scatter_paper: self.scatter_paper.get(cache)?,
             warm_start: self.warm_start.get(cache)?,
             warm_correction: self.warm_correction.get(cache)?,
@@ -363,7 +375,9 @@ pub(crate) fn init_illumination_pipelines(
         gather: ByMoments::new(cache, &shaders.gather, "gather", &gather),
         overlap: stage(&shaders.overlap, "overlap_media", &overlap),
         ground: stage(&shaders.ground, "ground_radiance", &ground),
-        sweep: ByMoments::new(cache, &shaders.scatter, "sweep", &scatter),
+        sweep_serial: ByMoments::new(cache, &shaders.scatter, "sweep_serial", &scatter),
+        sweep_scan: ByMoments::new(cache, &shaders.scatter, "sweep_scan", &scatter),
+        accumulate_order: ByMoments::new(cache, &shaders.scatter, "accumulate_order", &scatter),
         scatter_paper: stage(&shaders.scatter, "scatter_paper", &scatter),
         warm_start: ByMoments::new(cache, &shaders.scatter, "warm_start", &scatter),
         warm_correction: ByMoments::new(cache, &shaders.scatter, "warm_correction", &scatter),

@@ -81,9 +81,10 @@ fn the_dispatches_stay_flat_in_clouds_of_one_shape() {
     spawn(&mut one, 0.0, 0, 12);
     let (runs_one, dispatches_one) = illuminate(&mut one, &mut FrameRecorder::default(), 1);
     // Voxelize's kernel sums and deposit (its particles all on the fine grid); one light, 3
-    // iterations of 13 sweep directions, then the closure's two dispatches; one view volume.
+    // iterations of 13 sweep directions and the order's accumulation, then the closure's two
+    // dispatches; one view volume.
     assert_eq!(runs_one, [1, 1, 1, 3, 1]);
-    assert_eq!(dispatches_one, [2, 1, 1, 3 * 13 + 2, 1]);
+    assert_eq!(dispatches_one, [2, 1, 1, 3 * (13 + 1) + 2, 1]);
 
     let mut six = scene();
     for i in 0..6 {

@@ -102,8 +102,12 @@ fn check_warm_restart(sky: Vec3, anisotropy: f32, turn: Vec3) {
     let warm_frame = recorder.frame(&mut app).unwrap().clone();
     assert_eq!(warm_frame.runs(CloudPass::Shade), 1);
     assert_eq!(warm_frame.runs(CloudPass::Scatter), 3);
-    // The warm start, the not-accumulating sweep and the correction add 2 dispatches.
-    assert_eq!(warm_frame.dispatches(CloudPass::Scatter), 3 * 13 + 2 + 2);
+    // 3 iterations of 13 sweeps, the two accumulating ones followed by their accumulation, the
+    // closure's two; the warm start and the correction around the first, not-accumulating one.
+    assert_eq!(
+        warm_frame.dispatches(CloudPass::Scatter),
+        3 * 13 + 2 + 2 + 2
+    );
     let warm = gpu_multiple(&mut app);
 
     let cpu = |direction: Vec3| {
