@@ -89,7 +89,7 @@ pub use lod::{CloudLevelOfDetail, CloudLod};
 pub use particle::{LightSample, Medium, Particle};
 pub use settings::{
     BillboardShading, CloudQualitySettings, CloudRelightBudget, CloudTargetScale, Compositing,
-    DefaultCloudQuality, ScatterStencil, SweepWalk,
+    DefaultCloudQuality, ScatterStencil,
 };
 pub use shadow_maps::CloudShadowMaps;
 pub use stats::{CloudPass, CloudPassCounters, PASSES};

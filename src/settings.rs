@@ -307,24 +307,6 @@ pub struct DefaultCloudQuality(pub CloudQualitySettings);
 #[reflect(Resource, Default, Debug, PartialEq)]
 pub struct CloudRelightBudget(pub u32);
 
-/// How the multiple-scattering sweep walks its lattice lines (a resource; docs/illumination.md
-/// §4). Both walks give the same volumes, up to f32 rounding; they differ in how they use the
-/// adapter. A change takes effect the next time a cloud scatters.
-#[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
-#[reflect(Resource, Default, Debug, PartialEq)]
-pub enum SweepWalk {
-    /// `Serial` on a CPU adapter (lavapipe), `Scan` on any other.
-    #[default]
-    Auto,
-    /// One invocation marches each line, `n` steps one after another: few, long threads, which
-    /// suit an adapter whose invocations are CPU threads; a GPU sits waiting on memory.
-    Serial,
-    /// One workgroup per line: its lanes compose their chunks' transport, scan them across the
-    /// workgroup, and replay their chunks. Many short threads, which suit a GPU; on lavapipe
-    /// it is about 15× slower than `Serial`.
-    Scan,
-}
-
 /// How the shade pass computes each light's transmittance volume (docs/illumination.md §2).
 ///
 /// A resource of the main world, extracted to the render world. Both methods give the same

@@ -10,8 +10,7 @@
 //!   drawn at half size, at most 10 clouds re-lit a frame, 1920×1080.
 //!
 //! `--view WxH` measures them at another size; `--settings` replaces the chosen scenes' quality
-//! settings, one row per `--settings`; `--sweep-walk` sets the scattering sweep's
-//! [`SweepWalk`], one row per walk. The draw's fragments (the billboards' projected squares,
+//! settings, one row per `--settings`. The draw's fragments (the billboards' projected squares,
 //! overlaps counted) give its time per fragment, a rate to hold against the adapter's.
 //!
 //! Re-lit: frames that rerun every pass for every cloud (the particles touched). Lights moving:
@@ -314,17 +313,8 @@ fn moving_lights(bench: &mut Bench, frames: usize) -> ([f64; PASSES], f64) {
     (per_pass, median(totals))
 }
 
-fn measure(
-    b: &BudgetScene,
-    walk: Option<SweepWalk>,
-    frames: usize,
-    bandwidth: f64,
-    adapter: &mut String,
-) -> BudgetRow {
+fn measure(b: &BudgetScene, frames: usize, bandwidth: f64, adapter: &mut String) -> BudgetRow {
     let mut bench = Bench::new(&b.scene);
-    if let Some(walk) = walk {
-        bench.app.insert_resource(walk);
-    }
     *adapter = bench.adapter.clone();
     if let Some(pixels_per_voxel) = b.lod {
         bench.set_level_of_detail(pixels_per_voxel, 12);
@@ -434,26 +424,14 @@ pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
         } else {
             args.settings.iter().copied().map(Some).collect()
         };
-        // `--sweep-walk`: one row each.
-        let walks: Vec<Option<SweepWalk>> = if args.sweep_walk.is_empty() {
-            vec![None]
-        } else {
-            args.sweep_walk.iter().copied().map(Some).collect()
-        };
-        let variants = variants
-            .iter()
-            .flat_map(|s| walks.iter().map(move |w| (*s, *w)));
-        for (settings, walk) in variants {
+        for settings in variants {
             let mut label = scene.name.to_string();
             if let Some(settings) = settings {
                 scene.scene.settings = settings;
                 label = format!("{label}: {}", setting_label(&settings));
             }
-            if let Some(walk) = walk {
-                label = format!("{label}, {walk:?} sweep");
-            }
             eprintln!("benchmark: frame budget, {label}");
-            let mut row = measure(&scene, walk, args.frames(), bandwidth, &mut adapter);
+            let mut row = measure(&scene, args.frames(), bandwidth, &mut adapter);
             row.name = label;
             eprintln!(
                 "benchmark: frame budget, {}: re-lit {:.2} ms, static {:.2} ms (GPU)",

@@ -60,7 +60,7 @@ use bevy_particle_clouds::headless::{self, FrameRecorder, FrameStats};
 use bevy_particle_clouds::reference::path_tracer::Progress;
 use bevy_particle_clouds::{
     BillboardShading, CloudLevelOfDetail, CloudPass, CloudQualitySettings, Compositing, PASSES,
-    Particle, ParticleCloud, Particles, ScatterStencil, SweepWalk,
+    Particle, ParticleCloud, Particles, ScatterStencil,
     fog::Fog,
     generators,
     image_io::{ImageMetadata, LinearImage, read_exr, write_exr_with_metadata, write_png},
@@ -143,10 +143,6 @@ pub(crate) struct Args {
     /// H200's HBM3e).
     #[arg(long, default_value_t = 4.8)]
     pub(crate) bandwidth: f64,
-    /// With --frame-budget: how the scattering sweep walks its lines (`auto`, `serial`,
-    /// `scan`; comma-separated, one row each; default `auto`, which follows the adapter).
-    #[arg(long, value_delimiter = ',', value_parser = parse_sweep_walk)]
-    pub(crate) sweep_walk: Vec<SweepWalk>,
     /// The voxelize pass's cost against particle size (r/h from 1 to 64) instead of the sweep.
     #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target"])]
     pub(crate) voxelize: bool,
@@ -197,17 +193,6 @@ fn parse_view(text: &str) -> Result<(u32, u32), String> {
         Some((w, h)) if (1..=8192).contains(&w) && (1..=8192).contains(&h) => Ok((w, h)),
         _ => Err(format!(
             "`{text}` is not WIDTHxHEIGHT with each in 1..=8192"
-        )),
-    }
-}
-
-fn parse_sweep_walk(text: &str) -> Result<SweepWalk, String> {
-    match text {
-        "auto" => Ok(SweepWalk::Auto),
-        "serial" => Ok(SweepWalk::Serial),
-        "scan" => Ok(SweepWalk::Scan),
-        _ => Err(format!(
-            "`{text}` is not a sweep walk: allowed are auto, serial, scan"
         )),
     }
 }

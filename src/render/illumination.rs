@@ -15,7 +15,7 @@ use bevy::{
             BindGroup, BindGroupEntries, BindGroupEntry, Buffer, BufferBinding, PipelineCache,
             ShaderType,
         },
-        renderer::{RenderAdapterInfo, RenderContext, RenderDevice},
+        renderer::{RenderContext, RenderDevice},
         storage::GpuShaderBuffer,
     },
 };
@@ -37,11 +37,11 @@ use super::{
     voxelize::{
         VoxelizeCloud, VoxelizeRound, VoxelizeScratch, prepare_round, record_round, voxelize_rounds,
     },
-    workgroups::{dispatch_columns, dispatch_groups, dispatch_linear},
+    workgroups::{dispatch_columns, dispatch_linear},
 };
 use crate::{
     particle::DeltaEddington,
-    settings::{ScatterStencil, ShadingMethod, SweepWalk},
+    settings::{ScatterStencil, ShadingMethod},
     shadow_maps::CloudShadowMaps,
     stats::{CloudPass, CloudPassCounters},
 };
@@ -477,8 +477,7 @@ fn scatter_batch(
 ) -> ScatterBatch {
     let pair = |from: &Buffer, to: &Buffer| {
         bind(
-            // The serial and the scan walk share a layout.
-            pipelines.sweep_serial.stage(pool.shape().moments),
+            pipelines.sweep.stage(pool.shape().moments),
             &BindGroupEntries::sequential((
                 pool.slots.as_entire_binding(),
                 BufferBinding {
@@ -537,8 +536,6 @@ pub(crate) fn illuminate_clouds(
     pipeline_cache: Res<PipelineCache>,
     counters: Res<CloudPassCounters>,
     shading: Option<Res<ShadingMethod>>,
-    walk: Option<Res<SweepWalk>>,
-    adapter: Res<RenderAdapterInfo>,
     mut map_keys: ResMut<ShadowMapKeys>,
 ) {
     let Some(pipelines) = pipelines else { return };
@@ -677,7 +674,6 @@ pub(crate) fn illuminate_clouds(
         }
     }
     if batches.pools.iter().any(|b| !b.scatter.is_empty()) {
-        let scan = sweep_scans(walk.map_or(SweepWalk::Auto, |w| *w), &adapter);
         record_stage(
             &mut ctx,
             recorder.as_deref(),
@@ -707,7 +703,7 @@ pub(crate) fn illuminate_clouds(
                 let mut runs = 0;
                 for b in &batches.pools {
                     for batch in &b.scatter {
-                        scatter_batch_passes(pass, &ready, batch, b.n, b.moments, scan);
+                        scatter_batch_passes(pass, &ready, batch, b.n, b.moments);
                         runs += batch.iterations * batch.work.items;
                     }
                 }
@@ -724,33 +720,19 @@ pub(crate) fn illuminate_clouds(
     }
 }
 
-/// Whether the sweep walks each lattice line with a workgroup's scan (else one invocation's
-/// march): [`SweepWalk`], its `Auto` resolved by the adapter.
-fn sweep_scans(walk: SweepWalk, adapter: &RenderAdapterInfo) -> bool {
-    match walk {
-        SweepWalk::Auto => adapter.device_type != wgpu_types::DeviceType::Cpu,
-        SweepWalk::Serial => false,
-        SweepWalk::Scan => true,
-    }
-}
-
-/// Records a batch's scattering iterations (the discrete-ordinates sweep, its lines walked by a
-/// scan per workgroup where `scan`, else the paper's stencil) on its clouds' `n³` grids, and the
-/// closure (§4). A warm restart's first iteration scatters `S_0` plus the solution held, and
-/// turns it into the correction's first order.
+/// Records a batch's scattering iterations (the discrete-ordinates `sweep`, else the paper's
+/// stencil) on its clouds' `n³` grids, and the closure (§4). A warm restart's first iteration
+/// scatters `S_0` plus the solution held, and turns it into the correction's first order.
 fn scatter_batch_passes(
     pass: &mut StagePass,
     ready: &ReadyPipelines,
     batch: &ScatterBatch,
     n: u32,
     moments: bool,
-    scan: bool,
 ) {
     let variant = moments as usize;
-    let stencil = if batch.sweep && scan {
-        ready.sweep_scan[variant]
-    } else if batch.sweep {
-        ready.sweep_serial[variant]
+    let stencil = if batch.sweep {
+        ready.sweep[variant]
     } else {
         ready.scatter_paper
     };
@@ -758,16 +740,11 @@ fn scatter_batch_passes(
         // The sky enters the grid in the first iteration of the series (§4).
         let iterate = |pass: &mut StagePass, group: &BindGroup, accumulate: bool, sky: bool| {
             if batch.sweep {
-                // One dispatch per direction pair, an invocation or a workgroup per lattice line:
-                // the lines of one direction partition the grid.
+                // One dispatch per direction pair: the lines of one direction partition the grid.
                 for (i, o) in sweep_directions().enumerate() {
                     let direction = sweep_direction_offset(i, accumulate, sky);
                     pass.set_bind_group(0, group, &[direction, work]);
-                    if scan {
-                        dispatch_groups(pass, sweep_lines(o, n), items);
-                    } else {
-                        dispatch_linear(pass, sweep_lines(o, n), items);
-                    }
+                    dispatch_linear(pass, sweep_lines(o, n), items);
                 }
                 // The order into `multiple` once, not in each direction's dispatch.
                 if accumulate {

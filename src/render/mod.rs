@@ -69,7 +69,7 @@ use bevy::{
 use self::{extract::ExtractedCloud, shaders::CloudShaders};
 use crate::{
     cloud::ParticleCloud,
-    settings::{CloudRelightBudget, ShadingMethod, SweepWalk},
+    settings::{CloudRelightBudget, ShadingMethod},
     shadow_maps::CloudShadowMaps,
     stats::CloudPassCounters,
 };
@@ -94,13 +94,6 @@ impl bevy::render::extract_resource::ExtractResource for CloudPassCounters {
 
 impl bevy::render::extract_resource::ExtractResource for CloudRelightBudget {
     type Source = CloudRelightBudget;
-    fn extract_resource(source: &Self::Source) -> Self {
-        *source
-    }
-}
-
-impl bevy::render::extract_resource::ExtractResource for SweepWalk {
-    type Source = SweepWalk;
     fn extract_resource(source: &Self::Source) -> Self {
         *source
     }
@@ -146,16 +139,13 @@ pub(crate) fn build(app: &mut App) {
     app.init_resource::<ShadingMethod>()
         .register_type::<ShadingMethod>()
         .init_resource::<CloudRelightBudget>()
-        .register_type::<CloudRelightBudget>()
-        .init_resource::<SweepWalk>()
-        .register_type::<SweepWalk>();
+        .register_type::<CloudRelightBudget>();
     app.insert_resource(shaders.clone()).add_plugins((
         SyncComponentPlugin::<ParticleCloud>::default(),
         RenderAssetPlugin::<particles::GpuParticles>::default(),
         ExtractResourcePlugin::<CloudPassCounters>::default(),
         ExtractResourcePlugin::<ShadingMethod>::default(),
         ExtractResourcePlugin::<CloudRelightBudget>::default(),
-        ExtractResourcePlugin::<SweepWalk>::default(),
         ExtractResourcePlugin::<CloudShadowMaps>::default(),
     ));
     cloud_target::build(app);

@@ -131,7 +131,7 @@ pub fn sweep_directions() -> impl Iterator<Item = IVec3> {
         })
 }
 
-/// Lattice lines of direction `o` in an `n³` grid (a sweep invocation or workgroup each).
+/// Lattice lines of direction `o` in an `n³` grid (one sweep invocation each).
 pub fn sweep_lines(o: IVec3, n: u32) -> u32 {
     let moving = (o.abs().element_sum()) as u32;
     n.pow(3 - moving) * (2 * n - 1).pow(moving - 1)
@@ -158,14 +158,12 @@ pub struct IlluminationPipelines {
     pub overlap: ComputeStage,
     /// `ground.wgsl`, `ground_radiance`: the radiance of the ground under each cloud.
     pub ground: ComputeStage,
-    /// `scatter.wgsl`, `sweep_serial` (the discrete-ordinates stencil, `SweepWalk::Serial`).
-    pub sweep_serial: ByMoments,
-    /// `scatter.wgsl`, `sweep_scan` (the same, `SweepWalk::Scan`; same layout).
-    pub sweep_scan: ByMoments,
+    /// `scatter.wgsl`, `sweep` (the discrete-ordinates stencil).
+    pub sweep: ByMoments,
     /// `scatter.wgsl`, `accumulate_order`: an iteration's order added to `multiple` after its
     /// sweeps (same layout).
     pub accumulate_order: ByMoments,
-    /// `scatter.wgsl`, `scatter_paper` (the paper's stencil; same layout as the sweeps).
+    /// `scatter.wgsl`, `scatter_paper` (the paper's stencil; same layout as `sweep`).
     pub scatter_paper: ComputeStage,
     /// `scatter.wgsl`, `warm_start` (a warm restart's start; same layout).
     pub warm_start: ByMoments,
@@ -200,10 +198,8 @@ pub struct ReadyPipelines<'a> {
     pub overlap: &'a ComputePipeline,
     /// The ground's radiance.
     pub ground: &'a ComputePipeline,
-    /// The sweep, one invocation per line.
-    pub sweep_serial: [&'a ComputePipeline; 2],
-    /// The sweep, one workgroup per line.
-    pub sweep_scan: [&'a ComputePipeline; 2],
+    /// Sweep.
+    pub sweep: [&'a ComputePipeline; 2],
     /// The sweeps' accumulation into `multiple`.
     pub accumulate_order: [&'a ComputePipeline; 2],
     /// The paper's stencil.
@@ -229,8 +225,7 @@ impl IlluminationPipelines {
             gather: self.gather.get(cache)?,
             overlap: self.overlap.get(cache)?,
             ground: self.ground.get(cache)?,
-            sweep_serial: self.sweep_serial.get(cache)?,
-            sweep_scan: self.sweep_scan.get(cache)?,
+            sweep: self.sweep.get(cache)?,
             accumulate_order: self.accumulate_order.get(cache)?,
             scatter_paper: self.scatter_paper.get(cache)?,
             warm_start: self.warm_start.get(cache)?,
@@ -375,8 +370,7 @@ pub(crate) fn init_illumination_pipelines(
         gather: ByMoments::new(cache, &shaders.gather, "gather", &gather),
         overlap: stage(&shaders.overlap, "overlap_media", &overlap),
         ground: stage(&shaders.ground, "ground_radiance", &ground),
-        sweep_serial: ByMoments::new(cache, &shaders.scatter, "sweep_serial", &scatter),
-        sweep_scan: ByMoments::new(cache, &shaders.scatter, "sweep_scan", &scatter),
+        sweep: ByMoments::new(cache, &shaders.scatter, "sweep", &scatter),
         accumulate_order: ByMoments::new(cache, &shaders.scatter, "accumulate_order", &scatter),
         scatter_paper: stage(&shaders.scatter, "scatter_paper", &scatter),
         warm_start: ByMoments::new(cache, &shaders.scatter, "warm_start", &scatter),

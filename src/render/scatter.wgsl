@@ -1,7 +1,6 @@
 // Multiple scattering: one iteration n -> n + 1 (docs/illumination.md §4). Reads S_n, writes
 // S_{n+1} and adds it to the multiple-scattering volume (after the sweeps, `accumulate_order`).
-// Two stencils: the discrete-ordinates sweep, with two walks of its lattice lines (serial, or a
-// scan per line), and the paper's.
+// Two stencils, one entry point each: the discrete-ordinates sweep and the paper's.
 // Every cloud of a volume pool in one dispatch: z workgroup i scatters slot `work[i]`.
 // An anisotropic medium's volumes hold angular moments beside their means (shader def MOMENTS):
 // the sweep's source takes the P1 phase function of the transformed medium, and each order's
@@ -139,34 +138,14 @@ fn line_voxel(start: vec3<i32>, t: i32, flip: vec3<bool>) -> u32 {
     return voxel_index(line_position(start, t, flip), cloud.n);
 }
 
-// A voxel's medium (density, albedo) and order-n radiance towards a direction; zero outside
-// the line.
-struct Sample {
-    m: vec2<f32>,
-    s: vec3<f32>,
-}
-
-const OUTSIDE: Sample = Sample(vec2(0.0), vec3(0.0));
-
-// One segment's transport, as the affine map r -> a r + b (a vec4 (b, a)) of the radiance
-// arriving from the upwind neighbour's side: attenuation over the segment, plus the segment's
-// own scattering J = albedo S, linear along it.
-fn transport(here: Sample, up: Sample, half_step: f32) -> vec4<f32> {
-    let tau = cloud.k_local * (here.m.x + up.m.x) * half_step;
+// Radiance arriving at a voxel from its upwind neighbour's side: what arrived there, attenuated
+// over the segment, plus the segment's own scattering J = albedo S, linear along it. `m` and
+// `m_up` are the two ends' media (density, albedo).
+fn transport(upwind: vec3<f32>, m: vec2<f32>, s: vec3<f32>, m_up: vec2<f32>, s_up: vec3<f32>, half_step: f32) -> vec3<f32> {
+    let tau = cloud.k_local * (m.x + m_up.x) * half_step;
     let w = segment_weights(tau);
-    let j = here.m.y * here.s;
-    return vec4(j * w.x + (up.m.y * up.s - j) * w.y, 1.0 - w.x);
-}
-
-const IDENTITY: vec4<f32> = vec4(0.0, 0.0, 0.0, 1.0);
-
-// `first`, then `second`.
-fn then(first: vec4<f32>, second: vec4<f32>) -> vec4<f32> {
-    return vec4(second.w * first.xyz + second.xyz, second.w * first.w);
-}
-
-fn apply(map: vec4<f32>, radiance: vec3<f32>) -> vec3<f32> {
-    return map.w * radiance + map.xyz;
+    let j = m.y * s;
+    return (1.0 - w.x) * upwind + j * w.x + (m_up.y * s_up - j) * w.y;
 }
 
 fn add_to(element: u32, share: vec4<f32>, overwrite: bool) {
@@ -177,25 +156,20 @@ fn add_to(element: u32, share: vec4<f32>, overwrite: bool) {
     }
 }
 
-// Voxel `voxel`'s share of the radiance arriving there along the unit direction w (`forth`) and
-// along -w (`back`): 1/26 of each.
-fn share_of(forth: vec3<f32>, back: vec3<f32>) -> vec4<f32> {
-    return vec4((forth + back) / 26.0, 0.0);
-}
-
-// With moments, the share's flux and quadrupole: the flux to the next order's (added, or written
-// over what it held: `overwrite`, in an iteration's first dispatch); the quadrupole, even in w,
-// to `multiple` only (the sweep's source is P1): added, or, in a warm restart's first sweep,
-// which does not accumulate, written anew (§4). The means, and the flux in `multiple`, are
-// accumulated once per iteration (`accumulate_order`).
-fn deposit_moments(voxel: u32, forth: vec3<f32>, back: vec3<f32>, w: vec3<f32>, overwrite: bool) {
+// Voxel `voxel`'s share of the radiance arriving there travelling along w: 1/26 of it to the
+// next order's mean (and with moments its flux), added, or written over what the volume held
+// (`overwrite`, in an iteration's first dispatch). `multiple` takes the order once the
+// iteration's sweeps are done (`accumulate_order`), but for the quadrupole, which only
+// `multiple` holds (the sweep's source is P1): added here, or, in a warm restart's first sweep,
+// which does not accumulate, written anew (§4).
+fn deposit(voxel: u32, radiance: vec3<f32>, w: vec3<f32>, overwrite: bool) {
+    let share = vec4(radiance / 26.0, 0.0);
+    add_to(slot.volume + voxel, share, overwrite);
 #ifdef MOMENTS
     let n = cloud.n;
-    let flux = vec4((forth - back) / 26.0, 0.0);
     for (var axis = 0u; axis < 3u; axis++) {
-        add_to(flux_element(slot.volume, n, voxel, axis), flux * w[axis], overwrite);
+        add_to(flux_element(slot.volume, n, voxel, axis), share * w[axis], overwrite);
     }
-    let share = share_of(forth, back);
     var q = quadrupole_basis(w);
     for (var c = 0u; c < 5u; c++) {
         let at = quadrupole_element(slot.multiple, n, voxel, c);
@@ -208,27 +182,18 @@ fn deposit_moments(voxel: u32, forth: vec3<f32>, back: vec3<f32>, w: vec3<f32>, 
 #endif
 }
 
-fn deposit(voxel: u32, forth: vec3<f32>, back: vec3<f32>, w: vec3<f32>, overwrite: bool) {
-    add_to(slot.volume + voxel, share_of(forth, back), overwrite);
-    deposit_moments(voxel, forth, back, w, overwrite);
-}
-
-// A lattice line of the dispatch's direction o, and its voxels t0..t1.
-struct Line {
-    start: vec3<i32>,
-    flip: vec3<bool>,
-    t0: i32,
-    t1: i32,
-}
-
-// Line `index` of direction o: free axes take any coordinate, the other moving axes an offset
-// from the first moving axis in -(n - 1)..=(n - 1). Past the last line, or where a line misses
-// the grid, t0 = t1.
-fn lattice_line(index: u32) -> Line {
+// One invocation per lattice line of direction o: marches it against o (radiance arriving from
+// the +o side), then along o (from the -o side). The lines partition the grid, so each voxel is
+// written by one invocation of this dispatch.
+@compute @workgroup_size(#{LINEAR_WORKGROUP})
+fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    begin(id.z);
     let n = i32(cloud.n);
     let o = direction.o;
     let first_axis = select(select(2, 1, o.y != 0), 0, o.x != 0);
-    var rest = index;
+    // Decode the line: free axes take any coordinate, the other moving axes an offset from the
+    // first moving axis in -(n - 1)..=(n - 1).
+    var rest = flat_invocation(id, groups);
     var start = vec3(0);
     for (var a = 0; a < 3; a++) {
         if o[a] == 0 {
@@ -240,6 +205,9 @@ fn lattice_line(index: u32) -> Line {
             rest /= span;
         }
     }
+    if rest != 0u {
+        return;
+    }
     var t0 = 0;
     var t1 = n;
     for (var a = 0; a < 3; a++) {
@@ -248,149 +216,38 @@ fn lattice_line(index: u32) -> Line {
             t1 = min(t1, n - start[a]);
         }
     }
-    t1 = select(t0, max(t1, t0), rest == 0u);
-    return Line(start, o < vec3(0), t0, t1);
-}
-
-// Voxel t of the line, seen travelling along w; OUTSIDE past the line's ends.
-fn sample(line: Line, t: i32, w: vec3<f32>) -> Sample {
-    if t < line.t0 || t >= line.t1 {
-        return OUTSIDE;
-    }
-    let i = line_voxel(line.start, t, line.flip);
-    return Sample(medium(i), order_in(i, w));
-}
-
-const LANES: u32 = #{LINEAR_WORKGROUP}u;
-
-// Each lane's composed map, scanned in place: `forth_maps` along -o (from the +o side, lanes
-// in falling order), `back_maps` along o (lanes in rising order).
-var<workgroup> forth_maps: array<vec4<f32>, LANES>;
-var<workgroup> back_maps: array<vec4<f32>, LANES>;
-
-// The half step along o and the unit direction from the +o side.
-fn pair_geometry() -> vec4<f32> {
-    let o = vec3<f32>(direction.o);
-    return vec4(-normalize(o), 0.5 * cloud.h * length(o));
-}
-
-// `SweepWalk::Serial`: one invocation per lattice line of direction o marches it against o
-// (radiance from the +o side), then along o. Few long threads: fast where invocations are CPU
-// threads; a GPU waits on memory at every step. The lines partition the grid, so each voxel is
-// written by one invocation of a dispatch.
-@compute @workgroup_size(#{LINEAR_WORKGROUP})
-fn sweep_serial(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    begin(id.z);
-    let line = lattice_line(flat_invocation(id, groups));
-    let geometry = pair_geometry();
-    let w = geometry.xyz;
-    let half_step = geometry.w;
-    if line.t0 >= line.t1 {
+    if t0 >= t1 {
         return;
     }
-    var radiance = entering(line_position(line.start, line.t1 - 1, line.flip), w, half_step);
-    var up = OUTSIDE;
-    for (var t = line.t1 - 1; t >= line.t0; t--) {
-        let here = sample(line, t, w);
-        radiance = apply(transport(here, up, half_step), radiance);
-        deposit(line_voxel(line.start, t, line.flip), radiance, vec3(0.0), w, direction.first != 0u);
-        up = here;
+    let flip = o < vec3(0);
+    let half_step = 0.5 * cloud.h * length(vec3<f32>(o));
+    // The direction the radiance arriving from the +o side travels in.
+    let w = -normalize(vec3<f32>(o));
+    // Against o: radiance arriving from the +o side, the boundary's entering the grid.
+    var radiance = entering(line_position(start, t1 - 1, flip), w, half_step);
+    var m_up = vec2(0.0);
+    var s_up = vec3(0.0);
+    for (var t = t1 - 1; t >= t0; t--) {
+        let i = line_voxel(start, t, flip);
+        let m = medium(i);
+        let s = order_in(i, w);
+        radiance = transport(radiance, m, s, m_up, s_up, half_step);
+        deposit(i, radiance, w, direction.first != 0u);
+        m_up = m;
+        s_up = s;
     }
-    radiance = entering(line_position(line.start, line.t0, line.flip), -w, half_step);
-    up = OUTSIDE;
-    for (var t = line.t0; t < line.t1; t++) {
-        let here = sample(line, t, -w);
-        radiance = apply(transport(here, up, half_step), radiance);
-        deposit(line_voxel(line.start, t, line.flip), vec3(0.0), radiance, w, false);
-        up = here;
-    }
-}
-
-// `SweepWalk::Scan`: one workgroup per lattice line of direction o, both directions of the pair.
-// Transport along a line is the recurrence r_t = a_t r_(t-1) + b_t, whose affine maps compose
-// associatively: each lane composes its chunk of the line, the workgroup scans the chunks' maps
-// (Hillis-Steele), and each lane replays its chunk from the radiance arriving at it: n² to
-// (2n - 1)² workgroups of short chains instead of as many threads of n steps each.
-@compute @workgroup_size(#{LINEAR_WORKGROUP})
-fn sweep_scan(
-    @builtin(workgroup_id) group: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) lane: u32,
-) {
-    begin(group.z);
-    let line = lattice_line(group.x + group.y * groups.x);
-    let geometry = pair_geometry();
-    let w = geometry.xyz;
-    let half_step = geometry.w;
-    let chunk = (line.t1 - line.t0 + i32(LANES) - 1) / i32(LANES);
-    let c0 = min(line.t0 + i32(lane) * chunk, line.t1);
-    let c1 = min(c0 + chunk, line.t1);
-    var forth = IDENTITY;
-    var up = sample(line, c1, w);
-    for (var t = c1 - 1; t >= c0; t--) {
-        let here = sample(line, t, w);
-        forth = then(forth, transport(here, up, half_step));
-        up = here;
-    }
-    var back = IDENTITY;
-    up = sample(line, c0 - 1, -w);
-    for (var t = c0; t < c1; t++) {
-        let here = sample(line, t, -w);
-        back = then(back, transport(here, up, half_step));
-        up = here;
-    }
-    forth_maps[lane] = forth;
-    back_maps[lane] = back;
-    for (var d = 1u; d < LANES; d *= 2u) {
-        workgroupBarrier();
-        if lane + d < LANES {
-            forth = then(forth_maps[lane + d], forth);
-        }
-        if lane >= d {
-            back = then(back_maps[lane - d], back);
-        }
-        workgroupBarrier();
-        forth_maps[lane] = forth;
-        back_maps[lane] = back;
-    }
-    workgroupBarrier();
-    if c0 >= c1 {
-        return;
-    }
-    // The lane's chunk, from the radiance entering the grid through the maps of the chunks before.
-    var arriving = select(IDENTITY, back_maps[max(lane, 1u) - 1u], lane > 0u);
-    var radiance = apply(arriving, entering(line_position(line.start, line.t0, line.flip), -w, half_step));
-    var backs: array<vec3<f32>, #{SWEEP_CHUNK}>;
-    up = sample(line, c0 - 1, -w);
-    for (var t = c0; t < c1; t++) {
-        let here = sample(line, t, -w);
-        radiance = apply(transport(here, up, half_step), radiance);
-        backs[t - c0] = radiance;
-        up = here;
-    }
-    arriving = select(IDENTITY, forth_maps[min(lane + 1u, LANES - 1u)], lane + 1u < LANES);
-    radiance = apply(arriving, entering(line_position(line.start, line.t1 - 1, line.flip), w, half_step));
-    var forths: array<vec3<f32>, #{SWEEP_CHUNK}>;
-    up = sample(line, c1, w);
-    for (var t = c1 - 1; t >= c0; t--) {
-        let here = sample(line, t, w);
-        radiance = apply(transport(here, up, half_step), radiance);
-        forths[t - c0] = radiance;
-        up = here;
-    }
-    // The chunk's means: every load before any store, so that they wait on memory once.
-    let overwrite = direction.first != 0u;
-    var held: array<vec4<f32>, #{SWEEP_CHUNK}>;
-    if !overwrite {
-        for (var t = c0; t < c1; t++) {
-            held[t - c0] = s_out[slot.volume + line_voxel(line.start, t, line.flip)];
-        }
-    }
-    for (var t = c0; t < c1; t++) {
-        let j = t - c0;
-        let voxel = line_voxel(line.start, t, line.flip);
-        s_out[slot.volume + voxel] = held[j] + share_of(forths[j], backs[j]);
-        deposit_moments(voxel, forths[j], backs[j], w, overwrite);
+    // Along o: radiance arriving from the -o side.
+    radiance = entering(line_position(start, t0, flip), -w, half_step);
+    m_up = vec2(0.0);
+    s_up = vec3(0.0);
+    for (var t = t0; t < t1; t++) {
+        let i = line_voxel(start, t, flip);
+        let m = medium(i);
+        let s = order_in(i, -w);
+        radiance = transport(radiance, m, s, m_up, s_up, half_step);
+        deposit(i, radiance, -w, false);
+        m_up = m;
+        s_up = s;
     }
 }
 
@@ -404,7 +261,8 @@ fn accumulate_order(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_w
     multiple[slot.multiple + v] += s_out[slot.volume + v];
 #ifdef MOMENTS
     for (var axis = 0u; axis < 3u; axis++) {
-        multiple[flux_element(slot.multiple, cloud.n, v, axis)] += s_out[flux_element(slot.volume, cloud.n, v, axis)];
+        let at = flux_element(slot.volume, cloud.n, v, axis);
+        multiple[flux_element(slot.multiple, cloud.n, v, axis)] += s_out[at];
     }
 #endif
 }

@@ -5,15 +5,12 @@
 use bevy::shader::ShaderDefVal;
 
 use crate::beam_phase::{BEAM_PHASE_ANGLES, BEAM_PHASE_DEPTHS};
-use crate::settings::MAX_VOLUME_RESOLUTION;
 
 use super::gpu::StagePass;
 
 /// Invocations per workgroup of the one-dimensional kernels (per particle, per lattice line, per
 /// tile); the shaders flatten `(x, y)` workgroups with `flat_invocation`.
 pub const LINEAR: u32 = 64;
-/// Voxels per lane, at most, of the sweep's workgroup per lattice line ([`LINEAR`] lanes).
-pub const SWEEP_CHUNK: u32 = MAX_VOLUME_RESOLUTION.div_ceil(LINEAR);
 /// Edge of the square workgroups of the kernels that march one column per invocation (shade,
 /// voxelize's upsample, view volume).
 pub const SLICE: u32 = 8;
@@ -26,7 +23,6 @@ pub fn shader_defs() -> Vec<ShaderDefVal> {
         ShaderDefVal::UInt("LINEAR_WORKGROUP".into(), LINEAR),
         ShaderDefVal::UInt("SLICE_WORKGROUP".into(), SLICE),
         ShaderDefVal::UInt("SORT_TILE".into(), SORT_TILE),
-        ShaderDefVal::UInt("SWEEP_CHUNK".into(), SWEEP_CHUNK),
         ShaderDefVal::UInt("BEAM_PHASE_ANGLES".into(), BEAM_PHASE_ANGLES),
         ShaderDefVal::UInt("BEAM_PHASE_DEPTHS".into(), BEAM_PHASE_DEPTHS),
     ]
@@ -35,13 +31,7 @@ pub fn shader_defs() -> Vec<ShaderDefVal> {
 /// Workgroups for `count` invocations of a [`LINEAR`] kernel, spread over x and y so that no
 /// dimension exceeds the 65535 limit.
 pub fn linear_groups(count: u32) -> [u32; 3] {
-    spread_groups(count.div_ceil(LINEAR))
-}
-
-/// `count` workgroups (at least one), spread over x and y so that no dimension exceeds the
-/// 65535 limit; the shaders flatten them as `x + y * groups.x`.
-pub fn spread_groups(count: u32) -> [u32; 3] {
-    let groups = count.max(1);
+    let groups = count.div_ceil(LINEAR).max(1);
     let x = groups.min(65535);
     [x, groups.div_ceil(x), 1]
 }
@@ -49,13 +39,6 @@ pub fn spread_groups(count: u32) -> [u32; 3] {
 /// Dispatches `count` invocations of a [`LINEAR`] kernel, for each of `items` z workgroups.
 pub(crate) fn dispatch_linear(pass: &mut StagePass, count: u32, items: u32) {
     let [x, y, _] = linear_groups(count);
-    pass.dispatch(x, y, items);
-}
-
-/// Dispatches `count` workgroups (one per work unit, e.g. the sweep's lattice lines), for each
-/// of `items` z workgroups.
-pub(crate) fn dispatch_groups(pass: &mut StagePass, count: u32, items: u32) {
-    let [x, y, _] = spread_groups(count);
     pass.dispatch(x, y, items);
 }
 

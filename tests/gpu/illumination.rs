@@ -9,7 +9,7 @@
 use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
-    CloudQualitySettings, CloudSkyLight, LightSample, Medium, Particle, ScatterStencil, SweepWalk,
+    CloudQualitySettings, CloudSkyLight, LightSample, Medium, Particle, ScatterStencil,
     generators::SplitMix64,
     reference::{
         illumination::{LocalLight, illuminate_under_sky},
@@ -65,16 +65,10 @@ pub(crate) fn rgb(bytes: &[u8]) -> Vec<f64> {
         .collect()
 }
 
-/// The GPU volumes of `case` under a sky of radiance `sky` against the CPU reference, the sweep
-/// walked as the adapter suits (serially on lavapipe).
+/// The GPU volumes of `case` under a sky of radiance `sky` against the CPU reference.
 fn check(case: Case, sky: Vec3) {
-    check_walk(case, sky, SweepWalk::Auto);
-}
-
-fn check_walk(case: Case, sky: Vec3, walk: SweepWalk) {
     let mut app = common::headless_app();
-    app.insert_resource(CloudSkyLight::from_radiance(sky))
-        .insert_resource(walk);
+    app.insert_resource(CloudSkyLight::from_radiance(sky));
     let image = headless::float_target(&mut app, 16, 16);
     let camera = headless::spawn_linear_camera(
         &mut app,
@@ -387,32 +381,6 @@ fn forward_scattering_supersampling_3_and_a_light_along_the_view() {
         },
         Vec3::ZERO,
     );
-}
-
-/// The sweep's scan walk (a workgroup per lattice line, as on a GPU) against the reference: with
-/// angular moments, a sky and a ground-free boundary, and on a 70³ grid, whose axis lines are
-/// longer than a workgroup's 64 lanes (chunks of 2 voxels, the last lanes' partial or empty).
-#[test]
-fn the_sweeps_scan_walk_with_moments_and_on_lines_longer_than_a_workgroup() {
-    let case = |anisotropy: f32, n: u32, iterations: u32| Case {
-        particles: random_particles(8, 70),
-        medium: Medium {
-            extinction: 6.0,
-            albedo: 0.95,
-            anisotropy,
-        },
-        lights: vec![LightSample {
-            direction: Vec3::new(0.3, -1.0, 0.2),
-            irradiance: Vec3::new(1.0, 0.9, 0.8),
-        }],
-        transform: Transform::from_rotation(Quat::from_euler(EulerRot::YXZ, 0.4, 0.2, -0.3)),
-        settings: CloudQualitySettings {
-            light_supersampling: 1,
-            ..common::quality(n, iterations)
-        },
-    };
-    check_walk(case(0.6, 20, 5), Vec3::new(0.2, 0.3, 0.5), SweepWalk::Scan);
-    check_walk(case(0.0, 70, 2), Vec3::ZERO, SweepWalk::Scan);
 }
 
 #[test]
