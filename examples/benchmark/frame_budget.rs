@@ -196,6 +196,35 @@ struct CloudShape {
     order_vec4: f64,
 }
 
+/// Each cloud of the bench as the floors count it, from its own entity: its particles and
+/// medium, at the resolution its level of detail chose (else `settings`').
+fn cloud_shapes(bench: &mut Bench, settings: &CloudQualitySettings) -> Vec<CloudShape> {
+    let world = bench.app.world_mut();
+    let clouds: Vec<(ParticleCloud, Option<u32>)> = world
+        .query::<(&ParticleCloud, Option<&CloudLod>)>()
+        .iter(world)
+        .map(|(c, lod)| (c.clone(), lod.map(|l| l.resolution)))
+        .collect();
+    let assets = world.resource::<Assets<Particles>>();
+    clouds
+        .iter()
+        .map(|(cloud, chosen)| {
+            let settings = CloudQualitySettings {
+                volume_resolution: chosen.unwrap_or(settings.volume_resolution),
+                ..*settings
+            };
+            CloudShape {
+                particles: assets
+                    .get(&cloud.particles)
+                    .map_or(0, |p| p.particles.len()) as f64,
+                n: settings.volume_resolution as f64,
+                m: settings.light_resolution() as f64,
+                order_vec4: if cloud.anisotropy != 0.0 { 4.0 } else { 1.0 },
+            }
+        })
+        .collect()
+}
+
 /// The bytes `pass` must at least read and write once in a re-lit frame (the draw: a static
 /// frame's), given every cloud's shape, `lights`, each cloud's scattering iterations and the
 /// cloud target's pixels:
@@ -326,32 +355,8 @@ fn measure(b: &BudgetScene, frames: usize, bandwidth: f64, adapter: &mut String)
         bench.app.insert_resource(CloudRelightBudget(clouds));
     }
     let (moving_ms, moving_total_ms) = moving_lights(&mut bench, frames);
-    // Each cloud at the resolution its level of detail chose, else the scene's.
-    let world = bench.app.world_mut();
-    let chosen: Vec<u32> = world
-        .query::<&CloudLod>()
-        .iter(world)
-        .map(|l| l.resolution)
-        .collect();
     let settings = b.scene.settings;
-    let shapes: Vec<CloudShape> = b
-        .scene
-        .clouds
-        .iter()
-        .enumerate()
-        .map(|(i, c)| {
-            let settings = CloudQualitySettings {
-                volume_resolution: chosen.get(i).copied().unwrap_or(settings.volume_resolution),
-                ..settings
-            };
-            CloudShape {
-                particles: c.particles.len() as f64,
-                n: settings.volume_resolution as f64,
-                m: settings.light_resolution() as f64,
-                order_vec4: if c.medium.anisotropy != 0.0 { 4.0 } else { 1.0 },
-            }
-        })
-        .collect();
+    let shapes = cloud_shapes(&mut bench, &settings);
     let scale = settings.cloud_target_scale as f64;
     let pixels = (b.scene.camera.width * b.scene.camera.height) as f64 * scale * scale;
     let clouds = shapes.len().max(1) as f64;
