@@ -1,4 +1,5 @@
-//! A sky full of clouds: 100 cumulus (300,000 particles) over a ground plane, under a sun that
+//! A sky full of clouds: 100 cumulus (300,000 particles) over a ground plane that takes their
+//! shadows (Bevy's `StandardMaterial`, extended: `CloudShadowedMaterial`), under a sun that
 //! moves, seen from a camera that flies around them. Level of detail lowers the resolution of the
 //! clouds that are small on screen, and the clouds are drawn at half the window's size.
 //!
@@ -27,7 +28,7 @@ mod support;
 use std::process::ExitCode;
 
 use bevy::{platform::collections::HashMap, prelude::*};
-use bevy_particle_clouds::prelude::*;
+use bevy_particle_clouds::{cloud_shadowed_material::CloudShadowedMaterial, headless, prelude::*};
 use support::{Example, Hud, HudLines, KeyLight, Options, OrbitCamera, PassCounts};
 
 const EXAMPLE: Example = Example {
@@ -69,6 +70,9 @@ fn main() -> ExitCode {
     let args: Args = support::parse_args();
     let (clouds, particles) = (args.clouds, args.particles);
     support::run(EXAMPLE, args.common, move |app| {
+        // The ground takes the clouds' shadows of the sun through a 1024² map (1 m texels over
+        // the 800 m the clouds span).
+        headless::enable_cloud_shadow_maps(app, 1024, 1);
         app.insert_resource(DefaultCloudQuality(CloudQualitySettings {
             volume_resolution: 32,
             scatter_iterations: 8,
@@ -116,7 +120,7 @@ fn spawn_clouds(
 fn setup(
     mut commands: Commands,
     mut meshes: ResMut<Assets<Mesh>>,
-    mut materials: ResMut<Assets<StandardMaterial>>,
+    mut materials: ResMut<Assets<CloudShadowedMaterial>>,
 ) {
     let orbit = OrbitCamera {
         target: Vec3::new(0.0, 90.0, 0.0),
@@ -126,13 +130,16 @@ fn setup(
     };
     let sun = (30f32.to_radians(), 30f32.to_radians());
     let albedo = support::GROUND_ALBEDO;
-    let ground = support::ground(
+    // A game's `StandardMaterial` ground, extended to take the clouds' shadows.
+    let ground = support::cloud_shadowed_ground(
         &mut meshes,
         &mut materials,
         5000.0,
         Color::linear_rgb(albedo.x, albedo.y, albedo.z),
     );
     support::spawn_outdoor(&mut commands, ground, sun, orbit);
+    // The cloud shadows are lit by the sky, as on a Lambertian ground.
+    commands.insert_resource(support::sky_ambient_on_rough_ground());
 }
 
 fn controls(

@@ -45,7 +45,7 @@
 //! | feature | enables |
 //! |---|---|
 //! | `distance_fog` (default) | clouds fogged by the camera's `DistanceFog` (pulls in `bevy_pbr`) |
-//! | `lit_object` | `lit_object::LitObjectMaterial`, a Lambertian material that takes the clouds' shadows (pulls in `bevy_pbr`) |
+//! | `lit_object` | materials that take the clouds' shadows: `lit_object::LitObjectMaterial` (Lambertian) and `cloud_shadowed_material::CloudShadowedMaterial` (a game's `StandardMaterial`); pulls in `bevy_pbr` |
 //! | `parallel` | multi-threaded particle generators (rayon); identical results |
 //! | `scene` | RON scene files (`scene`) |
 //! | `image` | EXR (with metadata) and PNG output (`image_io`) |
@@ -55,6 +55,8 @@
 #![warn(missing_docs)]
 pub mod beam_phase;
 pub mod cloud;
+#[cfg(feature = "lit_object")]
+pub mod cloud_shadowed_material;
 pub mod fog;
 pub mod generators;
 pub mod ground;

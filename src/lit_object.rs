@@ -5,7 +5,9 @@
 //! view's `DistanceFog`. Bevy's `StandardMaterial` is not Lambertian (its diffuse lobe is
 //! Burley's, with a specular lobe beside it), so these objects have their own material,
 //! `lit_object.wgsl`. A game may use it for a mesh that should take the clouds' shadows (add
-//! [`LitObjectPlugin`] and turn the shadow maps on), as the `clouds` example's ground does.
+//! [`LitObjectPlugin`] and turn the shadow maps on), as the `clouds` example's ground does; for
+//! its own `StandardMaterial` meshes there is [`CloudShadowedMaterial`], which the same plugin
+//! keeps up to date.
 
 use bevy::{
     asset::embedded_asset,
@@ -14,11 +16,12 @@ use bevy::{
         render_resource::{AsBindGroup, ShaderType},
         storage::ShaderBuffer,
     },
-    shader::ShaderRef,
+    shader::{ShaderRef, load_shader_library},
 };
 
 use crate::{
     CloudSkyLight,
+    cloud_shadowed_material::{CloudShadowReceiver, CloudShadowedMaterial},
     shadow_maps::{CloudLightQuery, CloudShadowMaps, ShadowMapPlacement, cloud_lights},
 };
 
@@ -34,10 +37,10 @@ pub struct LitObjectMaterial {
     #[uniform(0)]
     pub surface: LitSurface,
     /// The lights and the sky (written by the plugin).
-    #[uniform(1)]
+    #[uniform(100)]
     pub lights: LitObjectLights,
     /// The cloud shadow maps ([`CloudShadowMaps::buffer`]).
-    #[storage(2, read_only)]
+    #[storage(101, read_only)]
     pub shadow_maps: Handle<ShaderBuffer>,
 }
 
@@ -50,7 +53,7 @@ pub struct LitSurface {
     pub reflectance: Vec3,
 }
 
-/// Mirror of `LitLight` in `lit_object.wgsl`: one directional light and its shadow map.
+/// Mirror of `LitLight` in `cloud_shadow_maps.wgsl`: one directional light and its shadow map.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
 pub struct LitLight {
     /// Unit direction towards the light.
@@ -63,7 +66,9 @@ pub struct LitLight {
     pub map: ShadowMapPlacement,
 }
 
-/// Mirror of `LitObjectLights` in `lit_object.wgsl`.
+/// Mirror of `LitObjectLights` in `cloud_shadow_maps.wgsl`: what a surface under the clouds
+/// takes of them (bound at 100, the maps at 101, in [`LitObjectMaterial`] and
+/// [`CloudShadowReceiver`]).
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
 pub struct LitObjectLights {
     /// Linear RGB radiance of the sky.
@@ -80,17 +85,58 @@ impl Material for LitObjectMaterial {
     }
 }
 
-/// The lit objects' material and the system that keeps their lights up to date.
+/// The materials that take the clouds' shadows ([`LitObjectMaterial`], [`CloudShadowedMaterial`])
+/// and the system that keeps their lights up to date.
 pub struct LitObjectPlugin;
 
 impl Plugin for LitObjectPlugin {
     fn build(&self, app: &mut App) {
+        load_shader_library!(app, "cloud_shadow_maps.wgsl");
         embedded_asset!(app, "lit_object.wgsl");
-        app.add_plugins(MaterialPlugin::<LitObjectMaterial>::default())
-            .add_systems(
-                PostUpdate,
-                update_lit_objects.after(crate::shadow_maps::place_cloud_shadow_maps),
-            );
+        embedded_asset!(app, "cloud_shadowed_material.wgsl");
+        let placed = crate::shadow_maps::place_cloud_shadow_maps;
+        app.add_plugins((
+            MaterialPlugin::<LitObjectMaterial>::default(),
+            MaterialPlugin::<CloudShadowedMaterial>::default(),
+        ))
+        .add_systems(
+            PostUpdate,
+            (
+                update_cloud_lights::<LitObjectMaterial>.after(placed),
+                update_cloud_lights::<CloudShadowedMaterial>.after(placed),
+            ),
+        );
+    }
+}
+
+/// A material that reads the clouds' lights and shadow maps ([`LitObjectLights`] at binding 100,
+/// the maps at 101), kept up to date by [`LitObjectPlugin`].
+pub trait TakesCloudShadows: Asset {
+    /// Its lights, and its maps' buffer.
+    fn cloud_lights(&self) -> (&LitObjectLights, &Handle<ShaderBuffer>);
+    /// Sets its lights and its maps' buffer.
+    fn set_cloud_lights(&mut self, lights: LitObjectLights, maps: Handle<ShaderBuffer>);
+}
+
+impl TakesCloudShadows for LitObjectMaterial {
+    fn cloud_lights(&self) -> (&LitObjectLights, &Handle<ShaderBuffer>) {
+        (&self.lights, &self.shadow_maps)
+    }
+    fn set_cloud_lights(&mut self, lights: LitObjectLights, maps: Handle<ShaderBuffer>) {
+        (self.lights, self.shadow_maps) = (lights, maps);
+    }
+}
+
+impl TakesCloudShadows for CloudShadowedMaterial {
+    fn cloud_lights(&self) -> (&LitObjectLights, &Handle<ShaderBuffer>) {
+        (&self.extension.lights, &self.extension.shadow_maps)
+    }
+    fn set_cloud_lights(&mut self, lights: LitObjectLights, maps: Handle<ShaderBuffer>) {
+        let CloudShadowReceiver {
+            lights: l,
+            shadow_maps,
+        } = &mut self.extension;
+        (*l, *shadow_maps) = (lights, maps);
     }
 }
 
@@ -114,25 +160,85 @@ fn lit_object_lights(
     lit
 }
 
-/// Writes this frame's lights, sky and shadow maps into every lit object's material, when they
-/// changed.
-fn update_lit_objects(
+/// Writes this frame's lights, sky and shadow maps into every material of type `M`, when they
+/// changed (a material changed is uploaded again).
+fn update_cloud_lights<M: TakesCloudShadows>(
     maps: Res<CloudShadowMaps>,
     sky: Res<CloudSkyLight>,
     lights: CloudLightQuery,
-    mut materials: ResMut<Assets<LitObjectMaterial>>,
+    mut materials: ResMut<Assets<M>>,
 ) {
     let sky = sky.radiance().unwrap_or(Vec3::ZERO);
     let lit = lit_object_lights(&maps, sky, cloud_lights(&lights));
-    let stale: Vec<AssetId<LitObjectMaterial>> = materials
+    let stale: Vec<AssetId<M>> = materials
         .iter()
-        .filter(|(_, m)| m.lights != lit || m.shadow_maps != maps.buffer)
+        .filter(|(_, m)| m.cloud_lights() != (&lit, &maps.buffer))
         .map(|(id, _)| id)
         .collect();
     for id in stale {
         if let Some(mut material) = materials.get_mut(id) {
-            material.lights = lit;
-            material.shadow_maps = maps.buffer.clone();
+            material.set_cloud_lights(lit, maps.buffer.clone());
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use bevy::render::render_resource::ShaderType;
+
+    use super::*;
+
+    /// Size and member names of the structs of `cloud_shadow_maps.wgsl`, as naga lays them out.
+    fn wgsl_layouts() -> Vec<(String, u32, Vec<String>)> {
+        let source: String = include_str!("cloud_shadow_maps.wgsl")
+            .lines()
+            .filter(|l| !l.starts_with('#'))
+            .map(|l| l.replace("#{MATERIAL_BIND_GROUP}", "2") + "\n")
+            .collect();
+        let module = naga::front::wgsl::parse_str(&source).expect("the module parses");
+        module
+            .types
+            .iter()
+            .filter_map(|(_, t)| {
+                let naga::TypeInner::Struct { members, span } = &t.inner else {
+                    return None;
+                };
+                let names = members.iter().map(|m| m.name.clone().unwrap()).collect();
+                Some((t.name.clone()?, *span, names))
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_lights_have_the_wgsl_layout() {
+        let layouts = wgsl_layouts();
+        let of = |name: &str| {
+            let (_, size, fields) = layouts.iter().find(|(n, ..)| n == name).unwrap();
+            (*size as u64, fields.clone())
+        };
+        let names = |fields: &[&str]| fields.iter().map(|f| f.to_string()).collect::<Vec<_>>();
+        assert_eq!(
+            of("LitObjectLights"),
+            (
+                LitObjectLights::min_size().get(),
+                names(&["sky", "count", "lights"])
+            )
+        );
+        assert_eq!(
+            of("LitLight"),
+            (
+                LitLight::min_size().get(),
+                names(&["to_light", "mapped", "irradiance", "map"])
+            )
+        );
+        assert_eq!(
+            of("ShadowMapPlacement"),
+            (
+                ShadowMapPlacement::min_size().get(),
+                names(&[
+                    "u", "texel", "v", "w_begin", "d", "w_end", "corner", "size", "first"
+                ])
+            )
+        );
     }
 }

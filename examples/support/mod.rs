@@ -32,6 +32,7 @@ use bevy::{
 use bevy_particle_clouds::{
     CloudGround, CloudPass, CloudPassCounters, CloudShadowMaps, CloudSkyLight, CloudTargetScale,
     PASSES, ParticleCloud, ParticleCloudsPlugin, Particles,
+    cloud_shadowed_material::{CloudShadowReceiver, CloudShadowedMaterial},
     headless::{self, FrameRecorder},
     image_io,
     lit_object::{LitObjectMaterial, LitObjectPlugin, LitSurface},
@@ -214,6 +215,19 @@ const SKY_COLOR: Vec3 = Vec3::new(0.22, 0.38, 0.75);
 /// a clear sky.
 const SKY_NITS: f32 = 375.0;
 
+/// Bevy's ambient light as bright as the outdoor sky on a rough ground. Under a uniform sky of
+/// radiance `L` a Lambertian surface of albedo `R` shows `R L`, as the lit objects do; Bevy's
+/// `StandardMaterial` shows ambient radiance `L` at perceptual roughness 1 as
+/// `0.452 R L - 0.0024 L` (its split-sum approximation, `EnvBRDFApprox`). So the ground's cloud
+/// shadows are lit by the sky about as a lit object's would be.
+pub fn sky_ambient_on_rough_ground() -> GlobalAmbientLight {
+    GlobalAmbientLight {
+        color: sky_color(),
+        brightness: SKY_NITS / 0.452,
+        ..default()
+    }
+}
+
 /// The outdoor examples' ground albedo, linear RGB: grass.
 pub const GROUND_ALBEDO: Vec3 = Vec3::new(0.03, 0.055, 0.02);
 
@@ -292,6 +306,33 @@ pub fn shadowed_ground(
     )
 }
 
+/// A game's ground as [`ground`] makes it (Bevy's `StandardMaterial`), extended to take the
+/// clouds' shadows ([`CloudShadowedMaterial`]; the [`CloudShadowMaps`] must be on).
+pub fn cloud_shadowed_ground(
+    meshes: &mut Assets<Mesh>,
+    materials: &mut Assets<CloudShadowedMaterial>,
+    size: f32,
+    color: Color,
+) -> impl Bundle {
+    (
+        Mesh3d(meshes.add(Plane3d::default().mesh().size(size, size))),
+        MeshMaterial3d(materials.add(CloudShadowedMaterial {
+            base: ground_material(color),
+            extension: CloudShadowReceiver::default(),
+        })),
+    )
+}
+
+/// The ground's `StandardMaterial`: rough, little specular.
+fn ground_material(color: Color) -> StandardMaterial {
+    StandardMaterial {
+        base_color: color,
+        perceptual_roughness: 0.95,
+        reflectance: 0.1,
+        ..default()
+    }
+}
+
 /// A large lit ground plane of `size` metres and linear albedo `color`, at `y = 0`.
 pub fn ground(
     meshes: &mut Assets<Mesh>,
@@ -301,12 +342,7 @@ pub fn ground(
 ) -> impl Bundle {
     (
         Mesh3d(meshes.add(Plane3d::default().mesh().size(size, size))),
-        MeshMaterial3d(materials.add(StandardMaterial {
-            base_color: color,
-            perceptual_roughness: 0.95,
-            reflectance: 0.1,
-            ..default()
-        })),
+        MeshMaterial3d(materials.add(ground_material(color))),
     )
 }
 

@@ -6,6 +6,7 @@ use bevy::render::storage::GpuShaderBuffer;
 use bevy::{prelude::*, render::render_asset::RenderAssets};
 use bevy_particle_clouds::{
     CloudPass, CloudShadowMaps, LightSample,
+    cloud_shadowed_material::{CloudShadowReceiver, CloudShadowedMaterial},
     headless::{self, FrameRecorder},
     reference::{
         camera::PinholeCamera,
@@ -17,9 +18,11 @@ use bevy_particle_clouds::{
         metrics::{max_relative_difference, relative_rmse},
     },
     scene::{ObjectShape, SceneObject},
+    shadow_maps::ShadowMapPlacement,
 };
 
 use bevy_particle_clouds::fog::{Falloff, Fog};
+use bevy_particle_clouds::linear_image::LinearImage;
 
 use crate::common;
 use crate::draw::{FOV, H, Setup, W, cloud_setup, spawn_into};
@@ -57,12 +60,7 @@ fn spawn_with_maps(setup: &Setup, resolution: u32) -> (App, headless::SceneTarge
 }
 
 /// The GPU's shadow map of the first light, and its placement.
-fn gpu_map(
-    app: &mut App,
-) -> (
-    Vec<f64>,
-    bevy_particle_clouds::shadow_maps::ShadowMapPlacement,
-) {
+fn gpu_map(app: &mut App) -> (Vec<f64>, ShadowMapPlacement) {
     let maps = app.world().resource::<CloudShadowMaps>().clone();
     let (_, placement) = maps.maps[0];
     let buffer = common::with_render_world(app, |world| {
@@ -80,6 +78,37 @@ fn gpu_map(
         .map(|&v| v as f64)
         .collect();
     (values, placement)
+}
+
+/// The CPU reference of the first light's shadow map of `setup`'s cloud, placed as `map`.
+fn cpu_shadow_map(setup: &Setup, map: &ShadowMapPlacement) -> Vec<f64> {
+    let placement = CloudPlacement {
+        translation: setup.transform.translation.as_dvec3(),
+        rotation: setup.transform.rotation.as_dquat(),
+        scale: 1.0,
+    };
+    let placed = [PlacedCloud {
+        particles: &setup.particles,
+        medium: setup.medium,
+        placement,
+        settings: setup.settings,
+    }];
+    let cpu = illuminate_clouds_under_sky(&placed, &setup.lights, setup.sky.as_dvec3());
+    let cloud = cpu[0].as_ref().expect("a cloud with density");
+    cloud_shadow_map(&[(cloud, placement)], 0, map)
+}
+
+/// The setup's camera, as the CPU reference sees it.
+fn pinhole(setup: &Setup) -> PinholeCamera {
+    let eye = setup.camera.translation.as_dvec3();
+    PinholeCamera::looking_at(
+        eye,
+        eye + setup.camera.forward().as_vec3().as_dvec3(),
+        setup.camera.up().as_vec3().as_dvec3(),
+        FOV as f64,
+        W,
+        H,
+    )
 }
 
 #[test]
@@ -112,33 +141,13 @@ fn lit_ground_matches_the_cpu_reference(fog: Option<Fog>) {
 
     // The map, texel by texel.
     let (gpu, map) = gpu_map(&mut app);
-    let placement = CloudPlacement {
-        translation: setup.transform.translation.as_dvec3(),
-        rotation: setup.transform.rotation.as_dquat(),
-        scale: 1.0,
-    };
-    let placed = [PlacedCloud {
-        particles: &setup.particles,
-        medium: setup.medium,
-        placement,
-        settings: setup.settings,
-    }];
-    let cpu = illuminate_clouds_under_sky(&placed, &setup.lights, setup.sky.as_dvec3());
-    let cloud = cpu[0].as_ref().expect("a cloud with density");
-    let cpu_map = cloud_shadow_map(&[(cloud, placement)], 0, &map);
+    let cpu_map = cpu_shadow_map(&setup, &map);
     let error = max_relative_difference(&gpu, &cpu_map);
     assert!(error <= TOLERANCE, "shadow map: {error:e} of its maximum");
 
     // Every ground pixel: its colour plus R / pi (E cos T + pi L_sky), T through the CPU's map.
     let eye = setup.camera.translation.as_dvec3();
-    let camera = PinholeCamera::looking_at(
-        eye,
-        eye + setup.camera.forward().as_vec3().as_dvec3(),
-        setup.camera.up().as_vec3().as_dvec3(),
-        FOV as f64,
-        W,
-        H,
-    );
+    let camera = pinhole(&setup);
     let light = &setup.lights[0];
     let to_light = -light.direction.normalize().as_dvec3();
     let (mut expected, mut seen, mut darkest) = (Vec::new(), Vec::new(), 1.0f64);
@@ -212,4 +221,124 @@ fn a_still_sky_fills_the_map_once_and_a_moving_cloud_again() {
         .map(|f| f.runs(CloudPass::Shade))
         .sum();
     assert_eq!((runs, dispatches(&recorder, first)), (0, 1));
+}
+
+/// Which material the ground of [`standard_ground_image`] wears.
+#[derive(Clone, Copy, PartialEq)]
+enum Ground {
+    /// Bevy's `StandardMaterial`.
+    Standard,
+    /// The same, extended to take the clouds' shadows.
+    CloudShadowed,
+}
+
+/// `StandardMaterial` ground under the cloud of [`cloud_over_ground`], lit by its light (or not,
+/// `lit` false) and by Bevy's ambient light; the image and the shadow map's placement.
+fn standard_ground_image(ground: Ground, lit: bool) -> (LinearImage, ShadowMapPlacement) {
+    let mut setup = cloud_over_ground();
+    setup.objects.clear();
+    if !lit {
+        setup.lights[0].irradiance = Vec3::ZERO;
+    }
+    let (mut app, target) = spawn_with_maps(&setup, 96);
+    app.insert_resource(GlobalAmbientLight {
+        color: Color::WHITE,
+        brightness: 0.4,
+        ..default()
+    });
+    // Rough, with a specular lobe: both lobes must take the shadow.
+    let base = StandardMaterial {
+        base_color: Color::linear_rgb(REFLECTANCE.x, REFLECTANCE.y, REFLECTANCE.z),
+        perceptual_roughness: 0.6,
+        reflectance: 0.5,
+        ..default()
+    };
+    let mesh = Mesh3d(
+        app.world_mut()
+            .resource_mut::<Assets<Mesh>>()
+            .add(Cuboid::new(20.0, 1.0, 20.0)),
+    );
+    let at = Transform::from_xyz(0.0, -0.5, 0.0);
+    let world = app.world_mut();
+    match ground {
+        Ground::Standard => {
+            let material = world.resource_mut::<Assets<StandardMaterial>>().add(base);
+            world.spawn((mesh, MeshMaterial3d(material), at));
+        }
+        Ground::CloudShadowed => {
+            let material = CloudShadowedMaterial {
+                base,
+                extension: CloudShadowReceiver::default(),
+            };
+            let material = world
+                .resource_mut::<Assets<CloudShadowedMaterial>>()
+                .add(material);
+            world.spawn((mesh, MeshMaterial3d(material), at));
+        }
+    }
+    let mut recorder = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut recorder, 1, 20).unwrap();
+    let image = headless::capture(&mut app, &mut recorder, &target.image).unwrap();
+    let map = app
+        .world()
+        .resource::<CloudShadowMaps>()
+        .maps
+        .first()
+        .map(|(_, p)| *p)
+        .unwrap_or_default();
+    (image, map)
+}
+
+/// A game's `StandardMaterial` extended with `CloudShadowReceiver` shows Bevy's ambient light
+/// plus `T` times its direct light, `T` the clouds' transmittance towards the light through the
+/// CPU's shadow map: `shadowed = ambient + T (plain - ambient)` at every ground pixel.
+#[test]
+fn a_standard_material_takes_the_clouds_shadow() {
+    let setup = cloud_over_ground();
+    let (plain, _) = standard_ground_image(Ground::Standard, true);
+    let (shadowed, map) = standard_ground_image(Ground::CloudShadowed, true);
+    let (ambient, _) = standard_ground_image(Ground::Standard, false);
+    let cpu_map = cpu_shadow_map(&setup, &map);
+
+    let eye = setup.camera.translation.as_dvec3();
+    let camera = pinhole(&setup);
+    let (mut expected, mut seen, mut darkest) = (Vec::new(), Vec::new(), 1.0f64);
+    let (mut ambient_sum, mut direct_sum) = (0.0, 0.0);
+    for py in 0..H {
+        for px in 0..W {
+            let ray = camera.pixel_ray(px, py);
+            let Some((t, _)) = nearest_object(&ground_only(), eye, ray) else {
+                continue;
+            };
+            let transmittance = (-shadow_map_depth_at(&map, &cpu_map, eye + ray * t)).exp() as f32;
+            darkest = darkest.min(transmittance as f64);
+            let i = (py * W + px) as usize;
+            let (a, p) = (ambient.pixels[i], plain.pixels[i]);
+            let e: [f32; 3] = std::array::from_fn(|c| a[c] + transmittance * (p[c] - a[c]));
+            ambient_sum += a[1] as f64;
+            direct_sum += (p[1] - a[1]) as f64;
+            expected.push([e[0], e[1], e[2], 1.0]);
+            let s = shadowed.pixels[i];
+            seen.push([s[0], s[1], s[2], 1.0]);
+        }
+    }
+    assert!(
+        expected.len() > (W * H / 3) as usize,
+        "the ground fills the view"
+    );
+    assert!(darkest < 0.3, "the cloud's shadow falls in view: {darkest}");
+    // Both lights matter: an error in either would show.
+    let share = ambient_sum / (ambient_sum + direct_sum);
+    assert!((0.1..0.7).contains(&share), "ambient share {share}");
+    let error = relative_rmse(&seen, &expected);
+    eprintln!("StandardMaterial ground: relative RMSE {error:e} against ambient + T direct");
+    assert!(
+        error < 1e-3,
+        "StandardMaterial ground: relative RMSE {error}"
+    );
+}
+
+/// The ground of [`cloud_over_ground`], for finding its pixels.
+fn ground_only() -> Vec<SceneObject> {
+    cloud_over_ground().objects
 }
