@@ -166,6 +166,19 @@ impl CasterVolume {
         }
     }
 
+    /// The span of the volume's box along the world direction `axis` (unit), metres: where its
+    /// columns lie across a light travelling along its own.
+    pub fn span_along(&self, axis: Vec3) -> (f32, f32) {
+        let world_from_coords = self.coords_from_world.inverse();
+        let (lo, hi) = (-0.5, self.n as f32 - 0.5);
+        (0..8u32).fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), c| {
+            let pick = |bit: u32| if c & (1 << bit) == 0 { lo } else { hi };
+            let corner = world_from_coords.transform_point3(Vec3::new(pick(0), pick(1), pick(2)));
+            let t = corner.dot(axis);
+            (a.min(t), b.max(t))
+        })
+    }
+
     /// This volume casting on a target whose space is placed by `target_world_from_local` (the
     /// identity for the world).
     pub fn on(&self, target_world_from_local: &Affine3A) -> Caster {

@@ -92,12 +92,17 @@ pub(crate) fn shadow_map_casts<'a>(
         keys.0.insert(light.entity, key);
         let placed = casters.iter().filter_map(|&&(_, cloud, v, _)| {
             let caster = light_caster(cloud, v, l, pools)?;
-            Some((v.slot.pool, caster.on(&Affine3A::IDENTITY)))
+            let span = caster.span_along(map.v);
+            Some((v.slot.pool, caster.on(&Affine3A::IDENTITY), span))
         });
         let placed: Vec<_> = placed.collect();
         match placed.first() {
-            // The first pool's dispatch writes the map from nothing, the others add to it.
-            Some(&(own, _)) => add_cast(&mut work, map_target(map), CastStart::Zero, placed, own),
+            // Per band, the first pool's dispatch writes it from nothing, the others add to it.
+            Some(&(own, ..)) => {
+                for (band, casters) in map_bands(map, &placed) {
+                    add_cast(&mut work, band, CastStart::Zero, casters, own);
+                }
+            }
             // No cloud casts on it: it holds nothing.
             None => {
                 let texels = (map.size * map.size) as u64;
@@ -116,18 +121,97 @@ pub(crate) fn shadow_map_casts<'a>(
     casts
 }
 
-/// The texels of `map`, in world space: each at its column's end, past every cloud.
-fn map_target(map: &ShadowMapPlacement) -> CastTarget {
+/// Rows of a shadow map per cast target (band).
+pub const BAND_ROWS: u32 = 16;
+
+/// `map` cut into bands of [`BAND_ROWS`] rows, each a cast target with the casters whose
+/// columns may cross its texels: those whose span along the map's `v` axis (the third member,
+/// metres) meets the band's, a row to spare either side. So a map over many clouds costs its
+/// texels times the clouds across each band, not times every cloud.
+pub(crate) fn map_bands<P: Copy>(
+    map: &ShadowMapPlacement,
+    casters: &[(P, Caster, (f32, f32))],
+) -> Vec<(CastTarget, Vec<(P, Caster)>)> {
+    let n = map.size;
+    // Texel row j's centre lies at v = corner.y + (j + 1/2) texel.
+    let row = |v: f32| (v - map.corner.y) / map.texel - 0.5;
+    (0..n.div_ceil(BAND_ROWS))
+        .map(|b| {
+            let rows = (b * BAND_ROWS)..(n.min((b + 1) * BAND_ROWS));
+            let (first_row, last_row) = (rows.start as f32 - 1.0, rows.end as f32);
+            let crossing = casters
+                .iter()
+                .filter(|(.., (lo, hi))| row(*hi) >= first_row && row(*lo) <= last_row)
+                .map(|&(pool, caster, _)| (pool, caster))
+                .collect();
+            (band_target(map, rows), crossing)
+        })
+        .collect()
+}
+
+/// The texels of rows `rows` of `map`, in world space: each at its column's end, past every
+/// cloud.
+fn band_target(map: &ShadowMapPlacement, rows: std::ops::Range<u32>) -> CastTarget {
     let step = |axis: Vec3| (axis * map.texel).to_array();
     CastTarget {
-        origin: map.texel_point(0, 0).to_array(),
-        first: map.first,
+        origin: map.texel_point(0, rows.start).to_array(),
+        first: map.first + rows.start * map.size,
         step_x: step(map.u),
         size_x: map.size,
         step_y: step(map.v),
-        size_y: map.size,
+        size_y: rows.len() as u32,
         step_z: [0.0; 3],
         size_z: 1,
         ..default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn caster(first: u32) -> Caster {
+        Caster { first, ..default() }
+    }
+
+    #[test]
+    fn a_maps_bands_tile_it_and_take_the_casters_that_cross_them() {
+        let map = ShadowMapPlacement {
+            u: Vec3::X,
+            v: Vec3::Z,
+            d: Vec3::NEG_Y,
+            texel: 0.5,
+            corner: Vec2::new(-10.0, 100.0),
+            size: 40,
+            first: 1000,
+            ..default()
+        };
+        // Rows of texel centres: v = 100.25 + 0.5 j. One caster over rows 4–12, one over 30–35.
+        let casters = [
+            (0u8, caster(1), (102.3, 106.2)),
+            (1u8, caster(2), (115.1, 117.6)),
+        ];
+        let bands = map_bands(&map, &casters);
+        let rows: Vec<u32> = bands.iter().map(|(t, _)| t.size_y).collect();
+        assert_eq!(rows, [16, 16, 8]);
+        let mut next = map.first;
+        for (b, (target, _)) in bands.iter().enumerate() {
+            assert_eq!(target.first, next, "band {b} follows the one before");
+            assert_eq!((target.size_x, target.size_z), (40, 1));
+            let origin = map.texel_point(0, b as u32 * 16);
+            assert!(Vec3::from(target.origin).distance(origin) < 1e-4);
+            next += target.size_x * target.size_y;
+        }
+        assert_eq!(next, map.first + 40 * 40, "the bands cover the map");
+        let firsts = |b: usize| bands[b].1.iter().map(|(_, c)| c.first).collect::<Vec<_>>();
+        assert_eq!(firsts(0), [1]);
+        assert_eq!(firsts(1), [2], "rows 29.7-34.7 lie in band 1 (16-31)");
+        assert_eq!(firsts(2), [2], "and in band 2 (32-39)");
+        // A caster beside the map (or one no band meets) casts on nothing.
+        assert!(
+            map_bands(&map, &[(0u8, caster(3), (150.0, 151.0))])
+                .iter()
+                .all(|(_, c)| c.is_empty())
+        );
     }
 }

@@ -17,6 +17,7 @@ use bevy_particle_clouds::{
         },
         metrics::{max_relative_difference, relative_rmse},
     },
+    render::shadow_maps::BAND_ROWS,
     scene::{ObjectShape, SceneObject},
     shadow_maps::ShadowMapPlacement,
 };
@@ -25,7 +26,7 @@ use bevy_particle_clouds::fog::{Falloff, Fog};
 use bevy_particle_clouds::linear_image::LinearImage;
 
 use crate::common;
-use crate::draw::{FOV, H, Setup, W, cloud_setup, spawn_into};
+use crate::draw::{FOV, H, Setup, SetupCloud, W, cloud_setup, spawn_into};
 use crate::illumination::TOLERANCE;
 
 const REFLECTANCE: Vec3 = Vec3::new(0.5, 0.6, 0.7);
@@ -185,6 +186,75 @@ fn lit_ground_matches_the_cpu_reference(fog: Option<Fog>) {
     // f16 output, and f32 positions interpolated across the ground.
     eprintln!("lit ground: relative RMSE {error:e} against the CPU shading");
     assert!(error < 3e-3, "lit ground: relative RMSE {error}");
+}
+
+/// Clouds far apart across the light: the map is cast in bands of rows, each with the clouds
+/// that cross it, and still matches the CPU reference texel by texel; a cloud's shadow is not
+/// lost where it crosses a band's edge.
+#[test]
+fn a_map_of_clouds_apart_matches_the_cpu_reference() {
+    let setup = cloud_over_ground();
+    let apart = [
+        setup.transform,
+        Transform::from_xyz(-7.0, 3.0, 8.0).with_rotation(Quat::from_rotation_y(1.1)),
+        Transform::from_xyz(6.0, 4.0, -5.0),
+    ];
+    let clouds: Vec<SetupCloud> = apart
+        .iter()
+        .map(|&transform| SetupCloud {
+            transform,
+            ..setup.cloud()
+        })
+        .collect();
+    let mut app = common::headless_app();
+    headless::enable_cloud_shadow_maps(&mut app, 160, setup.lights.len());
+    let (mut app, _) = spawn_into(app, &setup, &clouds);
+    let mut recorder = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut recorder, 1, 20).unwrap();
+    let (gpu, map) = gpu_map(&mut app);
+    assert!(map.size.div_ceil(BAND_ROWS) >= 8, "the map has bands");
+
+    let placements: Vec<CloudPlacement> = apart
+        .iter()
+        .map(|t| CloudPlacement {
+            translation: t.translation.as_dvec3(),
+            rotation: t.rotation.as_dquat(),
+            scale: 1.0,
+        })
+        .collect();
+    let placed: Vec<PlacedCloud> = placements
+        .iter()
+        .map(|&placement| PlacedCloud {
+            particles: &setup.particles,
+            medium: setup.medium,
+            placement,
+            settings: setup.settings,
+        })
+        .collect();
+    let cpu = illuminate_clouds_under_sky(&placed, &setup.lights, setup.sky.as_dvec3());
+    let lit: Vec<_> = cpu
+        .iter()
+        .zip(&placements)
+        .map(|(c, &p)| (c.as_ref().expect("a cloud with density"), p))
+        .collect();
+    let cpu_map = cloud_shadow_map(&lit, 0, &map);
+    let error = max_relative_difference(&gpu, &cpu_map);
+    assert!(error <= TOLERANCE, "shadow map: {error:e} of its maximum");
+    // Some bands hold no cloud's shadow, others do.
+    let band_holds = |b: u32| {
+        let rows = (b * BAND_ROWS) as usize..((b + 1) * BAND_ROWS).min(map.size) as usize;
+        let n = map.size as usize;
+        cpu_map[rows.start * n..rows.end * n]
+            .iter()
+            .any(|&t| t > 1e-3)
+    };
+    let holding = (0..map.size.div_ceil(BAND_ROWS))
+        .filter(|&b| band_holds(b))
+        .count();
+    assert!(
+        holding > 1 && holding < map.size.div_ceil(BAND_ROWS) as usize,
+        "{holding} bands hold a shadow"
+    );
 }
 
 #[test]
