@@ -10,7 +10,7 @@
 //!   drawn at half size, at most 10 clouds re-lit a frame, 1920×1080.
 //!
 //! `--view WxH` measures them at another size; `--settings` replaces the chosen scenes' quality
-//! settings, one row per `--settings`. The draw's fragments (the billboards' projected squares,
+//! settings, one row per `--settings`. The draw's fragments (the billboards' screen rectangles,
 //! overlaps counted) give its time per fragment, a rate to hold against the adapter's.
 //!
 //! Re-lit: frames that rerun every pass for every cloud (the particles touched). Lights moving:
@@ -265,34 +265,87 @@ fn floor_bytes(
 }
 
 /// The pixels the particles' billboards cover in a target of `scale` times the view's size,
-/// overlaps counted each time: the draw's fragments, about. Each billboard is taken as the
-/// square of the particle's projected diameter (the vertex stage widens it off-axis; particles
-/// crossing the near plane are left out).
+/// overlaps counted each time: the draw's fragments, about (each billboard's quad as the vertex
+/// stage draws it, [`quad_fragments`]).
 fn billboard_fragments(scene: &Scene, scale: f32) -> f64 {
     let camera = &scene.camera;
     let forward = (camera.look_at - camera.position).normalize();
     let right = forward.cross(camera.up).normalize();
-    let up = right.cross(forward);
-    let (width, height) = (camera.width as f32 * scale, camera.height as f32 * scale);
+    let target = Target {
+        basis: [right, right.cross(forward), forward],
+        width: camera.width as f32 * scale,
+        height: camera.height as f32 * scale,
+        vertical_fov: camera.vertical_fov_degrees.to_radians(),
+        near: PerspectiveProjection::default().near,
+    };
+    scene
+        .clouds
+        .iter()
+        .flat_map(|c| {
+            c.particles
+                .iter()
+                .map(|p| (c.translation + p.position, p.radius))
+        })
+        .map(|(centre, radius)| quad_fragments(&target, centre - camera.position, radius))
+        .sum()
+}
+
+/// A view's target, as [`quad_fragments`] sees it.
+struct Target {
+    /// The view's right, up and forward axes (unit).
+    basis: [Vec3; 3],
+    /// Pixels.
+    width: f32,
+    height: f32,
+    /// Radians.
+    vertical_fov: f32,
+    /// The near plane's depth, metres.
+    near: f32,
+}
+
+/// The pixels of `target` that the billboard of a particle of `radius` at `to_centre` (from the
+/// eye) covers, as `billboard.wgsl`'s vertex stage draws it: the rectangle of the screen that
+/// the sphere's part beyond the near plane covers ([`screen_span`] per axis, 0.1 % to spare
+/// either side); nothing when it lies behind the near plane.
+fn quad_fragments(target: &Target, to_centre: Vec3, radius: f32) -> f64 {
+    let [right, up, forward] = target.basis;
+    let depth = to_centre.dot(forward);
+    if depth + radius <= target.near {
+        return 0.0;
+    }
     // Pixels per unit of (lateral offset ÷ depth).
-    let focal = 0.5 * height / (0.5 * camera.vertical_fov_degrees.to_radians()).tan();
-    let mut fragments = 0.0;
-    for cloud in &scene.clouds {
-        for p in &cloud.particles {
-            let to_centre = cloud.translation + p.position - camera.position;
-            let depth = to_centre.dot(forward);
-            if depth <= p.radius {
-                continue;
+    let focal = 0.5 * target.height / (0.5 * target.vertical_fov).tan();
+    let pixels = |offset: f32, extent: f32| {
+        let screen = 1.01 * 0.5 * extent / focal;
+        let (lo, hi) = screen_span(offset, depth, radius, target.near, screen);
+        let pad = 0.001 * (hi - lo);
+        let to_pixel = |slope: f32| (0.5 * extent + focal * slope).clamp(0.0, extent);
+        (to_pixel(hi + pad) - to_pixel(lo - pad)).max(0.0)
+    };
+    (pixels(to_centre.dot(right), target.width) * pixels(to_centre.dot(up), target.height)) as f64
+}
+
+/// The extent, in units of lateral offset ÷ depth, of the part beyond the near plane (depth
+/// `near`) of a sphere of radius `r` centred at lateral offset `x` and depth `z` along one
+/// screen axis, clamped to `±screen`: `screen_span` of `billboard.wgsl`.
+fn screen_span(x: f32, z: f32, r: f32, near: f32, screen: f32) -> (f32, f32) {
+    let d2 = x * x + z * z;
+    let (mut lo, mut hi) = (screen, -screen);
+    if d2 > r * r {
+        let t = (d2 - r * r).sqrt();
+        for side in [-1.0, 1.0] {
+            let (px, pz) = (t * x - side * r * z, t * z + side * r * x);
+            if pz * t / d2 >= near {
+                (lo, hi) = (lo.min(px / pz), hi.max(px / pz));
             }
-            let x = 0.5 * width + focal * to_centre.dot(right) / depth;
-            let y = 0.5 * height + focal * to_centre.dot(up) / depth;
-            let half = focal * p.radius / depth;
-            let covered =
-                |c: f32, extent: f32| ((c + half).min(extent) - (c - half).max(0.0)).max(0.0);
-            fragments += (covered(x, width) * covered(y, height)) as f64;
         }
     }
-    fragments
+    let h = r * r - (near - z) * (near - z);
+    if h > 0.0 {
+        let e = h.sqrt();
+        (lo, hi) = (lo.min((x - e) / near), hi.max((x + e) / near));
+    }
+    (lo.clamp(-screen, screen), hi.max(lo).clamp(-screen, screen))
 }
 
 /// One measured scene.
@@ -518,7 +571,7 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
     // The draw per fragment: a rate to hold against the adapter's fill rate.
     let _ = writeln!(
         md,
-        "\nBillboard fragments of a static frame (the billboards' projected squares, overlaps \
+        "\nBillboard fragments of a static frame (each billboard's screen rectangle as the vertex stage draws it, overlaps \
          counted) and the draw's time per fragment:\n\n\
          | scene | fragments (millions) | per pixel of the target | draw ns per fragment |\n\
          |---|---:|---:|---:|"
@@ -561,4 +614,109 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
         args.out.display()
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 400×300 target, 90° vertical field of view (150 pixels per unit of offset ÷ depth),
+    /// looking along -z.
+    fn target() -> Target {
+        Target {
+            basis: [Vec3::X, Vec3::Y, Vec3::NEG_Z],
+            width: 400.0,
+            height: 300.0,
+            vertical_fov: std::f32::consts::FRAC_PI_2,
+            near: 0.1,
+        }
+    }
+
+    #[test]
+    fn a_billboard_covers_its_quad_as_the_vertex_stage_draws_it() {
+        let t = target();
+        // On the axis, 10 m away, r = 0.5: the tangents' slopes are ±r / sqrt(z² - r²), 0.1 %
+        // to spare either side.
+        let side = 1.002 * 2.0 * 150.0 * 0.5 / (100.0f64 - 0.25).sqrt();
+        let on_axis = quad_fragments(&t, Vec3::new(0.0, 0.0, -10.0), 0.5);
+        assert!(
+            (on_axis - side * side).abs() < 1e-2 * on_axis,
+            "{on_axis} against {}",
+            side * side
+        );
+        // Off the axis the silhouette stretches; across the right edge, a part of it is drawn.
+        let at_edge = Vec3::new(200.0 / 15.0, 0.0, -10.0);
+        let wide = Target {
+            width: 1200.0,
+            ..target()
+        };
+        let whole = quad_fragments(&wide, at_edge, 0.5);
+        let edge = quad_fragments(&t, at_edge, 0.5);
+        assert!(whole > on_axis, "{whole} against {on_axis}");
+        assert!(
+            0.3 * whole < edge && edge < 0.7 * whole,
+            "{edge} against {whole}"
+        );
+        assert_eq!(quad_fragments(&t, Vec3::new(30.0, 0.0, -10.0), 0.5), 0.0);
+        // Behind the near plane nothing; holding the eye, the whole target; reaching the near
+        // plane beside the eye, a part of it.
+        assert_eq!(quad_fragments(&t, Vec3::new(0.0, 0.0, 1.0), 0.5), 0.0);
+        assert_eq!(
+            quad_fragments(&t, Vec3::new(0.0, 0.0, -0.3), 0.5),
+            400.0 * 300.0
+        );
+        let beside = quad_fragments(&t, Vec3::new(0.8, 0.0, -0.3), 0.5);
+        assert!(beside > 0.0 && beside < 0.5 * 400.0 * 300.0, "{beside}");
+    }
+
+    /// The span holds every point of the sphere beyond the near plane, and its ends are reached.
+    #[test]
+    fn a_screen_span_bounds_the_sphere_beyond_the_near_plane_tightly() {
+        let near = 0.1;
+        for (x, z, r) in [
+            (0.0, 10.0, 0.5),
+            (8.0, 10.0, 0.5),
+            (-3.0, 2.0, 1.5),
+            (1.0, 0.3, 0.5),
+            (-0.6, 0.05, 0.7),
+        ] {
+            let (lo, hi) = screen_span(x, z, r, near, 1e3);
+            let (mut seen_lo, mut seen_hi) = (f32::INFINITY, f32::NEG_INFINITY);
+            // The disc of (x, z) beyond the near plane, sampled densely: boundary and inside.
+            for i in 0..2000 {
+                let a = i as f32 / 2000.0 * std::f32::consts::TAU;
+                for k in 0..=20 {
+                    let (px, pz) = (
+                        x + r * k as f32 / 20.0 * a.cos(),
+                        z + r * k as f32 / 20.0 * a.sin(),
+                    );
+                    if pz < near {
+                        continue;
+                    }
+                    let slope = px / pz;
+                    assert!(
+                        slope >= lo - 1e-4 * (1.0 + lo.abs())
+                            && slope <= hi + 1e-4 * (1.0 + hi.abs()),
+                        "({x}, {z}, {r}): {slope} outside {lo}..{hi}"
+                    );
+                    (seen_lo, seen_hi) = (seen_lo.min(slope), seen_hi.max(slope));
+                }
+            }
+            // And where the disc crosses the near plane.
+            let h = r * r - (near - z) * (near - z);
+            for k in 0..=2000 {
+                let px = x + h.max(0.0).sqrt() * (k as f32 / 1000.0 - 1.0);
+                if h > 0.0 {
+                    (seen_lo, seen_hi) = (seen_lo.min(px / near), seen_hi.max(px / near));
+                }
+            }
+            let width = hi - lo;
+            assert!(
+                seen_lo - lo < 1e-3 * width && hi - seen_hi < 1e-3 * width,
+                "({x}, {z}, {r}): {lo}..{hi}, reached {seen_lo}..{seen_hi}"
+            );
+        }
+        // The eye within the sphere: the whole screen.
+        assert_eq!(screen_span(0.02, 0.15, 0.5, near, 2.0), (-2.0, 2.0));
+    }
 }

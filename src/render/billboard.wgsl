@@ -89,6 +89,36 @@ fn near_plane() -> f32 {
     return view.clip_from_view[3][2];
 }
 
+// The extent, in units of lateral offset / depth, of the part beyond the near plane of a sphere
+// of radius `r` whose centre lies at lateral offset `x` and depth `z` along one screen axis:
+// the sphere projected on that axis's plane with the view direction is the disc of (x, z), and
+// x / z is extreme on that disc's part beyond the near plane where the eye's tangents touch it
+// or where its edge crosses the near plane (there alone when the eye lies within the disc).
+// Clamped to `screen`, the view's half-extent.
+fn screen_span(x: f32, z: f32, r: f32, screen: f32) -> vec2<f32> {
+    let near = near_plane();
+    let d2 = x * x + z * z;
+    var span = vec2(screen, -screen);
+    if d2 > r * r {
+        // The tangent points, scaled by d2 / t: (t x -+ r z, t z +- r x).
+        let t = sqrt(d2 - r * r);
+        for (var side = -1.0; side <= 1.0; side += 2.0) {
+            let p = vec2(t * x - side * r * z, t * z + side * r * x);
+            if p.y * t / d2 >= near {
+                span = vec2(min(span.x, p.x / p.y), max(span.y, p.x / p.y));
+            }
+        }
+    }
+    // Where the disc's edge crosses the near plane.
+    let h = r * r - (near - z) * (near - z);
+    if h > 0.0 {
+        let e = sqrt(h);
+        span = vec2(min(span.x, (x - e) / near), max(span.y, (x + e) / near));
+    }
+    // Nothing found (only by rounding): an empty span, not an inverted one.
+    return clamp(vec2(span.x, max(span.x, span.y)), vec2(-screen), vec2(screen));
+}
+
 @vertex
 fn vertex(@builtin(vertex_index) vertex_index: u32, @builtin(instance_index) instance_index: u32) -> VertexOutput {
     // A four-vertex triangle strip per instance: (-1,-1), (1,-1), (-1,1), (1,1).
@@ -123,26 +153,32 @@ fn vertex(@builtin(vertex_index) vertex_index: u32, @builtin(instance_index) ins
         out.clip_position = vec4(2.0, 2.0, 2.0, 1.0);
         out.world_position = centre;
         out.on_near_plane = 0u;
-    } else if depth - radius >= near_plane() {
-        // A quad in the plane at the particle's depth covering the sphere's silhouette: for a
-        // sphere seen at angle theta off-axis, its silhouette cone (half-angle alpha) cuts that
-        // plane within R / cos(theta + alpha) of the centre.
-        let distance = length(to_centre);
-        let sin_alpha = min(radius / distance, 1.0);
-        let cos_alpha = sqrt(1.0 - sin_alpha * sin_alpha);
-        let cos_theta = depth / distance;
-        let sin_theta = sqrt(max(1.0 - cos_theta * cos_theta, 0.0));
-        let half_size = radius / max(cos_theta * cos_alpha - sin_theta * sin_alpha, 1e-4);
-        let world = centre + (corner.x * right + corner.y * up) * half_size;
+        return out;
+    }
+    // The rectangle of the screen that the sphere's part beyond the near plane covers (0.1 % of
+    // it to spare either side for rounding), in units of lateral offset / depth.
+    let screen = 1.01 / vec2(view.clip_from_view[0][0], view.clip_from_view[1][1]);
+    let span_x = screen_span(dot(to_centre, right), depth, radius, screen.x);
+    let span_y = screen_span(dot(to_centre, up), depth, radius, screen.y);
+    let pad = 0.001 * vec2(span_x.y - span_x.x, span_y.y - span_y.x);
+    let along = corner * 0.5 + 0.5;
+    let slope = vec2(
+        mix(span_x.x - pad.x, span_x.y + pad.x, along.x),
+        mix(span_y.x - pad.y, span_y.y + pad.y, along.y),
+    );
+    if depth - radius >= near_plane() {
+        // In the plane at the particle's depth.
+        let world = eye + depth * (forward + slope.x * right + slope.y * up);
         out.world_position = world;
         out.clip_position = view.clip_from_world * vec4(world, 1.0);
         out.on_near_plane = 0u;
     } else {
-        // The particle reaches the near plane (or holds the camera): cover the screen on the near
-        // plane and integrate only the part of each ray's chord beyond it.
-        out.clip_position = vec4(corner, 1.0, 1.0);
-        let world = view.world_from_clip * vec4(corner, 1.0, 1.0);
-        out.world_position = world.xyz / world.w;
+        // The particle reaches the near plane (or holds the camera): on the near plane, and the
+        // fragments integrate only the part of each ray's chord beyond it.
+        let world = eye + near_plane() * (forward + slope.x * right + slope.y * up);
+        let clip = view.clip_from_world * vec4(world, 1.0);
+        out.clip_position = vec4(clip.xy / clip.w, 1.0, 1.0);
+        out.world_position = world;
         out.on_near_plane = 1u;
     }
     return out;

@@ -33,7 +33,7 @@ const PARTICLE_BYTES: u64 = 32;
 /// The scratch buffers of the voxelize rounds (render world resource): each round's particles,
 /// one cloud after the other, and their kernel sums. Grown when a frame needs more and kept for
 /// the next, so a cloud whose particles change every frame allocates nothing; shrunk when a
-/// frame needs a quarter or less (see [`scratch_capacity`]).
+/// frame needs a quarter or less (see `scratch_capacity`).
 #[derive(Resource, Default)]
 pub struct VoxelizeScratch(Vec<ScratchBuffers>);
 
