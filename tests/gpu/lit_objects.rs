@@ -306,7 +306,15 @@ enum Ground {
 /// `lit` false) and by Bevy's ambient light; the image and the shadow map's placement.
 fn standard_ground_image(ground: Ground, lit: bool) -> (LinearImage, ShadowMapPlacement) {
     let mut setup = cloud_over_ground();
-    setup.objects.clear();
+    // The lit object's ground, drawn with a `StandardMaterial` instead.
+    let SceneObject {
+        shape: ObjectShape::Cuboid(extents),
+        translation,
+        ..
+    } = setup.objects.remove(0)
+    else {
+        unreachable!("the ground is a cuboid")
+    };
     if !lit {
         setup.lights[0].irradiance = Vec3::ZERO;
     }
@@ -326,9 +334,9 @@ fn standard_ground_image(ground: Ground, lit: bool) -> (LinearImage, ShadowMapPl
     let mesh = Mesh3d(
         app.world_mut()
             .resource_mut::<Assets<Mesh>>()
-            .add(Cuboid::new(20.0, 1.0, 20.0)),
+            .add(Cuboid::from_size(extents)),
     );
-    let at = Transform::from_xyz(0.0, -0.5, 0.0);
+    let at = Transform::from_translation(translation);
     let world = app.world_mut();
     match ground {
         Ground::Standard => {
@@ -377,7 +385,7 @@ fn a_standard_material_takes_the_clouds_shadow() {
     for py in 0..H {
         for px in 0..W {
             let ray = camera.pixel_ray(px, py);
-            let Some((t, _)) = nearest_object(&ground_only(), eye, ray) else {
+            let Some((t, _)) = nearest_object(&setup.objects, eye, ray) else {
                 continue;
             };
             let transmittance = (-shadow_map_depth_at(&map, &cpu_map, eye + ray * t)).exp() as f32;
@@ -406,9 +414,4 @@ fn a_standard_material_takes_the_clouds_shadow() {
         error < 1e-3,
         "StandardMaterial ground: relative RMSE {error}"
     );
-}
-
-/// The ground of [`cloud_over_ground`], for finding its pixels.
-fn ground_only() -> Vec<SceneObject> {
-    cloud_over_ground().objects
 }
