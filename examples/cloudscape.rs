@@ -13,7 +13,8 @@
 //! times), and how many clouds are at each level of detail. Controls: Space stops or starts the
 //! sun, F the flight; arrows turn the sun by hand; drag or A/D/W/S orbit; wheel or +/- zoom;
 //! L cycles the level of detail (2, 4 pixels per voxel, off, 1), B the re-light budget (10
-//! clouds per frame, 25, no limit).
+//! clouds per frame, 25, no limit), R the draw method (rasterised, or computed: the same image,
+//! `DrawMethod::Compute`).
 //!
 //! With the sun still and the camera still, no cloud is re-lit: a frame only draws. With the
 //! camera flying and the sun still, clouds are not re-lit either: a level change waits for the
@@ -33,7 +34,7 @@ use support::{Example, Hud, HudLines, KeyLight, Options, OrbitCamera, PassCounts
 
 const EXAMPLE: Example = Example {
     title: "bevy_particle_clouds: a cloudscape",
-    controls: "Space: sun on/off | F: flight on/off | L: level of detail | B: re-light budget | arrows: sun | drag, A/D/W/S: orbit | wheel, +/-: zoom",
+    controls: "Space: sun on/off | F: flight on/off | L: level of detail | B: re-light budget | R: raster/compute | arrows: sun | drag, A/D/W/S: orbit | wheel, +/-: zoom",
     steady: false,
 };
 
@@ -147,7 +148,14 @@ fn controls(
     mut motion: ResMut<Motion>,
     mut lod: ResMut<CloudLevelOfDetail>,
     mut budget: ResMut<CloudRelightBudget>,
+    mut quality: ResMut<DefaultCloudQuality>,
 ) {
+    if keys.just_pressed(KeyCode::KeyR) {
+        quality.draw_method = match quality.draw_method {
+            DrawMethod::Raster => DrawMethod::Compute,
+            DrawMethod::Compute => DrawMethod::Raster,
+        };
+    }
     if keys.just_pressed(KeyCode::KeyB) {
         let at = BUDGETS.iter().position(|&b| b == budget.0).unwrap_or(0);
         budget.0 = BUDGETS[(at + 1) % BUDGETS.len()];
@@ -210,11 +218,12 @@ fn describe(
         .map(|p| p.particles.len())
         .sum();
     hud.lines.push(format!(
-        "{} clouds, {count} particles, at most {}^3 voxels, {} scatter iterations ({} warm)",
+        "{} clouds, {count} particles, at most {}^3 voxels, {} scatter iterations ({} warm), drawn by {:?}",
         clouds.iter().len(),
         quality.volume_resolution,
         quality.scatter_iterations,
-        quality.warm_scatter_iterations
+        quality.warm_scatter_iterations,
+        quality.draw_method
     ));
     let mut levels: HashMap<u32, usize> = HashMap::default();
     for (_, l) in &clouds {

@@ -91,7 +91,7 @@ pub use lod::{CloudLevelOfDetail, CloudLod};
 pub use particle::{LightSample, Medium, Particle};
 pub use settings::{
     BillboardShading, CloudQualitySettings, CloudRelightBudget, CloudTargetScale, Compositing,
-    DefaultCloudQuality, ScatterStencil,
+    DefaultCloudQuality, DrawMethod, ScatterStencil,
 };
 pub use shadow_maps::CloudShadowMaps;
 pub use stats::{CloudPass, CloudPassCounters, PASSES};
@@ -101,8 +101,8 @@ pub mod prelude {
     pub use crate::{
         BillboardShading, CloudGround, CloudLevelOfDetail, CloudLod, CloudQualitySettings,
         CloudRelightBudget, CloudShadowMaps, CloudSkyLight, CloudSystems, CloudTargetScale,
-        Compositing, DefaultCloudQuality, Medium, NotCloudLight, Particle, ParticleCloud,
-        ParticleCloudsPlugin, Particles, ScatterStencil, generators,
+        Compositing, DefaultCloudQuality, DrawMethod, Medium, NotCloudLight, Particle,
+        ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil, generators,
     };
 }
 

@@ -801,8 +801,13 @@ mod tests {
         let mut settings = CloudQualitySettings::default();
         apply_setting(&mut settings, "volume_resolution=64").unwrap();
         apply_setting(&mut settings, "compositing = Sorted").unwrap();
+        apply_setting(&mut settings, "draw_method=Compute").unwrap();
         assert_eq!(settings.volume_resolution, 64);
         assert_eq!(settings.compositing, crate::Compositing::Sorted);
+        assert_eq!(settings.draw_method, crate::DrawMethod::Compute);
+        let e = apply_setting(&mut settings, "draw_method=Tiled").unwrap_err();
+        assert!(matches!(e, SceneError::Parse { .. }), "{e}");
+        assert!(e.to_string().contains("Raster"), "{e}");
         let e = apply_setting(&mut settings, "chord_segments=99").unwrap_err();
         assert_eq!(
             e.to_string(),

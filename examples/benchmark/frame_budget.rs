@@ -482,11 +482,21 @@ pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
         } else {
             args.settings.iter().copied().map(Some).collect()
         };
-        for settings in variants {
+        let methods = args.draw_methods.iter().copied();
+        for (settings, method) in variants
+            .into_iter()
+            .flat_map(|s| methods.clone().map(move |m| (s, m)))
+        {
             let mut label = scene.name.to_string();
             if let Some(settings) = settings {
                 scene.scene.settings = settings;
                 label = format!("{label}: {}", setting_label(&settings));
+            }
+            // `--draw-methods`: each scene (each variant) drawn each way, labelled when
+            // computed.
+            scene.scene.settings.draw_method = method;
+            if settings.is_none() && method == DrawMethod::Compute {
+                label = format!("{label}, compute");
             }
             eprintln!("benchmark: frame budget, {label}");
             let mut row = measure(&scene, args.frames(), bandwidth, &mut adapter);

@@ -9,9 +9,10 @@
 //! cargo run --example benchmark -- --illumination [--out DIR]
 //! cargo run --example benchmark -- --voxelize [--out DIR]
 //! cargo run --example benchmark -- --scale [--out DIR]
-//! cargo run --example benchmark -- --frame-budget [--view 1920x1080] [--bandwidth 4.8] [--out DIR]
+//! cargo run --example benchmark -- --frame-budget [--view 1920x1080] [--bandwidth 4.8] [--draw-methods raster,compute] [--out DIR]
 //! cargo run --example benchmark -- --warm-start [--scenes a,b] [--out DIR]
 //! cargo run --example benchmark -- --decompose [--scenes a,b] [--spp N] [--out DIR]
+//! cargo run --example benchmark -- --raster-vs-compute [--view 1920x1080] [--layers 13] [--out DIR]
 //! ```
 //!
 //! Writes `DIR/results.csv`, `DIR/results.md` and `DIR/pareto.png` (default `DIR` is
@@ -36,6 +37,7 @@ mod fog;
 mod frame_budget;
 mod illumination;
 mod plot;
+mod raster_vs_compute;
 mod reference_cache;
 mod report;
 mod scale;
@@ -59,8 +61,8 @@ use bevy::{
 use bevy_particle_clouds::headless::{self, FrameRecorder, FrameStats};
 use bevy_particle_clouds::reference::path_tracer::Progress;
 use bevy_particle_clouds::{
-    BillboardShading, CloudLevelOfDetail, CloudPass, CloudQualitySettings, Compositing, PASSES,
-    Particle, ParticleCloud, Particles, ScatterStencil,
+    BillboardShading, CloudLevelOfDetail, CloudPass, CloudQualitySettings, Compositing, DrawMethod,
+    PASSES, Particle, ParticleCloud, Particles, ScatterStencil,
     fog::Fog,
     generators,
     image_io::{ImageMetadata, LinearImage, read_exr, write_exr_with_metadata, write_png},
@@ -139,6 +141,10 @@ pub(crate) struct Args {
     /// With --frame-budget: the view's size, pixels.
     #[arg(long, default_value = "1920x1080", value_parser = parse_view)]
     pub(crate) view: (u32, u32),
+    /// With --frame-budget: how the billboards are drawn, each in turn (comma-separated:
+    /// `raster`, `compute`).
+    #[arg(long, value_delimiter = ',', default_value = "raster", value_parser = parse_draw_method)]
+    pub(crate) draw_methods: Vec<DrawMethod>,
     /// With --frame-budget: the memory bandwidth the floors are computed at, TB/s (default: an
     /// H200's HBM3e).
     #[arg(long, default_value_t = 4.8)]
@@ -171,6 +177,13 @@ pub(crate) struct Args {
     /// scene's `shadow_map_resolution`).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]
     pub(crate) shadow_map_resolution: Option<u32>,
+    /// The draw's kind of per-pixel work in a fragment shader against a compute shader, in plain
+    /// wgpu (`raster_vs_compute.rs`), at `--view`, instead of the sweep.
+    #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "scale", "voxelize", "frame_budget"])]
+    pub(crate) raster_vs_compute: bool,
+    /// With --raster-vs-compute: billboards over each pixel (the paper's scene: 13 at 1080p).
+    #[arg(long, default_value_t = 13, value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub(crate) layers: u32,
     /// Measure only these settings (RON, as a scene file's `settings`) instead of the sweep.
     /// Repeatable.
     #[arg(long = "settings", value_name = "RON", value_parser = parse_settings)]
@@ -193,6 +206,16 @@ fn parse_view(text: &str) -> Result<(u32, u32), String> {
         Some((w, h)) if (1..=8192).contains(&w) && (1..=8192).contains(&h) => Ok((w, h)),
         _ => Err(format!(
             "`{text}` is not WIDTHxHEIGHT with each in 1..=8192"
+        )),
+    }
+}
+
+fn parse_draw_method(text: &str) -> Result<DrawMethod, String> {
+    match text {
+        "raster" => Ok(DrawMethod::Raster),
+        "compute" => Ok(DrawMethod::Compute),
+        _ => Err(format!(
+            "`{text}` is not a draw method; allowed are raster, compute"
         )),
     }
 }
@@ -226,6 +249,32 @@ fn main() -> ExitCode {
             ExitCode::from(2)
         }
     }
+}
+
+/// `--raster-vs-compute`: the default draw's per-pixel work (9 chord points, 5 lights and the
+/// multiple scattering) and the bare fragments (no chord point), three ways each; writes
+/// `DIR/raster_vs_compute.md`.
+fn raster_vs_compute_benchmark(args: &Args) -> Result<(), String> {
+    let (width, height) = args.view;
+    let mut md = String::new();
+    for points in [9, 0] {
+        let work = raster_vs_compute::Workload {
+            width,
+            height,
+            layers: args.layers,
+            points,
+            volumes: 6,
+            n: 128,
+        };
+        eprintln!("benchmark: raster vs compute, {points} points");
+        let (adapter, results) = raster_vs_compute::measure(work, args.frames())?;
+        md.push_str(&raster_vs_compute::table(&adapter, work, &results));
+        md.push('\n');
+    }
+    let path = args.out.join("raster_vs_compute.md");
+    std::fs::write(&path, &md).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+    println!("{md}");
+    Ok(())
 }
 
 /// `--decompose`: every chosen scene's error at the default settings, part by part.
@@ -267,6 +316,9 @@ fn run() -> Result<(), String> {
     }
     if args.frame_budget {
         return frame_budget_benchmark(&args);
+    }
+    if args.raster_vs_compute {
+        return raster_vs_compute_benchmark(&args);
     }
     if args.voxelize {
         return voxelize_benchmark(&args);
@@ -641,6 +693,8 @@ fn replot(args: &Args) -> Result<(), String> {
             },
             // The sweep draws at full size; `--cloud-target` measures the scales.
             cloud_target_scale: 1.0,
+            // The sweep rasterises; `--frame-budget --settings` measures the compute draw.
+            draw_method: DrawMethod::Raster,
             // The sweep's frames are still; `--warm-start` measures the warm restart.
             warm_scatter_iterations: 0,
         };

@@ -55,8 +55,12 @@ pub(crate) fn setting_label(s: &CloudQualitySettings) -> String {
     } else {
         String::new()
     };
+    let method = match s.draw_method {
+        DrawMethod::Raster => "",
+        DrawMethod::Compute => " compute",
+    };
     format!(
-        "{}³ ×{} {stencil} K{} L{}{compositing}{shading}{target}",
+        "{}³ ×{} {stencil} K{} L{}{compositing}{shading}{target}{method}",
         s.volume_resolution, s.scatter_iterations, s.chord_segments, s.light_supersampling
     )
 }

@@ -15,6 +15,7 @@ pub(crate) const PREVIOUS_DEFAULT: CloudQualitySettings = CloudQualitySettings {
     compositing: Compositing::Sorted,
     billboard_shading: BillboardShading::Chord,
     cloud_target_scale: 1.0,
+    draw_method: DrawMethod::Raster,
 };
 
 /// The quality settings of a sweep: the defaults, then each knob varied on its own around them

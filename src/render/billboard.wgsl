@@ -13,6 +13,12 @@
 // attachment; each fragment is depth-tested here against the view pixel its texel stands for
 // (cloud_target.wgsl enlarges the target onto the view).
 //
+// COMPUTE_DRAW (with CLOUD_TARGET and VIEW_TRANSMITTANCE): no rasteriser. `splat` evaluates each
+// particle's fragments in a compute shader, over the target texels whose centres its rectangle
+// covers, and adds their light and optical depth into per-texel sums; `resolve_splats` writes
+// the sums into the cloud target as `accumulate`'s blending would have left it. Same image, but
+// fragment shaders run this work many times slower on some GPUs (README, "On a real GPU").
+//
 // DISTANCE_FOG: every piece of every chord is fogged at its own distance (fog.wgsl).
 #import bevy_particle_clouds::fog::{CloudFog, fog_colour, fogged}
 #import bevy_particle_clouds::types::{Particle, CloudParams, LightParams, ViewVolumeParams, CloudTargetParams, grid_coords, henyey_greenstein, flux_element, quadrupole_element, phase_on_moments, light_coords, clamped_lookup, clamped_corner, corner_weight, opacity, voxel_index, view_volume_coords, front_map_index, view_columns, column_corner, cloud_target_depth_pixel}
@@ -39,6 +45,11 @@ struct DrawParams {
 @group(0) @binding(2) var scene_depth: texture_depth_2d;
 #endif
 @group(0) @binding(3) var<uniform> fog: CloudFog;
+#ifdef COMPUTE_DRAW
+// Per target texel: the light (r, g, b) and the particles' own optical depth, f32 bits.
+@group(0) @binding(4) var<storage, read_write> sums: array<atomic<u32>>;
+@group(0) @binding(5) var target_texels: texture_storage_2d<rgba16float, write>;
+#endif
 #else
 @group(0) @binding(1) var<uniform> fog: CloudFog;
 #endif
@@ -119,67 +130,101 @@ fn screen_span(x: f32, z: f32, r: f32, screen: f32) -> vec2<f32> {
     return clamp(vec2(span.x, max(span.x, span.y)), vec2(-screen), vec2(screen));
 }
 
+// A particle's billboard in this view: the rectangle of the screen that the part of its sphere
+// beyond the near plane covers (0.1 % of it to spare either side for rounding), in units of
+// lateral offset / depth along the view's right (`span_x`) and up (`span_y`) axes.
+struct Billboard {
+    centre: vec3<f32>,
+    radius: f32,
+    density: f32,
+    // Along the view direction, from the eye to the centre.
+    depth: f32,
+    span_x: vec2<f32>,
+    span_y: vec2<f32>,
+    // Entirely behind the near plane: nothing to draw.
+    behind: bool,
+    // Reaches the near plane (or holds the camera): the billboard lies on the near plane, and
+    // the fragments integrate only the part of each ray's chord beyond it.
+    on_near_plane: bool,
+}
+
+fn billboard(index: u32) -> Billboard {
+    let particle = particles[index];
+    var b: Billboard;
+    b.centre = (params.world_from_local * vec4(particle.position_radius.xyz, 1.0)).xyz;
+    b.radius = particle.position_radius.w * params.scale;
+    b.density = particle.density.x;
+    let to_centre = b.centre - view.world_position;
+    b.depth = dot(to_centre, -view.world_from_view[2].xyz);
+    b.behind = b.depth + b.radius <= near_plane();
+    b.on_near_plane = b.depth - b.radius < near_plane();
+    let screen = 1.01 / vec2(view.clip_from_view[0][0], view.clip_from_view[1][1]);
+    let span_x = screen_span(dot(to_centre, view.world_from_view[0].xyz), b.depth, b.radius, screen.x);
+    let span_y = screen_span(dot(to_centre, view.world_from_view[1].xyz), b.depth, b.radius, screen.y);
+    let pad = 0.001 * vec2(span_x.y - span_x.x, span_y.y - span_y.x);
+    b.span_x = span_x + vec2(-pad.x, pad.x);
+    b.span_y = span_y + vec2(-pad.y, pad.y);
+    return b;
+}
+
+// The billboard's world point at `slope` (lateral offset / depth along right and up): in the
+// plane at the particle's depth, or on the near plane.
+fn billboard_point(b: Billboard, slope: vec2<f32>) -> vec3<f32> {
+    let along = -view.world_from_view[2].xyz + slope.x * view.world_from_view[0].xyz
+        + slope.y * view.world_from_view[1].xyz;
+    return view.world_position + select(b.depth, near_plane(), b.on_near_plane) * along;
+}
+
+// The billboard's depth in the depth buffer's terms (reverse Z) at world point `world`.
+fn billboard_depth(b: Billboard, world: vec3<f32>) -> f32 {
+    if b.on_near_plane {
+        return 1.0;
+    }
+    let clip = view.clip_from_world * vec4(world, 1.0);
+    return clip.z / clip.w;
+}
+
+// What every fragment of a particle's billboard shares.
+fn flat_output(index: u32, b: Billboard) -> VertexOutput {
+    var out: VertexOutput;
+    out.centre_radius = vec4(b.centre, b.radius);
+    out.density = b.density;
+    out.on_near_plane = u32(b.on_near_plane);
+    out.centre_light = vec3(0.0);
+#ifndef ALPHA_ONLY
+    if params.centre_shading != 0u {
+        let local = particles[index].position_radius.xyz;
+        let ray = normalize((params.local_from_world * vec4(b.centre - view.world_position, 0.0)).xyz);
+        out.centre_light = scattered_at(local, ray);
+    }
+#endif
+    return out;
+}
+
 @vertex
 fn vertex(@builtin(vertex_index) vertex_index: u32, @builtin(instance_index) instance_index: u32) -> VertexOutput {
     // A four-vertex triangle strip per instance: (-1,-1), (1,-1), (-1,1), (1,1).
-    let corner = vec2(f32(vertex_index & 1u), f32(vertex_index >> 1u)) * 2.0 - 1.0;
+    let corner = vec2(f32(vertex_index & 1u), f32(vertex_index >> 1u));
 #ifdef VIEW_TRANSMITTANCE
     let index = instance_index;
 #else
     let index = order[instance_index];
 #endif
-    let particle = particles[index];
-    let centre = (params.world_from_local * vec4(particle.position_radius.xyz, 1.0)).xyz;
-    let radius = particle.position_radius.w * params.scale;
-    let eye = view.world_position;
-    let forward = -view.world_from_view[2].xyz;
-    let right = view.world_from_view[0].xyz;
-    let up = view.world_from_view[1].xyz;
-    let to_centre = centre - eye;
-    let depth = dot(to_centre, forward);
-
-    var out: VertexOutput;
-    out.centre_radius = vec4(centre, radius);
-    out.density = particle.density.x;
-    out.centre_light = vec3(0.0);
-#ifndef ALPHA_ONLY
-    if params.centre_shading != 0u {
-        let ray = normalize((params.local_from_world * vec4(to_centre, 0.0)).xyz);
-        out.centre_light = scattered_at(particle.position_radius.xyz, ray);
-    }
-#endif
-    if depth + radius <= near_plane() {
-        // Entirely behind the near plane: a degenerate triangle, culled before rasterisation.
+    let b = billboard(index);
+    var out = flat_output(index, b);
+    if b.behind {
+        // A degenerate triangle, culled before rasterisation.
         out.clip_position = vec4(2.0, 2.0, 2.0, 1.0);
-        out.world_position = centre;
-        out.on_near_plane = 0u;
+        out.world_position = b.centre;
         return out;
     }
-    // The rectangle of the screen that the sphere's part beyond the near plane covers (0.1 % of
-    // it to spare either side for rounding), in units of lateral offset / depth.
-    let screen = 1.01 / vec2(view.clip_from_view[0][0], view.clip_from_view[1][1]);
-    let span_x = screen_span(dot(to_centre, right), depth, radius, screen.x);
-    let span_y = screen_span(dot(to_centre, up), depth, radius, screen.y);
-    let pad = 0.001 * vec2(span_x.y - span_x.x, span_y.y - span_y.x);
-    let along = corner * 0.5 + 0.5;
-    let slope = vec2(
-        mix(span_x.x - pad.x, span_x.y + pad.x, along.x),
-        mix(span_y.x - pad.y, span_y.y + pad.y, along.y),
-    );
-    if depth - radius >= near_plane() {
-        // In the plane at the particle's depth.
-        let world = eye + depth * (forward + slope.x * right + slope.y * up);
-        out.world_position = world;
-        out.clip_position = view.clip_from_world * vec4(world, 1.0);
-        out.on_near_plane = 0u;
-    } else {
-        // The particle reaches the near plane (or holds the camera): on the near plane, and the
-        // fragments integrate only the part of each ray's chord beyond it.
-        let world = eye + near_plane() * (forward + slope.x * right + slope.y * up);
-        let clip = view.clip_from_world * vec4(world, 1.0);
+    let slope = vec2(mix(b.span_x.x, b.span_x.y, corner.x), mix(b.span_y.x, b.span_y.y, corner.y));
+    out.world_position = billboard_point(b, slope);
+    let clip = view.clip_from_world * vec4(out.world_position, 1.0);
+    if b.on_near_plane {
         out.clip_position = vec4(clip.xy / clip.w, 1.0, 1.0);
-        out.world_position = world;
-        out.on_near_plane = 1u;
+    } else {
+        out.clip_position = clip;
     }
     return out;
 }
@@ -614,5 +659,98 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     }
     let alpha = 1.0 - transmittance;
     return vec4(colour, alpha);
+}
+#endif
+
+#ifdef COMPUTE_DRAW
+// Adds `v` to the f32 whose bits `sums[i]` holds (WGSL has no float atomics): retried until no
+// other invocation wrote in between.
+fn add_to_sum(i: u32, v: f32) {
+    if v == 0.0 {
+        return;
+    }
+    var old = atomicLoad(&sums[i]);
+    loop {
+        let swap = atomicCompareExchangeWeak(&sums[i], old, bitcast<u32>(bitcast<f32>(old) + v));
+        if swap.exchanged {
+            break;
+        }
+        old = swap.old_value;
+    }
+}
+
+// The target texels whose centres the billboard's rectangle covers, as a rasteriser takes them:
+// (first x, first y, last x, last y), empty where a last is below its first.
+fn covered_texels(b: Billboard) -> vec4<i32> {
+    let size = vec2<f32>(cloud_target.target_size);
+    let ndc_x = b.span_x * view.clip_from_view[0][0];
+    let ndc_y = b.span_y * view.clip_from_view[1][1];
+    // Texel t's centre lies at ndc x = 2 (t + 0.5) / size - 1, and y the other way up.
+    let x = (ndc_x + 1.0) * 0.5 * size.x - 0.5;
+    let y = (1.0 - ndc_y.yx) * 0.5 * size.y - 0.5;
+    let first = max(vec2<i32>(ceil(vec2(x.x, y.x))), vec2(0));
+    let last = min(vec2<i32>(floor(vec2(x.y, y.y))), vec2<i32>(size) - 1);
+    return vec4(first, last);
+}
+
+// Texel t's centre in units of lateral offset / depth.
+fn texel_slope(t: vec2<i32>) -> vec2<f32> {
+    let ndc = (vec2<f32>(t) + 0.5) / vec2<f32>(cloud_target.target_size) * vec2(2.0, -2.0) + vec2(-1.0, 1.0);
+    return ndc / vec2(view.clip_from_view[0][0], view.clip_from_view[1][1]);
+}
+
+// One workgroup per particle and z slice: its 8x8 blocks of covered texels are dealt out over
+// the z slices, each invocation one texel of a block, as `accumulate` would shade it.
+@compute @workgroup_size(8, 8, 1)
+fn splat(
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_id) local: vec3<u32>,
+) {
+    let index = group.x + group.y * groups.x;
+    if index >= arrayLength(&particles) {
+        return;
+    }
+    let b = billboard(index);
+    let texels = covered_texels(b);
+    if b.behind || any(texels.zw < texels.xy) {
+        return;
+    }
+    let blocks = (vec2<u32>(texels.zw - texels.xy) + 8u) / 8u;
+    var in = flat_output(index, b);
+    for (var k = group.z; k < blocks.x * blocks.y; k += groups.z) {
+        let t = texels.xy + vec2<i32>(vec2(k % blocks.x, k / blocks.x) * 8u + local.xy);
+        if any(t > texels.zw) {
+            continue;
+        }
+        in.world_position = billboard_point(b, texel_slope(t));
+        in.clip_position = vec4(vec2<f32>(t) + 0.5, billboard_depth(b, in.world_position), 1.0);
+        let c = chord(in);
+        if !c.seen {
+            continue;
+        }
+        let light = emitted(in, c);
+        let i = 4u * (u32(t.y) * cloud_target.target_size.x + u32(t.x));
+        add_to_sum(i, light.r);
+        add_to_sum(i + 1u, light.g);
+        add_to_sum(i + 2u, light.b);
+        add_to_sum(i + 3u, own_depth(c, c.s1));
+    }
+}
+
+// The sums into the cloud target: the light, and 1 - the product of the transmittances.
+@compute @workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)
+fn resolve_splats(@builtin(global_invocation_id) id: vec3<u32>) {
+    if any(id.xy >= cloud_target.target_size) {
+        return;
+    }
+    let i = 4u * (id.y * cloud_target.target_size.x + id.x);
+    let light = vec3(
+        bitcast<f32>(atomicLoad(&sums[i])),
+        bitcast<f32>(atomicLoad(&sums[i + 1u])),
+        bitcast<f32>(atomicLoad(&sums[i + 2u])),
+    );
+    let tau = bitcast<f32>(atomicLoad(&sums[i + 3u]));
+    textureStore(target_texels, id.xy, vec4(light, opacity(tau)));
 }
 #endif

@@ -25,11 +25,11 @@ use bevy::{
         render_resource::{
             BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries,
             BlendState, BufferInitDescriptor, BufferUsages, CachedRenderPipelineId,
-            ColorTargetState, ColorWrites, FragmentState, LoadOp, Operations, PipelineCache,
-            RenderPassColorAttachment, RenderPassDescriptor, RenderPipelineDescriptor,
-            ShaderStages, ShaderType, SpecializedRenderPipeline, SpecializedRenderPipelines,
-            StoreOp, TextureDescriptor, TextureDimension, TextureFormat, TextureSampleType,
-            TextureUsages,
+            ColorTargetState, ColorWrites, ComputePassDescriptor, FragmentState, LoadOp,
+            Operations, PipelineCache, RenderPassColorAttachment, RenderPassDescriptor,
+            RenderPipelineDescriptor, ShaderStages, ShaderType, SpecializedRenderPipeline,
+            SpecializedRenderPipelines, StoreOp, TextureDescriptor, TextureDimension,
+            TextureFormat, TextureSampleType, TextureUsages,
             binding_types::{
                 texture_2d, texture_depth_2d, texture_depth_2d_multisampled, uniform_buffer,
                 uniform_buffer_sized,
@@ -52,10 +52,13 @@ use super::{
     key_of,
     particles::GpuParticles,
     shaders::CloudShaders,
+    splat::{
+        SplatResources, ViewSplatPipelines, dispatch_resolve, dispatch_splat, splat_resources,
+    },
 };
 use crate::{
     cloud::ParticleCloud,
-    settings::CloudTargetScale,
+    settings::{CloudTargetScale, DrawMethod},
     stats::{CloudPass, CloudPassCounters},
 };
 
@@ -105,19 +108,28 @@ impl CloudTargetParams {
     }
 }
 
-/// A view's cloud target, when its scale is below 1: the scale and the target's size. Decided in
-/// `PrepareViews`, before the billboards are queued.
+/// A view's cloud target, when its scale is below 1 or it computes its clouds' pixels
+/// (`DrawMethod::Compute`): the scale and the target's size. Decided in `PrepareViews`, before
+/// the billboards are queued.
 #[derive(Component, Clone, Copy, Debug, PartialEq)]
 pub struct ViewCloudTarget {
     /// The target's parameters (scale and sizes).
     pub params: CloudTargetParams,
     /// Whether the view's depth is multisampled.
     pub multisampled: bool,
+    /// Whether its view-transmittance clouds are splatted by compute (splat.rs) instead of
+    /// rasterised.
+    pub compute: bool,
 }
 
-/// The clouds a view with a cloud target draws into it, back to front, with their pipelines.
+/// The clouds a view with a cloud target rasterises into it, back to front, with their
+/// pipelines.
 #[derive(Component, Default)]
 pub struct ViewCloudDraws(pub Vec<(Entity, CachedRenderPipelineId)>);
+
+/// The clouds a computing view splats into its cloud target (before it rasterises the others).
+#[derive(Component, Default)]
+pub struct ViewCloudSplats(pub Vec<Entity>);
 
 /// A view's cloud target texture and its bind groups.
 #[derive(Component)]
@@ -130,6 +142,8 @@ pub struct ViewCloudTargetResources {
     pub billboard_view: BindGroup,
     /// The composite's group: target parameters, target, depth.
     pub composite: BindGroup,
+    /// A computing view's sums and splat group.
+    pub splat: Option<SplatResources>,
 }
 
 /// Group 0 of the billboard pipeline when drawing into a cloud target.
@@ -162,7 +176,9 @@ fn composite_layout(multisampled: bool) -> BindGroupLayoutDescriptor {
     )
 }
 
-fn depth_binding(multisampled: bool) -> bevy::render::render_resource::BindGroupLayoutEntryBuilder {
+pub(crate) fn depth_binding(
+    multisampled: bool,
+) -> bevy::render::render_resource::BindGroupLayoutEntryBuilder {
     if multisampled {
         texture_depth_2d_multisampled()
     } else {
@@ -301,18 +317,25 @@ fn choose_cloud_targets(
             .filter_map(|(e, _)| clouds.get(*e).ok())
             .collect();
         let scale = view_scale(camera_scale, seen.iter().copied());
+        let compute = seen
+            .iter()
+            .any(|c| c.settings.draw_method == DrawMethod::Compute);
         // No cloud in view: no target (and no texture kept alive).
-        if scale >= 1.0 || seen.is_empty() {
-            commands
-                .entity(entity)
-                .remove::<(ViewCloudTarget, ViewCloudDraws, ViewCloudTargetResources)>();
+        if (scale >= 1.0 && !compute) || seen.is_empty() {
+            commands.entity(entity).remove::<(
+                ViewCloudTarget,
+                ViewCloudDraws,
+                ViewCloudSplats,
+                ViewCloudTargetResources,
+            )>();
             continue;
         }
         camera.depth_texture_usages.0 |= TextureUsages::TEXTURE_BINDING.bits();
         let viewport = view.viewport;
         commands.entity(entity).insert(ViewCloudTarget {
-            params: CloudTargetParams::new(viewport.xy(), viewport.zw(), scale),
+            params: CloudTargetParams::new(viewport.xy(), viewport.zw(), scale.min(1.0)),
             multisampled: msaa.samples() > 1,
+            compute,
         });
     }
 }
@@ -375,9 +398,11 @@ fn prepare_cloud_targets(
                 sample_count: 1,
                 dimension: TextureDimension::D2,
                 format: CLOUD_TARGET_FORMAT,
-                // Copied out by the tests that check the upsample against its CPU reference.
+                // Copied out by the tests that check the upsample against its CPU reference;
+                // written as storage by the splats' resolve.
                 usage: TextureUsages::RENDER_ATTACHMENT
                     | TextureUsages::TEXTURE_BINDING
+                    | TextureUsages::STORAGE_BINDING
                     | TextureUsages::COPY_SRC,
                 view_formats: &[],
             },
@@ -388,6 +413,7 @@ fn prepare_cloud_targets(
             [p.viewport_origin, p.viewport_size, p.target_size],
             [p.scale, p.depth_tolerance].map(f32::to_bits),
             target.multisampled,
+            target.compute,
             texture.default_view.id(),
             depth.view().id(),
             view_buffer.id(),
@@ -420,11 +446,24 @@ fn prepare_cloud_targets(
                 depth.view(),
             )),
         );
+        let splat = target.compute.then(|| {
+            splat_resources(
+                &device,
+                &cache,
+                target,
+                view_binding.clone(),
+                &params,
+                depth.view(),
+                fog_binding.clone(),
+                &texture.default_view,
+            )
+        });
         commands.entity(entity).insert(ViewCloudTargetResources {
             key,
             texture,
             billboard_view,
             composite,
+            splat,
         });
     }
 }
@@ -442,6 +481,8 @@ fn draw_cloud_target(
         &ViewCloudDraws,
         &ViewCloudTargetResources,
         &ViewCompositePipeline,
+        &ViewCloudTarget,
+        Option<(&ViewCloudSplats, &ViewSplatPipelines)>,
     )>,
     clouds: Query<(&ExtractedCloud, &CloudDrawBindGroups)>,
     particles: Res<RenderAssets<GpuParticles>>,
@@ -450,17 +491,69 @@ fn draw_cloud_target(
     counters: Res<CloudPassCounters>,
     mut ctx: RenderContext,
 ) {
-    let (camera, extracted, target, offset, fog, draws, resources, composite) = view.into_inner();
+    let (
+        camera,
+        extracted,
+        target,
+        offset,
+        fog,
+        draws,
+        resources,
+        composite,
+        target_params,
+        splats,
+    ) = view.into_inner();
+    let view_splat_pipelines = splats.map(|(_, p)| p);
     let Some(composite) = cache.get_render_pipeline(composite.0) else {
         return;
     };
-    if draws.0.is_empty() {
+    let splats: Vec<(&BindGroup, u32)> = splats
+        .map(|(s, _)| &s.0[..])
+        .unwrap_or_default()
+        .iter()
+        .filter_map(|&entity| {
+            let (cloud, groups) = clouds.get(entity).ok()?;
+            let group = groups.groups.get(&extracted.retained_view_entity)?;
+            Some((group, particles.get(cloud.particles)?.count))
+        })
+        .collect();
+    if draws.0.is_empty() && splats.is_empty() {
         return;
     }
     let recorder = ctx.diagnostic_recorder();
     let recorder = recorder.as_deref();
     // The draw's span (`CloudPass::Draw`), here around the cloud target's draw and composite.
     let span = recorder.time_span(ctx.command_encoder(), CloudPass::Draw.span_name());
+    let splatted = match (view_splat_pipelines, &resources.splat) {
+        (Some(pipelines), Some(splat)) if !splats.is_empty() => {
+            let (Some(splat_pipeline), Some(resolve)) = (
+                cache.get_compute_pipeline(pipelines.splat),
+                cache.get_compute_pipeline(pipelines.resolve),
+            ) else {
+                span.end(ctx.command_encoder());
+                return;
+            };
+            let encoder = ctx.command_encoder();
+            encoder.clear_buffer(&splat.sums, 0, None);
+            let mut pass = encoder.begin_compute_pass(&ComputePassDescriptor {
+                label: Some("particle_clouds_splat"),
+                ..default()
+            });
+            pass.set_pipeline(splat_pipeline);
+            pass.set_bind_group(0, &splat.group, &[offset.offset, fog.0]);
+            let mut dispatches = 0;
+            for &(group, count) in &splats {
+                pass.set_bind_group(1, group, &[]);
+                dispatches += dispatch_splat(&mut pass, count);
+            }
+            pass.set_pipeline(resolve);
+            dispatch_resolve(&mut pass, &target_params.params);
+            counters.add_dispatches(CloudPass::Draw, dispatches + 1);
+            counters.add(CloudPass::Draw, splats.len() as u32);
+            true
+        }
+        _ => false,
+    };
     let mut pass = ctx.begin_tracked_render_pass(RenderPassDescriptor {
         label: Some("particle_clouds_cloud_target_draw"),
         color_attachments: &[Some(RenderPassColorAttachment {
@@ -468,7 +561,12 @@ fn draw_cloud_target(
             depth_slice: None,
             resolve_target: None,
             ops: Operations {
-                load: LoadOp::Clear(Default::default()),
+                // Over the splats, else from no cloud.
+                load: if splatted {
+                    LoadOp::Load
+                } else {
+                    LoadOp::Clear(Default::default())
+                },
                 store: StoreOp::Store,
             },
         })],

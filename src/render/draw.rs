@@ -48,7 +48,7 @@ use bevy::{
 use crate::beam_phase::BeamPhase;
 
 use super::{
-    cloud_target::{ViewCloudDraws, ViewCloudTarget},
+    cloud_target::{ViewCloudDraws, ViewCloudSplats, ViewCloudTarget},
     extract::ExtractedCloud,
     fog::{CloudFogParams, CloudFogUniforms, ExtractedCloudFog, FogMode, ViewCloudFogOffset},
     gpu::uniform_bytes,
@@ -101,6 +101,11 @@ pub struct BillboardPipeline {
 }
 
 impl BillboardPipeline {
+    /// `billboard.wgsl`.
+    pub fn shader(&self) -> Handle<Shader> {
+        self.shader.clone()
+    }
+
     fn cloud_layout(&self, compositing: Compositing) -> &BindGroupLayoutDescriptor {
         match compositing {
             Compositing::Sorted => &self.sorted_layout,
@@ -138,10 +143,11 @@ pub(crate) fn init_billboard_pipeline(mut commands: Commands, shaders: Res<Cloud
             ),
         ),
     );
+    // Also the splat's (`DrawMethod::Compute`, splat.rs).
     let view_transmittance_layout = BindGroupLayoutDescriptor::new(
         "particle_clouds_billboard_view_transmittance_layout",
         &BindGroupLayoutEntries::sequential(
-            ShaderStages::VERTEX_FRAGMENT,
+            ShaderStages::VERTEX_FRAGMENT | ShaderStages::COMPUTE,
             (
                 uniform(),
                 uniform(),
@@ -638,6 +644,8 @@ pub(crate) fn queue_cloud_billboards(
         let here = &view.retained_view_entity;
         let view_from_world = view.world_from_view.affine().inverse();
         let mut into_target = Vec::new();
+        let mut splats = Vec::new();
+        let computed = cloud_target.is_some_and(|t| t.compute);
         let mut groups = CloudGroups::default();
         let group_of = atlases.0.get(here).map(|a| &a.groups);
         for &(render_entity, _) in &class.entities_cpu_culling {
@@ -667,6 +675,10 @@ pub(crate) fn queue_cloud_billboards(
             let centre = cloud
                 .world_from_local
                 .transform_point3(gpu.bounds.map_or(Vec3::ZERO, |b| b.centre));
+            if computed && cloud.settings.compositing == Compositing::ViewTransmittance {
+                splats.push(render_entity);
+                continue;
+            }
             if cloud_target.is_some() {
                 // View space looks down -z: the farthest has the most negative z.
                 let z = view_from_world.transform_point3(centre).z;
@@ -684,7 +696,9 @@ pub(crate) fn queue_cloud_billboards(
         if cloud_target.is_some() {
             into_target.sort_by(|a, b| a.0.total_cmp(&b.0));
             let draws = into_target.into_iter().map(|(_, e, p)| (e, p)).collect();
-            commands.entity(entity).insert(ViewCloudDraws(draws));
+            commands
+                .entity(entity)
+                .insert((ViewCloudDraws(draws), ViewCloudSplats(splats)));
             continue;
         }
         let mut members = ViewCloudGroups::default();

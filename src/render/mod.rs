@@ -19,6 +19,7 @@
 //! | `draw.rs` | the billboard draw in `Transparent3d` |
 //! | `fog.rs` | each view's distance fog, applied to every piece of every chord |
 //! | `cloud_target.rs` | the paper's §4: billboards into a reduced-resolution target, upsampled by depth |
+//! | `splat.rs` | the draw by compute instead of the rasteriser, into the cloud target |
 //! | `workgroups.rs` | workgroup sizes and dispatches, shared with the WGSL as shader defs |
 //! | `gpu.rs` | buffers, their encodings, and a recorded stage (compute pass, GPU time span, counter) |
 //! | `shaders.rs` | the WGSL beside each stage (`*.wgsl`), embedded |
@@ -40,6 +41,7 @@ pub mod pools;
 pub mod shaders;
 pub mod shadow_maps;
 pub mod sort;
+pub mod splat;
 pub mod view_atlas;
 pub mod view_volume;
 pub mod volumes;
@@ -255,4 +257,5 @@ pub(crate) fn finish(app: &mut App) {
     #[cfg(feature = "distance_fog")]
     render_app.add_systems(ExtractSchedule, fog::extract_cloud_fog);
     cloud_target::finish(render_app);
+    splat::finish(render_app);
 }

@@ -335,9 +335,11 @@ mod tests {
             (p.voxelize, p.shade.len(), p.gather, p.scatter),
             (false, 0, false, Some(64))
         );
-        // Another draw target scale (or compositing, or chord segments): no illumination.
+        // Another draw target scale (or compositing, chord segments, draw method): no
+        // illumination.
         let drawn_smaller = CloudQualitySettings {
             cloud_target_scale: 0.5,
+            draw_method: crate::DrawMethod::Compute,
             chord_segments: 2,
             compositing: crate::Compositing::Sorted,
             ..settings

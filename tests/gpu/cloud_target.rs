@@ -28,7 +28,7 @@ const FRONT: Vec3 = Vec3::new(0.9, 0.1, 0.1);
 const BACK: Vec3 = Vec3::new(0.1, 0.9, 0.1);
 
 /// A smooth cloud with a small box in front of it and a wall behind it: edges of both kinds.
-fn occluded_setup(compositing: Compositing, scale: f32) -> Setup {
+pub(crate) fn occluded_setup(compositing: Compositing, scale: f32) -> Setup {
     let camera = Transform::from_xyz(0.0, 0.0, 5.0).looking_at(Vec3::ZERO, Vec3::Y);
     let mut setup = cloud_setup(3, camera);
     // Big, overlapping particles: a smooth cloud, whose image a half-size target loses little of,
@@ -57,7 +57,7 @@ fn occluded_setup(compositing: Compositing, scale: f32) -> Setup {
 }
 
 /// The view's cloud target texture, its parameters and the view's depth texture.
-fn view_textures(app: &mut App) -> (ViewCloudTarget, Texture, Texture) {
+pub(crate) fn view_textures(app: &mut App) -> (ViewCloudTarget, Texture, Texture) {
     common::with_render_world(app, |world| {
         let mut views = world.query::<(
             &ViewCloudTarget,
@@ -73,7 +73,7 @@ fn view_textures(app: &mut App) -> (ViewCloudTarget, Texture, Texture) {
     })
 }
 
-fn rgba16f(bytes: &[u8]) -> Vec<[f32; 4]> {
+pub(crate) fn rgba16f(bytes: &[u8]) -> Vec<[f32; 4]> {
     bytes
         .chunks_exact(8)
         .map(|t| std::array::from_fn(|c| f16_to_f32(u16::from_le_bytes([t[2 * c], t[2 * c + 1]]))))

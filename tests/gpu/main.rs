@@ -17,5 +17,6 @@ mod plugin;
 mod seen_multiple;
 mod shading_method;
 mod sky;
+mod splat;
 mod stress;
 mod warm_start;

@@ -1,0 +1,218 @@
+//! The draw without the rasteriser (`DrawMethod::Compute`): into a view's cloud target, a compute
+//! shader (`splat` in `billboard.wgsl`) evaluates each view-transmittance cloud's particles over
+//! the target texels their screen rectangles cover, exactly as the `accumulate` fragment shader
+//! would, and sums each texel's light and optical depth with atomic adds; `resolve_splats` then
+//! writes the sums into the target as `accumulate`'s blending would have left it. The image is
+//! the rasterised one; the work runs where some GPUs run it many times faster.
+
+use bevy::{
+    prelude::*,
+    render::{
+        render_resource::{
+            BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer,
+            BufferDescriptor, BufferUsages, CachedComputePipelineId, ComputePass,
+            ComputePipelineDescriptor, PipelineCache, ShaderStages, SpecializedComputePipeline,
+            SpecializedComputePipelines, StorageTextureAccess, TextureView,
+            binding_types::{storage_buffer_sized, texture_storage_2d, uniform_buffer},
+        },
+        renderer::RenderDevice,
+        view::{ExtractedView, ViewUniform},
+    },
+};
+
+use super::{
+    cloud_target::{CLOUD_TARGET_FORMAT, CloudTargetParams, ViewCloudTarget},
+    draw::BillboardPipeline,
+    fog::{CloudFogParams, ExtractedCloudFog, FogMode},
+    workgroups::SLICE,
+};
+
+/// Workgroups per particle (the z dimension of a splat's dispatch): a particle's 8×8 blocks of
+/// texels are dealt out over them, so that one large particle is shaded by several workgroups.
+pub const SPLAT_SLICES: u32 = 8;
+
+/// Bytes per cloud-target texel of the sums: light (r, g, b) and optical depth, f32 each.
+const SUM_BYTES: u64 = 16;
+
+/// Group 0 of the splat and resolve pipelines: the cloud target's billboard view group (view,
+/// target parameters, depth, fog), then the sums and the target as storage.
+pub(crate) fn splat_view_layout(multisampled: bool) -> BindGroupLayoutDescriptor {
+    BindGroupLayoutDescriptor::new(
+        "particle_clouds_splat_view_layout",
+        &BindGroupLayoutEntries::sequential(
+            ShaderStages::COMPUTE,
+            (
+                uniform_buffer::<ViewUniform>(true),
+                uniform_buffer::<CloudTargetParams>(false),
+                super::cloud_target::depth_binding(multisampled),
+                uniform_buffer::<CloudFogParams>(true),
+                storage_buffer_sized(false, None),
+                texture_storage_2d(CLOUD_TARGET_FORMAT, StorageTextureAccess::WriteOnly),
+            ),
+        ),
+    )
+}
+
+/// The splat and resolve pipelines: `billboard.wgsl` compiled with `COMPUTE_DRAW`.
+#[derive(Resource)]
+pub struct SplatPipeline {
+    shader: Handle<Shader>,
+    cloud_layout: BindGroupLayoutDescriptor,
+}
+
+/// What a splat pipeline depends on.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+pub struct SplatPipelineKey {
+    /// Whether the view's depth is multisampled.
+    pub multisampled_depth: bool,
+    /// The view's distance fog, if any.
+    pub fog: Option<FogMode>,
+    /// `resolve_splats` instead of `splat`.
+    pub resolve: bool,
+}
+
+impl SpecializedComputePipeline for SplatPipeline {
+    type Key = SplatPipelineKey;
+
+    fn specialize(&self, key: Self::Key) -> ComputePipelineDescriptor {
+        let mut shader_defs = super::workgroups::shader_defs();
+        shader_defs.extend(["VIEW_TRANSMITTANCE", "CLOUD_TARGET", "COMPUTE_DRAW"].map(Into::into));
+        if key.multisampled_depth {
+            shader_defs.push("MULTISAMPLED".into());
+        }
+        if let Some(fog) = key.fog {
+            shader_defs.extend(fog.shader_defs().map(Into::into));
+        }
+        let entry_point = if key.resolve {
+            "resolve_splats"
+        } else {
+            "splat"
+        };
+        ComputePipelineDescriptor {
+            label: Some(format!("particle_clouds_{entry_point}").into()),
+            layout: vec![
+                splat_view_layout(key.multisampled_depth),
+                self.cloud_layout.clone(),
+            ],
+            shader: self.shader.clone(),
+            shader_defs,
+            entry_point: Some(entry_point.into()),
+            ..default()
+        }
+    }
+}
+
+pub(crate) fn init_splat_pipeline(mut commands: Commands, billboards: Res<BillboardPipeline>) {
+    commands.insert_resource(SplatPipeline {
+        shader: billboards.shader(),
+        cloud_layout: billboards.view_transmittance_layout.clone(),
+    });
+}
+
+/// A computing view's splat and resolve pipelines, specialized in `Queue`.
+#[derive(Component, Clone, Copy)]
+pub struct ViewSplatPipelines {
+    /// `splat`.
+    pub splat: CachedComputePipelineId,
+    /// `resolve_splats`.
+    pub resolve: CachedComputePipelineId,
+}
+
+pub(crate) fn queue_splat_pipelines(
+    mut commands: Commands,
+    pipeline: Option<Res<SplatPipeline>>,
+    mut pipelines: ResMut<SpecializedComputePipelines<SplatPipeline>>,
+    cache: Res<PipelineCache>,
+    views: Query<(Entity, &ViewCloudTarget, Option<&ExtractedCloudFog>), With<ExtractedView>>,
+) {
+    let Some(pipeline) = pipeline else { return };
+    for (entity, target, fog) in &views {
+        if !target.compute {
+            commands.entity(entity).remove::<ViewSplatPipelines>();
+            continue;
+        }
+        let mut specialize = |resolve| {
+            let key = SplatPipelineKey {
+                multisampled_depth: target.multisampled,
+                fog: fog.map(|f| FogMode::of(&f.0.falloff)),
+                resolve,
+            };
+            pipelines.specialize(&cache, &pipeline, key)
+        };
+        let pipelines = ViewSplatPipelines {
+            splat: specialize(false),
+            resolve: specialize(true),
+        };
+        commands.entity(entity).insert(pipelines);
+    }
+}
+
+/// A computing view's sums and the splat pipelines' group 0.
+pub struct SplatResources {
+    /// Per target texel, [`SUM_BYTES`]; cleared before each frame's splats.
+    pub sums: Buffer,
+    /// Group 0 of the splat and resolve pipelines.
+    pub group: BindGroup,
+}
+
+/// Makes a computing view's sums for a target of `params.target_size` and binds them with the
+/// target's other inputs.
+#[allow(clippy::too_many_arguments)] // the group's entries
+pub(crate) fn splat_resources(
+    device: &RenderDevice,
+    cache: &PipelineCache,
+    target: &ViewCloudTarget,
+    view: bevy::render::render_resource::BindingResource<'_>,
+    params: &Buffer,
+    depth: &TextureView,
+    fog: bevy::render::render_resource::BindingResource<'_>,
+    texture: &TextureView,
+) -> SplatResources {
+    let size = target.params.target_size;
+    let sums = device.create_buffer(&BufferDescriptor {
+        label: Some("particle_clouds_splat_sums"),
+        size: size.x as u64 * size.y as u64 * SUM_BYTES,
+        usage: BufferUsages::STORAGE | BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let group = device.create_bind_group(
+        "particle_clouds_splat_view_bind_group",
+        &cache.get_bind_group_layout(&splat_view_layout(target.multisampled)),
+        &BindGroupEntries::sequential((
+            view,
+            params.as_entire_binding(),
+            depth,
+            fog,
+            sums.as_entire_binding(),
+            texture,
+        )),
+    );
+    SplatResources { sums, group }
+}
+
+/// One cloud's splat: a workgroup per particle and slice. Returns the dispatches recorded.
+pub(crate) fn dispatch_splat(pass: &mut ComputePass, count: u32) -> u32 {
+    if count == 0 {
+        return 0;
+    }
+    let x = count.min(65535);
+    pass.dispatch_workgroups(x, count.div_ceil(x), SPLAT_SLICES);
+    1
+}
+
+/// The resolve over the whole target.
+pub(crate) fn dispatch_resolve(pass: &mut ComputePass, target: &CloudTargetParams) {
+    let size = target.target_size;
+    pass.dispatch_workgroups(size.x.div_ceil(SLICE), size.y.div_ceil(SLICE), 1);
+}
+
+pub(crate) fn finish(render_app: &mut SubApp) {
+    use bevy::render::{Render, RenderSystems};
+    render_app
+        .init_resource::<SpecializedComputePipelines<SplatPipeline>>()
+        .add_systems(
+            bevy::render::RenderStartup,
+            init_splat_pipeline.after(super::draw::init_billboard_pipeline),
+        )
+        .add_systems(Render, queue_splat_pipelines.in_set(RenderSystems::Queue));
+}
