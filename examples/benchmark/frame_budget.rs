@@ -487,15 +487,16 @@ pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
             .into_iter()
             .flat_map(|s| methods.clone().map(move |m| (s, m)))
         {
+            // `--draw-methods`: each scene (each variant) drawn each way, labelled when
+            // computed.
             let mut label = scene.name.to_string();
             if let Some(settings) = settings {
                 scene.scene.settings = settings;
-                label = format!("{label}: {}", setting_label(&settings));
             }
-            // `--draw-methods`: each scene (each variant) drawn each way, labelled when
-            // computed.
             scene.scene.settings.draw_method = method;
-            if settings.is_none() && method == DrawMethod::Compute {
+            if settings.is_some() {
+                label = format!("{label}: {}", setting_label(&scene.scene.settings));
+            } else if method == DrawMethod::Compute {
                 label = format!("{label}, compute");
             }
             eprintln!("benchmark: frame budget, {label}");

@@ -13,6 +13,7 @@
 //! cargo run --example benchmark -- --warm-start [--scenes a,b] [--out DIR]
 //! cargo run --example benchmark -- --decompose [--scenes a,b] [--spp N] [--out DIR]
 //! cargo run --example benchmark -- --raster-vs-compute [--view 1920x1080] [--layers 13] [--out DIR]
+//! cargo run --example benchmark -- --line-sweep [--grid 128] [--segments 8] [--out DIR]
 //! ```
 //!
 //! Writes `DIR/results.csv`, `DIR/results.md` and `DIR/pareto.png` (default `DIR` is
@@ -36,6 +37,7 @@ mod decompose;
 mod fog;
 mod frame_budget;
 mod illumination;
+mod line_sweep;
 mod plot;
 mod raster_vs_compute;
 mod reference_cache;
@@ -184,6 +186,16 @@ pub(crate) struct Args {
     /// With --raster-vs-compute: billboards over each pixel (the paper's scene: 13 at 1080p).
     #[arg(long, default_value_t = 13, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub(crate) layers: u32,
+    /// The scattering sweep's line march in plain wgpu (`line_sweep.rs`): whole lines against
+    /// lines cut into `--segments`, instead of the sweep.
+    #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "scale", "voxelize", "frame_budget", "raster_vs_compute"])]
+    pub(crate) line_sweep: bool,
+    /// With --line-sweep: voxels per side of the grid.
+    #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u32).range(2..=512))]
+    pub(crate) grid: u32,
+    /// With --line-sweep: segments per line.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub(crate) segments: u32,
     /// Measure only these settings (RON, as a scene file's `settings`) instead of the sweep.
     /// Repeatable.
     #[arg(long = "settings", value_name = "RON", value_parser = parse_settings)]
@@ -277,6 +289,21 @@ fn raster_vs_compute_benchmark(args: &Args) -> Result<(), String> {
     Ok(())
 }
 
+/// `--line-sweep`: 26 sweeps per timed submission (two iterations' worth); writes
+/// `DIR/line_sweep.md`.
+fn line_sweep_benchmark(args: &Args) -> Result<(), String> {
+    eprintln!(
+        "benchmark: line sweep, {}³, {} segments",
+        args.grid, args.segments
+    );
+    let (adapter, results) = line_sweep::measure(args.grid, args.segments, 26, args.frames())?;
+    let md = line_sweep::table(&adapter, args.grid, &results);
+    let path = args.out.join("line_sweep.md");
+    std::fs::write(&path, &md).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+    println!("{md}");
+    Ok(())
+}
+
 /// `--decompose`: every chosen scene's error at the default settings, part by part.
 fn decomposition(args: &Args, chosen: &[&BenchScene]) -> Result<(), String> {
     let settings = args.settings.first().copied().unwrap_or_default();
@@ -319,6 +346,9 @@ fn run() -> Result<(), String> {
     }
     if args.raster_vs_compute {
         return raster_vs_compute_benchmark(&args);
+    }
+    if args.line_sweep {
+        return line_sweep_benchmark(&args);
     }
     if args.voxelize {
         return voxelize_benchmark(&args);

@@ -118,13 +118,26 @@ pub(crate) struct Measured {
     pub(crate) image: Vec<f32>,
 }
 
-struct Gpu {
-    device: wgpu::Device,
-    queue: wgpu::Queue,
-    adapter: String,
+/// A plain wgpu device on the Vulkan adapter Bevy would pick.
+pub(crate) struct Gpu {
+    pub(crate) device: wgpu::Device,
+    pub(crate) queue: wgpu::Queue,
+    pub(crate) adapter: String,
 }
 
-fn gpu() -> Result<Gpu, String> {
+impl Gpu {
+    /// Submits `encoder` and waits for it: wall milliseconds.
+    pub(crate) fn run(&self, encoder: wgpu::CommandEncoder) -> Result<f64, String> {
+        let start = Instant::now();
+        self.queue.submit([encoder.finish()]);
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| e.to_string())?;
+        Ok(start.elapsed().as_secs_f64() * 1e3)
+    }
+}
+
+pub(crate) fn gpu() -> Result<Gpu, String> {
     let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
     desc.backends = wgpu::Backends::VULKAN;
     desc.flags = wgpu::InstanceFlags::default().with_env();
@@ -164,7 +177,7 @@ pub(crate) fn measure(work: Workload, repeats: usize) -> Result<(String, Vec<Mea
     let uniform = |label, contents: &[u32]| {
         device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some(label),
-            contents: bytemuck_u32(contents),
+            contents: bytemuck::cast_slice(contents),
             usage: wgpu::BufferUsages::UNIFORM,
         })
     };
@@ -183,7 +196,7 @@ pub(crate) fn measure(work: Workload, repeats: usize) -> Result<(String, Vec<Mea
     );
     let volume = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
         label: Some("volumes"),
-        contents: bytemuck_f32(&volumes(work)),
+        contents: bytemuck::cast_slice(&volumes(work)),
         usage: wgpu::BufferUsages::STORAGE,
     });
     let layers: Vec<wgpu::Buffer> = (0..work.layers)
@@ -292,12 +305,7 @@ pub(crate) fn measure(work: Workload, repeats: usize) -> Result<(String, Vec<Mea
         for _ in 0..=repeats {
             let mut encoder = device.create_command_encoder(&Default::default());
             draw(&mut encoder, way);
-            let start = Instant::now();
-            gpu.queue.submit([encoder.finish()]);
-            device
-                .poll(wgpu::PollType::wait_indefinitely())
-                .map_err(|e| format!("{name}: {e}"))?;
-            times.push(start.elapsed().as_secs_f64() * 1e3);
+            times.push(gpu.run(encoder).map_err(|e| format!("{name}: {e}"))?);
         }
         times.remove(0);
         times.sort_by(f64::total_cmp);
@@ -471,16 +479,6 @@ fn f16_to_f32(bits: u16) -> f32 {
         _ => (1.0 + mantissa / 1024.0) * 2f32.powi(exponent - 15),
     };
     sign * magnitude
-}
-
-fn bytemuck_u32(data: &[u32]) -> &[u8] {
-    // SAFETY: u32 has no padding and any byte is a valid u8.
-    unsafe { std::slice::from_raw_parts(data.as_ptr().cast(), std::mem::size_of_val(data)) }
-}
-
-fn bytemuck_f32(data: &[f32]) -> &[u8] {
-    // SAFETY: f32 has no padding and any byte is a valid u8.
-    unsafe { std::slice::from_raw_parts(data.as_ptr().cast(), std::mem::size_of_val(data)) }
 }
 
 /// Largest difference between two images relative to the largest value of the first.
