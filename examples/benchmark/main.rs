@@ -144,7 +144,7 @@ pub(crate) struct Args {
     #[arg(long, default_value = "1920x1080", value_parser = parse_view)]
     pub(crate) view: (u32, u32),
     /// With --frame-budget: how the billboards are drawn, each in turn (comma-separated:
-    /// `raster`, `compute`).
+    /// `raster`, `compute`); with --scale, the last of them.
     #[arg(long, value_delimiter = ',', default_value = "raster", value_parser = parse_draw_method)]
     pub(crate) draw_methods: Vec<DrawMethod>,
     /// With --frame-budget: the memory bandwidth the floors are computed at, TB/s (default: an

@@ -11,7 +11,8 @@
 //!
 //! Each configuration: every pass's GPU time in frames that rerun every pass (the particles
 //! touched), the static frame's draw, wall times, and how many times each pass ran in a re-lit
-//! frame. Writes `DIR/scale.csv`, `DIR/scale.md` and `DIR/scale.png`.
+//! frame. Writes `DIR/scale.csv`, `DIR/scale.md` and `DIR/scale.png`. `--draw-methods compute`
+//! draws every configuration by compute (the last method named is the one used).
 
 use std::fmt::Write as _;
 
@@ -155,25 +156,28 @@ pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {
             .as_ref()
             .is_none_or(|names| names.iter().any(|n| sweep.starts_with(n.as_str())))
     };
-    let mut run = |sweep: &'static str, label: String, x: f64, scene: Scene, lod: Option<f32>| {
-        if !wanted(sweep) {
-            return;
-        }
-        eprintln!("benchmark: scale, {sweep}: {label}");
-        let (timing, runs, dispatches) = measure(&scene, lod, frames, &mut adapter);
-        eprintln!(
-            "benchmark: scale, {sweep}: {label}: GPU {:.1} ms (static {:.1}), wall {:.0} ms",
-            timing.gpu_ms_total, timing.gpu_ms_static, timing.wall_ms
-        );
-        rows.push(ScaleRow {
-            sweep,
-            label,
-            x,
-            timing,
-            runs,
-            dispatches,
-        });
-    };
+    let method = *args.draw_methods.last().unwrap_or(&DrawMethod::Raster);
+    let mut run =
+        |sweep: &'static str, label: String, x: f64, mut scene: Scene, lod: Option<f32>| {
+            if !wanted(sweep) {
+                return;
+            }
+            scene.settings.draw_method = method;
+            eprintln!("benchmark: scale, {sweep}: {label}");
+            let (timing, runs, dispatches) = measure(&scene, lod, frames, &mut adapter);
+            eprintln!(
+                "benchmark: scale, {sweep}: {label}: GPU {:.1} ms (static {:.1}), wall {:.0} ms",
+                timing.gpu_ms_total, timing.gpu_ms_static, timing.wall_ms
+            );
+            rows.push(ScaleRow {
+                sweep,
+                label,
+                x,
+                timing,
+                runs,
+                dispatches,
+            });
+        };
     let hd = (1280, 720);
     for count in [3_100, 38_000, 300_000, 1_200_000] {
         let s = scene(vec![cumulus(count)], 80.0, (640, 360), default());
@@ -201,13 +205,18 @@ pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {
         let s = scene(vec![cumulus(38_000)], 80.0, (w, h), default());
         run("view", format!("{w}×{h}"), (w * h) as f64, s, None);
     }
-    write_scale(args, &adapter, &rows)
+    write_scale(args, &adapter, method, &rows)
 }
 
-fn write_scale(args: &Args, adapter: &str, rows: &[ScaleRow]) -> Result<(), String> {
+fn write_scale(
+    args: &Args,
+    adapter: &str,
+    method: DrawMethod,
+    rows: &[ScaleRow],
+) -> Result<(), String> {
     let names: Vec<&str> = CloudPass::ALL.iter().map(|p| p.name()).collect();
     let mut csv = format!(
-        "adapter,sweep,label,x,{},gpu_ms_total,gpu_ms_static,wall_ms,wall_ms_static,{},{}\n",
+        "adapter,draw_method,sweep,label,x,{},gpu_ms_total,gpu_ms_static,wall_ms,wall_ms_static,{},{}\n",
         columns(&names, "gpu_ms"),
         columns(&names, "runs"),
         columns(&names, "dispatches"),
@@ -218,7 +227,7 @@ fn write_scale(args: &Args, adapter: &str, rows: &[ScaleRow]) -> Result<(), Stri
          re-lit frame (per cloud, per light, per scattering iteration, per view); dispatches: the \
          compute dispatches of that frame (voxelize, shade, gather and scatter batch every cloud of \
          a volume shape). Particles: 640×360, radii ∝ count^(-1/3); clouds sweep: `volume_resolution` 16, \
-         8 iterations; the others: default settings.\n\n\
+         8 iterations; the others: default settings. Drawn by {method:?} (`draw_method`).\n\n\
          | sweep | configuration | voxelize | shade | gather | scatter | sort + view volume | draw (static) | GPU total | wall | static wall | pass runs | dispatches |\n\
          |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
         args.frames()
@@ -227,7 +236,7 @@ fn write_scale(args: &Args, adapter: &str, rows: &[ScaleRow]) -> Result<(), Stri
         let p = &r.timing.pass_ms;
         let _ = writeln!(
             csv,
-            "\"{adapter}\",\"{}\",\"{}\",{},{},{:.4},{:.4},{:.3},{:.3},{},{}",
+            "\"{adapter}\",{method:?},\"{}\",\"{}\",{},{},{:.4},{:.4},{:.3},{:.3},{},{}",
             r.sweep,
             r.label,
             r.x,
@@ -264,7 +273,8 @@ fn write_scale(args: &Args, adapter: &str, rows: &[ScaleRow]) -> Result<(), Stri
         let path = args.out.join(path);
         std::fs::write(&path, text).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
     }
-    plot_scale(&args.out.join("scale.png"), &args.font, adapter, rows)?;
+    let title = format!("{adapter}, drawn by {method:?}");
+    plot_scale(&args.out.join("scale.png"), &args.font, &title, rows)?;
     println!("{md}");
     eprintln!(
         "benchmark: wrote scale.csv, scale.md and scale.png in {}",
@@ -314,6 +324,8 @@ pub(crate) fn replot_scale(args: &Args) -> Result<(), String> {
     let [adapter, sweep, label, x, total] =
         ["adapter", "sweep", "label", "x", "gpu_ms_total"].map(column);
     let (adapter, sweep, label, x, total) = (adapter?, sweep?, label?, x?, total?);
+    // Absent from the files written before the computed draw: rasterised.
+    let method = table.column("draw_method").ok();
     let number = |record: &csv::StringRecord, i: usize| -> Result<f64, String> {
         record[i]
             .parse()
@@ -323,7 +335,11 @@ pub(crate) fn replot_scale(args: &Args) -> Result<(), String> {
     let mut adapter_name = String::new();
     for record in table.reader.records() {
         let record = record.map_err(cannot_read)?;
-        adapter_name = record[adapter].to_string();
+        adapter_name = format!(
+            "{}, drawn by {}",
+            &record[adapter],
+            method.map_or("Raster", |m| &record[m])
+        );
         let sweep = ["particles", "clouds", "clouds, level of detail", "view"]
             .into_iter()
             .find(|s| *s == &record[sweep])
