@@ -25,11 +25,11 @@ use bevy::{
         render_resource::{
             BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries,
             BlendState, BufferInitDescriptor, BufferUsages, CachedRenderPipelineId,
-            ColorTargetState, ColorWrites, ComputePassDescriptor, FragmentState, LoadOp,
-            Operations, PipelineCache, RenderPassColorAttachment, RenderPassDescriptor,
-            RenderPipelineDescriptor, ShaderStages, ShaderType, SpecializedRenderPipeline,
-            SpecializedRenderPipelines, StoreOp, TextureDescriptor, TextureDimension,
-            TextureFormat, TextureSampleType, TextureUsages,
+            ColorTargetState, ColorWrites, FragmentState, LoadOp, Operations, PipelineCache,
+            RenderPassColorAttachment, RenderPassDescriptor, RenderPipelineDescriptor,
+            ShaderStages, ShaderType, SpecializedRenderPipeline, SpecializedRenderPipelines,
+            StoreOp, TextureDescriptor, TextureDimension, TextureFormat, TextureSampleType,
+            TextureUsages,
             binding_types::{
                 texture_2d, texture_depth_2d, texture_depth_2d_multisampled, uniform_buffer,
                 uniform_buffer_sized,
@@ -52,9 +52,7 @@ use super::{
     key_of,
     particles::GpuParticles,
     shaders::CloudShaders,
-    splat::{
-        SplatResources, ViewSplatPipelines, dispatch_resolve, dispatch_splat, splat_resources,
-    },
+    splat::{SplatResources, ViewSplatPipelines, record_splats, splat_resources},
 };
 use crate::{
     cloud::ParticleCloud,
@@ -481,7 +479,6 @@ fn draw_cloud_target(
         &ViewCloudDraws,
         &ViewCloudTargetResources,
         &ViewCompositePipeline,
-        &ViewCloudTarget,
         Option<(&ViewCloudSplats, &ViewSplatPipelines)>,
     )>,
     clouds: Query<(&ExtractedCloud, &CloudDrawBindGroups)>,
@@ -491,18 +488,8 @@ fn draw_cloud_target(
     counters: Res<CloudPassCounters>,
     mut ctx: RenderContext,
 ) {
-    let (
-        camera,
-        extracted,
-        target,
-        offset,
-        fog,
-        draws,
-        resources,
-        composite,
-        target_params,
-        splats,
-    ) = view.into_inner();
+    let (camera, extracted, target, offset, fog, draws, resources, composite, splats) =
+        view.into_inner();
     let view_splat_pipelines = splats.map(|(_, p)| p);
     let Some(composite) = cache.get_render_pipeline(composite.0) else {
         return;
@@ -526,29 +513,15 @@ fn draw_cloud_target(
     let span = recorder.time_span(ctx.command_encoder(), CloudPass::Draw.span_name());
     let splatted = match (view_splat_pipelines, &resources.splat) {
         (Some(pipelines), Some(splat)) if !splats.is_empty() => {
-            let (Some(splat_pipeline), Some(resolve)) = (
-                cache.get_compute_pipeline(pipelines.splat),
-                cache.get_compute_pipeline(pipelines.resolve),
-            ) else {
+            let offsets = [offset.offset, fog.0];
+            let encoder = ctx.command_encoder();
+            let recorded = record_splats(encoder, &cache, pipelines, splat, offsets, &splats);
+            let Some(dispatches) = recorded else {
+                // Still compiling: nothing is drawn this frame.
                 span.end(ctx.command_encoder());
                 return;
             };
-            let encoder = ctx.command_encoder();
-            encoder.clear_buffer(&splat.sums, 0, None);
-            let mut pass = encoder.begin_compute_pass(&ComputePassDescriptor {
-                label: Some("particle_clouds_splat"),
-                ..default()
-            });
-            pass.set_pipeline(splat_pipeline);
-            pass.set_bind_group(0, &splat.group, &[offset.offset, fog.0]);
-            let mut dispatches = 0;
-            for &(group, count) in &splats {
-                pass.set_bind_group(1, group, &[]);
-                dispatches += dispatch_splat(&mut pass, count);
-            }
-            pass.set_pipeline(resolve);
-            dispatch_resolve(&mut pass, &target_params.params);
-            counters.add_dispatches(CloudPass::Draw, dispatches + 1);
+            counters.add_dispatches(CloudPass::Draw, dispatches);
             counters.add(CloudPass::Draw, splats.len() as u32);
             true
         }

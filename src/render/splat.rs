@@ -10,9 +10,10 @@ use bevy::{
     render::{
         render_resource::{
             BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer,
-            BufferDescriptor, BufferUsages, CachedComputePipelineId, ComputePass,
-            ComputePipelineDescriptor, PipelineCache, ShaderStages, SpecializedComputePipeline,
-            SpecializedComputePipelines, StorageTextureAccess, TextureView,
+            BufferDescriptor, BufferUsages, CachedComputePipelineId, CommandEncoder,
+            ComputePassDescriptor, ComputePipelineDescriptor, PipelineCache, ShaderStages,
+            SpecializedComputePipeline, SpecializedComputePipelines, StorageTextureAccess,
+            TextureView,
             binding_types::{storage_buffer_sized, texture_storage_2d, uniform_buffer},
         },
         renderer::RenderDevice,
@@ -151,6 +152,8 @@ pub(crate) fn queue_splat_pipelines(
 pub struct SplatResources {
     /// Per target texel, [`SUM_BYTES`]; cleared before each frame's splats.
     pub sums: Buffer,
+    /// Texels per side of the target the sums stand for.
+    pub target_size: UVec2,
     /// Group 0 of the splat and resolve pipelines.
     pub group: BindGroup,
 }
@@ -187,23 +190,46 @@ pub(crate) fn splat_resources(
             texture,
         )),
     );
-    SplatResources { sums, group }
-}
-
-/// One cloud's splat: a workgroup per particle and slice. Returns the dispatches recorded.
-pub(crate) fn dispatch_splat(pass: &mut ComputePass, count: u32) -> u32 {
-    if count == 0 {
-        return 0;
+    SplatResources {
+        sums,
+        target_size: size,
+        group,
     }
-    let x = count.min(65535);
-    pass.dispatch_workgroups(x, count.div_ceil(x), SPLAT_SLICES);
-    1
 }
 
-/// The resolve over the whole target.
-pub(crate) fn dispatch_resolve(pass: &mut ComputePass, target: &CloudTargetParams) {
-    let size = target.target_size;
+/// Records a computing view's splats into its sums (cleared first), then their resolve into its
+/// cloud target: `clouds` are each cloud's group 1 and particle count, `offsets` the view's and
+/// the fog's dynamic offsets. Returns the dispatches recorded, or `None` (nothing recorded) while
+/// the pipelines compile.
+pub(crate) fn record_splats(
+    encoder: &mut CommandEncoder,
+    cache: &PipelineCache,
+    pipelines: &ViewSplatPipelines,
+    splat: &SplatResources,
+    offsets: [u32; 2],
+    clouds: &[(&BindGroup, u32)],
+) -> Option<u32> {
+    let splat_pipeline = cache.get_compute_pipeline(pipelines.splat)?;
+    let resolve = cache.get_compute_pipeline(pipelines.resolve)?;
+    encoder.clear_buffer(&splat.sums, 0, None);
+    let mut pass = encoder.begin_compute_pass(&ComputePassDescriptor {
+        label: Some("particle_clouds_splat"),
+        ..default()
+    });
+    pass.set_pipeline(splat_pipeline);
+    pass.set_bind_group(0, &splat.group, &offsets);
+    let mut dispatches = 0;
+    for &(group, count) in clouds.iter().filter(|c| c.1 > 0) {
+        pass.set_bind_group(1, group, &[]);
+        // A workgroup per particle and slice, the particles over x and y (65535 at most each).
+        let x = count.min(65535);
+        pass.dispatch_workgroups(x, count.div_ceil(x), SPLAT_SLICES);
+        dispatches += 1;
+    }
+    pass.set_pipeline(resolve);
+    let size = splat.target_size;
     pass.dispatch_workgroups(size.x.div_ceil(SLICE), size.y.div_ceil(SLICE), 1);
+    Some(dispatches + 1)
 }
 
 pub(crate) fn finish(render_app: &mut SubApp) {
