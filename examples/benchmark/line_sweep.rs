@@ -23,7 +23,8 @@ use wgpu::util::DeviceExt as _;
 use super::raster_vs_compute::{Gpu, gpu, max_difference};
 
 const SHADER: &str = r#"
-struct Work { n: u32, axis: u32, segments: u32, pad: u32 }
+// `overwrite`: plain stores instead of read-modify-write deposits.
+struct Work { n: u32, axis: u32, segments: u32, overwrite: u32 }
 @group(0) @binding(0) var<uniform> work: Work;
 @group(0) @binding(1) var<storage, read> density: array<f32>;
 @group(0) @binding(2) var<storage, read> s_in: array<vec4<f32>>;
@@ -60,21 +61,11 @@ fn serial(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups)
     for (var t = 0u; t < work.n; t++) {
         let i = voxel(line, t);
         x = step(x, i).xyz;
-        s_out[i] += vec4(x / 26.0, 0.0);
-    }
-}
-
-@compute @workgroup_size(64)
-fn serial_overwrite(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let line = invocation(id, groups);
-    if line >= work.n * work.n {
-        return;
-    }
-    var x = vec3(0.0);
-    for (var t = 0u; t < work.n; t++) {
-        let i = voxel(line, t);
-        x = step(x, i).xyz;
-        s_out[i] = vec4(x / 26.0, 0.0);
+        if work.overwrite != 0u {
+            s_out[i] = vec4(x / 26.0, 0.0);
+        } else {
+            s_out[i] += vec4(x / 26.0, 0.0);
+        }
     }
 }
 
@@ -211,42 +202,38 @@ pub(crate) fn measure(
             cache: None,
         })
     };
-    let [serial, overwrite, transfer, march] = [
-        "serial",
-        "serial_overwrite",
-        "segment_transfer",
-        "segment_march",
-    ]
-    .map(pipeline);
+    let [serial, transfer, march] = ["serial", "segment_transfer", "segment_march"].map(pipeline);
     let mut results = Vec::new();
     for axis in [0, 2] {
-        let work = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("work"),
-            contents: bytemuck::cast_slice(&[n, axis, segments, 0]),
-            usage: wgpu::BufferUsages::UNIFORM,
-        });
-        let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: None,
-            layout: &layout,
-            entries: &[&work, &density, &s_in, &s_out, &transfers]
-                .iter()
-                .enumerate()
-                .map(|(i, b)| wgpu::BindGroupEntry {
-                    binding: i as u32,
-                    resource: b.as_entire_binding(),
-                })
-                .collect::<Vec<_>>(),
-        });
-        let ways: [(String, Vec<&wgpu::ComputePipeline>, u32); 3] = [
-            ("serial".into(), vec![&serial], 1),
-            ("serial, overwrite".into(), vec![&overwrite], 1),
+        // Each way: its name, its dispatches, invocations per line, and whether it overwrites.
+        let ways: [(String, Vec<&wgpu::ComputePipeline>, u32, u32); 3] = [
+            ("serial".into(), vec![&serial], 1, 0),
+            ("serial, overwrite".into(), vec![&serial], 1, 1),
             (
                 format!("segmented ×{segments}"),
                 vec![&transfer, &march],
                 segments,
+                0,
             ),
         ];
-        for (name, stages, per_line) in ways {
+        for (name, stages, per_line, overwrite) in ways {
+            let work = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("work"),
+                contents: bytemuck::cast_slice(&[n, axis, segments, overwrite]),
+                usage: wgpu::BufferUsages::UNIFORM,
+            });
+            let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: None,
+                layout: &layout,
+                entries: &[&work, &density, &s_in, &s_out, &transfers]
+                    .iter()
+                    .enumerate()
+                    .map(|(i, b)| wgpu::BindGroupEntry {
+                        binding: i as u32,
+                        resource: b.as_entire_binding(),
+                    })
+                    .collect::<Vec<_>>(),
+            });
             let invocations = n * n * per_line;
             let groups = invocations.div_ceil(64);
             let (x, y) = (groups.min(65535), groups.div_ceil(65535));

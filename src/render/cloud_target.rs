@@ -45,7 +45,7 @@ use bevy::{
 };
 
 use super::{
-    draw::{CloudDrawBindGroups, draw_billboards},
+    draw::{CloudDrawBindGroups, cloud_draws, draw_billboards},
     extract::ExtractedCloud,
     fog::{CloudFogParams, CloudFogUniforms, ViewCloudFogOffset},
     gpu::uniform_bytes,
@@ -494,16 +494,12 @@ fn draw_cloud_target(
     let Some(composite) = cache.get_render_pipeline(composite.0) else {
         return;
     };
-    let splats: Vec<(&BindGroup, u32)> = splats
-        .map(|(s, _)| &s.0[..])
-        .unwrap_or_default()
-        .iter()
-        .filter_map(|&entity| {
-            let (cloud, groups) = clouds.get(entity).ok()?;
-            let group = groups.groups.get(&extracted.retained_view_entity)?;
-            Some((group, particles.get(cloud.particles)?.count))
-        })
-        .collect();
+    let splats = cloud_draws(
+        splats.map_or(&[][..], |(s, _)| &s.0[..]),
+        &extracted.retained_view_entity,
+        &particles,
+        |entity| clouds.get(entity).ok(),
+    );
     if draws.0.is_empty() && splats.is_empty() {
         return;
     }

@@ -789,6 +789,24 @@ impl<P: PhaseItem, const I: usize> RenderCommand<P> for SetBillboardViewBindGrou
     }
 }
 
+/// Each drawable cloud of `entities` as the draw binds it in `view`: its group 1 and its
+/// particle count (`draw_billboards`, and the splats of `DrawMethod::Compute`).
+pub(crate) fn cloud_draws<'a>(
+    entities: &[Entity],
+    view: &RetainedViewEntity,
+    particles: &'a RenderAssets<GpuParticles>,
+    cloud: impl Fn(Entity) -> Option<(&'a ExtractedCloud, &'a CloudDrawBindGroups)>,
+) -> Vec<(&'a BindGroup, u32)> {
+    entities
+        .iter()
+        .filter_map(|&entity| {
+            let (cloud, groups) = cloud(entity)?;
+            let group = groups.groups.get(view)?;
+            Some((group, particles.get(cloud.particles)?.count))
+        })
+        .collect()
+}
+
 /// Draws clouds' billboards, a four-vertex strip per particle, binding each cloud's group 1 for
 /// this view: every cloud once, then, given an `emit` pipeline (through the view transmittance
 /// into the view), every cloud again with it. So clouds that overlap on screen first all dim
@@ -838,15 +856,12 @@ impl<P: CachedRenderPipelinePhaseItem> RenderCommand<P> for DrawBillboards {
         let members = groups
             .and_then(|g| g.0.get(&item.entity()))
             .map_or(&alone[..], Vec::as_slice);
-        let particles = particles.into_inner();
-        let draws: Vec<_> = members
-            .iter()
-            .filter_map(|&entity| {
-                let (cloud, groups) = clouds.get_inner(entity).ok()?;
-                let group = groups.groups.get(&view.retained_view_entity)?;
-                Some((group, particles.get(cloud.particles)?.count))
-            })
-            .collect();
+        let draws = cloud_draws(
+            members,
+            &view.retained_view_entity,
+            particles.into_inner(),
+            |entity| clouds.get_inner(entity).ok(),
+        );
         if draws.is_empty() {
             return RenderCommandResult::Skip;
         }
