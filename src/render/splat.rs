@@ -30,6 +30,8 @@ use super::{
 
 /// Workgroups per particle (the z dimension of a splat's dispatch): a particle's 8×8 blocks of
 /// texels are dealt out over them, so that one large particle is shaded by several workgroups.
+/// Hardly matters on an NVIDIA H200 (computed draw at 1080p, one run each: 2, 8, 32 slices took
+/// 18.8, 19.6, 20.6 ms on the paper's scene and 24.9, 23.7, 25.7 ms on the cloudscape).
 pub const SPLAT_SLICES: u32 = 8;
 
 /// Bytes per cloud-target texel of the sums: light (r, g, b) and optical depth, f32 each.
