@@ -52,7 +52,7 @@ use super::{
     key_of,
     particles::GpuParticles,
     shaders::CloudShaders,
-    splat::{SplatResources, ViewSplatPipelines, record_splats, splat_resources},
+    splat::{SplatResources, ViewSplatPipelines, record_splats, splat_resources, sums_fit},
 };
 use crate::{
     cloud::ParticleCloud,
@@ -306,7 +306,10 @@ fn choose_cloud_targets(
     mut commands: Commands,
     mut views: Query<ViewToTarget>,
     clouds: Query<&ExtractedCloud>,
+    device: Res<RenderDevice>,
+    mut warned: Local<bool>,
 ) {
+    let limits = device.limits();
     for (entity, view, visible, msaa, camera_scale, mut camera) in &mut views {
         let seen: Vec<&ExtractedCloud> = visible
             .get::<ParticleCloud>()
@@ -315,9 +318,24 @@ fn choose_cloud_targets(
             .filter_map(|(e, _)| clouds.get(*e).ok())
             .collect();
         let scale = view_scale(camera_scale, seen.iter().copied());
-        let compute = seen
+        let viewport = view.viewport;
+        let params = CloudTargetParams::new(viewport.xy(), viewport.zw(), scale.min(1.0));
+        let asked = seen
             .iter()
             .any(|c| c.settings.draw_method == DrawMethod::Compute);
+        let compute = asked && sums_fit(params.target_size, &limits);
+        if asked && !compute && !*warned {
+            *warned = true;
+            warn!(
+                "`draw_method` Compute: a cloud target of {}×{} texels needs more than the \
+                 adapter's largest storage buffer ({} bytes); its clouds are rasterised",
+                params.target_size.x,
+                params.target_size.y,
+                limits
+                    .max_storage_buffer_binding_size
+                    .min(limits.max_buffer_size)
+            );
+        }
         // No cloud in view: no target (and no texture kept alive).
         if (scale >= 1.0 && !compute) || seen.is_empty() {
             commands.entity(entity).remove::<(
@@ -329,9 +347,8 @@ fn choose_cloud_targets(
             continue;
         }
         camera.depth_texture_usages.0 |= TextureUsages::TEXTURE_BINDING.bits();
-        let viewport = view.viewport;
         commands.entity(entity).insert(ViewCloudTarget {
-            params: CloudTargetParams::new(viewport.xy(), viewport.zw(), scale.min(1.0)),
+            params,
             multisampled: msaa.samples() > 1,
             compute,
         });

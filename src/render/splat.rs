@@ -13,7 +13,7 @@ use bevy::{
             BufferDescriptor, BufferUsages, CachedComputePipelineId, CommandEncoder,
             ComputePassDescriptor, ComputePipelineDescriptor, PipelineCache, ShaderStages,
             SpecializedComputePipeline, SpecializedComputePipelines, StorageTextureAccess,
-            TextureView,
+            TextureView, WgpuLimits,
             binding_types::{storage_buffer_sized, texture_storage_2d, uniform_buffer},
         },
         renderer::RenderDevice,
@@ -36,6 +36,13 @@ pub const SPLAT_SLICES: u32 = 8;
 
 /// Bytes per cloud-target texel of the sums: light (r, g, b) and optical depth, f32 each.
 const SUM_BYTES: u64 = 16;
+
+/// Whether the sums of a cloud target of `size` texels fit in one storage buffer binding of an
+/// adapter with `limits` (128 MiB by default: a 4K target just fits).
+pub fn sums_fit(size: UVec2, limits: &WgpuLimits) -> bool {
+    let bytes = size.x as u64 * size.y as u64 * SUM_BYTES;
+    bytes <= limits.max_storage_buffer_binding_size && bytes <= limits.max_buffer_size
+}
 
 /// Group 0 of the splat and resolve pipelines: the cloud target's billboard view group (view,
 /// target parameters, depth, fog), then the sums and the target as storage.
@@ -243,4 +250,16 @@ pub(crate) fn finish(render_app: &mut SubApp) {
             init_splat_pipeline.after(super::draw::init_billboard_pipeline),
         )
         .add_systems(Render, queue_splat_pipelines.in_set(RenderSystems::Queue));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_4k_target_fits_the_default_limits_and_an_8k_one_does_not() {
+        let limits = WgpuLimits::default();
+        assert!(sums_fit(UVec2::new(3840, 2160), &limits));
+        assert!(!sums_fit(UVec2::new(7680, 4320), &limits));
+    }
 }
