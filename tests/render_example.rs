@@ -340,3 +340,53 @@ fn size_and_settings_overrides_reach_the_image_and_its_metadata() {
     );
     assert!(metadata.get("render_time_s").is_some());
 }
+
+/// `--set draw_method=Compute` (a scene file's `settings.draw_method`) renders the rasterised
+/// image: the clouds' pixels summed by a compute shader, composited over the same objects.
+#[test]
+fn a_scene_drawn_by_compute_renders_the_rasterised_image() {
+    let dir = scratch_dir("compute");
+    let scene = dir.join("scene.ron");
+    std::fs::write(&scene, SCENE_FORMAT_EXAMPLE).unwrap();
+    let render = |name: &str, extra: &[&str]| {
+        let exr = dir.join(name);
+        let mut args = vec![
+            scene.to_str().unwrap(),
+            "--out",
+            exr.to_str().unwrap(),
+            "--size",
+            "80x60",
+            "--set",
+            "volume_resolution=32",
+        ];
+        args.extend_from_slice(extra);
+        let out = run(&args);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        read_exr_with_metadata(&exr).unwrap()
+    };
+    let (raster, _) = render("raster.exr", &[]);
+    let (computed, metadata) = render("computed.exr", &["--set", "draw_method=Compute"]);
+    let settings = metadata.get("settings").expect("settings in the metadata");
+    assert!(settings.contains("Compute"), "{settings}");
+    let peak = raster
+        .pixels
+        .iter()
+        .flat_map(|p| &p[..3])
+        .fold(0f32, |m, v| m.max(*v));
+    let worst = raster
+        .pixels
+        .iter()
+        .zip(&computed.pixels)
+        .flat_map(|(r, c)| (0..3).map(move |i| (r[i] - c[i]).abs()))
+        .fold(0f32, f32::max);
+    assert!(peak > 0.02, "the cloud is lit: peak {peak}");
+    // f16 targets: the rasteriser rounds after each particle, the sums once.
+    assert!(
+        worst < 5e-3 * peak,
+        "computed and rasterised images differ by {worst} (peak {peak})"
+    );
+}
