@@ -483,21 +483,24 @@ fn prepare_cloud_targets(
     }
 }
 
+/// What the cloud target's draw reads of a view.
+type CloudTargetView = (
+    &'static ExtractedCamera,
+    &'static ExtractedView,
+    &'static ViewTarget,
+    &'static ViewUniformOffset,
+    &'static ViewCloudFogOffset,
+    &'static ViewCloudDraws,
+    &'static ViewCloudTargetResources,
+    &'static ViewCompositePipeline,
+    Option<(&'static ViewCloudSplats, &'static ViewSplatPipelines)>,
+);
+
 /// Draws the view's clouds into its cloud target (cleared to no cloud), then composites the
 /// target over the view.
 #[allow(clippy::too_many_arguments)] // a render pass's inputs
 fn draw_cloud_target(
-    view: ViewQuery<(
-        &ExtractedCamera,
-        &ExtractedView,
-        &ViewTarget,
-        &ViewUniformOffset,
-        &ViewCloudFogOffset,
-        &ViewCloudDraws,
-        &ViewCloudTargetResources,
-        &ViewCompositePipeline,
-        Option<(&ViewCloudSplats, &ViewSplatPipelines)>,
-    )>,
+    view: ViewQuery<CloudTargetView>,
     clouds: Query<(&ExtractedCloud, &CloudDrawBindGroups)>,
     particles: Res<RenderAssets<GpuParticles>>,
     emit: Res<super::draw::BillboardEmitPipelines>,
