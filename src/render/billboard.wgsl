@@ -13,9 +13,9 @@
 // attachment; each fragment is depth-tested here against the view pixel its texel stands for
 // (cloud_target.wgsl enlarges the target onto the view).
 //
-// COMPUTE_DRAW (with CLOUD_TARGET and VIEW_TRANSMITTANCE): no rasteriser. `splat` evaluates each
-// particle's fragments in a compute shader, over the target texels whose centres its rectangle
-// covers, and adds their light and optical depth into per-texel sums; `resolve_splats` writes
+// COMPUTE_DRAW (with CLOUD_TARGET and VIEW_TRANSMITTANCE): no rasteriser. `splat` evaluates the
+// particles' fragments in a compute shader, over the target texels whose centres their
+// rectangles cover, and adds their light and optical depth into per-texel sums; `resolve_splats` writes
 // the sums into the cloud target as `accumulate`'s blending would have left it. Same image, but
 // fragment shaders run this work many times slower on some GPUs (README, "On a real GPU").
 //
@@ -184,13 +184,19 @@ fn billboard_depth(b: Billboard, world: vec3<f32>) -> f32 {
     return clip.z / clip.w;
 }
 
-// What every fragment of a particle's billboard shares.
-fn flat_output(index: u32, b: Billboard) -> VertexOutput {
+// What every fragment of a particle's billboard shares but its centre's light.
+fn flat_output_unshaded(b: Billboard) -> VertexOutput {
     var out: VertexOutput;
     out.centre_radius = vec4(b.centre, b.radius);
     out.density = b.density;
     out.on_near_plane = u32(b.on_near_plane);
     out.centre_light = vec3(0.0);
+    return out;
+}
+
+// What every fragment of a particle's billboard shares.
+fn flat_output(index: u32, b: Billboard) -> VertexOutput {
+    var out = flat_output_unshaded(b);
 #ifndef ALPHA_ONLY
     if params.centre_shading != 0u {
         let local = particles[index].position_radius.xyz;
@@ -699,30 +705,74 @@ fn texel_slope(t: vec2<i32>) -> vec2<f32> {
     return ndc / vec2(view.clip_from_view[0][0], view.clip_from_view[1][1]);
 }
 
-// One workgroup per particle and z slice: its 8x8 blocks of covered texels are dealt out over
-// the z slices, each invocation one texel of a block, as `accumulate` would shade it.
-@compute @workgroup_size(8, 8, 1)
+// Particles per splat workgroup, one per invocation (`workgroups::LINEAR` in Rust).
+const SPLAT_PARTICLES: u32 = #{LINEAR_WORKGROUP}u;
+
+// Per particle of the workgroup: the texels it covers, and after the scan the running count of
+// texels up to and including it; its light with centre shading.
+var<workgroup> covered: array<vec4<i32>, SPLAT_PARTICLES>;
+var<workgroup> texels_through: array<u32, SPLAT_PARTICLES>;
+var<workgroup> centre_lights: array<vec3<f32>, SPLAT_PARTICLES>;
+
+// The workgroup's particle whose texels hold pair `k`: the first whose running count exceeds it.
+fn particle_of_pair(k: u32) -> u32 {
+    var lo = 0u;
+    var hi = SPLAT_PARTICLES - 1u;
+    while lo < hi {
+        let mid = (lo + hi) / 2u;
+        if texels_through[mid] > k {
+            hi = mid;
+        } else {
+            lo = mid + 1u;
+        }
+    }
+    return lo;
+}
+
+// One workgroup per SPLAT_PARTICLES particles and z slice. Each invocation finds its particle's
+// texels; a scan of their counts lays every (particle, texel) pair of the workgroup end to end,
+// and the invocations take the pairs 64 at a time, dealt out over the slices: small particles
+// fill the invocations as well as large ones. Each pair is shaded as `accumulate` would shade it.
+@compute @workgroup_size(SPLAT_PARTICLES)
 fn splat(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_id) local: vec3<u32>,
+    @builtin(local_invocation_index) lane: u32,
 ) {
-    let index = group.x + group.y * groups.x;
-    if index >= arrayLength(&particles) {
-        return;
-    }
-    let b = billboard(index);
-    let texels = covered_texels(b);
-    if b.behind || any(texels.zw < texels.xy) {
-        return;
-    }
-    let blocks = (vec2<u32>(texels.zw - texels.xy) + 8u) / 8u;
-    var in = flat_output(index, b);
-    for (var k = group.z; k < blocks.x * blocks.y; k += groups.z) {
-        let t = texels.xy + vec2<i32>(vec2(k % blocks.x, k / blocks.x) * 8u + local.xy);
-        if any(t > texels.zw) {
-            continue;
+    let first = (group.x + group.y * groups.x) * SPLAT_PARTICLES;
+    let index = first + lane;
+    var rect = vec4(0, 0, -1, -1);
+    var count = 0u;
+    if index < arrayLength(&particles) {
+        let b = billboard(index);
+        let texels = covered_texels(b);
+        if !b.behind && all(texels.zw >= texels.xy) {
+            rect = texels;
+            let extent = vec2<u32>(texels.zw - texels.xy) + 1u;
+            count = extent.x * extent.y;
+            centre_lights[lane] = flat_output(index, b).centre_light;
         }
+    }
+    covered[lane] = rect;
+    texels_through[lane] = count;
+    // Inclusive scan of the counts (Hillis-Steele).
+    for (var offset = 1u; offset < SPLAT_PARTICLES; offset *= 2u) {
+        workgroupBarrier();
+        let before = select(0u, texels_through[max(lane, offset) - offset], lane >= offset);
+        workgroupBarrier();
+        texels_through[lane] += before;
+    }
+    workgroupBarrier();
+    let total = texels_through[SPLAT_PARTICLES - 1u];
+    for (var k = group.z * SPLAT_PARTICLES + lane; k < total; k += groups.z * SPLAT_PARTICLES) {
+        let p = particle_of_pair(k);
+        let r = covered[p];
+        let start = select(0u, texels_through[max(p, 1u) - 1u], p > 0u);
+        let width = u32(r.z - r.x) + 1u;
+        let t = r.xy + vec2<i32>(vec2((k - start) % width, (k - start) / width));
+        let b = billboard(first + p);
+        var in = flat_output_unshaded(b);
+        in.centre_light = centre_lights[p];
         in.world_position = billboard_point(b, texel_slope(t));
         in.clip_position = vec4(vec2<f32>(t) + 0.5, billboard_depth(b, in.world_position), 1.0);
         let c = chord(in);

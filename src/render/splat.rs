@@ -25,13 +25,14 @@ use super::{
     cloud_target::{CLOUD_TARGET_FORMAT, CloudTargetParams, ViewCloudTarget},
     draw::BillboardPipeline,
     fog::{CloudFogParams, ExtractedCloudFog, FogMode},
-    workgroups::SLICE,
+    workgroups::{SLICE, linear_groups},
 };
 
-/// Workgroups per particle (the z dimension of a splat's dispatch): a particle's 8×8 blocks of
-/// texels are dealt out over them, so that one large particle is shaded by several workgroups.
-/// Hardly matters on an NVIDIA H200 (computed draw at 1080p, one run each: 2, 8, 32 slices took
-/// 18.8, 19.6, 20.6 ms on the paper's scene and 24.9, 23.7, 25.7 ms on the cloudscape).
+/// Slices of a splat's dispatch (its z dimension): the (particle, texel) pairs of a workgroup's
+/// particles are dealt out over them 64 at a time, so that large particles are shaded by several
+/// workgroups. Hardly matters on an NVIDIA H200 (computed draw at 1080p with one particle per
+/// workgroup, one run each: 2, 8, 32 slices took 18.8, 19.6, 20.6 ms on the paper's scene and
+/// 24.9, 23.7, 25.7 ms on the cloudscape).
 pub const SPLAT_SLICES: u32 = 8;
 
 /// Bytes per cloud-target texel of the sums: light (r, g, b) and optical depth, f32 each.
@@ -230,9 +231,9 @@ pub(crate) fn record_splats(
     let mut dispatches = 0;
     for &(group, count) in clouds.iter().filter(|c| c.1 > 0) {
         pass.set_bind_group(1, group, &[]);
-        // A workgroup per particle and slice, the particles over x and y (65535 at most each).
-        let x = count.min(65535);
-        pass.dispatch_workgroups(x, count.div_ceil(x), SPLAT_SLICES);
+        // A workgroup per `LINEAR` particles and slice.
+        let [x, y, _] = linear_groups(count);
+        pass.dispatch_workgroups(x, y, SPLAT_SLICES);
         dispatches += 1;
     }
     pass.set_pipeline(resolve);
