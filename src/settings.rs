@@ -78,9 +78,9 @@ pub enum DrawMethod {
     /// A compute shader evaluates the same pixels of every view-transmittance cloud and sums
     /// their light and optical depth per pixel of a cloud target (at `cloud_target_scale`, full
     /// size included), which is then composited onto the view. For GPUs whose fragment shaders
-    /// run this work far slower than their compute shaders: on an NVIDIA H200 the draw's
-    /// per-pixel work took 0.034× the time in compute (README, "On a real GPU"). `Sorted`
-    /// clouds are still rasterised, into the same target, over the computed ones.
+    /// run this work far slower than their compute shaders: on an NVIDIA H200 the computed draw
+    /// takes 0.036× the rasterised one's time, on llvmpipe 0.57× (README, "On a real GPU").
+    /// `Sorted` clouds are still rasterised, into the same target, over the computed ones.
     Compute,
 }
 
