@@ -670,7 +670,9 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
 
 #ifdef COMPUTE_DRAW
 // Adds `v` to the f32 whose bits `sums[i]` holds (WGSL has no float atomics): retried until no
-// other invocation wrote in between.
+// other invocation wrote in between. The same loop as voxelize's `add_density`: one function
+// taking the atomic by pointer would serve both, but naga_oil rejects a storage pointer as a
+// parameter of a shared module's function.
 fn add_to_sum(i: u32, v: f32) {
     if v == 0.0 {
         return;
