@@ -98,7 +98,10 @@ pub struct CloudQualitySettings {
     /// orders past `M` are estimated from the last two (a geometric series). 0 = single
     /// scattering only. Allowed: `0..=MAX_SCATTER_ITERATIONS`. Default 32: optically thick clouds of
     /// albedo near 1 keep 20 % of their light in orders past 16, and the geometric estimate of
-    /// those takes the shape of the last order, which is still too close to the lit side.
+    /// those takes the shape of the last order, which is still too close to the lit side. More
+    /// iterations converge to the grid's own solution, whose error is set by
+    /// `volume_resolution`: on thick albedo-1 clouds more than 64–128 at one resolution make the
+    /// image worse, so raise both together (README, "Errors that cancel").
     pub scatter_iterations: u32,
     /// Multiple-scattering iterations when only the lights changed since the last solve (a
     /// moving sun): the scattering restarts from the solution the cloud holds, and computes the
