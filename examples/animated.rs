@@ -169,12 +169,7 @@ fn setup(
             name: "sun",
             azimuth: 40f32.to_radians(),
             elevation: 35f32.to_radians(),
-            keys: [
-                KeyCode::ArrowLeft,
-                KeyCode::ArrowRight,
-                KeyCode::ArrowDown,
-                KeyCode::ArrowUp,
-            ],
+            keys: KeyLight::ARROWS,
         },
         Color::WHITE,
         10_000.0,

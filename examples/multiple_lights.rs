@@ -66,12 +66,7 @@ fn setup(mut commands: Commands, mut particles: ResMut<Assets<Particles>>) {
             name: "blue",
             azimuth: 160f32.to_radians(),
             elevation: 20f32.to_radians(),
-            keys: [
-                KeyCode::ArrowLeft,
-                KeyCode::ArrowRight,
-                KeyCode::ArrowDown,
-                KeyCode::ArrowUp,
-            ],
+            keys: KeyLight::ARROWS,
         },
         Color::linear_rgb(0.15, 0.35, 1.0),
         LUX,

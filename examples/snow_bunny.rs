@@ -138,12 +138,7 @@ fn setup(
             name: "key light",
             azimuth: 60f32.to_radians(),
             elevation: 35f32.to_radians(),
-            keys: [
-                KeyCode::ArrowLeft,
-                KeyCode::ArrowRight,
-                KeyCode::ArrowDown,
-                KeyCode::ArrowUp,
-            ],
+            keys: KeyLight::ARROWS,
         },
         Color::linear_rgb(1.0, 0.86, 0.7),
         8_000.0,

@@ -40,7 +40,8 @@ impl Default for CloudGround {
 impl CloudGround {
     /// Itself, or why it is refused (the field, its value and what is allowed).
     pub fn validate(&self) -> Result<Self, String> {
-        if !(self.height.abs() <= MAX_GROUND_HEIGHT) {
+        // NaN fails too.
+        if self.height.is_nan() || self.height.abs() > MAX_GROUND_HEIGHT {
             return Err(format!(
                 "`CloudGround::height` is {} m; it must be within ±{MAX_GROUND_HEIGHT:e} m",
                 self.height

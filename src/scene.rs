@@ -653,35 +653,13 @@ mod tests {
     use crate::particle_files::{write_csv, write_ply_ascii, write_ply_binary};
     use crate::settings::ScatterStencil;
 
-    /// The example of docs/scene-format.md, verbatim. It must keep working unchanged.
-    const EXAMPLE: &str = r#"(
-    camera: (
-        position: (0.0, 0.6, 6.0),
-        look_at: (0.0, 0.0, 0.0),
-        up: (0.0, 1.0, 0.0),              // optional, default +Y
-        vertical_fov_degrees: 38.0,
-        width: 160,
-        height: 120,
-    ),
-    background: (0.0, 0.0, 0.0),          // optional, linear RGB radiance, default black
-    lights: [
-        (direction: (-0.5, -0.8, -0.35), irradiance: (1.0, 0.97, 0.9)),
-    ],
-    clouds: [
-        (
-            translation: (0.0, 0.0, 0.0),  // optional, default origin
-            medium: (extinction: 10.0, albedo: 0.99),
-            particles: Inline([
-                (position: (0.1, 0.2, 0.3), radius: 0.2, density: 0.8),
-                (position: (-0.3, 0.0, 0.1), radius: 0.25, density: 1.0),
-            ]),
-        ),
-    ],
-    objects: [                              // optional, default none
-        (shape: Cuboid((0.8, 3.0, 0.3)), translation: (0.9, 0.0, 1.8), color: (0.05, 0.05, 0.05)),
-    ],
-    settings: (volume_resolution: 128, scatter_iterations: 16),   // optional, fields optional
-)"#;
+    /// The example of docs/scene-format.md (its first RON block), read from the document itself,
+    /// so that the example users copy is the one tested.
+    fn example() -> &'static str {
+        let doc = include_str!("../docs/scene-format.md");
+        let start = doc.find("```ron\n").expect("a RON block") + "```ron\n".len();
+        &doc[start..start + doc[start..].find("```").expect("its end")]
+    }
 
     /// The example with every optional field left out.
     const MINIMAL: &str = r#"(
@@ -702,7 +680,7 @@ mod tests {
     }
 
     fn example_file() -> SceneFile {
-        ron::from_str(EXAMPLE).unwrap()
+        ron::from_str(example()).unwrap()
     }
 
     /// The clouds' ground is the top face of the widest lit cuboid: unlit objects and spheres
@@ -830,7 +808,7 @@ mod tests {
 
     #[test]
     fn example_parses_with_its_values() {
-        let s = Scene::from_ron_str(EXAMPLE, here()).unwrap();
+        let s = Scene::from_ron_str(example(), here()).unwrap();
         assert_eq!(s.camera.position, Vec3::new(0.0, 0.6, 6.0));
         assert_eq!(s.camera.look_at, Vec3::ZERO);
         assert_eq!(s.camera.up, Vec3::Y);
@@ -1178,7 +1156,7 @@ mod tests {
             };
             assert_eq!(message, *expected, "rule {i}");
             // `Scene::validate` applies the same rules to a scene built in code.
-            let mut scene = Scene::from_ron_str(EXAMPLE, here()).unwrap();
+            let mut scene = Scene::from_ron_str(example(), here()).unwrap();
             let mut file2 = example_file();
             mutate(&mut file2);
             scene.camera = file2.camera;
@@ -1208,10 +1186,10 @@ mod tests {
 
     #[test]
     fn non_finite_values_written_in_ron_are_refused() {
-        let text = EXAMPLE.replace("albedo: 0.99", "albedo: NaN");
+        let text = example().replace("albedo: 0.99", "albedo: NaN");
         let e = Scene::from_ron_str(&text, here()).unwrap_err().to_string();
         assert_eq!(e, "clouds[0].medium.albedo is NaN; it must lie in [0, 1]");
-        let text = EXAMPLE.replace("radius: 0.25", "radius: -inf");
+        let text = example().replace("radius: 0.25", "radius: -inf");
         let e = Scene::from_ron_str(&text, here()).unwrap_err().to_string();
         assert_eq!(
             e,
@@ -1256,8 +1234,8 @@ mod tests {
             ),
         ];
         for (from, to, field) in cases {
-            assert!(EXAMPLE.contains(from), "{from}");
-            let text = EXAMPLE.replacen(from, to, 1);
+            assert!(example().contains(from), "{from}");
+            let text = example().replacen(from, to, 1);
             let e = Scene::from_ron_str(&text, here()).unwrap_err();
             assert!(matches!(e, SceneError::Parse { .. }), "{e:?}");
             let message = e.to_string();
@@ -1276,26 +1254,26 @@ mod tests {
 
     #[test]
     fn unknown_variants_missing_fields_and_syntax_errors_are_parse_errors() {
-        let e = Scene::from_ron_str(&EXAMPLE.replace("Inline(", "Obj("), here())
+        let e = Scene::from_ron_str(&example().replace("Inline(", "Obj("), here())
             .unwrap_err()
             .to_string();
         assert!(e.contains("`Obj`") && e.contains("`Inline`"), "{e}");
-        let e = Scene::from_ron_str(&EXAMPLE.replace("Cuboid(", "Box("), here())
+        let e = Scene::from_ron_str(&example().replace("Cuboid(", "Box("), here())
             .unwrap_err()
             .to_string();
         assert!(e.contains("`Box`"), "{e}");
-        let e = Scene::from_ron_str(&EXAMPLE.replace("        height: 120,\n", ""), here())
+        let e = Scene::from_ron_str(&example().replace("        height: 120,\n", ""), here())
             .unwrap_err()
             .to_string();
         assert!(e.contains("`height`"), "{e}");
         let e =
-            Scene::from_ron_str(&EXAMPLE.replace("width: 160", "width: -160"), here()).unwrap_err();
+            Scene::from_ron_str(&example().replace("width: 160", "width: -160"), here()).unwrap_err();
         let SceneError::Parse { error, .. } = &e else {
             panic!("{e:?}")
         };
         assert_eq!(error.span.start.line, 7, "{e}");
         let e = Scene::from_ron_str(
-            &EXAMPLE.replace("look_at: (0.0, 0.0, 0.0),", "look_at: (0.0, 0.0 0.0),"),
+            &example().replace("look_at: (0.0, 0.0, 0.0),", "look_at: (0.0, 0.0 0.0),"),
             here(),
         )
         .unwrap_err()
@@ -1324,7 +1302,7 @@ mod tests {
     }
 
     fn scene_with_sources(sources: &str) -> String {
-        EXAMPLE.replacen(
+        example().replacen(
             "            translation: (0.0, 0.0, 0.0),  // optional, default origin\n",
             "",
             1,
@@ -1438,7 +1416,7 @@ mod tests {
             e.starts_with(&format!("cannot read scene file '{}': ", path.display())),
             "{e}"
         );
-        std::fs::write(&path, EXAMPLE.replace("width: 160", "widht: 160")).unwrap();
+        std::fs::write(&path, example().replace("width: 160", "widht: 160")).unwrap();
         let e = Scene::load(&path).unwrap_err().to_string();
         assert!(
             e.starts_with(&format!("{}:7:", path.display())) && e.contains("`widht`"),

@@ -42,41 +42,18 @@ fn run(args: &[&str]) -> Output {
         .expect("run the render example")
 }
 
-/// The example of docs/scene-format.md, unchanged.
-const SCENE_FORMAT_EXAMPLE: &str = r#"(
-    camera: (
-        position: (0.0, 0.6, 6.0),
-        look_at: (0.0, 0.0, 0.0),
-        up: (0.0, 1.0, 0.0),              // optional, default +Y
-        vertical_fov_degrees: 38.0,
-        width: 160,
-        height: 120,
-    ),
-    background: (0.0, 0.0, 0.0),          // optional, linear RGB radiance, default black
-    lights: [
-        (direction: (-0.5, -0.8, -0.35), irradiance: (1.0, 0.97, 0.9)),
-    ],
-    clouds: [
-        (
-            translation: (0.0, 0.0, 0.0),  // optional, default origin
-            medium: (extinction: 10.0, albedo: 0.99),
-            particles: Inline([
-                (position: (0.1, 0.2, 0.3), radius: 0.2, density: 0.8),
-                (position: (-0.3, 0.0, 0.1), radius: 0.25, density: 1.0),
-            ]),
-        ),
-    ],
-    objects: [                              // optional, default none
-        (shape: Cuboid((0.8, 3.0, 0.3)), translation: (0.9, 0.0, 1.8), color: (0.05, 0.05, 0.05)),
-    ],
-    settings: (volume_resolution: 128, scatter_iterations: 16),   // optional, fields optional
-)"#;
+/// The example of docs/scene-format.md (its first RON block), read from the document itself.
+fn scene_format_example() -> &'static str {
+    let doc = include_str!("../docs/scene-format.md");
+    let start = doc.find("```ron\n").expect("a RON block") + "```ron\n".len();
+    &doc[start..start + doc[start..].find("```").expect("its end")]
+}
 
 #[test]
 fn the_scene_format_example_renders_to_exr_png_and_stats() {
     let dir = scratch_dir("example");
     let scene = dir.join("scene.ron");
-    std::fs::write(&scene, SCENE_FORMAT_EXAMPLE).unwrap();
+    std::fs::write(&scene, scene_format_example()).unwrap();
     let (exr, png, stats) = (
         dir.join("out.exr"),
         dir.join("out.png"),
@@ -197,8 +174,8 @@ fn invalid_scenes_are_refused_with_the_field_and_value() {
         ),
     ];
     for (i, (from, to, expected)) in cases.iter().enumerate() {
-        assert!(SCENE_FORMAT_EXAMPLE.contains(from), "case {i}");
-        let text = SCENE_FORMAT_EXAMPLE.replacen(from, to, 1);
+        assert!(scene_format_example().contains(from), "case {i}");
+        let text = scene_format_example().replacen(from, to, 1);
         let scene = dir.join(format!("bad{i}.ron"));
         std::fs::write(&scene, text).unwrap();
         let out_path = dir.join(format!("bad{i}.exr"));
@@ -221,7 +198,7 @@ fn invalid_scenes_are_refused_with_the_field_and_value() {
 fn the_reference_path_tracer_renders_a_scene_file() {
     let dir = scratch_dir("reference");
     let scene = dir.join("scene.ron");
-    let small = SCENE_FORMAT_EXAMPLE
+    let small = scene_format_example()
         .replacen("width: 160", "width: 40", 1)
         .replacen("height: 120", "height: 30", 1);
     std::fs::write(&scene, small).unwrap();
@@ -302,7 +279,7 @@ fn the_command_line_is_checked_and_documented() {
 fn size_and_settings_overrides_reach_the_image_and_its_metadata() {
     let dir = scratch_dir("overrides");
     let scene = dir.join("scene.ron");
-    std::fs::write(&scene, SCENE_FORMAT_EXAMPLE).unwrap();
+    std::fs::write(&scene, scene_format_example()).unwrap();
     let exr = dir.join("small.exr");
     let out = run(&[
         scene.to_str().unwrap(),
@@ -347,7 +324,7 @@ fn size_and_settings_overrides_reach_the_image_and_its_metadata() {
 fn a_scene_drawn_by_compute_renders_the_rasterised_image() {
     let dir = scratch_dir("compute");
     let scene = dir.join("scene.ron");
-    std::fs::write(&scene, SCENE_FORMAT_EXAMPLE).unwrap();
+    std::fs::write(&scene, scene_format_example()).unwrap();
     let render = |name: &str, extra: &[&str]| {
         let exr = dir.join(name);
         let mut args = vec![

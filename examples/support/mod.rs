@@ -162,6 +162,14 @@ pub struct KeyLight {
 }
 
 impl KeyLight {
+    /// Azimuth on ←/→, elevation on ↓/↑.
+    pub const ARROWS: [KeyCode; 4] = [
+        KeyCode::ArrowLeft,
+        KeyCode::ArrowRight,
+        KeyCode::ArrowDown,
+        KeyCode::ArrowUp,
+    ];
+
     /// The unit vector towards the light.
     pub fn towards(&self) -> Vec3 {
         let (s, c) = self.elevation.sin_cos();

@@ -778,9 +778,9 @@ pub fn gather_source(
                 let rho = fine.rho[fine.index(fi, fj, fk)];
                 weighted.0 += m * rho;
                 plain.0 += m;
-                for axis in 0..3 {
-                    weighted.1[axis] += fl[axis] * rho;
-                    plain.1[axis] += fl[axis];
+                for ((w, p), f) in weighted.1.iter_mut().zip(&mut plain.1).zip(fl) {
+                    *w += f * rho;
+                    *p += f;
                 }
                 mass += rho;
             }
@@ -2272,13 +2272,9 @@ mod tests {
         let centre = grid.index(n / 2, n / 2, n / 2);
         let close = |a: DVec3, b: DVec3| (a - b).abs().max_element() < 2e-3 * b.abs().max_element();
         assert!(close(next.mean[centre], s.mean[centre] * delta.albedo));
-        for axis in 0..3 {
-            let expected = flux[axis] * (delta.albedo * delta.anisotropy);
-            assert!(
-                close(next.flux[centre][axis], expected),
-                "{axis}: {}",
-                next.flux[centre][axis]
-            );
+        for (axis, (swept, f)) in next.flux[centre].iter().zip(flux).enumerate() {
+            let expected = f * (delta.albedo * delta.anisotropy);
+            assert!(close(*swept, expected), "{axis}: {swept}");
         }
         assert!(
             quadrupole[centre]

@@ -143,21 +143,20 @@ pub(crate) fn prepare_cloud_fog(
     }
 }
 
+/// A camera, its render entity and its fog.
+#[cfg(feature = "distance_fog")]
+type FoggedCamera = (
+    Entity,
+    bevy::render::sync_world::RenderEntity,
+    Option<&'static bevy::pbr::DistanceFog>,
+);
+
 /// The fog of each camera with a valid `DistanceFog`; an invalid one is reported once and its
 /// clouds are drawn unfogged.
 #[cfg(feature = "distance_fog")]
 pub(crate) fn extract_cloud_fog(
     mut commands: Commands,
-    cameras: bevy::render::Extract<
-        Query<
-            (
-                Entity,
-                bevy::render::sync_world::RenderEntity,
-                Option<&bevy::pbr::DistanceFog>,
-            ),
-            With<Camera>,
-        >,
-    >,
+    cameras: bevy::render::Extract<Query<FoggedCamera, With<Camera>>>,
     mut refused: Local<bevy::platform::collections::HashMap<Entity, String>>,
 ) {
     for (entity, render_entity, distance_fog) in &cameras {
