@@ -1266,8 +1266,8 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("`height`"), "{e}");
-        let e =
-            Scene::from_ron_str(&example().replace("width: 160", "width: -160"), here()).unwrap_err();
+        let e = Scene::from_ron_str(&example().replace("width: 160", "width: -160"), here())
+            .unwrap_err();
         let SceneError::Parse { error, .. } = &e else {
             panic!("{e:?}")
         };

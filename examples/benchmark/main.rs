@@ -12,6 +12,7 @@
 //! cargo run --example benchmark -- --frame-budget [--view 1920x1080] [--bandwidth 4.8] [--draw-methods raster,compute] [--out DIR]
 //! cargo run --example benchmark -- --warm-start [--scenes a,b] [--out DIR]
 //! cargo run --example benchmark -- --decompose [--scenes a,b] [--spp N] [--out DIR]
+//! cargo run --example benchmark -- --grid-error [--scenes albedo_one] [--out DIR]
 //! cargo run --example benchmark -- --raster-vs-compute [--view 1920x1080] [--layers 13] [--out DIR]
 //! cargo run --example benchmark -- --line-sweep [--grid 128] [--segments 8] [--out DIR]
 //! ```
@@ -24,6 +25,9 @@
 //! incremental shading against the brute force march (`ShadingMethod::BruteForce`). `--decompose` writes `DIR/decomposition.md`: the
 //! default settings' error split into single scattering, each scattering order and the closure,
 //! against the path tracer split by order (CPU references, no adapter; see `decompose.rs`).
+//! `--grid-error` writes `DIR/grid_error.md`: the error against volume resolution and scattering
+//! iterations up to the converged series, and where the scattering grid's error lies (CPU
+//! references; see `grid_error.rs`).
 //!
 //! Timing. The GPU time of a setting is the sum of the per-pass GPU times (Bevy's render
 //! diagnostics; `FrameStats::gpu_ms` of the headless harness) of a frame in which every pass runs:
@@ -36,6 +40,7 @@ mod cloud_target_scale;
 mod decompose;
 mod fog;
 mod frame_budget;
+mod grid_error;
 mod illumination;
 mod line_sweep;
 mod plot;
@@ -167,6 +172,11 @@ pub(crate) struct Args {
     /// Split the default settings' error by scattering order (CPU only).
     #[arg(long)]
     pub(crate) decompose: bool,
+    /// The error against `volume_resolution` and `scatter_iterations` up to the converged
+    /// series, and where the scattering grid's error lies (CPU only; isotropic scenes without a
+    /// sky or ground; default scene `albedo_one`).
+    #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "scale", "voxelize", "frame_budget", "warm_start"])]
+    pub(crate) grid_error: bool,
     /// Clouds do not shadow each other (every cloud `NotShadowCaster`): what the cast of their
     /// shadows costs and what its absence does to the error.
     #[arg(long)]
@@ -304,6 +314,40 @@ fn line_sweep_benchmark(args: &Args) -> Result<(), String> {
     Ok(())
 }
 
+/// `--grid-error`: each chosen scene's (default `albedo_one`) error against the grid's knobs.
+fn grid_error_benchmark(args: &Args) -> Result<(), String> {
+    let names = args
+        .scenes
+        .clone()
+        .unwrap_or_else(|| vec!["albedo_one".into()]);
+    let mut md = String::from(
+        "The scattering grid's error against the path tracer (`cargo run --example benchmark -- \
+         --grid-error`), computed with the f64 CPU references of the real-time passes (which the \
+         GPU matches).\n",
+    );
+    for name in &names {
+        let bench = SCENES
+            .iter()
+            .find(|s| s.name == name)
+            .ok_or_else(|| format!("no such scene `{name}`"))?;
+        let scene = load_scene(bench)?;
+        let isotropic = scene.clouds.iter().all(|c| c.medium.anisotropy == 0.0);
+        if !isotropic || scene.background != Vec3::ZERO || scene.cloud_ground().is_some() {
+            return Err(format!(
+                "`{name}` has an anisotropic medium, a sky or a ground; --grid-error takes \
+                 isotropic clouds under a black sky"
+            ));
+        }
+        let spp = args.spp.unwrap_or(bench.spp);
+        let reference = reference(&scene, bench, spp, &args.out)?;
+        md.push_str(&grid_error::grid_error(bench, &scene, &reference));
+    }
+    let path = args.out.join("grid_error.md");
+    std::fs::write(&path, &md).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+    println!("{md}");
+    Ok(())
+}
+
 /// `--decompose`: every chosen scene's error at the default settings, part by part.
 fn decomposition(args: &Args, chosen: &[&BenchScene]) -> Result<(), String> {
     let settings = args.settings.first().copied().unwrap_or_default();
@@ -355,6 +399,9 @@ fn run() -> Result<(), String> {
     }
     if args.warm_start {
         return warm_start_benchmark(&args);
+    }
+    if args.grid_error {
+        return grid_error_benchmark(&args);
     }
     if args.scale {
         return if args.replot {
