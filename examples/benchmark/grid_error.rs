@@ -265,23 +265,22 @@ fn coarse_fine_table(bench: &BenchScene, scene: &Scene, reference: &Reference) -
     let mut md = format!(
         "\nThe {nc}³ grid's image at {m} iterations, its `S_m` taken from:\n\n| `S_m` | rel. RMSE | 4×4 box | energy / truth |\n|---|---:|---:|---:|\n"
     );
-    for (label, ill) in rows {
-        let e = errors(
-            &image(scene, &ill, &sc, bench.error_downsample),
+    let measure = |ill: &CloudIllumination, s: &CloudQualitySettings| {
+        errors(
+            &image(scene, ill, s, bench.error_downsample),
             reference,
             scene.background,
-        );
+        )
+    };
+    for (label, ill) in rows {
+        let e = measure(&ill, &sc);
         let _ = writeln!(
             md,
             "| {label} | {:.4} | {:.4} | {:.4} |",
             e.rmse, e.boxed, e.energy
         );
     }
-    let e = errors(
-        &image(scene, &fine, &settings(nf, m), bench.error_downsample),
-        reference,
-        scene.background,
-    );
+    let e = measure(&fine, &settings(nf, m));
     let _ = writeln!(
         md,
         "\n(The {nf}³ grid's own image: {:.4}, 4×4 box {:.4}, energy {:.4}.)",
