@@ -48,7 +48,7 @@ struct Parts {
     halves: [Vec<LinearImage>; 2],
 }
 
-fn energy(image: &LinearImage) -> f64 {
+pub(crate) fn energy(image: &LinearImage) -> f64 {
     image
         .pixels
         .iter()
@@ -67,7 +67,7 @@ fn sum(images: &[LinearImage]) -> LinearImage {
 }
 
 /// The real-time image of the light a field of `albedo S` scatters, box-filtered by `factor`.
-fn billboards(
+pub(crate) fn billboards(
     scene: &Scene,
     scattered: ScatteredLight,
     settings: &CloudQualitySettings,

@@ -16,14 +16,17 @@ use bevy_particle_clouds::{
     CloudQualitySettings, ScatterStencil,
     image_io::LinearImage,
     reference::{
-        composite::composite_scene_cloud,
         illumination::{CloudIllumination, DensityGrid, illuminate_scene_cloud, scatter},
         metrics::relative_rmse,
     },
     scene::Scene,
 };
 
-use super::{BenchScene, Reference, cloud_pixels, denoised, downsample};
+use super::{
+    BenchScene, Reference, cloud_pixels,
+    decompose::{billboards, energy},
+    denoised, downsample,
+};
 
 /// `(volume_resolution, scatter_iterations)` of the first table.
 const GRIDS: [(u32, u32); 9] = [
@@ -64,17 +67,13 @@ fn image(
 ) -> LinearImage {
     let camera = (scene.camera.position - scene.clouds[0].translation).as_dvec3();
     let seen = ill.seen_from(camera, s.compositing);
-    let pixels = composite_scene_cloud(scene, 0, &|x, ray| seen.scattered_at(x, ray), s, &ill.fine);
-    let full = LinearImage {
-        width: scene.camera.width,
-        height: scene.camera.height,
-        pixels,
-    };
-    downsample(&full, factor)
-}
-
-fn energy(pixels: &[[f32; 4]]) -> f64 {
-    pixels.iter().map(|p| (p[0] + p[1] + p[2]) as f64).sum()
+    billboards(
+        scene,
+        &|x, ray| seen.scattered_at(x, ray),
+        s,
+        &ill.fine,
+        factor,
+    )
 }
 
 /// Errors of one image: relative RMSE and after a 4×4 box (the reference's noise removed from
@@ -104,7 +103,7 @@ fn errors(image: &LinearImage, reference: &Reference, sky: bevy::math::Vec3) -> 
     Errors {
         rmse: denoised(rmse, reference.noise),
         boxed: denoised(boxed, reference.noise_box4),
-        energy: energy(&image.pixels) / energy(truth),
+        energy: energy(image) / energy(&truth_image),
     }
 }
 
@@ -336,7 +335,7 @@ mod tests {
         let pixels: Vec<[f32; 4]> = (0..w * h).map(|i| [i as f32, 1.0, 0.5, 1.0]).collect();
         let blocks = block_energies(&pixels, w, h);
         assert_eq!(blocks.len(), 48);
-        let total = energy(&pixels);
+        let total: f64 = pixels.iter().map(|p| (p[0] + p[1] + p[2]) as f64).sum();
         assert!((blocks.iter().sum::<f64>() - total).abs() < 1e-9 * total);
         // Block (0, 0) is the top-left 10 x 10 pixels.
         let first: f64 = (0..10)
