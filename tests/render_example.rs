@@ -26,6 +26,15 @@ fn render_binary() -> PathBuf {
     binary
 }
 
+/// A scratch directory holding the scene-format example as `scene.ron`: the directory and the
+/// scene's path.
+fn example_scene(name: &str) -> (PathBuf, PathBuf) {
+    let dir = scratch_dir(name);
+    let scene = dir.join("scene.ron");
+    std::fs::write(&scene, scene_format_example()).unwrap();
+    (dir, scene)
+}
+
 fn scratch_dir(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!(
         "bevy_particle_clouds_{name}_{}",
@@ -51,9 +60,7 @@ fn scene_format_example() -> &'static str {
 
 #[test]
 fn the_scene_format_example_renders_to_exr_png_and_stats() {
-    let dir = scratch_dir("example");
-    let scene = dir.join("scene.ron");
-    std::fs::write(&scene, scene_format_example()).unwrap();
+    let (dir, scene) = example_scene("example");
     let (exr, png, stats) = (
         dir.join("out.exr"),
         dir.join("out.png"),
@@ -277,9 +284,7 @@ fn the_command_line_is_checked_and_documented() {
 
 #[test]
 fn size_and_settings_overrides_reach_the_image_and_its_metadata() {
-    let dir = scratch_dir("overrides");
-    let scene = dir.join("scene.ron");
-    std::fs::write(&scene, scene_format_example()).unwrap();
+    let (dir, scene) = example_scene("overrides");
     let exr = dir.join("small.exr");
     let out = run(&[
         scene.to_str().unwrap(),
@@ -322,9 +327,7 @@ fn size_and_settings_overrides_reach_the_image_and_its_metadata() {
 /// image: the clouds' pixels summed by a compute shader, composited over the same objects.
 #[test]
 fn a_scene_drawn_by_compute_renders_the_rasterised_image() {
-    let dir = scratch_dir("compute");
-    let scene = dir.join("scene.ron");
-    std::fs::write(&scene, scene_format_example()).unwrap();
+    let (dir, scene) = example_scene("compute");
     let render = |name: &str, extra: &[&str]| {
         let exr = dir.join(name);
         let mut args = vec![
