@@ -1,6 +1,7 @@
 // What a surface under the clouds reads of them (docs/illumination.md §10): the cloud-lighting
-// lights and the sky, bound at 100, and the cloud shadow maps, bound at 101, of a material's bind
-// group; the clouds' optical depth between a world point and a light. Imported by
+// lights and the sky, bound at 100, and the cloud shadow maps and the sky map, bound at 101, of a
+// material's bind group; the clouds' transmittance between a world point and a light, and the
+// part of the sky they leave it. Imported by
 // `lit_object.wgsl` and `cloud_shadowed_material.wgsl`.
 // Rust mirrors: src/lit_object.rs, src/shadow_maps.rs.
 #define_import_path bevy_particle_clouds::cloud_shadow_maps
@@ -27,6 +28,8 @@ struct LitLight {
 struct LitObjectLights {
     sky: vec3<f32>,
     count: u32,
+    // Its `size` is 0 without a sky map.
+    sky_map: ShadowMapPlacement,
     lights: array<LitLight, 8>,
 }
 
@@ -42,9 +45,10 @@ fn texel(map: ShadowMapPlacement, i: i32, j: i32) -> f32 {
     return shadow_maps[map.first + u32(i + n * j)];
 }
 
-// The optical depth of every cloud between world point `x` and the light of `map`: bilinear
-// between texel centres; 0 before the first cloud along the light.
-fn cloud_optical_depth(map: ShadowMapPlacement, x: vec3<f32>) -> f32 {
+// What `map` holds at world point `x` (for a light's map, the optical depth of every cloud
+// between `x` and the light; for the sky map, the part of the sky they hide): bilinear between
+// texel centres; 0 outside the map and before its first cloud along its direction.
+fn map_value(map: ShadowMapPlacement, x: vec3<f32>) -> f32 {
     if dot(x, map.d) < map.w_begin {
         return 0.0;
     }
@@ -62,5 +66,14 @@ fn cloud_transmittance(l: u32, x: vec3<f32>) -> f32 {
     if light.mapped == 0u {
         return 1.0;
     }
-    return exp(-cloud_optical_depth(light.map, x));
+    return exp(-map_value(light.map, x));
+}
+
+// The part of the sky's irradiance on an upward-facing surface at `x` that the clouds leave,
+// `V`: read at `x`'s horizontal position from the sky map, made on its plane; 1 without one.
+fn sky_visibility(x: vec3<f32>) -> f32 {
+    if lights.sky_map.size == 0u {
+        return 1.0;
+    }
+    return 1.0 - map_value(lights.sky_map, x);
 }

@@ -31,7 +31,8 @@
 //! since lighting is linear in each light, for one more evaluation of each such light per
 //! fragment. Not shadowed by the clouds: the diffuse-transmission lobe's light from behind, and
 //! meshes drawn with the deferred renderer (Bevy lights its G-buffer in a pass of its own). The
-//! sky and ambient light are Bevy's, unshadowed. Bevy 0.19's directional light textures
+//! sky and ambient light are Bevy's, unshadowed (the sky map, which `LitObjectMaterial` reads,
+//! is not applied to them). Bevy 0.19's directional light textures
 //! (`DirectionalLightTexture`) could carry the shadow to unmodified `StandardMaterial`s, but they
 //! need binding arrays, which the software adapter our tests run on lacks.
 

@@ -1,8 +1,8 @@
 //! Lit objects (feature `lit_object`, which `headless` enables; docs/physics.md, "Lit objects"):
 //! the Lambertian surfaces of scene files' objects with a `reflectance`, shaded as the physics
 //! says, lit by the cloud-lighting directional lights through the cloud shadow maps
-//! ([`CloudShadowMaps`]) and by the sky ([`CloudSkyLight`], unshadowed by clouds), fogged by the
-//! view's `DistanceFog`. Bevy's `StandardMaterial` is not Lambertian (its diffuse lobe is
+//! ([`CloudShadowMaps`]) and by the sky ([`CloudSkyLight`], through the maps' sky map), fogged
+//! by the view's `DistanceFog`. Bevy's `StandardMaterial` is not Lambertian (its diffuse lobe is
 //! Burley's, with a specular lobe beside it), so these objects have their own material,
 //! `lit_object.wgsl`. A game may use it for a mesh that should take the clouds' shadows (add
 //! [`LitObjectPlugin`] and turn the shadow maps on), as the `clouds` example's ground does; for
@@ -30,7 +30,8 @@ pub const MAX_LIT_OBJECT_LIGHTS: usize = 8;
 
 /// A Lambertian surface that takes the clouds' shadows: it shows `color`, plus `reflectance / π`
 /// times the irradiance of the cloud-lighting lights (through the cloud shadow maps) and of the
-/// sky. The plugin keeps its lights up to date every frame.
+/// sky (through the sky map, as an upward-facing surface on its plane would take it). The plugin
+/// keeps its lights up to date every frame.
 #[derive(Asset, AsBindGroup, Clone, Debug, TypePath)]
 pub struct LitObjectMaterial {
     /// What it emits and reflects.
@@ -75,6 +76,8 @@ pub struct LitObjectLights {
     pub sky: Vec3,
     /// Lights in use.
     pub count: u32,
+    /// The sky map ([`CloudShadowMaps::sky`]); `size` 0 without one (the sky unhidden).
+    pub sky_map: ShadowMapPlacement,
     /// The lights.
     pub lights: [LitLight; MAX_LIT_OBJECT_LIGHTS],
 }
@@ -146,7 +149,11 @@ fn lit_object_lights(
     sky: Vec3,
     lights: impl Iterator<Item = (Entity, Vec3, Vec3)>,
 ) -> LitObjectLights {
-    let mut lit = LitObjectLights { sky, ..default() };
+    let mut lit = LitObjectLights {
+        sky,
+        sky_map: maps.sky.unwrap_or_default(),
+        ..default()
+    };
     for (entity, direction, irradiance) in lights.take(MAX_LIT_OBJECT_LIGHTS) {
         let map = maps.map_of(entity);
         lit.lights[lit.count as usize] = LitLight {
@@ -221,7 +228,7 @@ mod tests {
             of("LitObjectLights"),
             (
                 LitObjectLights::min_size().get(),
-                names(&["sky", "count", "lights"])
+                names(&["sky", "count", "sky_map", "lights"])
             )
         );
         assert_eq!(

@@ -1,9 +1,10 @@
 // Lit objects (docs/physics.md, "Lit objects"; docs/illumination.md §10): a Lambertian surface
 // shows its colour plus reflectance / pi times the irradiance of the lights, through the clouds'
-// shadow maps, and of the sky; fogged by the view's `DistanceFog` like any mesh.
+// shadow maps, and of the sky, through the sky map; fogged by the view's `DistanceFog` like any
+// mesh.
 // Rust mirror: src/lit_object.rs; the lights and maps: cloud_shadow_maps.wgsl.
 #import bevy_pbr::{forward_io::VertexOutput, mesh_view_bindings::view}
-#import bevy_particle_clouds::cloud_shadow_maps::{lights, cloud_transmittance}
+#import bevy_particle_clouds::cloud_shadow_maps::{lights, cloud_transmittance, sky_visibility}
 #ifdef DISTANCE_FOG
 #import bevy_pbr::{mesh_view_bindings::fog, pbr_functions::apply_fog}
 #endif
@@ -21,7 +22,7 @@ struct LitSurface {
 fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     let n = normalize(in.world_normal);
     let x = in.world_position.xyz;
-    var irradiance = PI * lights.sky;
+    var irradiance = PI * lights.sky * sky_visibility(x);
     for (var l = 0u; l < lights.count; l++) {
         let light = lights.lights[l];
         let cosine = dot(n, light.to_light);

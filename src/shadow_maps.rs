@@ -8,6 +8,10 @@
 //! world places the maps (this file); the render world fills them with the cast pass
 //! (`render::shadow_maps`), the sum at each texel of every cloud's own light volume along the
 //! texel's column.
+//!
+//! Under a sky ([`CloudSkyLight`](crate::CloudSkyLight)) there is one more map, the sky map
+//! ([`CloudShadowMaps::sky`]): over a horizontal plane under the clouds, the part of the sky's
+//! irradiance the clouds take away (`render::sky_map`).
 
 use bevy::{
     asset::RenderAssetUsages,
@@ -18,7 +22,9 @@ use bevy::{
 };
 
 use crate::{
+    CloudSkyLight,
     cloud::{NotCloudLight, ParticleCloud},
+    ground::CloudGround,
     math::light_basis,
 };
 
@@ -33,8 +39,15 @@ pub struct CloudShadowMaps {
     /// Per cloud-lighting light, where its map lies (written by the plugin every frame).
     #[reflect(ignore)]
     pub maps: Vec<(Entity, ShadowMapPlacement)>,
-    /// The optical depths of every map, `resolution²` f32 per light (written by the plugin's
-    /// render world; bind it read-only as `array<f32>`).
+    /// Where the sky map lies, under a sky with clouds above the plane (written by the plugin
+    /// every frame): a horizontal square at the [`CloudGround`]'s height (world `y = 0` without
+    /// one), its texels the fraction `1 - V` of the sky's irradiance on an upward-facing surface
+    /// there that the clouds take away; in the buffer after the lights' maps.
+    #[reflect(ignore)]
+    pub sky: Option<ShadowMapPlacement>,
+    /// The optical depths of every light's map, `resolution²` f32 per light, then the sky map's
+    /// [`sky_map_size`]`²` occlusions (written by the plugin's render world; bind it read-only
+    /// as `array<f32>`).
     #[reflect(ignore)]
     pub buffer: Handle<ShaderBuffer>,
 }
@@ -48,10 +61,11 @@ impl CloudShadowMaps {
         }
     }
 
-    /// Bytes of the maps' buffer for `lights` maps of `resolution²` texels (never empty:
-    /// materials bind it whether the maps are on or not).
+    /// Bytes of the maps' buffer for `lights` maps of `resolution²` texels and a sky map (never
+    /// empty: materials bind it whether the maps are on or not).
     pub fn buffer_bytes(lights: usize, resolution: u32) -> usize {
-        (lights * (resolution * resolution) as usize * 4).max(16)
+        let sky = sky_map_size(resolution).pow(2) as usize;
+        ((lights * (resolution * resolution) as usize + sky) * 4).max(16)
     }
 
     /// The placement of the map of light `light` (its main-world entity), if it has one.
@@ -123,6 +137,69 @@ impl ShadowMapPlacement {
         let a = self.corner + (Vec2::new(i as f32, j as f32) + 0.5) * self.texel;
         a.x * self.u + a.y * self.v + self.w_end * self.d
     }
+
+    /// The sky map of `size²` texels, starting at element `first`, on the horizontal plane at
+    /// world height `height`, under clouds within the world spheres `clouds` (centre, radius):
+    /// its axes world `x` and `z`, its "light" travelling down (`d = -y`), so `w_begin` is minus
+    /// the clouds' top and `w_end` minus `height`, and its texels' points lie on the plane. It
+    /// covers the clouds' footprint widened by [`SKY_MAP_REACH`] times their top's height above
+    /// the plane, where the sky they hide still matters. `None` without clouds above the plane.
+    pub fn sky(clouds: &[(Vec3, f32)], height: f32, size: u32, first: u32) -> Option<Self> {
+        let (mut lo, mut hi) = (Vec2::INFINITY, Vec2::NEG_INFINITY);
+        let mut top = f32::NEG_INFINITY;
+        for &(c, r) in clouds {
+            lo = lo.min(c.xz() - r);
+            hi = hi.max(c.xz() + r);
+            top = top.max(c.y + r);
+        }
+        if !top.is_finite() || top <= height || !lo.is_finite() || !hi.is_finite() {
+            return None;
+        }
+        let reach = SKY_MAP_REACH * (top - height);
+        let span = (hi - lo).max_element() + 2.0 * reach;
+        Some(Self {
+            u: Vec3::X,
+            texel: span / size as f32,
+            v: Vec3::Z,
+            w_begin: -top,
+            d: Vec3::NEG_Y,
+            w_end: -height,
+            corner: (lo + hi) * 0.5 - span * 0.5,
+            size,
+            first,
+        })
+    }
+}
+
+/// Directions per texel of the sky map: the `k`-th of them is [`sky_direction`]`(k)`.
+pub const SKY_MAP_DIRECTIONS: u32 = 128;
+
+/// How far beyond the clouds' footprint the sky map reaches, per metre of their top's height
+/// above its plane: 2, so it holds every point that sees a cloud less than 63° from the zenith
+/// (beyond, at most a fifth of the sky's irradiance comes from below 27° of elevation).
+pub const SKY_MAP_REACH: f32 = 2.0;
+
+/// Texels per side of the sky map beside light maps of `resolution` texels: an eighth, at least
+/// 8. What the clouds hide of the sky varies over about their height above the plane, more
+/// smoothly than their shadow.
+pub fn sky_map_size(resolution: u32) -> u32 {
+    (resolution / 8).max(8)
+}
+
+/// Direction `k` of the sky map's [`SKY_MAP_DIRECTIONS`] (world, unit, upwards): cosine-weighted
+/// over the upper hemisphere, on a Fibonacci spiral (`r = sqrt((k + 1/2) / K)` from the zenith's
+/// axis, the golden angle between neighbours), so their mean of a function is the
+/// cosine-weighted mean `1 / π ∫ f cos θ dω` that Lambertian irradiance takes.
+pub fn sky_direction(k: u32) -> Vec3 {
+    sky_direction_among(k, SKY_MAP_DIRECTIONS)
+}
+
+/// Direction `k` of `count` on the same spiral as [`sky_direction`]'s.
+pub fn sky_direction_among(k: u32, count: u32) -> Vec3 {
+    let r = ((k as f32 + 0.5) / count as f32).sqrt();
+    // The golden angle, π (3 - √5).
+    let phi = k as f32 * std::f32::consts::PI * (3.0 - 5f32.sqrt());
+    Vec3::new(r * phi.cos(), (1.0 - r * r).max(0.0).sqrt(), r * phi.sin())
 }
 
 /// The direction and irradiance of a directional light that lights clouds, if it lights them:
@@ -171,11 +248,13 @@ pub(crate) fn cloud_lights<'a>(
         })
 }
 
-/// Places every cloud-lighting light's map over the clouds, and keeps the maps' buffer sized.
+/// Places every cloud-lighting light's map over the clouds, and the sky map under a sky, and keeps
+/// the maps' buffer sized.
 pub(crate) fn place_cloud_shadow_maps(
     mut maps: ResMut<CloudShadowMaps>,
     clouds: Query<MappedCloud, (With<ParticleCloud>, Without<NotShadowCaster>)>,
     lights: CloudLightQuery,
+    (sky, ground): (Res<CloudSkyLight>, Option<Res<CloudGround>>),
     mut buffers: ResMut<Assets<ShaderBuffer>>,
 ) {
     let spheres: Vec<(Vec3, f32)> = clouds
@@ -201,6 +280,15 @@ pub(crate) fn place_cloud_shadow_maps(
         })
         .filter(|_| size > 0)
         .collect();
+    let lit_sky = sky.radiance().is_ok_and(|r| r.max_element() > 0.0);
+    let sky_first = placed.len() as u32 * size * size;
+    let height = ground.map_or(0.0, |g| g.height);
+    let sky = (lit_sky && size > 0)
+        .then(|| ShadowMapPlacement::sky(&spheres, height, sky_map_size(size), sky_first))
+        .flatten();
+    if maps.sky != sky {
+        maps.sky = sky;
+    }
     let bytes = CloudShadowMaps::buffer_bytes(placed.len(), size);
     let fits = buffers
         .get(&maps.buffer)
@@ -242,5 +330,43 @@ mod tests {
         let p = map.texel_point(0, 0);
         assert!((p.dot(down) - map.w_end).abs() < 1e-4);
         assert_eq!(ShadowMapPlacement::covering(down, &[], 64, 0), None);
+    }
+
+    /// The sky map lies on its plane under the clouds, reaching twice their top's height beyond
+    /// their footprint; no clouds above the plane, no map.
+    #[test]
+    fn the_sky_map_covers_what_the_clouds_hide() {
+        let clouds = [
+            (Vec3::new(0.0, 5.0, 0.0), 1.0),
+            (Vec3::new(6.0, 9.0, 2.0), 2.0),
+        ];
+        let map = ShadowMapPlacement::sky(&clouds, 1.0, 32, 100).unwrap();
+        // Top 11 m, 10 m above the plane: 20 m of reach each side of x -1..8.
+        assert!((map.texel * 32.0 - (9.0 + 40.0)).abs() < 1e-3);
+        assert_eq!((map.w_begin, map.w_end, map.first), (-11.0, -1.0, 100));
+        assert!((map.texel_point(5, 7).y - 1.0).abs() < 1e-6);
+        assert!((map.corner.x - (-21.0)).abs() < 1e-3);
+        assert_eq!(ShadowMapPlacement::sky(&clouds, 12.0, 32, 0), None);
+        assert_eq!(ShadowMapPlacement::sky(&[], 0.0, 32, 0), None);
+    }
+
+    /// The directions are unit, upwards, and cosine-weighted: their mean cosine is 2/3, and their
+    /// mean of the squared cosine 1/2, as `1 / π ∫ f cos θ dω` gives.
+    #[test]
+    fn the_sky_directions_are_cosine_weighted() {
+        let dirs: Vec<Vec3> = (0..SKY_MAP_DIRECTIONS).map(sky_direction).collect();
+        assert!(
+            dirs.iter()
+                .all(|d| (d.length() - 1.0).abs() < 1e-6 && d.y > 0.0)
+        );
+        let mean =
+            |f: &dyn Fn(Vec3) -> f32| dirs.iter().map(|&d| f(d)).sum::<f32>() / dirs.len() as f32;
+        assert!(
+            (mean(&|d| d.y) - 2.0 / 3.0).abs() < 2e-3,
+            "{}",
+            mean(&|d| d.y)
+        );
+        assert!((mean(&|d| d.y * d.y) - 0.5).abs() < 1e-6);
+        assert!(mean(&|d| d.x).abs() < 0.02 && mean(&|d| d.z).abs() < 0.02);
     }
 }

@@ -33,6 +33,7 @@ use super::{
     plan::CloudIllumination,
     pools::{PoolId, VolumePool, VolumePools},
     shadow_maps::{LitCloud, ShadowMapCasts, ShadowMapKeys, shadow_map_casts},
+    sky_map::{SkyMapFill, SkyMapKey, sky_map_fill},
     volumes::CloudVolumes,
     voxelize::{
         VoxelizeCloud, VoxelizeRound, VoxelizeScratch, prepare_round, record_round, voxelize_rounds,
@@ -42,7 +43,7 @@ use super::{
 use crate::{
     particle::DeltaEddington,
     settings::{ScatterStencil, ShadingMethod},
-    shadow_maps::CloudShadowMaps,
+    shadow_maps::{CloudShadowMaps, SKY_MAP_DIRECTIONS},
     stats::{CloudPass, CloudPassCounters},
 };
 
@@ -113,15 +114,16 @@ pub struct IlluminationBatches {
     voxelize: Vec<VoxelizeRound>,
     pools: Vec<PoolBatches>,
     maps: ShadowMapCasts,
+    sky: SkyMapFill,
 }
 
 /// What the shadow maps' batches are made from: the maps, the lights, the storage buffers (the
-/// maps' own) and the keys of what the maps hold.
+/// maps' own) and the keys of what the maps (the lights' and the sky's) hold.
 type ShadowMapInputs<'w> = (
     Option<Res<'w, CloudShadowMaps>>,
     Res<'w, ExtractedCloudLights>,
     Res<'w, RenderAssets<GpuShaderBuffer>>,
-    ResMut<'w, ShadowMapKeys>,
+    (ResMut<'w, ShadowMapKeys>, ResMut<'w, SkyMapKey>),
 );
 
 /// `S_0` for `k = 0`, else the order written by iteration `k - 1` (the two order volumes alternate).
@@ -167,7 +169,7 @@ pub(crate) fn prepare_illumination_bind_groups(
     pipelines: Option<Res<IlluminationPipelines>>,
     pipeline_cache: Res<PipelineCache>,
     device: Res<RenderDevice>,
-    (maps, lights, storage, mut map_keys): ShadowMapInputs,
+    (maps, lights, storage, (mut map_keys, mut sky_key)): ShadowMapInputs,
 ) {
     let Some(pipelines) = pipelines else { return };
     let bind = |stage: &ComputeStage, entries: &[BindGroupEntry]| -> BindGroup {
@@ -219,6 +221,29 @@ pub(crate) fn prepare_illumination_bind_groups(
         .as_deref()
         .and_then(|m| storage.get(&m.buffer))
         .map(|b| &b.buffer);
+    let sky = sky_map_fill(
+        maps.as_deref().and_then(|m| m.sky.as_ref()),
+        map_buffer,
+        &lit,
+        &mut sky_key,
+        &device,
+        |pool, casters, target, scratch| {
+            let pool = &pools.0[&pool];
+            let casters = storage_init(&device, "particle_clouds_sky_casters", casters);
+            let target = storage_init(&device, "particle_clouds_sky_target", &[*target]);
+            bind(
+                &pipelines.march_sky,
+                &BindGroupEntries::sequential((
+                    pool.slots.as_entire_binding(),
+                    casters.as_entire_binding(),
+                    pool.densities.as_entire_binding(),
+                    scratch.as_entire_binding(),
+                    target.as_entire_binding(),
+                    map_buffer.expect("the maps' buffer").as_entire_binding(),
+                )),
+            )
+        },
+    );
     let maps = match maps.as_deref() {
         Some(maps) => shadow_map_casts(
             maps,
@@ -366,6 +391,7 @@ pub(crate) fn prepare_illumination_bind_groups(
         voxelize,
         pools: batches,
         maps,
+        sky,
     });
 }
 
@@ -536,12 +562,12 @@ pub(crate) fn illuminate_clouds(
     pipeline_cache: Res<PipelineCache>,
     counters: Res<CloudPassCounters>,
     shading: Option<Res<ShadingMethod>>,
-    mut map_keys: ResMut<ShadowMapKeys>,
+    (mut map_keys, mut sky_key): (ResMut<ShadowMapKeys>, ResMut<SkyMapKey>),
 ) {
     let Some(pipelines) = pipelines else { return };
-    let maps_pending = batches
-        .as_ref()
-        .is_some_and(|b| !b.maps.clears.is_empty() || !b.maps.batches.is_empty());
+    let maps_pending = batches.as_ref().is_some_and(|b| {
+        !b.maps.clears.is_empty() || !b.maps.batches.is_empty() || b.sky.is_pending()
+    });
     if clouds.iter().all(|(_, _, s)| s.plan.is_empty()) && !maps_pending {
         return;
     }
@@ -559,6 +585,7 @@ pub(crate) fn illuminate_clouds(
         // Not compiled yet: forget the plan so that the next frame does all of it.
         clouds.iter_mut().for_each(|(_, _, mut s)| s.invalidate());
         *map_keys = ShadowMapKeys::default();
+        *sky_key = SkyMapKey::default();
         return;
     };
     let recorder = ctx.diagnostic_recorder();
@@ -589,9 +616,9 @@ pub(crate) fn illuminate_clouds(
     // `ShadingMethod::BruteForce`, one voxel per invocation marching all the way to the light).
     // Every (cloud, light) of a pool in one dispatch. Then the casts, in the same stage: their
     // dispatches count as shade's, their runs do not (a run is a light shaded).
-    let maps = &batches.maps;
+    let (maps, sky) = (&batches.maps, &batches.sky);
     if let Some(buffer) = &maps.buffer {
-        for &(offset, size) in &maps.clears {
+        for &(offset, size) in maps.clears.iter().chain(&sky.clear) {
             ctx.command_encoder()
                 .clear_buffer(buffer, offset, Some(size));
         }
@@ -637,8 +664,9 @@ pub(crate) fn illuminate_clouds(
     }
 
     // Gather (§1, §3): the scattering grid's density, and every light's single scattering into
-    // its source S_0. Every cloud of a pool in one dispatch.
-    if batches.pools.iter().any(|b| b.gather.is_some()) {
+    // its source S_0. Every cloud of a pool in one dispatch. Then the sky map (§10), marched
+    // through the scattering grids' densities; its dispatches count as gather's, not its runs.
+    if batches.pools.iter().any(|b| b.gather.is_some()) || sky.resolve.is_some() {
         record_stage(
             &mut ctx,
             recorder.as_deref(),
@@ -654,6 +682,18 @@ pub(crate) fn illuminate_clouds(
                         dispatch_linear(pass, b.n.pow(3), items);
                     }
                     runs += batch.work.items;
+                }
+                if let Some(resolve) = &sky.resolve {
+                    // Every pool's clouds along each texel's directions, then each texel's
+                    // occlusion.
+                    pass.set_pipeline(ready.march_sky);
+                    for group in &sky.marches {
+                        pass.set_bind_group(0, group, &[]);
+                        dispatch_linear(pass, sky.texels * SKY_MAP_DIRECTIONS, 1);
+                    }
+                    pass.set_pipeline(ready.resolve_sky);
+                    pass.set_bind_group(0, resolve, &[]);
+                    dispatch_linear(pass, sky.texels, 1);
                 }
                 runs
             },

@@ -4,21 +4,32 @@
 use bevy::render::render_resource::ShaderType;
 
 use super::{
-    cloud_target::CloudTargetParams, draw::DrawParams, fog::CloudFogParams,
-    ground::ground_map_bytes, particles::GpuParticle, pipelines::SweepDirection, pools::Slot,
-    sort::SortParams, view_volume::ViewVolumeParams, volumes::CloudParams, volumes::DensityLevels,
+    cloud_target::CloudTargetParams,
+    draw::DrawParams,
+    fog::CloudFogParams,
+    ground::ground_map_bytes,
+    particles::GpuParticle,
+    pipelines::SweepDirection,
+    pools::Slot,
+    sky_map::{SkyCaster, SkyMapTarget},
+    sort::SortParams,
+    view_volume::ViewVolumeParams,
+    volumes::CloudParams,
+    volumes::DensityLevels,
     volumes::LightParams,
 };
 
-const WGSL: [&str; 5] = [
+const WGSL: [&str; 6] = [
     include_str!("types.wgsl"),
+    include_str!("sky_map.wgsl"),
     include_str!("fog.wgsl"),
     include_str!("billboard.wgsl"),
     include_str!("sort.wgsl"),
     include_str!("scatter.wgsl"),
 ];
-const RUST: [&str; 10] = [
+const RUST: [&str; 11] = [
     include_str!("fog.rs"),
+    include_str!("sky_map.rs"),
     include_str!("ground.rs"),
     include_str!("volumes.rs"),
     include_str!("pools.rs"),
@@ -125,6 +136,12 @@ fn rust_mirrors_have_the_wgsl_layout() {
     let frame = field_names(block(&RUST, "pub struct ", "GroundFrame"), "pub ");
     assert_eq!(frame, fields, "GroundFrame and WGSL GroundMap: fields");
     assert_eq!(ground_map_bytes(), size as u64, "GroundMap: size");
+    check("SkyCaster", "SkyCaster", SkyCaster::min_size().get());
+    check(
+        "SkyMapTarget",
+        "SkyMapTarget",
+        SkyMapTarget::min_size().get(),
+    );
     // The particle buffer is plain bytes (bytemuck), laid out as `Particle`.
     let (size, _) = wgsl_layout("Particle");
     assert_eq!(std::mem::size_of::<GpuParticle>() as u32, size);

@@ -8,6 +8,7 @@
 //! | `pools.rs` | the volumes of every cloud of one shape packed into shared buffers, one slot per cloud |
 //! | `cast.rs` | who casts a shadow on whom: each cloud's light volumes take the other clouds' optical depth |
 //! | `shadow_maps.rs` | which cloud shadow maps the cast pass fills this frame |
+//! | `sky_map.rs` | the sky map: what the clouds hide of the sky over the ground, marched through their densities |
 //! | `overlap.rs` | clouds that overlap: each cloud's multiple scattering goes through the others' media too |
 //! | `plan.rs` | which stages rerun this frame: cache keys per stage, a pure planning function |
 //! | `pipelines.rs` | compute pipelines of the illumination passes |
@@ -40,6 +41,7 @@ pub mod plan;
 pub mod pools;
 pub mod shaders;
 pub mod shadow_maps;
+pub mod sky_map;
 pub mod sort;
 pub mod splat;
 pub mod view_atlas;
@@ -205,6 +207,7 @@ pub(crate) fn finish(app: &mut App) {
         .init_resource::<pools::VolumePools>()
         .init_resource::<voxelize::VoxelizeScratch>()
         .init_resource::<shadow_maps::ShadowMapKeys>()
+        .init_resource::<sky_map::SkyMapKey>()
         .init_resource::<view_atlas::ViewVolumeAtlases>()
         .init_resource::<SpecializedRenderPipelines<draw::BillboardPipeline>>()
         .init_resource::<draw::BillboardEmitPipelines>()

@@ -152,6 +152,10 @@ pub struct IlluminationPipelines {
     pub shade_brute_force: ComputeStage,
     /// `cast.wgsl`, `cast_shadows`: other clouds' shadows added to the light volumes.
     pub cast: ComputeStage,
+    /// `sky_map.wgsl`, `march_sky`: the clouds' optical depths along the sky map's directions.
+    pub march_sky: ComputeStage,
+    /// `sky_map.wgsl`, `resolve_sky` (same layout): the sky map's occlusion from them.
+    pub resolve_sky: ComputeStage,
     /// `gather.wgsl`, `gather`.
     pub gather: ByMoments,
     /// `overlap.wgsl`, `overlap_media`: other clouds' media in a cloud's scattering grid.
@@ -192,6 +196,10 @@ pub struct ReadyPipelines<'a> {
     pub upsample: &'a ComputePipeline,
     /// Cast.
     pub cast: &'a ComputePipeline,
+    /// The sky map's march.
+    pub march_sky: &'a ComputePipeline,
+    /// The sky map's resolve.
+    pub resolve_sky: &'a ComputePipeline,
     /// Gather.
     pub gather: [&'a ComputePipeline; 2],
     /// Overlap.
@@ -222,6 +230,8 @@ impl IlluminationPipelines {
             voxelize: self.voxelize.get(cache)?,
             upsample: self.upsample.get(cache)?,
             cast: self.cast.get(cache)?,
+            march_sky: self.march_sky.get(cache)?,
+            resolve_sky: self.resolve_sky.get(cache)?,
             gather: self.gather.get(cache)?,
             overlap: self.overlap.get(cache)?,
             ground: self.ground.get(cache)?,
@@ -310,6 +320,13 @@ pub(crate) fn init_illumination_pipelines(
             (read(), write(), read(), read(), work()),
         ),
     );
+    let sky_map = BindGroupLayoutDescriptor::new(
+        "particle_clouds_sky_map_layout",
+        &BindGroupLayoutEntries::sequential(
+            ShaderStages::COMPUTE,
+            (read(), read(), read(), write(), read(), write()),
+        ),
+    );
     let gather = BindGroupLayoutDescriptor::new(
         "particle_clouds_gather_layout",
         &BindGroupLayoutEntries::sequential(
@@ -367,6 +384,8 @@ pub(crate) fn init_illumination_pipelines(
         shade: stage(&shaders.shade, "shade", &shade),
         shade_brute_force: stage(&shaders.shade, "shade_brute_force", &shade),
         cast: stage(&shaders.cast, "cast_shadows", &cast),
+        march_sky: stage(&shaders.sky_map, "march_sky", &sky_map),
+        resolve_sky: stage(&shaders.sky_map, "resolve_sky", &sky_map),
         gather: ByMoments::new(cache, &shaders.gather, "gather", &gather),
         overlap: stage(&shaders.overlap, "overlap_media", &overlap),
         ground: stage(&shaders.ground, "ground_radiance", &ground),

@@ -22,6 +22,8 @@ pub struct CloudShaders {
     pub shade: Handle<Shader>,
     /// `cast.wgsl`.
     pub cast: Handle<Shader>,
+    /// `sky_map.wgsl`.
+    pub sky_map: Handle<Shader>,
     /// `gather.wgsl`.
     pub gather: Handle<Shader>,
     /// `overlap.wgsl`.
@@ -52,6 +54,7 @@ impl CloudShaders {
         embedded_asset!(app, "density.wgsl");
         embedded_asset!(app, "shade.wgsl");
         embedded_asset!(app, "cast.wgsl");
+        embedded_asset!(app, "sky_map.wgsl");
         embedded_asset!(app, "gather.wgsl");
         embedded_asset!(app, "overlap.wgsl");
         embedded_asset!(app, "ground.wgsl");
@@ -68,6 +71,7 @@ impl CloudShaders {
             density: load_embedded_asset!(&*app, "density.wgsl"),
             shade: load_embedded_asset!(&*app, "shade.wgsl"),
             cast: load_embedded_asset!(&*app, "cast.wgsl"),
+            sky_map: load_embedded_asset!(&*app, "sky_map.wgsl"),
             gather: load_embedded_asset!(&*app, "gather.wgsl"),
             overlap: load_embedded_asset!(&*app, "overlap.wgsl"),
             ground: load_embedded_asset!(&*app, "ground.wgsl"),

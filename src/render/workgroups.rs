@@ -4,7 +4,10 @@
 
 use bevy::shader::ShaderDefVal;
 
-use crate::beam_phase::{BEAM_PHASE_ANGLES, BEAM_PHASE_DEPTHS};
+use crate::{
+    beam_phase::{BEAM_PHASE_ANGLES, BEAM_PHASE_DEPTHS},
+    shadow_maps::SKY_MAP_DIRECTIONS,
+};
 
 use super::gpu::StagePass;
 
@@ -25,6 +28,7 @@ pub fn shader_defs() -> Vec<ShaderDefVal> {
         ShaderDefVal::UInt("SORT_TILE".into(), SORT_TILE),
         ShaderDefVal::UInt("BEAM_PHASE_ANGLES".into(), BEAM_PHASE_ANGLES),
         ShaderDefVal::UInt("BEAM_PHASE_DEPTHS".into(), BEAM_PHASE_DEPTHS),
+        ShaderDefVal::UInt("SKY_MAP_DIRECTIONS".into(), SKY_MAP_DIRECTIONS),
     ]
 }
 
@@ -64,6 +68,7 @@ mod tests {
             include_str!("closure.wgsl"),
             include_str!("sort.wgsl"),
             include_str!("view_volume.wgsl"),
+            include_str!("sky_map.wgsl"),
         ];
         let allowed = [
             "@workgroup_size(#{LINEAR_WORKGROUP})",

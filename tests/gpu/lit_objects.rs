@@ -1,6 +1,7 @@
-//! Lit objects under clouds (docs/illumination.md §10): the cloud shadow map against the CPU
-//! reference texel by texel, and a Lambertian ground's every pixel against the shading the CPU
-//! reference gives it through that map; the map is filled again only when a cloud moves.
+//! Lit objects under clouds (docs/illumination.md §10): the cloud shadow map and the sky map
+//! against the CPU reference texel by texel, and a Lambertian ground's every pixel against the
+//! shading the CPU reference gives it through those maps; the map is filled again only when a
+//! cloud moves.
 
 use bevy::render::storage::GpuShaderBuffer;
 use bevy::{prelude::*, render::render_asset::RenderAssets};
@@ -13,7 +14,8 @@ use bevy_particle_clouds::{
         composite::CloudPlacement,
         geometry::nearest_object,
         illumination::{
-            PlacedCloud, cloud_shadow_map, illuminate_clouds_under_sky, shadow_map_depth_at,
+            CloudIllumination, PlacedCloud, cloud_shadow_map, illuminate_clouds_under_sky,
+            shadow_map_depth_at, sky_occlusion_map,
         },
         metrics::{max_relative_difference, relative_rmse},
     },
@@ -63,7 +65,35 @@ fn spawn_with_maps(setup: &Setup, resolution: u32) -> (App, headless::SceneTarge
 /// The GPU's shadow map of the first light, and its placement.
 fn gpu_map(app: &mut App) -> (Vec<f64>, ShadowMapPlacement) {
     let maps = app.world().resource::<CloudShadowMaps>().clone();
-    let (_, placement) = maps.maps[0];
+    gpu_values(app, maps.maps[0].1)
+}
+
+/// How far the GPU's sky map may lie from the CPU's, in fractions of the sky's irradiance: f32
+/// sums of 32 transmittances, and a ray that grazes a cloud's box may take one more or one fewer
+/// step on the GPU than in f64.
+const SKY_TOLERANCE: f64 = 1e-4;
+
+/// The largest difference between two sky maps, in fractions of the sky's irradiance (its
+/// texels are those fractions already, so no maximum scales it).
+fn sky_map_error(gpu: &[f64], cpu: &[f64]) -> f64 {
+    let error = gpu
+        .iter()
+        .zip(cpu)
+        .map(|(g, c)| (g - c).abs())
+        .fold(0.0, f64::max);
+    eprintln!("sky map: {error:e} of the sky against the CPU reference");
+    error
+}
+
+/// The GPU's sky map, and its placement.
+fn gpu_sky_map(app: &mut App) -> (Vec<f64>, ShadowMapPlacement) {
+    let maps = app.world().resource::<CloudShadowMaps>().clone();
+    gpu_values(app, maps.sky.expect("a sky map under the sky"))
+}
+
+/// What the maps' buffer holds in the map placed as `placement`.
+fn gpu_values(app: &mut App, placement: ShadowMapPlacement) -> (Vec<f64>, ShadowMapPlacement) {
+    let maps = app.world().resource::<CloudShadowMaps>().clone();
     let buffer = common::with_render_world(app, |world| {
         let buffers = world.resource::<RenderAssets<GpuShaderBuffer>>();
         buffers
@@ -83,6 +113,18 @@ fn gpu_map(app: &mut App) -> (Vec<f64>, ShadowMapPlacement) {
 
 /// The CPU reference of the first light's shadow map of `setup`'s cloud, placed as `map`.
 fn cpu_shadow_map(setup: &Setup, map: &ShadowMapPlacement) -> Vec<f64> {
+    let (cloud, placement) = cpu_cloud(setup);
+    cloud_shadow_map(&[(&cloud, placement)], 0, map)
+}
+
+/// The CPU reference of the sky map of `setup`'s cloud, placed as `map`.
+fn cpu_sky_map(setup: &Setup, map: &ShadowMapPlacement) -> Vec<f64> {
+    let (cloud, placement) = cpu_cloud(setup);
+    sky_occlusion_map(&[(&cloud, placement)], map)
+}
+
+/// The CPU reference of `setup`'s cloud, and where it lies.
+fn cpu_cloud(setup: &Setup) -> (CloudIllumination, CloudPlacement) {
     let placement = CloudPlacement {
         translation: setup.transform.translation.as_dvec3(),
         rotation: setup.transform.rotation.as_dquat(),
@@ -94,9 +136,9 @@ fn cpu_shadow_map(setup: &Setup, map: &ShadowMapPlacement) -> Vec<f64> {
         placement,
         settings: setup.settings,
     }];
-    let cpu = illuminate_clouds_under_sky(&placed, &setup.lights, setup.sky.as_dvec3());
-    let cloud = cpu[0].as_ref().expect("a cloud with density");
-    cloud_shadow_map(&[(cloud, placement)], 0, map)
+    let mut cpu = illuminate_clouds_under_sky(&placed, &setup.lights, setup.sky.as_dvec3());
+    let cloud = cpu.remove(0).expect("a cloud with density");
+    (cloud, placement)
 }
 
 /// The setup's camera, as the CPU reference sees it.
@@ -145,8 +187,15 @@ fn lit_ground_matches_the_cpu_reference(fog: Option<Fog>) {
     let cpu_map = cpu_shadow_map(&setup, &map);
     let error = max_relative_difference(&gpu, &cpu_map);
     assert!(error <= TOLERANCE, "shadow map: {error:e} of its maximum");
+    let (gpu_sky, sky_map) = gpu_sky_map(&mut app);
+    let cpu_sky = cpu_sky_map(&setup, &sky_map);
+    let error = sky_map_error(&gpu_sky, &cpu_sky);
+    let hidden = cpu_sky.iter().copied().fold(0.0, f64::max);
+    assert!(error <= SKY_TOLERANCE, "sky map: {error:e} of the sky");
+    assert!(hidden > 0.02, "the cloud hides the sky: {hidden}");
 
-    // Every ground pixel: its colour plus R / pi (E cos T + pi L_sky), T through the CPU's map.
+    // Every ground pixel: its colour plus R / pi (E cos T + pi L_sky V), T and V through the
+    // CPU's maps.
     let eye = setup.camera.translation.as_dvec3();
     let camera = pinhole(&setup);
     let light = &setup.lights[0];
@@ -161,8 +210,9 @@ fn lit_ground_matches_the_cpu_reference(fog: Option<Fog>) {
             let x = eye + ray * t;
             let transmittance = (-shadow_map_depth_at(&map, &cpu_map, x)).exp();
             darkest = darkest.min(transmittance);
+            let visible = 1.0 - shadow_map_depth_at(&sky_map, &cpu_sky, x);
             let e = light.irradiance.as_dvec3() * (to_light.y * transmittance)
-                + setup.sky.as_dvec3() * std::f64::consts::PI;
+                + setup.sky.as_dvec3() * (std::f64::consts::PI * visible);
             let mut l = EMITTED.as_dvec3() + REFLECTANCE.as_dvec3() * e / std::f64::consts::PI;
             if let Some(fog) = &setup.fog {
                 l = fog.apply(
@@ -240,6 +290,10 @@ fn a_map_of_clouds_apart_matches_the_cpu_reference() {
     let cpu_map = cloud_shadow_map(&lit, 0, &map);
     let error = max_relative_difference(&gpu, &cpu_map);
     assert!(error <= TOLERANCE, "shadow map: {error:e} of its maximum");
+    // The sky map sums the three clouds' optical depths along each direction.
+    let (gpu_sky, sky_map) = gpu_sky_map(&mut app);
+    let error = sky_map_error(&gpu_sky, &sky_occlusion_map(&lit, &sky_map));
+    assert!(error <= SKY_TOLERANCE, "sky map: {error:e} of the sky");
     // Some bands hold no cloud's shadow, others do.
     let band_holds = |b: u32| {
         let rows = (b * BAND_ROWS) as usize..((b + 1) * BAND_ROWS).min(map.size) as usize;
@@ -263,10 +317,10 @@ fn a_still_sky_fills_the_map_once_and_a_moving_cloud_again() {
     let (mut app, _) = spawn_with_maps(&setup, 64);
     let mut recorder = FrameRecorder::default();
     headless::render_until_steady(&mut app, &mut recorder, 1, 20).unwrap();
-    let dispatches = |recorder: &FrameRecorder, from: usize| -> u32 {
+    let dispatches = |recorder: &FrameRecorder, from: usize, pass: CloudPass| -> u32 {
         recorder.frames[from..]
             .iter()
-            .map(|f| f.dispatches(CloudPass::Shade))
+            .map(|f| f.dispatches(pass))
             .sum()
     };
     // Still: nothing.
@@ -274,8 +328,10 @@ fn a_still_sky_fills_the_map_once_and_a_moving_cloud_again() {
     for _ in 0..3 {
         recorder.frame(&mut app).unwrap();
     }
-    assert_eq!(dispatches(&recorder, first), 0);
-    // The cloud drifts: no cloud is re-lit, but the map is filled again (one cast dispatch).
+    assert_eq!(dispatches(&recorder, first, CloudPass::Shade), 0);
+    assert_eq!(dispatches(&recorder, first, CloudPass::Gather), 0);
+    // The cloud drifts: no cloud is re-lit, but the maps are filled again: one cast dispatch,
+    // and, after gather's, the sky map's march (one pool) and resolve.
     let mut clouds = app
         .world_mut()
         .query_filtered::<&mut Transform, With<bevy_particle_clouds::ParticleCloud>>();
@@ -290,7 +346,11 @@ fn a_still_sky_fills_the_map_once_and_a_moving_cloud_again() {
         .iter()
         .map(|f| f.runs(CloudPass::Shade))
         .sum();
-    assert_eq!((runs, dispatches(&recorder, first)), (0, 1));
+    assert_eq!(
+        (runs, dispatches(&recorder, first, CloudPass::Shade)),
+        (0, 1)
+    );
+    assert_eq!(dispatches(&recorder, first, CloudPass::Gather), 2);
 }
 
 /// Which material the ground of [`standard_ground_image`] wears.
