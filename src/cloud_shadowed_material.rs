@@ -1,8 +1,8 @@
 //! A game's `StandardMaterial` meshes under the clouds (feature `lit_object`; docs/illumination.md
 //! §10): [`CloudShadowedMaterial`] is Bevy's `StandardMaterial` extended with
 //! [`CloudShadowReceiver`], which sees every cloud-lighting directional light through the cloud
-//! shadow maps ([`CloudShadowMaps`](crate::CloudShadowMaps)). Everything else is Bevy's PBR: its
-//! shadow maps, ambient and environment light, fog.
+//! shadow maps ([`CloudShadowMaps`](crate::CloudShadowMaps)), and Bevy's ambient light through
+//! their sky map. Everything else is Bevy's PBR: its shadow maps, environment light, fog.
 //!
 //! Add [`LitObjectPlugin`](crate::lit_object::LitObjectPlugin) (it keeps the extension's lights
 //! and maps up to date every frame) and turn the shadow maps on; then wrap a mesh's material:
@@ -29,10 +29,11 @@
 //! takes away `(1 - T)` of each cloud-lighting light's contribution (Bevy's own
 //! `directional_light` and shadow), `T` the clouds' transmittance towards that light: exact,
 //! since lighting is linear in each light, for one more evaluation of each such light per
-//! fragment. Not shadowed by the clouds: the diffuse-transmission lobe's light from behind, and
-//! meshes drawn with the deferred renderer (Bevy lights its G-buffer in a pass of its own). The
-//! sky and ambient light are Bevy's, unshadowed (the sky map, which `LitObjectMaterial` reads,
-//! is not applied to them). Bevy 0.19's directional light textures
+//! fragment. Bevy's ambient light stands for the sky: under a `CloudSkyLight` (which makes the
+//! sky map) the shader takes away `(1 - V)` of Bevy's own `ambient_light`, `V` what the clouds
+//! leave of the sky there. Not shadowed by the clouds: the environment map's light, the
+//! diffuse-transmission lobe's light from behind, and meshes drawn with the deferred renderer
+//! (Bevy lights its G-buffer in a pass of its own). Bevy 0.19's directional light textures
 //! (`DirectionalLightTexture`) could carry the shadow to unmodified `StandardMaterial`s, but they
 //! need binding arrays, which the software adapter our tests run on lacks.
 

@@ -1,15 +1,16 @@
 // A game's `StandardMaterial` under the clouds (docs/illumination.md §10): Bevy's PBR, each
-// cloud-lighting directional light seen through the clouds' shadow maps. Bevy's lighting has no
-// per-light hook, so the surface is lit as Bevy lights it, and then what the clouds hold back is
-// taken away: per light, (1 - T) of its contribution, which Bevy's own `directional_light` and
-// shadow map give. Lighting is linear in each light, so this is exact.
+// cloud-lighting directional light seen through the clouds' shadow maps, and Bevy's ambient light
+// (the sky) through the sky map. Bevy's lighting has no per-light hook, so the surface is lit as
+// Bevy lights it, and then what the clouds hold back is taken away: per light, (1 - T) of its
+// contribution, which Bevy's own `directional_light` and shadow map give; of the ambient light,
+// (1 - V) of Bevy's own `ambient_light`. Lighting is linear in each light, so this is exact.
 // Rust mirror: src/cloud_shadowed_material.rs; the lights and maps: cloud_shadow_maps.wgsl.
 #import bevy_pbr::{
     pbr_fragment::pbr_input_from_standard_material,
     pbr_functions::alpha_discard,
     decal::clustered::apply_decals,
 }
-#import bevy_particle_clouds::cloud_shadow_maps::{lights, cloud_transmittance}
+#import bevy_particle_clouds::cloud_shadow_maps::{lights, cloud_transmittance, sky_visibility}
 
 #ifdef PREPASS_PIPELINE
 #import bevy_pbr::{
@@ -21,8 +22,9 @@
     forward_io::{VertexOutput, FragmentOutput},
     pbr_functions::{
         apply_pbr_lighting, main_pass_post_lighting_processing, calculate_diffuse_color,
-        calculate_F0_dielectric,
+        calculate_F0_dielectric, calculate_F0,
     },
+    ambient,
     pbr_types::{PbrInput, STANDARD_MATERIAL_FLAGS_UNLIT_BIT},
     lighting,
     lighting::{LAYER_BASE, LAYER_CLEARCOAT},
@@ -116,8 +118,8 @@ fn bevy_shadow(in: PbrInput, i: u32, view_z: f32) -> f32 {
     return shadow;
 }
 
-// What the clouds hold back of the direct light (before exposure): per cloud-lighting light,
-// (1 - T) of what it brings the surface in Bevy's lighting.
+// What the clouds hold back of the light (before exposure): per cloud-lighting light, (1 - T) of
+// what it brings the surface in Bevy's lighting; and of the ambient light.
 fn held_back_by_clouds(in: PbrInput) -> vec3<f32> {
     var input = lighting_input(in);
     let view_z = dot(vec4(
@@ -146,7 +148,29 @@ fn held_back_by_clouds(in: PbrInput) -> vec3<f32> {
         let contribution = lighting::directional_light(i, &input, enable_diffuse);
         held += (1.0 - transmittance) * bevy_shadow(in, i, view_z) * contribution;
     }
-    return held;
+    return held + sky_held_back(in, input);
+}
+
+// What the clouds hold back of Bevy's ambient light, which stands for the sky: (1 - V) of it,
+// `V` what the sky map leaves of the sky (1 without a sky map: no `CloudSkyLight`).
+fn sky_held_back(in: PbrInput, input: lighting::LightingInput) -> vec3<f32> {
+#ifdef LIGHTMAP
+    // As Bevy: a lightmap may hold the ambient light already.
+    if view_bindings::lights.ambient_light_affects_lightmapped_meshes == 0u {
+        return vec3(0.0);
+    }
+#endif
+    let hidden = 1.0 - sky_visibility(in.world_position.xyz);
+    if hidden <= 0.0 {
+        return vec3(0.0);
+    }
+    let F0 = calculate_F0(in.material.base_color.rgb, in.material.metallic, in.material.reflectance);
+    let NdotV = input.layers[LAYER_BASE].NdotV;
+    let perceptual_roughness = in.material.perceptual_roughness;
+    return hidden * ambient::ambient_light(
+        in.world_position, in.N, in.V, NdotV, input.diffuse_color, F0, perceptual_roughness,
+        in.diffuse_occlusion,
+    );
 }
 #endif
 

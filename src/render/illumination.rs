@@ -227,9 +227,10 @@ pub(crate) fn prepare_illumination_bind_groups(
         &lit,
         &mut sky_key,
         &device,
-        |pool, casters, target, scratch| {
+        |pool, casters, lists, target, scratch| {
             let pool = &pools.0[&pool];
             let casters = storage_init(&device, "particle_clouds_sky_casters", casters);
+            let lists = storage_init(&device, "particle_clouds_sky_lists", lists);
             let target = storage_init(&device, "particle_clouds_sky_target", &[*target]);
             bind(
                 &pipelines.march_sky,
@@ -240,6 +241,7 @@ pub(crate) fn prepare_illumination_bind_groups(
                     scratch.as_entire_binding(),
                     target.as_entire_binding(),
                     map_buffer.expect("the maps' buffer").as_entire_binding(),
+                    lists.as_entire_binding(),
                 )),
             )
         },

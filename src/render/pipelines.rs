@@ -324,7 +324,7 @@ pub(crate) fn init_illumination_pipelines(
         "particle_clouds_sky_map_layout",
         &BindGroupLayoutEntries::sequential(
             ShaderStages::COMPUTE,
-            (read(), read(), read(), write(), read(), write()),
+            (read(), read(), read(), write(), read(), write(), read()),
         ),
     );
     let gather = BindGroupLayoutDescriptor::new(

@@ -29,6 +29,7 @@ pub fn shader_defs() -> Vec<ShaderDefVal> {
         ShaderDefVal::UInt("BEAM_PHASE_ANGLES".into(), BEAM_PHASE_ANGLES),
         ShaderDefVal::UInt("BEAM_PHASE_DEPTHS".into(), BEAM_PHASE_DEPTHS),
         ShaderDefVal::UInt("SKY_MAP_DIRECTIONS".into(), SKY_MAP_DIRECTIONS),
+        ShaderDefVal::UInt("SKY_MAP_TILE".into(), super::sky_map::SKY_MAP_TILE),
     ]
 }
 

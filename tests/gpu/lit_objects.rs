@@ -363,8 +363,12 @@ enum Ground {
 }
 
 /// `StandardMaterial` ground under the cloud of [`cloud_over_ground`], lit by its light (or not,
-/// `lit` false) and by Bevy's ambient light; the image and the shadow map's placement.
-fn standard_ground_image(ground: Ground, lit: bool) -> (LinearImage, ShadowMapPlacement) {
+/// `lit` false) and by Bevy's ambient light; the image, and the shadow map's and sky map's
+/// placements.
+fn standard_ground_image(
+    ground: Ground,
+    lit: bool,
+) -> (LinearImage, ShadowMapPlacement, Option<ShadowMapPlacement>) {
     let mut setup = cloud_over_ground();
     // The lit object's ground, drawn with a `StandardMaterial` instead.
     let SceneObject {
@@ -417,26 +421,24 @@ fn standard_ground_image(ground: Ground, lit: bool) -> (LinearImage, ShadowMapPl
     let mut recorder = FrameRecorder::default();
     headless::render_until_steady(&mut app, &mut recorder, 1, 20).unwrap();
     let image = headless::capture(&mut app, &mut recorder, &target.image).unwrap();
-    let map = app
-        .world()
-        .resource::<CloudShadowMaps>()
-        .maps
-        .first()
-        .map(|(_, p)| *p)
-        .unwrap_or_default();
-    (image, map)
+    let maps = app.world().resource::<CloudShadowMaps>();
+    let map = maps.maps.first().map(|(_, p)| *p).unwrap_or_default();
+    (image, map, maps.sky)
 }
 
-/// A game's `StandardMaterial` extended with `CloudShadowReceiver` shows Bevy's ambient light
-/// plus `T` times its direct light, `T` the clouds' transmittance towards the light through the
-/// CPU's shadow map: `shadowed = ambient + T (plain - ambient)` at every ground pixel.
+/// A game's `StandardMaterial` extended with `CloudShadowReceiver` shows `V` times Bevy's ambient
+/// light plus `T` times its direct light, `T` the clouds' transmittance towards the light through
+/// the CPU's shadow map and `V` what the CPU's sky map leaves of the sky:
+/// `shadowed = V ambient + T (plain - ambient)` at every ground pixel.
 #[test]
 fn a_standard_material_takes_the_clouds_shadow() {
     let setup = cloud_over_ground();
-    let (plain, _) = standard_ground_image(Ground::Standard, true);
-    let (shadowed, map) = standard_ground_image(Ground::CloudShadowed, true);
-    let (ambient, _) = standard_ground_image(Ground::Standard, false);
+    let (plain, ..) = standard_ground_image(Ground::Standard, true);
+    let (shadowed, map, sky_map) = standard_ground_image(Ground::CloudShadowed, true);
+    let (ambient, ..) = standard_ground_image(Ground::Standard, false);
     let cpu_map = cpu_shadow_map(&setup, &map);
+    let sky_map = sky_map.expect("a sky map under the sky");
+    let cpu_sky = cpu_sky_map(&setup, &sky_map);
 
     let eye = setup.camera.translation.as_dvec3();
     let camera = pinhole(&setup);
@@ -448,11 +450,14 @@ fn a_standard_material_takes_the_clouds_shadow() {
             let Some((t, _)) = nearest_object(&setup.objects, eye, ray) else {
                 continue;
             };
-            let transmittance = (-shadow_map_depth_at(&map, &cpu_map, eye + ray * t)).exp() as f32;
+            let x = eye + ray * t;
+            let transmittance = (-shadow_map_depth_at(&map, &cpu_map, x)).exp() as f32;
+            let visible = 1.0 - shadow_map_depth_at(&sky_map, &cpu_sky, x) as f32;
             darkest = darkest.min(transmittance as f64);
             let i = (py * W + px) as usize;
             let (a, p) = (ambient.pixels[i], plain.pixels[i]);
-            let e: [f32; 3] = std::array::from_fn(|c| a[c] + transmittance * (p[c] - a[c]));
+            let e: [f32; 3] =
+                std::array::from_fn(|c| visible * a[c] + transmittance * (p[c] - a[c]));
             ambient_sum += a[1] as f64;
             direct_sum += (p[1] - a[1]) as f64;
             expected.push([e[0], e[1], e[2], 1.0]);
@@ -469,7 +474,7 @@ fn a_standard_material_takes_the_clouds_shadow() {
     let share = ambient_sum / (ambient_sum + direct_sum);
     assert!((0.1..0.7).contains(&share), "ambient share {share}");
     let error = relative_rmse(&seen, &expected);
-    eprintln!("StandardMaterial ground: relative RMSE {error:e} against ambient + T direct");
+    eprintln!("StandardMaterial ground: relative RMSE {error:e} against V ambient + T direct");
     assert!(
         error < 1e-3,
         "StandardMaterial ground: relative RMSE {error}"
