@@ -9,7 +9,7 @@
 //! (`render::shadow_maps`), the sum at each texel of every cloud's own light volume along the
 //! texel's column.
 //!
-//! Under a sky ([`CloudSkyLight`](crate::CloudSkyLight)) there is one more map, the sky map
+//! Under a sky ([`CloudSkyLight`]) there is one more map, the sky map
 //! ([`CloudShadowMaps::sky`]): over a horizontal plane under the clouds, the part of the sky's
 //! irradiance the clouds take away (`render::sky_map`).
 

@@ -1818,18 +1818,20 @@ pub fn cloud_shadow_map(
     light: usize,
     map: &ShadowMapPlacement,
 ) -> Vec<f64> {
+    over_texels(map, |world| {
+        clouds
+            .iter()
+            .filter_map(|(c, p)| Some(c.own_lights.get(light)?.cast_depth_at(p.local_point(world))))
+            .sum()
+    })
+}
+
+/// `value` at each texel's point of `map` (its column's end), index `i + size j`.
+fn over_texels(map: &ShadowMapPlacement, value: impl Fn(DVec3) -> f64 + Sync) -> Vec<f64> {
     let n = map.size;
     (0..n * n)
         .into_par_iter()
-        .map(|t| {
-            let world = map.texel_point(t % n, t / n).as_dvec3();
-            clouds
-                .iter()
-                .filter_map(|(c, p)| {
-                    Some(c.own_lights.get(light)?.cast_depth_at(p.local_point(world)))
-                })
-                .sum()
-        })
+        .map(|t| value(map.texel_point(t % n, t / n).as_dvec3()))
         .collect()
 }
 
@@ -1860,21 +1862,15 @@ pub fn shadow_map_depth_at(map: &ShadowMapPlacement, values: &[f64], x: DVec3) -
 /// The sky map `map` ([`ShadowMapPlacement::sky`], contract section 10): at each texel's point
 /// on the plane, the fraction of the sky's irradiance on an upward-facing surface that `clouds`
 /// (each with its placement) take away, `1 - (1/K) sum_k exp(-tau_k)` over the
-/// [`SKY_MAP_DIRECTIONS`] cosine-weighted directions `k` ([`sky_direction`]), `tau_k` the optical
+/// [`SKY_MAP_DIRECTIONS`] cosine-weighted directions `k`
+/// ([`sky_direction`](crate::shadow_maps::sky_direction)), `tau_k` the optical
 /// depth of every cloud along it ([`grid_optical_depth`]). Index `i + size j`; read it with
 /// [`shadow_map_depth_at`].
 pub fn sky_occlusion_map(
     clouds: &[(&CloudIllumination, CloudPlacement)],
     map: &ShadowMapPlacement,
 ) -> Vec<f64> {
-    let n = map.size;
-    (0..n * n)
-        .into_par_iter()
-        .map(|t| {
-            let x = map.texel_point(t % n, t / n).as_dvec3();
-            sky_occlusion_at(clouds, x, SKY_MAP_DIRECTIONS)
-        })
-        .collect()
+    over_texels(map, |x| sky_occlusion_at(clouds, x, SKY_MAP_DIRECTIONS))
 }
 
 /// The fraction of the sky's irradiance on an upward-facing surface at world point `x` that

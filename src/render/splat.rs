@@ -160,7 +160,7 @@ pub(crate) fn queue_splat_pipelines(
 
 /// A computing view's sums and the splat pipelines' group 0.
 pub struct SplatResources {
-    /// Per target texel, [`SUM_BYTES`]; cleared before each frame's splats.
+    /// Per target texel, `SUM_BYTES` (light and optical depth); cleared before each frame's splats.
     pub sums: Buffer,
     /// Texels per side of the target the sums stand for.
     pub target_size: UVec2,
