@@ -13,6 +13,7 @@
 //! cargo run --example benchmark -- --warm-start [--scenes a,b] [--out DIR]
 //! cargo run --example benchmark -- --decompose [--scenes a,b] [--spp N] [--out DIR]
 //! cargo run --example benchmark -- --grid-error [--scenes albedo_one] [--out DIR]
+//! cargo run --example benchmark -- --sky-map [--scenes cloud_over_ground_sky] [--out DIR]
 //! cargo run --example benchmark -- --raster-vs-compute [--view 1920x1080] [--layers 13] [--out DIR]
 //! cargo run --example benchmark -- --line-sweep [--grid 128] [--segments 8] [--out DIR]
 //! ```
@@ -27,7 +28,8 @@
 //! against the path tracer split by order (CPU references, no adapter; see `decompose.rs`).
 //! `--grid-error` writes `DIR/grid_error.md`: the error against volume resolution and scattering
 //! iterations up to the converged series, and where the scattering grid's error lies (CPU
-//! references; see `grid_error.rs`).
+//! references; see `grid_error.rs`). `--sky-map` writes `DIR/sky_map.md`: the sky map's error
+//! against its direction count and size (CPU references) and its cost (see `sky_map.rs`).
 //!
 //! Timing. The GPU time of a setting is the sum of the per-pass GPU times (Bevy's render
 //! diagnostics; `FrameStats::gpu_ms` of the headless harness) of a frame in which every pass runs:
@@ -49,6 +51,7 @@ mod reference_cache;
 mod report;
 mod scale;
 mod scenes;
+mod sky_map;
 mod sweep;
 mod voxelize;
 mod warm_start;
@@ -177,6 +180,10 @@ pub(crate) struct Args {
     /// sky or ground; default scene `albedo_one`).
     #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "scale", "voxelize", "frame_budget", "warm_start"])]
     pub(crate) grid_error: bool,
+    /// The sky map's error against its direction count and size (CPU references) and its cost
+    /// for one cloud and a field of 100 (default scene `cloud_over_ground_sky`).
+    #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "scale", "voxelize", "frame_budget", "warm_start", "grid_error"])]
+    pub(crate) sky_map: bool,
     /// Clouds do not shadow each other (every cloud `NotShadowCaster`): what the cast of their
     /// shadows costs and what its absence does to the error.
     #[arg(long)]
@@ -348,6 +355,39 @@ fn grid_error_benchmark(args: &Args) -> Result<(), String> {
     Ok(())
 }
 
+/// `--sky-map`: the sky map's error and cost on each chosen scene (default
+/// `cloud_over_ground_sky`).
+fn sky_map_benchmark(args: &Args) -> Result<(), String> {
+    let names = args
+        .scenes
+        .clone()
+        .unwrap_or_else(|| vec!["cloud_over_ground_sky".into()]);
+    let mut md = String::from(
+        "# The sky map\n\nWhat the clouds hide of the sky from the ground (docs/illumination.md \
+         §10), measured by `cargo run --example benchmark -- --sky-map`.\n",
+    );
+    for name in &names {
+        let bench = SCENES
+            .iter()
+            .find(|s| s.name == name)
+            .ok_or_else(|| format!("no such scene `{name}`"))?;
+        let scene = load_scene(bench)?;
+        if scene.background == Vec3::ZERO {
+            return Err(format!(
+                "`{name}` has a black sky; --sky-map takes a scene under a sky"
+            ));
+        }
+        eprintln!("benchmark: {name}: the sky map's error (CPU)");
+        md.push_str(&sky_map::error(name, &scene, &scene.settings));
+        eprintln!("benchmark: {name}: the sky map's cost");
+        md.push_str(&sky_map::cost(&scene)?);
+    }
+    let path = args.out.join("sky_map.md");
+    std::fs::write(&path, &md).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+    println!("{md}");
+    Ok(())
+}
+
 /// `--decompose`: every chosen scene's error at the default settings, part by part.
 fn decomposition(args: &Args, chosen: &[&BenchScene]) -> Result<(), String> {
     let settings = args.settings.first().copied().unwrap_or_default();
@@ -402,6 +442,9 @@ fn run() -> Result<(), String> {
     }
     if args.grid_error {
         return grid_error_benchmark(&args);
+    }
+    if args.sky_map {
+        return sky_map_benchmark(&args);
     }
     if args.scale {
         return if args.replot {
