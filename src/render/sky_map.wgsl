@@ -58,11 +58,11 @@ fn sky_direction(k: u32) -> vec3<f32> {
     return vec3(r * cos(phi), sqrt(max(1.0 - r * r, 0.0)), r * sin(phi));
 }
 
-// The optical depth of `caster` along the world ray from `x` along `up`: its scattering grid's
+// The optical depth of caster `c` along the world ray from `x` along `up`: its scattering grid's
 // density marched through the cube around its voxels' centres widened by half a voxel, in
 // ceil(chord / h - 0.001) equal steps sampled at their middles (`grid_optical_depth` on the CPU).
-// The march stops once `before` (what the ray already crossed) and its own reach OPAQUE. Caster
-// `c` is read field by field: most rays miss most clouds, and need only their spheres.
+// The march stops once `before` (what the ray already crossed) and its own reach OPAQUE. The
+// caster is read field by field: a ray that misses its sphere needs nothing else of it.
 fn optical_depth_through(c: u32, x: vec3<f32>, up: vec3<f32>, before: f32) -> f32 {
     let oc = casters[c].centre - x;
     let radius = casters[c].radius;
