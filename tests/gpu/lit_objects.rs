@@ -6,7 +6,7 @@
 use bevy::render::storage::GpuShaderBuffer;
 use bevy::{prelude::*, render::render_asset::RenderAssets};
 use bevy_particle_clouds::{
-    CloudPass, CloudShadowMaps, LightSample,
+    CloudPass, CloudShadowMaps, LightSample, Particle,
     cloud_shadowed_material::{CloudShadowReceiver, CloudShadowedMaterial},
     headless::{self, FrameRecorder},
     reference::{
@@ -479,4 +479,60 @@ fn a_standard_material_takes_the_clouds_shadow() {
         error < 1e-3,
         "StandardMaterial ground: relative RMSE {error}"
     );
+}
+
+/// Extreme clouds over a lit ground under a sky: particles of 1e-4 m and of 1e4 m (a cloud far
+/// wider than the ground and the view, reaching below the plane), and an extinction of 1e4. The
+/// sky map holds fractions in [0, 1], the ground no NaN, nothing below 0 or above what the sun
+/// and the sky could give it.
+#[test]
+fn extreme_clouds_leave_the_sky_map_and_the_ground_bounded() {
+    let particle = |radius: f32, density: f32| Particle {
+        position: Vec3::ZERO,
+        radius,
+        density,
+    };
+    // Each with the least of the sky it must hide somewhere.
+    let cases = [
+        ("radius 1e-4", vec![particle(1e-4, 1.0); 3], 5.0, 0.0),
+        ("radius 1e4", vec![particle(1e4, 1.0)], 1e-3, 0.0),
+        ("extinction 1e4", cloud_over_ground().particles, 1e4, 0.02),
+    ];
+    for (what, particles, extinction, hides) in cases {
+        let mut setup = cloud_over_ground();
+        setup.particles = particles;
+        setup.medium.extinction = extinction;
+        let (mut app, target) = spawn_with_maps(&setup, 64);
+        let mut recorder = FrameRecorder::default();
+        for _ in 0..4 {
+            recorder.frame(&mut app).unwrap();
+        }
+        let image = headless::capture(&mut app, &mut recorder, &target.image).unwrap();
+        let (sky, _) = gpu_sky_map(&mut app);
+        assert!(
+            sky.iter().all(|o| (0.0..=1.0).contains(o)),
+            "{what}: the sky map holds {:?}",
+            sky.iter().find(|o| !(0.0..=1.0).contains(*o))
+        );
+        let most = sky.iter().copied().fold(0.0, f64::max);
+        assert!(
+            most >= hides,
+            "{what}: the clouds hide at most {most} of the sky"
+        );
+        // The sun's and the sky's whole light on the ground, or a cloud's every order.
+        let light = setup.lights[0].irradiance.max_element();
+        let ground =
+            EMITTED.max_element() + (light + std::f32::consts::PI * setup.sky.max_element());
+        let cloud = setup.medium.albedo * light / (4.0 * std::f32::consts::PI)
+            * (setup.settings.scatter_iterations + 1) as f32;
+        let bound = ground.max(cloud).max(setup.background.max_element()) * 1.01;
+        for (i, p) in image.pixels.iter().enumerate() {
+            assert!(
+                p[..3]
+                    .iter()
+                    .all(|v| v.is_finite() && (0.0..=bound).contains(v)),
+                "{what}: pixel {i} = {p:?} outside [0, {bound}]"
+            );
+        }
+    }
 }
