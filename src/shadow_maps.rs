@@ -282,7 +282,10 @@ pub(crate) fn place_cloud_shadow_maps(
         .collect();
     let lit_sky = sky.radiance().is_ok_and(|r| r.max_element() > 0.0);
     let sky_first = placed.len() as u32 * size * size;
-    let height = ground.map_or(0.0, |g| g.height);
+    // A refused ground (its height not finite or out of range) counts as none, as for the clouds.
+    let height = ground
+        .and_then(|g| g.validate().ok())
+        .map_or(0.0, |g| g.height);
     let sky = (lit_sky && size > 0)
         .then(|| ShadowMapPlacement::sky(&spheres, height, sky_map_size(size), sky_first))
         .flatten();

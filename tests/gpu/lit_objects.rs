@@ -536,3 +536,25 @@ fn extreme_clouds_leave_the_sky_map_and_the_ground_bounded() {
         }
     }
 }
+
+/// A ground the plugin refuses (its height NaN) counts as none for the sky map too: the map lies
+/// on world `y = 0`, finite, and the lit ground has no NaN.
+#[test]
+fn a_refused_ground_leaves_the_sky_map_on_the_world_plane() {
+    let setup = cloud_over_ground();
+    let (mut app, target) = spawn_with_maps(&setup, 64);
+    app.insert_resource(bevy_particle_clouds::CloudGround {
+        height: f32::NAN,
+        reflectance: Vec3::splat(0.3),
+    });
+    let mut recorder = FrameRecorder::default();
+    for _ in 0..4 {
+        recorder.frame(&mut app).unwrap();
+    }
+    let sky = app.world().resource::<CloudShadowMaps>().sky;
+    let sky = sky.expect("a sky map under the sky");
+    assert!(sky.texel.is_finite() && sky.corner.is_finite(), "{sky:?}");
+    assert_eq!(sky.w_end, 0.0, "on world y = 0");
+    let image = headless::capture(&mut app, &mut recorder, &target.image).unwrap();
+    assert!(image.pixels.iter().flatten().all(|v| v.is_finite()));
+}
