@@ -300,10 +300,7 @@ fn raster_vs_compute_benchmark(args: &Args) -> Result<(), String> {
         md.push_str(&raster_vs_compute::table(&adapter, work, &results));
         md.push('\n');
     }
-    let path = args.out.join("raster_vs_compute.md");
-    std::fs::write(&path, &md).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
-    println!("{md}");
-    Ok(())
+    write_report(args, "raster_vs_compute.md", &md)
 }
 
 /// `--line-sweep`: 26 sweeps per timed submission (two iterations' worth); writes
@@ -315,29 +312,41 @@ fn line_sweep_benchmark(args: &Args) -> Result<(), String> {
     );
     let (adapter, results) = line_sweep::measure(args.grid, args.segments, 26, args.frames())?;
     let md = line_sweep::table(&adapter, args.grid, &results);
-    let path = args.out.join("line_sweep.md");
-    std::fs::write(&path, &md).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+    write_report(args, "line_sweep.md", &md)
+}
+
+/// The scenes `--scenes` names (else `default` alone), loaded.
+fn named_scenes(args: &Args, default: &str) -> Result<Vec<(&'static BenchScene, Scene)>, String> {
+    let names = args.scenes.clone().unwrap_or_else(|| vec![default.into()]);
+    names
+        .iter()
+        .map(|name| {
+            let bench = SCENES
+                .iter()
+                .find(|s| s.name == name)
+                .ok_or_else(|| format!("no such scene `{name}`"))?;
+            Ok((bench, load_scene(bench)?))
+        })
+        .collect()
+}
+
+/// Writes `md` to `DIR/file` and prints it.
+fn write_report(args: &Args, file: &str, md: &str) -> Result<(), String> {
+    let path = args.out.join(file);
+    std::fs::write(&path, md).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
     println!("{md}");
     Ok(())
 }
 
 /// `--grid-error`: each chosen scene's (default `albedo_one`) error against the grid's knobs.
 fn grid_error_benchmark(args: &Args) -> Result<(), String> {
-    let names = args
-        .scenes
-        .clone()
-        .unwrap_or_else(|| vec!["albedo_one".into()]);
     let mut md = String::from(
         "The scattering grid's error against the path tracer (`cargo run --example benchmark -- \
          --grid-error`), computed with the f64 CPU references of the real-time passes (which the \
          GPU matches).\n",
     );
-    for name in &names {
-        let bench = SCENES
-            .iter()
-            .find(|s| s.name == name)
-            .ok_or_else(|| format!("no such scene `{name}`"))?;
-        let scene = load_scene(bench)?;
+    for (bench, scene) in named_scenes(args, "albedo_one")? {
+        let name = bench.name;
         let isotropic = scene.clouds.iter().all(|c| c.medium.anisotropy == 0.0);
         if !isotropic || scene.background != Vec3::ZERO || scene.cloud_ground().is_some() {
             return Err(format!(
@@ -349,29 +358,18 @@ fn grid_error_benchmark(args: &Args) -> Result<(), String> {
         let reference = reference(&scene, bench, spp, &args.out)?;
         md.push_str(&grid_error::grid_error(bench, &scene, &reference));
     }
-    let path = args.out.join("grid_error.md");
-    std::fs::write(&path, &md).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
-    println!("{md}");
-    Ok(())
+    write_report(args, "grid_error.md", &md)
 }
 
 /// `--sky-map`: the sky map's error and cost on each chosen scene (default
 /// `cloud_over_ground_sky`).
 fn sky_map_benchmark(args: &Args) -> Result<(), String> {
-    let names = args
-        .scenes
-        .clone()
-        .unwrap_or_else(|| vec!["cloud_over_ground_sky".into()]);
     let mut md = String::from(
         "# The sky map\n\nWhat the clouds hide of the sky from the ground (docs/illumination.md \
          §10), measured by `cargo run --example benchmark -- --sky-map`.\n",
     );
-    for name in &names {
-        let bench = SCENES
-            .iter()
-            .find(|s| s.name == name)
-            .ok_or_else(|| format!("no such scene `{name}`"))?;
-        let scene = load_scene(bench)?;
+    for (bench, scene) in named_scenes(args, "cloud_over_ground_sky")? {
+        let name = bench.name;
         if scene.background == Vec3::ZERO {
             return Err(format!(
                 "`{name}` has a black sky; --sky-map takes a scene under a sky"
@@ -382,10 +380,7 @@ fn sky_map_benchmark(args: &Args) -> Result<(), String> {
         eprintln!("benchmark: {name}: the sky map's cost");
         md.push_str(&sky_map::cost(&scene)?);
     }
-    let path = args.out.join("sky_map.md");
-    std::fs::write(&path, &md).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
-    println!("{md}");
-    Ok(())
+    write_report(args, "sky_map.md", &md)
 }
 
 /// `--decompose`: every chosen scene's error at the default settings, part by part.
@@ -409,10 +404,7 @@ fn decomposition(args: &Args, chosen: &[&BenchScene]) -> Result<(), String> {
         eprintln!("{section}");
         md.push_str(&section);
     }
-    let path = args.out.join("decomposition.md");
-    std::fs::write(&path, &md).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
-    println!("{md}");
-    Ok(())
+    write_report(args, "decomposition.md", &md)
 }
 
 fn run() -> Result<(), String> {
