@@ -668,7 +668,7 @@ pub(crate) fn illuminate_clouds(
     // Gather (§1, §3): the scattering grid's density, and every light's single scattering into
     // its source S_0. Every cloud of a pool in one dispatch. Then the sky map (§10), marched
     // through the scattering grids' densities; its dispatches count as gather's, not its runs.
-    if batches.pools.iter().any(|b| b.gather.is_some()) || sky.resolve.is_some() {
+    if batches.pools.iter().any(|b| b.gather.is_some()) || !sky.marches.is_empty() {
         record_stage(
             &mut ctx,
             recorder.as_deref(),
@@ -685,7 +685,7 @@ pub(crate) fn illuminate_clouds(
                     }
                     runs += batch.work.items;
                 }
-                if let Some(resolve) = &sky.resolve {
+                if let Some(first) = sky.marches.first() {
                     // Every pool's clouds along each texel's directions, then each texel's
                     // occlusion.
                     pass.set_pipeline(ready.march_sky);
@@ -694,7 +694,7 @@ pub(crate) fn illuminate_clouds(
                         dispatch_linear(pass, sky.texels * SKY_MAP_DIRECTIONS, 1);
                     }
                     pass.set_pipeline(ready.resolve_sky);
-                    pass.set_bind_group(0, resolve, &[]);
+                    pass.set_bind_group(0, first, &[]);
                     dispatch_linear(pass, sky.texels, 1);
                 }
                 runs
