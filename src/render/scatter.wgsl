@@ -91,6 +91,23 @@ fn segment_weights(tau: f32) -> vec2<f32> {
     return vec2(1.0 - e, (1.0 - e) / tau - e);
 }
 
+// int_0^tau exp(-t) u (1 - u) dt, u = t / tau: the weight of a segment's parabolic source term.
+// Below 0.5 its series (the closed form cancels in f32).
+fn curvature_weight(tau: f32) -> f32 {
+    if tau < 0.5 {
+        var term = tau;
+        var sum = 0.0;
+        for (var k = 0; k < 7; k++) {
+            let kf = f32(k);
+            sum += term / ((kf + 2.0) * (kf + 3.0));
+            term *= -tau / (kf + 1.0);
+        }
+        return sum;
+    }
+    let e = exp(-tau);
+    return segment_weights(tau).y - (2.0 - e * (tau * tau + 2.0 * tau + 2.0)) / (tau * tau);
+}
+
 // The ground's radiance at world (x, z): bilinear in the cloud's ground map, its edge texels
 // extending outwards.
 fn ground_radiance(xz: vec2<f32>) -> vec3<f32> {
@@ -139,13 +156,13 @@ fn line_voxel(start: vec3<i32>, t: i32, flip: vec3<bool>) -> u32 {
 }
 
 // Radiance arriving at a voxel from its upwind neighbour's side: what arrived there, attenuated
-// over the segment, plus the segment's own scattering J = albedo S, linear along it. `m` and
-// `m_up` are the two ends' media (density, albedo).
-fn transport(upwind: vec3<f32>, m: vec2<f32>, s: vec3<f32>, m_up: vec2<f32>, s_up: vec3<f32>, half_step: f32) -> vec3<f32> {
+// over the segment, plus the segment's own scattering J = albedo S, parabolic along it: linear
+// between its ends less c/2 u (1 - u), c its second difference along the line (§4). `m` and
+// `m_up` are the two ends' media (density, albedo), `j` and `j_up` their J.
+fn transport(upwind: vec3<f32>, m: vec2<f32>, j: vec3<f32>, m_up: vec2<f32>, j_up: vec3<f32>, c: vec3<f32>, half_step: f32) -> vec3<f32> {
     let tau = cloud.k_local * (m.x + m_up.x) * half_step;
     let w = segment_weights(tau);
-    let j = m.y * s;
-    return (1.0 - w.x) * upwind + j * w.x + (m_up.y * s_up - j) * w.y;
+    return (1.0 - w.x) * upwind + j * w.x + (j_up - j) * w.y - c * (0.5 * curvature_weight(tau));
 }
 
 fn add_to(element: u32, share: vec4<f32>, overwrite: bool) {
@@ -224,30 +241,52 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
     // The direction the radiance arriving from the +o side travels in.
     let w = -normalize(vec3<f32>(o));
     // Against o: radiance arriving from the +o side, the boundary's entering the grid.
-    var radiance = entering(line_position(start, t1 - 1, flip), w, half_step);
-    var m_up = vec2(0.0);
-    var s_up = vec3(0.0);
-    for (var t = t1 - 1; t >= t0; t--) {
-        let i = line_voxel(start, t, flip);
-        let m = medium(i);
-        let s = order_in(i, w);
-        radiance = transport(radiance, m, s, m_up, s_up, half_step);
-        deposit(i, radiance, w, direction.first != 0u);
-        m_up = m;
-        s_up = s;
-    }
+    march(start, flip, t1 - 1, -1, t1 - t0, w, half_step, direction.first != 0u);
     // Along o: radiance arriving from the -o side.
-    radiance = entering(line_position(start, t0, flip), -w, half_step);
-    m_up = vec2(0.0);
-    s_up = vec3(0.0);
-    for (var t = t0; t < t1; t++) {
-        let i = line_voxel(start, t, flip);
-        let m = medium(i);
-        let s = order_in(i, -w);
-        radiance = transport(radiance, m, s, m_up, s_up, half_step);
-        deposit(i, radiance, -w, false);
-        m_up = m;
-        s_up = s;
+    march(start, flip, t0, 1, t1 - t0, -w, half_step, false);
+}
+
+// The source J = albedo S towards w at voxel i, and the voxel's medium.
+struct LineNode {
+    m: vec2<f32>,
+    j: vec3<f32>,
+}
+
+fn line_node(i: u32, w: vec3<f32>) -> LineNode {
+    let m = medium(i);
+    return LineNode(m, m.y * order_in(i, w));
+}
+
+// Marches `count` voxels of a line from position `first` by `dt`, the radiance travelling along
+// w, and deposits each voxel's share. It carries the last two voxels' sources and reads one
+// ahead: each segment's curvature is the mean of its ends' second differences, those whose
+// neighbours are both on the line.
+fn march(start: vec3<i32>, flip: vec3<bool>, first: i32, dt: i32, count: i32, w: vec3<f32>, half_step: f32, overwrite: bool) {
+    var radiance = entering(line_position(start, first, flip), w, half_step);
+    var up = LineNode(vec2(0.0), vec3(0.0));
+    var d_up = vec3(0.0);
+    var has_d_up = false;
+    var i = line_voxel(start, first, flip);
+    var here = line_node(i, w);
+    for (var k = 0; k < count; k++) {
+        let has_next = k + 1 < count;
+        var i_next = 0u;
+        var next = LineNode(vec2(0.0), vec3(0.0));
+        if has_next {
+            i_next = line_voxel(start, first + (k + 1) * dt, flip);
+            next = line_node(i_next, w);
+        }
+        let has_d = k > 0 && has_next;
+        let d = up.j - 2.0 * here.j + next.j;
+        let ends = vec2(f32(has_d), f32(has_d_up));
+        let c = (d * ends.x + d_up * ends.y) / max(ends.x + ends.y, 1.0);
+        radiance = transport(radiance, here.m, here.j, up.m, up.j, c, half_step);
+        deposit(i, radiance, w, overwrite);
+        d_up = d;
+        has_d_up = has_d;
+        up = here;
+        here = next;
+        i = i_next;
     }
 }
 
