@@ -2527,7 +2527,7 @@ mod tests {
         // The transport operator of a thick homogeneous medium maps a quadratic S to
         // albedo (S + lap S / (3 sigma^2)). Interpolating S linearly between voxel centres
         // would add about (|o| h)^2 / 12 of curvature per direction: 17 % more diffusion at a
-        // voxel optical depth of 1 (39 % here), which carried light through thick clouds into
+        // voxel optical depth of 1 (36 % here), which carried light through thick clouds into
         // their shadow.
         let (n, sigma, albedo) = (24, 1.5, 1.0);
         let grid = uniform_grid(n, 1.0);
