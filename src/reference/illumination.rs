@@ -1108,117 +1108,33 @@ fn paper_stencil(grid: &DensityGrid, k_local: f64, albedo: f64, s: &[DVec3]) -> 
         .collect()
 }
 
-/// Largest per-order ratio the series closure assumes.
+/// Largest per-order ratio `lambda` the series closure assumes.
 pub const MAX_ORDER_RATIO: f64 = 0.995;
 
-/// The largest coefficient of the last order in a [`SeriesTail`]: two ratios at
-/// [`MAX_ORDER_RATIO`], `1 / (1 - MAX_ORDER_RATIO)² - 1`.
-pub const MAX_TAIL: f64 = 1.0 / ((1.0 - MAX_ORDER_RATIO) * (1.0 - MAX_ORDER_RATIO)) - 1.0;
-
-/// The orders past the last one computed, summed (docs/illumination.md §4, "Closing the
-/// series"): per channel, `tail = last S_M + before S_{M-1}`.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct SeriesTail {
-    /// The coefficient of the last order, `S_M`.
-    pub last: DVec3,
-    /// The coefficient of the order before it, `S_{M-1}` (0 for a geometric tail).
-    pub before: DVec3,
-}
-
-impl SeriesTail {
-    /// The orders past `S_M` as geometric with the ratio of the last two order sums,
-    /// `lambda = last / before` per channel, clamped to `[0, MAX_ORDER_RATIO]` (no tail where the
-    /// earlier order carries nothing): `S_M lambda / (1 - lambda)`.
-    pub fn geometric(last: DVec3, before: DVec3) -> Self {
-        let coefficient = |a: f64, b: f64| {
-            let lambda = if b > 0.0 {
-                (a / b).clamp(0.0, MAX_ORDER_RATIO)
-            } else {
-                0.0
-            };
-            lambda / (1.0 - lambda)
-        };
-        Self {
-            last: DVec3::new(
-                coefficient(last.x, before.x),
-                coefficient(last.y, before.y),
-                coefficient(last.z, before.z),
-            ),
-            before: DVec3::ZERO,
+/// The per-order ratio of the last two orders, per channel:
+/// `lambda = sum rho |S_M| / sum rho |S_{M-1}|`, clamped to `[0, MAX_ORDER_RATIO]` (0 where the
+/// earlier order carries nothing). The orders of the full series are never negative; those of a
+/// warm restart's correction may be, and their absolute values keep the ratio from cancelling.
+pub fn order_ratio(grid: &DensityGrid, last: &[DVec3], before: &[DVec3]) -> DVec3 {
+    let weighted = |s: &[DVec3]| {
+        grid.rho
+            .iter()
+            .zip(s)
+            .fold(DVec3::ZERO, |acc, (rho, s)| acc + s.abs() * *rho)
+    };
+    let (num, den) = (weighted(last), weighted(before));
+    let ratio = |a: f64, b: f64| {
+        if b > 0.0 {
+            (a / b).clamp(0.0, MAX_ORDER_RATIO)
+        } else {
+            0.0
         }
-    }
-
-    /// The orders past `S_M` as two geometric modes, from the order sums `s_{M-3}, ..., s_M`
-    /// ([`order_sum`]) per channel: the ratios `x_k = s_k / s_{k-1}` fit the recurrence
-    /// `s_{k+2} = p s_{k+1} + q s_k`, whose roots `lambda_1 >= lambda_2` are the modes' ratios.
-    /// Applied to the orders themselves, the recurrence sums their tail to
-    /// `((p + q) S_M + q S_{M-1}) / (1 - p - q)`, with `1 - p - q = (1 - lambda_1)(1 - lambda_2)`.
-    /// Two modes of positive weight make the ratios rise towards the slower mode's: where they
-    /// do not rise, or rise by less than [`RESOLVED_RATIO_STEP`], or the roots are not both in
-    /// `[0, MAX_ORDER_RATIO]`, the channel's tail is [`SeriesTail::geometric`].
-    pub fn two_ratios(sums: [DVec3; 4]) -> Self {
-        let fallback = Self::geometric(sums[3], sums[2]);
-        let channel = |c: usize| {
-            let s = sums.map(|s| s[c]);
-            two_ratio_coefficients(s).unwrap_or((fallback.last[c], 0.0))
-        };
-        let (x, y, z) = (channel(0), channel(1), channel(2));
-        Self {
-            last: DVec3::new(x.0, y.0, z.0),
-            before: DVec3::new(x.1, y.1, z.1),
-        }
-    }
-}
-
-/// The least rise of the order sums' ratio, relative, that [`SeriesTail::two_ratios`] resolves
-/// into two modes: well above f32's rounding of the GPU's orders, which a smaller rise would
-/// leave to decide the second mode.
-pub const RESOLVED_RATIO_STEP: f64 = 1e-4;
-
-/// [`SeriesTail::two_ratios`] for one channel's sums: the coefficients of `S_M` and `S_{M-1}`.
-/// In the ratios of consecutive sums rather than the sums, which keeps f32 (on the GPU) from
-/// cancelling in `s_1² - s_0 s_2`.
-fn two_ratio_coefficients([s0, s1, s2, s3]: [f64; 4]) -> Option<(f64, f64)> {
-    if !(s0 > 0.0 && s1 > 0.0 && s2 > 0.0) {
-        return None;
-    }
-    let (x1, x2, x3) = (s1 / s0, s2 / s1, s3 / s2);
-    if !(x1 < x2 && x2 < x3 && x2 - x1 > RESOLVED_RATIO_STEP * x2) {
-        return None;
-    }
-    let p = x2 * (x1 - x3) / (x1 - x2);
-    let q = x1 * x2 * (x3 - x2) / (x1 - x2);
-    let discriminant = p * p + 4.0 * q;
-    if discriminant < 0.0 {
-        return None;
-    }
-    let (l1, l2) = (
-        (p + discriminant.sqrt()) / 2.0,
-        (p - discriminant.sqrt()) / 2.0,
-    );
-    if !(l2 >= 0.0 && l1 <= MAX_ORDER_RATIO) {
-        return None;
-    }
-    let d = (1.0 - l1) * (1.0 - l2);
-    Some((1.0 / d - 1.0, -l1 * l2 / d))
-}
-
-/// An order's density-weighted sum per channel, `sum rho |S|`: the closure's measure of an
-/// order. The orders of the full series are never negative; those of a warm restart's
-/// correction may be, and the absolute values keep the sum from cancelling.
-pub fn order_sum(grid: &DensityGrid, s: &[DVec3]) -> DVec3 {
-    grid.rho
-        .iter()
-        .zip(s)
-        .fold(DVec3::ZERO, |acc, (rho, s)| acc + s.abs() * *rho)
-}
-
-/// Which series is closed: the full one (its orders never negative, nor its tail) or a warm
-/// restart's correction (signed, closed geometrically).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum Series {
-    Full,
-    Correction,
+    };
+    DVec3::new(
+        ratio(num.x, den.x),
+        ratio(num.y, den.y),
+        ratio(num.z, den.z),
+    )
 }
 
 /// Multiple scattering, every order past the first (contract section 4).
@@ -1226,9 +1142,9 @@ enum Series {
 pub struct MultipleScattering {
     /// `S_1, ..., S_M` (one mean per voxel each), the orders computed.
     pub orders: Vec<Vec<DVec3>>,
-    /// The closure's coefficients (zero for `M = 0`).
-    pub tail: SeriesTail,
-    /// `sum_{n=1..M} S_n` plus the tail per voxel (the means; the full series' tail clamped at 0).
+    /// The closure's per-channel ratio `lambda` (zero for `M = 0`).
+    pub ratio: DVec3,
+    /// `sum_{n=1..M} S_n + S_M lambda / (1 - lambda)` per voxel (the means).
     pub total: Vec<DVec3>,
     /// The same sum of the orders' [`Flux`]es, closed alike; empty for an isotropic medium.
     pub flux: Vec<Flux>,
@@ -1311,7 +1227,7 @@ fn scatter_through(
     boundary: Boundary,
     iterations: u32,
 ) -> MultipleScattering {
-    let mut series = scatter_series(medium, stencil, s0, boundary, iterations, Series::Full);
+    let mut series = scatter_series(medium, stencil, s0, boundary, iterations);
     series
         .total
         .iter_mut()
@@ -1320,16 +1236,13 @@ fn scatter_through(
 }
 
 /// The orders of the series from `s0` and their closed sum, signed (a warm restart's correction
-/// may be negative). The full series from its fourth order on takes [`SeriesTail::two_ratios`]
-/// (a tail of two modes clamped at 0 per voxel: the full series' orders are not negative); a
-/// shorter one, and a correction, [`SeriesTail::geometric`].
+/// may be negative).
 fn scatter_series(
     medium: SweptMedium,
     stencil: ScatterStencil,
     s0: &Moments,
     boundary: Boundary,
     iterations: u32,
-    series: Series,
 ) -> MultipleScattering {
     let grid = medium.grid;
     assert_eq!(
@@ -1344,7 +1257,7 @@ fn scatter_series(
     };
     let zero = s0.plus(&s0, DVec3::splat(-1.0));
     let mut quadrupole = vec![[DVec3::ZERO; 5]; s0.flux.len()];
-    let (mut total, mut last, mut before) = (zero.clone(), s0.clone(), s0.clone());
+    let (mut total, mut last, mut before) = (zero.clone(), s0.clone(), s0.mean.clone());
     let mut orders: Vec<Vec<DVec3>> = Vec::with_capacity(iterations as usize);
     for k in 0..iterations {
         let entering = if k == 0 { boundary } else { Boundary::NONE };
@@ -1353,30 +1266,20 @@ fn scatter_series(
         for (t, q) in quadrupole.iter_mut().zip(&q) {
             (0..5).for_each(|i| t[i] += q[i]);
         }
-        before = std::mem::replace(&mut last, next);
+        before = std::mem::replace(&mut last, next).mean;
         orders.push(last.mean.clone());
     }
-    let m = iterations as usize;
-    let tail = match (m, series) {
-        (0, _) => SeriesTail::default(),
-        (4.., Series::Full) => {
-            SeriesTail::two_ratios(std::array::from_fn(|i| order_sum(grid, &orders[m - 4 + i])))
-        }
-        _ => SeriesTail::geometric(order_sum(grid, &last.mean), order_sum(grid, &before.mean)),
+    let ratio = if iterations == 0 {
+        DVec3::ZERO
+    } else {
+        order_ratio(grid, &last.mean, &before)
     };
-    if m > 0 {
-        let mut rest = zero.plus(&last, tail.last).plus(&before, tail.before);
-        // Two modes fitted to the sums may leave a voxel whose orders fall faster than either a
-        // negative tail; the full series' orders are not negative. One mode keeps `S_M`'s sign.
-        let two_modes = tail.before.cmpne(DVec3::ZERO);
-        for t in &mut rest.mean {
-            *t = DVec3::select(two_modes, t.max(DVec3::ZERO), *t);
-        }
-        total = total.plus(&rest, DVec3::ONE);
+    if iterations > 0 {
+        total = total.plus(&last, ratio / (DVec3::ONE - ratio));
     }
     MultipleScattering {
         orders,
-        tail,
+        ratio,
         total: total.mean,
         flux: total.flux,
         quadrupole,
@@ -1464,14 +1367,7 @@ pub fn scatter_warm_medium(
     let entering = Boundary::sky(sky);
     let (once, q_once) = scatter_once(medium, stencil, &s0.plus(previous, DVec3::ONE), entering);
     let correction = once.plus(previous, DVec3::splat(-1.0));
-    let series = scatter_series(
-        medium,
-        stencil,
-        &correction,
-        Boundary::NONE,
-        iterations - 1,
-        Series::Correction,
-    );
+    let series = scatter_series(medium, stencil, &correction, Boundary::NONE, iterations - 1);
     // Clamped at 0 like the GPU's: the truncated correction may overshoot where the light fell.
     let total = zip_with(&once.mean, &series.total, |k, t| (*k + *t).max(DVec3::ZERO));
     let flux = zip_with(&once.flux, &series.flux, |k, t| {
@@ -1484,7 +1380,7 @@ pub fn scatter_warm_medium(
     orders.extend(series.orders);
     MultipleScattering {
         orders,
-        tail: series.tail,
+        ratio: series.ratio,
         total,
         flux,
         quadrupole,
@@ -1498,10 +1394,9 @@ pub fn scatter_warm_medium(
 /// `albedo S` along its line whose weights sum to `1 - exp(-tau_line)` at most, and whose
 /// negative part (the parabola's second differences) is at most a sixth of that; the paper's
 /// coefficients sum to at most `albedo (1 - exp(-K_local rho_max h))`. So
-/// `max S_m <= max S_0 (sum_{k=1..M} q^k + q^M MAX_TAIL)`: the full series' tail is at most
-/// [`MAX_TAIL`] times `S_M` (its coefficient of `S_{M-1}` is never positive, and the tail is
-/// clamped at 0). Finite for any albedo and number of iterations (the closure's ratios are
-/// clamped), though for `q > 1` it grows with them.
+/// `max S_m <= max S_0 (sum_{k=1..M} q^k + q^M MAX_ORDER_RATIO / (1 - MAX_ORDER_RATIO))`. Finite
+/// for any albedo and number of iterations (the closure's ratio is clamped), though for `q > 1`
+/// it grows with them.
 pub fn energy_bound(
     grid: &DensityGrid,
     k_local: f64,
@@ -1512,7 +1407,7 @@ pub fn energy_bound(
     let tau_line = k_local * grid.max() * grid.h * 3f64.sqrt() * grid.n as f64;
     let q = 4.0 / 3.0 * albedo * -(-tau_line).exp_m1();
     let orders: f64 = (1..=iterations).map(|k| q.powi(k as i32)).sum();
-    let tail = q.powi(iterations as i32) * MAX_TAIL;
+    let tail = q.powi(iterations as i32) * MAX_ORDER_RATIO / (1.0 - MAX_ORDER_RATIO);
     max_s0 * (orders + if iterations > 0 { tail } else { 0.0 })
 }
 
@@ -2666,76 +2561,6 @@ mod tests {
         assert!((curvature_weight(tau) * tau - 1.0).abs() < 1e-2);
     }
 
-    /// Orders `S_k(v) = u(v) l1^k + w(v) l2^k` over 8 voxels of unit density.
-    fn two_mode_orders(l1: f64, l2: f64, count: usize) -> (DensityGrid, Vec<Vec<DVec3>>) {
-        let grid = DensityGrid {
-            n: 2,
-            centre: DVec3::ZERO,
-            side: 1.0,
-            h: 0.5,
-            rho: vec![1.0; 8],
-        };
-        let orders = (0..=count)
-            .map(|k| {
-                (0..8)
-                    .map(|v| {
-                        let (u, w) = (1.0 + v as f64, 3.0 - 0.25 * v as f64);
-                        DVec3::splat(u * l1.powi(k as i32) + w * l2.powi(k as i32))
-                    })
-                    .collect()
-            })
-            .collect();
-        (grid, orders)
-    }
-
-    #[test]
-    fn two_ratios_sum_two_modes_exactly() {
-        let (l1, l2, m) = (0.97, 0.8, 12);
-        let (grid, orders) = two_mode_orders(l1, l2, 2000);
-        let tail = SeriesTail::two_ratios(std::array::from_fn(|i| {
-            order_sum(&grid, &orders[m - 3 + i])
-        }));
-        assert!(tail.before.x < 0.0);
-        for v in 0..8 {
-            let closed = orders[m][v] * tail.last + orders[m - 1][v] * tail.before;
-            let exact: DVec3 = orders[m + 1..].iter().map(|o| o[v]).sum();
-            assert!(
-                (closed.x / exact.x - 1.0).abs() < 1e-9,
-                "voxel {v}: {closed} vs {exact}"
-            );
-        }
-        // One mode, the ratio of the last two sums, falls short (by 21 % here).
-        let sum = |o: &[DVec3]| order_sum(&grid, o).x;
-        let one = SeriesTail::geometric(
-            order_sum(&grid, &orders[m]),
-            order_sum(&grid, &orders[m - 1]),
-        );
-        let exact: f64 = orders[m + 1..].iter().map(|o| sum(o)).sum();
-        assert!(sum(&orders[m]) * one.last.x < 0.85 * exact);
-    }
-
-    #[test]
-    fn two_ratios_take_one_mode_where_the_ratio_does_not_rise_or_the_modes_are_too_slow() {
-        let sums = |l1: f64, l2: f64| {
-            let (grid, orders) = two_mode_orders(l1, l2, 12);
-            std::array::from_fn(|i| order_sum(&grid, &orders[9 + i]))
-        };
-        for (l1, l2) in [(0.9, 0.9), (0.999, 0.8), (0.9, 0.0)] {
-            let s: [DVec3; 4] = sums(l1, l2);
-            assert_eq!(
-                SeriesTail::two_ratios(s),
-                SeriesTail::geometric(s[3], s[2]),
-                "{l1}, {l2}"
-            );
-        }
-        // Falling ratios: the faster mode's weight is negative.
-        let falling = [8.0, 4.4, 2.3, 1.15].map(DVec3::splat);
-        assert_eq!(
-            SeriesTail::two_ratios(falling),
-            SeriesTail::geometric(falling[3], falling[2])
-        );
-    }
-
     #[test]
     fn series_closure_recovers_the_orders_left_over() {
         // A thick, bright cloud: 8 iterations closed with lambda agree with 400 iterations
@@ -2750,18 +2575,10 @@ mod tests {
         let long = scatter(&grid, k, 0.99, ScatterStencil::DiscreteOrdinates, &s0, 400);
         let (closed, converged) = (total(short.total.clone()), total(long.total));
         let plain: f64 = short.orders.iter().map(|o| total(o.clone())).sum();
-        assert!(short.tail.last.x > 1.0 && short.tail.last.x <= MAX_TAIL);
+        assert!(short.ratio.x > 0.5 && short.ratio.x <= MAX_ORDER_RATIO);
         assert!(
             (closed / converged - 1.0).abs() < 0.03,
             "{closed} vs {converged}"
-        );
-        // Two modes land closer than one (the ratio of the last two orders) would.
-        let sums = |k: usize| order_sum(&grid, &short.orders[k]);
-        let one = SeriesTail::geometric(sums(7), sums(6)).last.x;
-        let geometric = plain + one * total(short.orders[7].clone());
-        assert!(
-            (closed - converged).abs() < 0.5 * (geometric - converged).abs(),
-            "two modes {closed}, one {geometric}, converged {converged}"
         );
         assert!(
             plain < 0.95 * converged,
@@ -2815,20 +2632,9 @@ mod tests {
             error(&before)
         );
 
-        // From zero, the same orders and, below 4 orders (where the full series too closes with
-        // one mode), the same sum.
         let zero = vec![DVec3::ZERO; grid.len()];
-        let from_zero = scatter_warm(&grid, k, 0.99, stencil, &new, &zero, DVec3::ZERO, 3);
-        let cold = scatter(&grid, k, 0.99, stencil, &new, 3);
+        let from_zero = scatter_warm(&grid, k, 0.99, stencil, &new, &zero, DVec3::ZERO, 4);
         assert!(error(&from_zero.total) > 0.0);
-        for (a, b) in from_zero
-            .orders
-            .iter()
-            .flatten()
-            .zip(cold.orders.iter().flatten())
-        {
-            assert!((*a - *b).abs().max_element() <= 1e-12 * b.max_element().max(1e-300));
-        }
         for (a, b) in from_zero.total.iter().zip(&cold.total) {
             assert!((*a - *b).abs().max_element() <= 1e-12 * b.max_element().max(1e-300));
         }
@@ -2853,10 +2659,9 @@ mod tests {
         let stencil = ScatterStencil::DiscreteOrdinates;
         let sky = DVec3::new(0.1, 0.1, 0.2);
         let converged = scatter_medium(&grid, k, (albedo, g), stencil, &s0, sky, 300);
-        // Below 4 orders the full series closes with one mode, as a warm restart does.
-        let cold = scatter_medium(&grid, k, (albedo, g), stencil, &s0, sky, 3);
+        let cold = scatter_medium(&grid, k, (albedo, g), stencil, &s0, sky, 4);
         let zero = s0.plus(&s0, DVec3::splat(-1.0));
-        let from_zero = scatter_warm_medium(&grid, k, (albedo, g), stencil, &s0, &zero, sky, 3);
+        let from_zero = scatter_warm_medium(&grid, k, (albedo, g), stencil, &s0, &zero, sky, 4);
         let close = |a: &[DVec3], b: &[DVec3], tolerance: f64| {
             let scale = b.iter().fold(0.0f64, |m, v| m.max(v.abs().max_element()));
             a.iter()

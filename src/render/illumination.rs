@@ -82,7 +82,7 @@ struct ScatterBatch {
     /// The iterations' three order pairs: `S_0 → a`, `a → b`, `b → a`; and `S_0 → b`, a warm
     /// restart's start.
     groups: [BindGroup; 4],
-    /// The closure, reading the two order volumes (`S_M` and `S_{M-1}` at the end).
+    /// The closure, reading the last two orders.
     closure: BindGroup,
     work: WorkList,
 }
@@ -531,14 +531,14 @@ fn scatter_batch(
         pair(&pool.source, &pool.orders[1]),
     ];
     let closure = bind(
-        &pipelines.close[0],
+        &pipelines.order_ratio,
         &BindGroupEntries::sequential((
             pool.slots.as_entire_binding(),
             pool.densities.as_entire_binding(),
             order(pool, iterations).as_entire_binding(),
             order(pool, iterations - 1).as_entire_binding(),
             pool.multiple.as_entire_binding(),
-            pool.closures.as_entire_binding(),
+            pool.order_ratios.as_entire_binding(),
             work.binding(),
         )),
     );
@@ -763,8 +763,7 @@ pub(crate) fn illuminate_clouds(
 }
 
 /// Records a batch's scattering iterations (the discrete-ordinates `sweep`, else the paper's
-/// stencil) on its clouds' `n³` grids, and the closure (§4), with the sums of `S_{M-3}` and
-/// `S_{M-2}` among the iterations where it takes two modes. A warm restart's first iteration
+/// stencil) on its clouds' `n³` grids, and the closure (§4). A warm restart's first iteration
 /// scatters `S_0` plus the solution held, and turns it into the correction's first order.
 fn scatter_batch_passes(
     pass: &mut StagePass,
@@ -774,9 +773,6 @@ fn scatter_batch_passes(
     moments: bool,
 ) {
     let variant = moments as usize;
-    // The full series from its fourth order on closes with two modes; a warm restart's signed
-    // correction with one (§4).
-    let two_modes = !batch.warm && batch.iterations >= 4;
     let stencil = if batch.sweep {
         ready.sweep[variant]
     } else {
@@ -821,20 +817,11 @@ fn scatter_batch_passes(
         pass.set_pipeline(stencil);
         for k in first..batch.iterations {
             iterate(pass, &batch.groups[scatter_group(k)], true, k == 0);
-            // Iteration k wrote S_(k+1). A closure of two modes sums S_(M-3) and S_(M-2) before
-            // S_(M-1) and S_M overwrite their volumes.
-            let early = (k + 4).checked_sub(batch.iterations);
-            if let Some(i) = early.filter(|&i| two_modes && i < 2) {
-                pass.set_pipeline(ready.sum_early_orders[i as usize]);
-                pass.set_bind_group(0, &batch.closure, &[work]);
-                pass.dispatch(1, 1, items);
-                pass.set_pipeline(stencil);
-            }
         }
     }
     for (work, items) in batch.work.chunks() {
         pass.set_bind_group(0, &batch.closure, &[work]);
-        pass.set_pipeline(ready.close[two_modes as usize]);
+        pass.set_pipeline(ready.order_ratio);
         pass.dispatch(1, 1, items);
         pass.set_pipeline(ready.extrapolate[variant]);
         dispatch_linear(pass, n.pow(3), items);

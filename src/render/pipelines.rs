@@ -173,13 +173,9 @@ pub struct IlluminationPipelines {
     pub warm_start: ByMoments,
     /// `scatter.wgsl`, `warm_correction` (a warm restart's first order; same layout).
     pub warm_correction: ByMoments,
-    /// `closure.wgsl`, `sum_order_m3` and `sum_order_m2`: the sums of the orders `S_{M-3}` and
-    /// `S_{M-2}`, for a closure of two modes.
-    pub sum_early_orders: [ComputeStage; 2],
-    /// `closure.wgsl`, `close_geometric` and `close_two_ratios`: the sums of the last two orders
-    /// and the tail's coefficients, of one mode or two (same layout).
-    pub close: [ComputeStage; 2],
-    /// `closure.wgsl`, `extrapolate` (same layout).
+    /// `closure.wgsl`, `order_ratio`.
+    pub order_ratio: ComputeStage,
+    /// `closure.wgsl`, `extrapolate` (same layout as `order_ratio`).
     pub extrapolate: ByMoments,
     /// The 13 `SweepDirection`s in each of the four sets of [`sweep_direction_offset`]
     /// (accumulating or not, bringing the sky in or not), `DYNAMIC_UNIFORM_STRIDE` bytes apart (a
@@ -220,10 +216,8 @@ pub struct ReadyPipelines<'a> {
     pub warm_start: [&'a ComputePipeline; 2],
     /// A warm restart's first order.
     pub warm_correction: [&'a ComputePipeline; 2],
-    /// The closure's sums of `S_{M-3}` and `S_{M-2}`.
-    pub sum_early_orders: [&'a ComputePipeline; 2],
-    /// The closure's coefficients, of one mode and of two.
-    pub close: [&'a ComputePipeline; 2],
+    /// The closure's ratio.
+    pub order_ratio: &'a ComputePipeline,
     /// The closure's extrapolation.
     pub extrapolate: [&'a ComputePipeline; 2],
 }
@@ -246,11 +240,7 @@ impl IlluminationPipelines {
             scatter_paper: self.scatter_paper.get(cache)?,
             warm_start: self.warm_start.get(cache)?,
             warm_correction: self.warm_correction.get(cache)?,
-            sum_early_orders: [
-                self.sum_early_orders[0].get(cache)?,
-                self.sum_early_orders[1].get(cache)?,
-            ],
-            close: [self.close[0].get(cache)?, self.close[1].get(cache)?],
+            order_ratio: self.order_ratio.get(cache)?,
             extrapolate: self.extrapolate.get(cache)?,
         })
     }
@@ -404,10 +394,7 @@ pub(crate) fn init_illumination_pipelines(
         scatter_paper: stage(&shaders.scatter, "scatter_paper", &scatter),
         warm_start: ByMoments::new(cache, &shaders.scatter, "warm_start", &scatter),
         warm_correction: ByMoments::new(cache, &shaders.scatter, "warm_correction", &scatter),
-        sum_early_orders: ["sum_order_m3", "sum_order_m2"]
-            .map(|entry| stage(&shaders.closure, entry, &closure)),
-        close: ["close_geometric", "close_two_ratios"]
-            .map(|entry| stage(&shaders.closure, entry, &closure)),
+        order_ratio: stage(&shaders.closure, "order_ratio", &closure),
         extrapolate: ByMoments::new(cache, &shaders.closure, "extrapolate", &closure),
         sweep_directions: dynamic_uniform(
             &device,

@@ -63,13 +63,9 @@ pub struct Slot {
     pub foreign: u32,
     /// First of the cloud's lights in the pool's light array.
     pub lights: u32,
-    /// First vec4 of its entries in `closures` ([`CLOSURE_ENTRIES`]).
-    pub closure: u32,
+    /// Its element of the closure's `order_ratios`.
+    pub ratio: u32,
 }
-
-/// vec4 entries per slot in a pool's `closures` (closure.wgsl's `CLOSURE_ENTRIES`).
-pub const CLOSURE_ENTRIES: u32 = 6;
-const CLOSURE_BYTES: u64 = 16 * CLOSURE_ENTRIES as u64;
 
 /// Bytes of one slot in each kind of pool buffer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -227,9 +223,8 @@ pub struct VolumePool {
     /// vec4 multiple scattering `S_m` per slot (its means, then with moments its flux and its
     /// quadrupole).
     pub multiple: Buffer,
-    /// [`CLOSURE_ENTRIES`] vec4 per slot: the series closure's order sums and coefficients
-    /// (closure.wgsl).
-    pub closures: Buffer,
+    /// vec4 closure ratio per slot.
+    pub order_ratios: Buffer,
     /// vec2 per voxel of the scattering grid: other clouds' media there (extinction, scattering;
     /// [`overlap`](super::overlap)).
     pub foreign: Buffer,
@@ -262,7 +257,7 @@ impl VolumePool {
                 storage(device, "particle_clouds_order_b", b.volume * c),
             ],
             multiple: storage(device, "particle_clouds_multiple", b.multiple * c),
-            closures: storage(device, "particle_clouds_closures", CLOSURE_BYTES * c),
+            order_ratios: storage(device, "particle_clouds_order_ratios", 16 * c),
             foreign: storage(device, "particle_clouds_foreign", b.foreign * c),
             ground: storage(device, "particle_clouds_ground", ground_map_bytes() * c),
             density_levels: dynamic_uniform(
@@ -284,7 +279,7 @@ impl VolumePool {
             &self.orders[0],
             &self.orders[1],
             &self.multiple,
-            &self.closures,
+            &self.order_ratios,
             &self.foreign,
             &self.ground,
         ]
@@ -361,7 +356,7 @@ impl VolumePool {
             multiple: element(i * b.multiple, 16),
             foreign: element(i * b.foreign, 8),
             lights: element(i * b.lights, LightParams::min_size().get()),
-            closure: index * CLOSURE_ENTRIES,
+            ratio: index,
         }
     }
 
@@ -420,10 +415,9 @@ impl VolumePool {
         Self::range(&self.ground, index, size, 0, size)
     }
 
-    /// Slot `index`'s closure entries: the sums of `S_{M-3} .. S_M`, then the tail's
-    /// coefficients of `S_M` and `S_{M-1}` (vec4 each, RGB in xyz).
-    pub fn closure(&self, index: u32) -> BufferRange {
-        Self::range(&self.closures, index, CLOSURE_BYTES, 0, CLOSURE_BYTES)
+    /// Slot `index`'s closure ratio.
+    pub fn order_ratio(&self, index: u32) -> BufferRange {
+        Self::range(&self.order_ratios, index, 16, 0, 16)
     }
 }
 

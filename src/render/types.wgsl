@@ -92,8 +92,8 @@ struct Slot {
     foreign: u32,
     // First of the cloud's lights in the pool's light array.
     lights: u32,
-    // First vec4 of its entries in `closures` (closure.wgsl).
-    closure: u32,
+    // Its element of the closure's `order_ratios`.
+    ratio: u32,
 }
 
 // The density levels of a fine grid (docs/illumination.md §1). Rust mirror: `DensityLevels` in
