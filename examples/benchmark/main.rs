@@ -507,7 +507,20 @@ fn run() -> Result<(), String> {
         for s in &settings {
             let t0 = Instant::now();
             b.set_quality(*s);
-            let (image, timing) = b.measure(args.frames());
+            let (image, timing) = match b.try_measure(args.frames()) {
+                Ok(measured) => measured,
+                Err(why) => {
+                    bar.suspend(|| {
+                        eprintln!(
+                            "benchmark: {} {}: skipped, not measured: {why}",
+                            bench.name,
+                            setting_label(s)
+                        )
+                    });
+                    bar.inc(1);
+                    continue;
+                }
+            };
             let image = downsample(&image, bench.error_downsample);
             assert_eq!(
                 (image.width, image.height),

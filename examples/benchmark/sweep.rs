@@ -289,7 +289,16 @@ impl Bench {
     }
 
     /// Renders the finished image of the current settings and measures it.
+    ///
+    /// # Panics
+    /// If no measured frame reran every pass ([`Bench::try_measure`] says so instead).
     pub(crate) fn measure(&mut self, frames: usize) -> (LinearImage, Timing) {
+        self.try_measure(frames).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    /// [`Bench::measure`], or why no frame could be measured: a cloud the renderer refused (it
+    /// warns why, e.g. volumes past the adapter's storage limit) reruns no pass.
+    pub(crate) fn try_measure(&mut self, frames: usize) -> Result<(LinearImage, Timing), String> {
         let image = self.image();
         // Static frames: nothing changed, only the draw runs.
         let (draw, static_wall) = self.static_frames(frames);
@@ -325,10 +334,12 @@ impl Bench {
                 );
             }
         }
-        assert!(
-            !dynamics.is_empty(),
-            "none of the {frames} measured frames reran every pass"
-        );
+        if dynamics.is_empty() {
+            return Err(format!(
+                "none of the {frames} measured frames reran every pass (a cloud the renderer \
+                 refused runs none; its warning above says why)"
+            ));
+        }
         let draw_ms = median(draw);
         let mut pass_ms = [0.0; PASSES];
         for (i, pass) in CloudPass::ALL.iter().enumerate() {
@@ -374,6 +385,6 @@ impl Bench {
             wall_ms: median(dynamics.iter().map(|f| f.wall_ms).collect()),
             wall_ms_static: median(static_wall),
         };
-        (image, timing)
+        Ok((image, timing))
     }
 }
