@@ -80,6 +80,7 @@ pub mod scene;
 pub mod settings;
 pub mod shadow_maps;
 pub mod stats;
+pub mod views;
 
 use bevy::prelude::*;
 
@@ -145,6 +146,8 @@ impl Plugin for ParticleCloudsPlugin {
                     shadow_maps::place_cloud_shadow_maps
                         .after(CloudSystems::CalculateBounds)
                         .after(bevy::transform::TransformSystems::Propagate),
+                    views::hide_clouds_from_other_projections
+                        .after(bevy::camera::visibility::VisibilitySystems::CheckVisibility),
                     lod::update_cloud_lod
                         .in_set(CloudSystems::LevelOfDetail)
                         .after(CloudSystems::CalculateBounds)

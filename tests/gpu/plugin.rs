@@ -449,6 +449,68 @@ fn render_layers_hide_clouds_from_cameras_on_other_layers() {
 }
 
 #[test]
+fn an_orthographic_camera_shows_no_clouds_and_a_perspective_one_beside_it_does() {
+    let background = Vec3::new(0.25, 0.5, 1.0);
+    let eye = Transform::from_xyz(0.0, 0.0, 5.0).looking_at(Vec3::ZERO, Vec3::Y);
+    // Pixels of `image` other than the background, asserting that every one is finite.
+    let changed = |image: &bevy_particle_clouds::image_io::LinearImage| {
+        let finite = |p: &[f32; 4]| p.iter().all(|c| c.is_finite());
+        assert!(image.pixels.iter().all(finite), "a pixel is not finite");
+        let cloud = |p: &&[f32; 4]| !close(**p, background, 1e-3);
+        image.pixels.iter().filter(cloud).count()
+    };
+    let run = |with_perspective: bool| {
+        let (mut app, orthographic) = setup(background, eye);
+        // 4 m across the view's height: the cloud (about 2.6 m wide) fills its middle.
+        let projection = Projection::Orthographic(OrthographicProjection {
+            scaling_mode: bevy::camera::ScalingMode::FixedVertical {
+                viewport_height: 4.0,
+            },
+            ..OrthographicProjection::default_3d()
+        });
+        app.world_mut()
+            .entity_mut(orthographic.camera)
+            .insert(projection);
+        let perspective = with_perspective.then(|| {
+            let image = headless::float_target(&mut app, W, H);
+            headless::spawn_linear_camera(&mut app, image.clone(), eye, 40.0, background);
+            image
+        });
+        headless::spawn_light(&mut app, Vec3::new(0.0, -1.0, -0.3), Vec3::splat(2.0));
+        small_cloud(&mut app, 0.9, Vec3::ZERO);
+        let mut recorder = FrameRecorder::default();
+        let mut draws = 0;
+        for _ in 0..4 {
+            draws = recorder.frame(&mut app).unwrap().runs(CloudPass::Draw);
+        }
+        let shown = headless::capture(&mut app, &mut recorder, &orthographic.image).unwrap();
+        let beside = perspective
+            .map(|image| changed(&headless::capture(&mut app, &mut recorder, &image).unwrap()));
+        let voxelized = recorder.total(CloudPass::Voxelize);
+        (draws, changed(&shown), beside, voxelized)
+    };
+    let (draws, changed, _, voxelized) = run(false);
+    assert_eq!(draws, 0, "the orthographic camera draws no cloud");
+    assert_eq!(changed, 0, "{changed} pixels differ from the background");
+    assert_eq!(voxelized, 0, "a cloud no camera can draw does no work");
+    let (draws, changed, beside, voxelized) = run(true);
+    assert_eq!(draws, 1, "the perspective camera draws the cloud");
+    assert_eq!(
+        changed, 0,
+        "beside it, the orthographic view stays background"
+    );
+    let beside = beside.unwrap();
+    assert!(
+        beside > 100,
+        "the perspective view shows the cloud on {beside} pixels"
+    );
+    assert_eq!(
+        voxelized, 1,
+        "the cloud is illuminated for the perspective view"
+    );
+}
+
+#[test]
 fn particles_made_invalid_later_are_refused_on_change() {
     let (mut app, mut target) = setup(
         Vec3::ZERO,

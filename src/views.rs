@@ -1,0 +1,101 @@
+//! Which cameras draw clouds: those with Bevy's perspective projection.
+//!
+//! The view passes take a camera's rays through its projection's tangents (`x / z`, `y / z`)
+//! and its near plane (docs/illumination.md §5), as Bevy's infinite reverse-Z perspective
+//! defines them. Under any other projection (orthographic, or a custom one of another form) they
+//! would draw a wrong image, so such a camera shows no clouds, with a warning naming it.
+
+use bevy::{camera::visibility::VisibleEntities, platform::collections::HashSet, prelude::*};
+use std::any::TypeId;
+
+use crate::ParticleCloud;
+
+/// Whether `clip_from_view` is Bevy's infinite reverse-Z perspective (`PerspectiveProjection`,
+/// off-centre or not): clip `w = -z`, clip `z` the near plane's distance alone.
+pub fn draws_clouds(clip_from_view: &Mat4) -> bool {
+    let (z, w) = (clip_from_view.z_axis, clip_from_view.w_axis);
+    clip_from_view.x_axis.w == 0.0
+        && clip_from_view.y_axis.w == 0.0
+        && z.z == 0.0
+        && z.w == -1.0
+        && w.x == 0.0
+        && w.y == 0.0
+        && w.z > 0.0
+        && w.w == 0.0
+}
+
+/// A word for the projection a refused camera has, for the warning.
+fn projection_name(projection: Option<&Projection>) -> &'static str {
+    match projection {
+        Some(Projection::Orthographic(_)) => "orthographic",
+        Some(Projection::Perspective(_)) => "perspective, but not Bevy's infinite reverse-Z form",
+        Some(Projection::Custom(_)) => "custom",
+        None => "not a Bevy `Projection`",
+    }
+}
+
+/// Takes the clouds out of the visible entities of every camera that cannot draw them (after
+/// Bevy's visibility check, so nothing downstream sees them there), warning once per camera. A
+/// cloud that no other camera sees is then hidden, so that it is not illuminated for nothing.
+pub(crate) fn hide_clouds_from_other_projections(
+    mut cameras: Query<(Entity, &Camera, Option<&Projection>, &mut VisibleEntities)>,
+    mut clouds: Query<&mut ViewVisibility, With<ParticleCloud>>,
+    mut warned: Local<HashSet<Entity>>,
+) {
+    let class = TypeId::of::<ParticleCloud>();
+    let (mut taken, mut drawn) = (Vec::new(), HashSet::new());
+    for (entity, camera, projection, mut visible) in &mut cameras {
+        if draws_clouds(&camera.clip_from_view()) {
+            drawn.extend(visible.iter(class).copied());
+            continue;
+        }
+        if visible.is_empty(class) {
+            continue;
+        }
+        taken.extend(visible.iter(class).copied());
+        visible.clear(class);
+        if warned.insert(entity) {
+            warn!(
+                "camera {entity}: its projection is {}; particle clouds are drawn by perspective \
+                 cameras only (`Projection::Perspective`), so this camera shows none",
+                projection_name(projection)
+            );
+        }
+    }
+    for cloud in taken.into_iter().filter(|c| !drawn.contains(c)) {
+        if let Ok(mut visibility) = clouds.get_mut(cloud)
+            && visibility.get()
+        {
+            *visibility = ViewVisibility::HIDDEN;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bevy::camera::CameraProjection;
+
+    #[test]
+    fn perspective_projections_draw_clouds_and_others_do_not() {
+        let mut perspective = PerspectiveProjection::default();
+        perspective.update(1280.0, 720.0);
+        assert!(draws_clouds(&perspective.get_clip_from_view()));
+        // A sub-view (off-centre) is still a perspective.
+        let off_centre = perspective.get_clip_from_view_for_sub(&bevy::camera::SubCameraView {
+            full_size: UVec2::new(2560, 1440),
+            offset: Vec2::new(1280.0, 0.0),
+            size: UVec2::new(1280, 720),
+        });
+        assert!(off_centre.z_axis.x != 0.0);
+        assert!(draws_clouds(&off_centre));
+
+        let mut orthographic = OrthographicProjection::default_3d();
+        orthographic.update(1280.0, 720.0);
+        assert!(!draws_clouds(&orthographic.get_clip_from_view()));
+        // A finite-far perspective: clip z depends on z.
+        let finite = Mat4::perspective_rh(0.8, 16.0 / 9.0, 0.1, 100.0);
+        assert!(!draws_clouds(&finite));
+        assert!(!draws_clouds(&Mat4::IDENTITY));
+    }
+}
