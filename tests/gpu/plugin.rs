@@ -453,7 +453,7 @@ fn an_orthographic_camera_shows_no_clouds_and_a_perspective_one_beside_it_does()
     let background = Vec3::new(0.25, 0.5, 1.0);
     let eye = Transform::from_xyz(0.0, 0.0, 5.0).looking_at(Vec3::ZERO, Vec3::Y);
     // Pixels of `image` other than the background, asserting that every one is finite.
-    let changed = |image: &bevy_particle_clouds::image_io::LinearImage| {
+    let cloud_pixels = |image: &bevy_particle_clouds::image_io::LinearImage| {
         let finite = |p: &[f32; 4]| p.iter().all(|c| c.is_finite());
         assert!(image.pixels.iter().all(finite), "a pixel is not finite");
         let cloud = |p: &&[f32; 4]| !close(**p, background, 1e-3);
@@ -484,10 +484,11 @@ fn an_orthographic_camera_shows_no_clouds_and_a_perspective_one_beside_it_does()
             draws = recorder.frame(&mut app).unwrap().runs(CloudPass::Draw);
         }
         let shown = headless::capture(&mut app, &mut recorder, &orthographic.image).unwrap();
-        let beside = perspective
-            .map(|image| changed(&headless::capture(&mut app, &mut recorder, &image).unwrap()));
+        let beside = perspective.map(|image| {
+            cloud_pixels(&headless::capture(&mut app, &mut recorder, &image).unwrap())
+        });
         let voxelized = recorder.total(CloudPass::Voxelize);
-        (draws, changed(&shown), beside, voxelized)
+        (draws, cloud_pixels(&shown), beside, voxelized)
     };
     let (draws, changed, _, voxelized) = run(false);
     assert_eq!(draws, 0, "the orthographic camera draws no cloud");
