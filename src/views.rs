@@ -43,13 +43,9 @@ pub(crate) fn hide_clouds_from_other_projections(
     mut warned: Local<HashSet<Entity>>,
 ) {
     let class = TypeId::of::<ParticleCloud>();
-    let (mut taken, mut drawn) = (Vec::new(), HashSet::new());
+    let mut taken = HashSet::new();
     for (entity, camera, projection, mut visible) in &mut cameras {
-        if draws_clouds(&camera.clip_from_view()) {
-            drawn.extend(visible.iter(class).copied());
-            continue;
-        }
-        if visible.is_empty(class) {
+        if visible.is_empty(class) || draws_clouds(&camera.clip_from_view()) {
             continue;
         }
         taken.extend(visible.iter(class).copied());
@@ -62,7 +58,16 @@ pub(crate) fn hide_clouds_from_other_projections(
             );
         }
     }
-    for cloud in taken.into_iter().filter(|c| !drawn.contains(c)) {
+    // Only where a camera was refused: the clouds the perspective ones still see stay visible.
+    if taken.is_empty() {
+        return;
+    }
+    for (.., visible) in &cameras {
+        visible.iter(class).for_each(|cloud| {
+            taken.remove(cloud);
+        });
+    }
+    for cloud in taken {
         if let Ok(mut visibility) = clouds.get_mut(cloud)
             && visibility.get()
         {
