@@ -204,19 +204,64 @@ pub fn sky_direction_among(k: u32, count: u32) -> Vec3 {
 
 /// The direction and irradiance of a directional light that lights clouds, if it lights them:
 /// `E = color (linear) × illuminance` along the light's forward; none for a hidden, dark or broken
-/// light.
+/// light ([`cloud_light_problem`]).
 pub fn cloud_light(
     light: &DirectionalLight,
     transform: &GlobalTransform,
     visible: bool,
 ) -> Option<(Vec3, Vec3)> {
     let irradiance = light.color.to_linear().to_vec3() * light.illuminance;
-    let direction = transform.forward().as_vec3();
     let lit = visible
-        && irradiance.is_finite()
-        && irradiance.max_element() > 0.0
-        && direction.is_finite();
-    lit.then_some((direction, irradiance))
+        && cloud_light_problem(light, transform).is_none()
+        && irradiance.max_element() > 0.0;
+    lit.then(|| Some((light_direction(transform)?, irradiance)))
+        .flatten()
+}
+
+/// The light's forward (`-Z`), unit; none where the transform gives none. Not
+/// `GlobalTransform::forward`, which panics in debug builds on a degenerate transform.
+fn light_direction(transform: &GlobalTransform) -> Option<Vec3> {
+    (transform.affine().matrix3 * bevy::math::Vec3A::NEG_Z)
+        .try_normalize()
+        .map(Vec3::from)
+}
+
+/// Why a directional light cannot light clouds, naming the field, its value and what is allowed;
+/// none for a valid light (a dark one included). Such a light is skipped, as a dark one is: a
+/// negative or non-finite irradiance would put negative or NaN light in every cloud.
+pub fn cloud_light_problem(
+    light: &DirectionalLight,
+    transform: &GlobalTransform,
+) -> Option<String> {
+    let allowed = "finite and at least 0";
+    if !(light.illuminance.is_finite() && light.illuminance >= 0.0) {
+        return Some(format!(
+            "DirectionalLight::illuminance is {} lux: it must be {allowed}",
+            light.illuminance
+        ));
+    }
+    let color = light.color.to_linear().to_vec3();
+    if !(color.is_finite() && color.min_element() >= 0.0) {
+        return Some(format!(
+            "DirectionalLight::color is linear RGB {color}: each channel must be {allowed}"
+        ));
+    }
+    // Finite but huge values can still overflow f32 when multiplied.
+    if !(color * light.illuminance).is_finite() {
+        return Some(format!(
+            "DirectionalLight::color {color} × illuminance {} lux overflows f32: the irradiance \
+             must be finite",
+            light.illuminance
+        ));
+    }
+    if light_direction(transform).is_none() {
+        let forward = transform.affine().matrix3 * bevy::math::Vec3A::NEG_Z;
+        return Some(format!(
+            "the light's GlobalTransform maps its forward (-Z) to {forward}: it must be finite \
+             and non-zero"
+        ));
+    }
+    None
 }
 
 /// A cloud as the shadow maps see it.
@@ -308,6 +353,59 @@ pub(crate) fn place_cloud_shadow_maps(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Negative, NaN and infinite irradiances are refused with the field and its value; a dark
+    /// light is valid but lights nothing, and so is a hidden one.
+    #[test]
+    fn a_broken_light_is_refused_by_name_and_a_dark_one_lights_nothing() {
+        let sun = |color: Color, illuminance: f32| DirectionalLight {
+            color,
+            illuminance,
+            ..default()
+        };
+        let down = GlobalTransform::from(Transform::default().looking_to(Vec3::NEG_Y, Vec3::X));
+        let good = sun(Color::WHITE, 2.0);
+        assert_eq!(cloud_light_problem(&good, &down), None);
+        let (direction, irradiance) = cloud_light(&good, &down, true).unwrap();
+        assert!((direction - Vec3::NEG_Y).length() < 1e-6);
+        assert_eq!(irradiance, Vec3::splat(2.0));
+        assert_eq!(cloud_light(&good, &down, false), None);
+        let dark = sun(Color::WHITE, 0.0);
+        assert_eq!(cloud_light_problem(&dark, &down), None);
+        assert_eq!(cloud_light(&dark, &down, true), None);
+
+        let refused = [
+            (sun(Color::WHITE, -3.0), "illuminance is -3 lux"),
+            (sun(Color::WHITE, f32::NAN), "illuminance is NaN lux"),
+            (sun(Color::WHITE, f32::INFINITY), "illuminance is inf lux"),
+            (
+                sun(Color::linear_rgb(1.0, -0.5, 1.0), 2.0),
+                "color is linear RGB [1, -0.5, 1]",
+            ),
+            (
+                sun(Color::linear_rgb(f32::NAN, 1.0, 1.0), 2.0),
+                "color is linear RGB [NaN, 1, 1]",
+            ),
+            (
+                sun(Color::linear_rgb(3e38, 1.0, 1.0), 10.0),
+                "overflows f32",
+            ),
+        ];
+        for (light, expected) in refused {
+            let problem = cloud_light_problem(&light, &down).expect(expected);
+            assert!(problem.contains(expected), "{problem:?} lacks {expected:?}");
+            assert_eq!(cloud_light(&light, &down, true), None, "{expected}");
+        }
+        for scale in [Vec3::NAN, Vec3::ZERO] {
+            let broken = GlobalTransform::from(Transform::from_scale(scale));
+            let problem = cloud_light_problem(&good, &broken).unwrap();
+            assert!(
+                problem.contains("GlobalTransform maps its forward (-Z) to"),
+                "{problem}"
+            );
+            assert_eq!(cloud_light(&good, &broken, true), None);
+        }
+    }
 
     #[test]
     fn a_map_covers_every_cloud_across_its_light() {

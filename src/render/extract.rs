@@ -14,7 +14,7 @@ use crate::{
     ground::CloudGround,
     lod::{CloudLevelOfDetail, CloudLod},
     settings::{CloudQualitySettings, DefaultCloudQuality},
-    shadow_maps::{CloudLightQuery, cloud_lights},
+    shadow_maps::{CloudLightQuery, cloud_light_problem, cloud_lights},
 };
 
 /// A cloud as the render world sees it; only valid clouds are extracted.
@@ -199,7 +199,9 @@ pub(crate) fn extract_cloud_lights(
     sky: Extract<Res<CloudSkyLight>>,
     ground: Extract<Option<Res<CloudGround>>>,
     mut refused: Local<[Option<String>; 2]>,
+    mut refused_lights: Local<HashMap<Entity, String>>,
 ) {
+    warn_of_broken_lights(&query, &mut refused_lights);
     let [refused_sky, refused_ground] = &mut *refused;
     lights.sky = match sky.radiance() {
         Ok(radiance) => {
@@ -234,4 +236,23 @@ pub(crate) fn extract_cloud_lights(
         irradiance,
     });
     lights.lights = lit.collect();
+}
+
+/// Warns once per light, and again if its problem changes, of a visible light that
+/// `cloud_light_problem` refuses: such a light is skipped as a dark one would be.
+fn warn_of_broken_lights(query: &CloudLightQuery, refused: &mut HashMap<Entity, String>) {
+    let mut broken = HashMap::default();
+    for (entity, light, transform, visible) in query {
+        if let Some(problem) = visible
+            .get()
+            .then(|| cloud_light_problem(light, transform))
+            .flatten()
+        {
+            if refused.get(&entity) != Some(&problem) {
+                warn!("directional light {entity}: {problem}; it does not light the clouds");
+            }
+            broken.insert(entity, problem);
+        }
+    }
+    *refused = broken;
 }

@@ -402,3 +402,34 @@ fn invalid_values_through_the_api_are_refused_and_others_render() {
         "a refused sky or ground leaves no NaN"
     );
 }
+
+/// A light whose irradiance is negative in one channel or NaN is refused (with a warning naming
+/// the field) and lights nothing: the image is the one without it, and the valid light still
+/// lights the cloud.
+#[test]
+fn a_broken_light_is_skipped_and_the_valid_one_still_lights_the_cloud() {
+    let valid = Case::new(ball());
+    let mut broken = Case::new(ball());
+    broken.lights.extend([
+        LightSample {
+            direction: Vec3::new(0.5, -1.0, 0.2),
+            irradiance: Vec3::new(1.0, -0.5, 1.0),
+        },
+        LightSample {
+            direction: Vec3::X,
+            irradiance: Vec3::new(f32::NAN, 1.0, 1.0),
+        },
+    ]);
+    let (expected, _) = render(&valid);
+    let (image, drawn) = assert_bounded(&broken, "broken lights");
+    assert_eq!(drawn, 1);
+    assert!(differs_from_background(&image));
+    for (i, (p, q)) in image.pixels.iter().zip(&expected.pixels).enumerate() {
+        for c in 0..3 {
+            assert!(
+                (p[c] - q[c]).abs() <= 1e-4 * q[c].abs().max(1e-2),
+                "pixel {i}: {p:?} with the broken lights, {q:?} without"
+            );
+        }
+    }
+}
