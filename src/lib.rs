@@ -148,6 +148,7 @@ impl Plugin for ParticleCloudsPlugin {
                         .after(bevy::transform::TransformSystems::Propagate),
                     views::hide_clouds_from_other_projections
                         .after(bevy::camera::visibility::VisibilitySystems::CheckVisibility),
+                    views::warn_of_clamped_target_scales,
                     lod::update_cloud_lod
                         .in_set(CloudSystems::LevelOfDetail)
                         .after(CloudSystems::CalculateBounds)

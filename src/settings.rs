@@ -291,7 +291,7 @@ impl CloudQualitySettings {
 /// A camera's cloud target scale: its clouds are drawn into a target of this fraction of its
 /// size per axis, then enlarged onto it with a depth-aware upsample. Overrides the
 /// `cloud_target_scale` of the clouds it sees. Allowed: `MIN_CLOUD_TARGET_SCALE..=1`; a value
-/// outside is clamped into it, NaN draws at full size.
+/// outside is clamped into it, NaN draws at full size, with a warning naming the camera.
 #[derive(Component, Clone, Copy, Debug, PartialEq, Reflect, Deref, ExtractComponent)]
 #[reflect(Component, Default, Debug, PartialEq)]
 pub struct CloudTargetScale(pub f32);

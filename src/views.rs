@@ -8,7 +8,7 @@
 use bevy::{camera::visibility::VisibleEntities, platform::collections::HashSet, prelude::*};
 use std::any::TypeId;
 
-use crate::ParticleCloud;
+use crate::{CloudTargetScale, ParticleCloud, settings::MIN_CLOUD_TARGET_SCALE};
 
 /// Whether `clip_from_view` is Bevy's infinite reverse-Z perspective (`PerspectiveProjection`,
 /// off-centre or not): clip `w = -z`, clip `z` the near plane's distance alone.
@@ -22,6 +22,30 @@ pub fn draws_clouds(clip_from_view: &Mat4) -> bool {
         && w.y == 0.0
         && w.z > 0.0
         && w.w == 0.0
+}
+
+/// Why a camera's [`CloudTargetScale`] is not used as given, naming its value, what is allowed and
+/// what is drawn instead; none for an allowed value.
+pub fn target_scale_problem(scale: CloudTargetScale) -> Option<String> {
+    let effective = scale.effective();
+    (effective != scale.0).then(|| {
+        format!(
+            "CloudTargetScale is {}: it must be within {MIN_CLOUD_TARGET_SCALE}..=1, so its clouds \
+             are drawn at {effective}",
+            scale.0
+        )
+    })
+}
+
+/// Warns when a camera gets a [`CloudTargetScale`] that is clamped (or NaN), each time it is set.
+pub(crate) fn warn_of_clamped_target_scales(
+    scales: Query<(Entity, &CloudTargetScale), Changed<CloudTargetScale>>,
+) {
+    for (camera, scale) in &scales {
+        if let Some(problem) = target_scale_problem(*scale) {
+            warn!("camera {camera}: {problem}");
+        }
+    }
 }
 
 /// A word for the projection a refused camera has, for the warning.
@@ -79,6 +103,33 @@ pub(crate) fn hide_clouds_from_other_projections(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Allowed scales pass; outside or NaN, the warning names the value and what is drawn.
+    #[test]
+    fn a_clamped_target_scale_is_named_with_what_is_drawn() {
+        for ok in [1.0, 0.5, MIN_CLOUD_TARGET_SCALE] {
+            assert_eq!(target_scale_problem(CloudTargetScale(ok)), None, "{ok}");
+        }
+        let cases = [
+            (
+                2.0,
+                "is 2: it must be within 0.125..=1, so its clouds are drawn at 1",
+            ),
+            (
+                0.01,
+                "is 0.01: it must be within 0.125..=1, so its clouds are drawn at 0.125",
+            ),
+            (
+                f32::NAN,
+                "is NaN: it must be within 0.125..=1, so its clouds are drawn at 1",
+            ),
+            (-1.0, "drawn at 0.125"),
+        ];
+        for (value, expected) in cases {
+            let problem = target_scale_problem(CloudTargetScale(value)).unwrap();
+            assert!(problem.contains(expected), "{problem:?} lacks {expected:?}");
+        }
+    }
     use bevy::camera::CameraProjection;
 
     #[test]
