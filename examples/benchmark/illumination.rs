@@ -13,7 +13,7 @@ pub(crate) enum Change {
     Irradiance,
     /// Every light's direction (by ~10⁻⁴ rad): shade (every light), gather, scatter, colours.
     Direction,
-    /// The camera (by 10⁻⁴ m): the sort.
+    /// The camera (by 10⁻⁴ m): the view pass (the view volume, or the sort).
     Camera,
     /// The particles (touched): everything (upload, voxelize, shade, gather, scatter, sort).
     Particles,
@@ -122,7 +122,7 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
         let scene = load_scene(bench)?;
         let mut b = Bench::new(&scene);
         adapter = b.adapter.clone();
-        // Light volumes of 64³ and 128³ (light_supersampling 2).
+        // Density grids of 32³ and 64³; the light volumes `light_supersampling` times finer.
         for n in [32u32, 64] {
             let mut shade = HashMap::new();
             for method in [ShadingMethod::Incremental, ShadingMethod::BruteForce] {
@@ -169,14 +169,18 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
     }
     let mut table = format!(
         "Adapter: `{adapter}`. The 38,000-particle cloud (benchmarks/scenes/paper_38k_*.ron, 640×480), \
-         8 scattering iterations, the default stencil and knobs. GPU: per-pass timestamps, median of {} frames in which \
+         the default knobs ({} scattering iterations, light volumes up to {}× the density grid's resolution) but \
+         the density grid's resolution (`grid`). GPU: per-pass timestamps, median of {} frames in which \
          every pass reruns. Wall: per-pass cost from wall-time differences of frames that rerun nested sets of \
          passes (scatter: albedo changed; + gather: irradiance changed; + shade: light directions changed; \
-         + voxelize: particles changed, including their upload; sort: camera moved; static: nothing changed, \
+         + voxelize: particles changed, including their upload; view pass (the view volume, or the sort when \
+         sorted): camera moved; static: nothing changed, \
          the draw plus Bevy's per-frame work).\n\n",
+        CloudQualitySettings::default().scatter_iterations,
+        CloudQualitySettings::default().light_supersampling,
         args.frames()
     );
-    table.push_str("| lights | volume | shading | GPU: voxelize | shade | gather | scatter | sort | draw | total | wall: voxelize | shade | gather | scatter | sort | static frame | all passes |\n");
+    table.push_str("| lights | grid | shading | GPU: voxelize | shade | gather | scatter | view pass | draw | total | wall: voxelize | shade | gather | scatter | view pass | static frame | all passes |\n");
     table.push_str(
         "|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
@@ -204,7 +208,7 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
     }
     table.push_str("\nShade cost of the brute-force march (every voxel marching to the light) over the incremental pass:\n\n");
     table.push_str(
-        "| lights | volume | ratio (GPU timestamps) | ratio (wall time) |\n|---:|---:|---:|---:|\n",
+        "| lights | grid | ratio (GPU timestamps) | ratio (wall time) |\n|---:|---:|---:|---:|\n",
     );
     for (lights, n, g, w) in &ratios {
         let _ = writeln!(table, "| {lights} | {n}³ | {g:.1}× | {w:.1}× |");
