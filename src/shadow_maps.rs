@@ -210,12 +210,11 @@ pub fn cloud_light(
     transform: &GlobalTransform,
     visible: bool,
 ) -> Option<(Vec3, Vec3)> {
+    if !visible || cloud_light_problem(light, transform).is_some() {
+        return None;
+    }
     let irradiance = light.color.to_linear().to_vec3() * light.illuminance;
-    let lit = visible
-        && cloud_light_problem(light, transform).is_none()
-        && irradiance.max_element() > 0.0;
-    lit.then(|| Some((light_direction(transform)?, irradiance)))
-        .flatten()
+    (irradiance.max_element() > 0.0).then_some((light_direction(transform)?, irradiance))
 }
 
 /// The light's forward (`-Z`), unit; none where the transform gives none. Not
