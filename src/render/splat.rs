@@ -35,6 +35,23 @@ use super::{
 /// 24.9, 23.7, 25.7 ms on the cloudscape).
 pub const SPLAT_SLICES: u32 = 8;
 
+/// Workgroups a splat dispatch is given at least, by dealing its pairs over more slices (up to
+/// [`MAX_SPLAT_SLICES`]). The dispatches of a view's clouds run one after the other, since each
+/// adds into the same sums; a small cloud's few workgroups would leave most of a large GPU idle
+/// while each walks its pairs alone (an NVIDIA H200 holds about 4,200 such workgroups at once).
+const SPLAT_FILL: u32 = 4096;
+
+/// The most slices a splat dispatch is cut into: each slice reruns its workgroup's scan.
+const MAX_SPLAT_SLICES: u32 = 64;
+
+/// Slices of a splat dispatch of `groups` workgroups per slice: [`SPLAT_SLICES`], or more for a
+/// small cloud, up to [`MAX_SPLAT_SLICES`], so that the dispatch has [`SPLAT_FILL`] workgroups.
+fn splat_slices(groups: u32) -> u32 {
+    SPLAT_FILL
+        .div_ceil(groups.max(1))
+        .clamp(SPLAT_SLICES, MAX_SPLAT_SLICES)
+}
+
 /// Bytes per cloud-target texel of the sums: light (r, g, b) and optical depth, f32 each.
 const SUM_BYTES: u64 = 16;
 
@@ -233,7 +250,7 @@ pub(crate) fn record_splats(
         pass.set_bind_group(1, group, &[]);
         // A workgroup per `LINEAR` particles and slice.
         let [x, y, _] = linear_groups(count);
-        pass.dispatch_workgroups(x, y, SPLAT_SLICES);
+        pass.dispatch_workgroups(x, y, splat_slices(x * y));
         dispatches += 1;
     }
     pass.set_pipeline(resolve);
@@ -262,5 +279,21 @@ mod tests {
         let limits = WgpuLimits::default();
         assert!(sums_fit(UVec2::new(3840, 2160), &limits));
         assert!(!sums_fit(UVec2::new(7680, 4320), &limits));
+    }
+
+    #[test]
+    fn small_clouds_are_cut_into_more_slices_and_large_ones_keep_the_default() {
+        // The paper's 38,000 particles: 594 workgroups of 64, 8 slices already fill the GPU.
+        assert_eq!(splat_slices(594), SPLAT_SLICES);
+        // A cloudscape puff of 384 particles: 6 workgroups.
+        assert_eq!(splat_slices(6), MAX_SPLAT_SLICES);
+        assert_eq!(splat_slices(0), MAX_SPLAT_SLICES);
+        assert_eq!(splat_slices(128), 32);
+        for groups in 1..2000 {
+            let slices = splat_slices(groups);
+            assert!((SPLAT_SLICES..=MAX_SPLAT_SLICES).contains(&slices));
+            assert!(slices <= splat_slices(groups - 1).max(SPLAT_SLICES));
+            assert!(groups * slices >= SPLAT_FILL || slices == MAX_SPLAT_SLICES);
+        }
     }
 }
