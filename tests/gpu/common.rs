@@ -8,23 +8,34 @@ use bevy::{
     render::{RenderApp, error_handler::RenderErrorHandler, settings::Backends},
 };
 use bevy_particle_clouds::{CloudQualitySettings, headless};
+use std::sync::OnceLock;
 
 /// What to do when no adapter exists: say how to get one (tests fail, never skip).
 pub const NO_ADAPTER: &str = "no Vulkan adapter found: install Mesa's software driver with \
 `apt-get update && apt-get install -y mesa-vulkan-drivers` (lavapipe), or a GPU driver";
 
 /// Panics with [`NO_ADAPTER`] unless wgpu finds a Vulkan adapter.
+///
+/// The instance that looked is kept for the whole process, so that the Vulkan driver stays
+/// loaded while each test's app creates and drops its own. NVIDIA's Linux driver takes static
+/// TLS each time it is loaded and never gives it back: loaded and unloaded once per test, it
+/// failed to load from the thirteenth test on ("cannot allocate memory in static TLS block").
 pub fn assert_adapter() {
-    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
-    desc.backends = Backends::VULKAN;
-    desc.flags = wgpu::InstanceFlags::default().with_env();
-    let instance = wgpu::Instance::new(desc);
-    let adapter = bevy::tasks::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
-        power_preference: wgpu::PowerPreference::HighPerformance,
-        force_fallback_adapter: false,
-        compatible_surface: None,
-    }));
-    assert!(adapter.is_ok(), "{NO_ADAPTER}");
+    static ADAPTER: OnceLock<(wgpu::Instance, bool)> = OnceLock::new();
+    let (_, found) = ADAPTER.get_or_init(|| {
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+        desc.backends = Backends::VULKAN;
+        desc.flags = wgpu::InstanceFlags::default().with_env();
+        let instance = wgpu::Instance::new(desc);
+        let options = wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            force_fallback_adapter: false,
+            compatible_surface: None,
+        };
+        let found = bevy::tasks::block_on(instance.request_adapter(&options)).is_ok();
+        (instance, found)
+    });
+    assert!(found, "{NO_ADAPTER}");
 }
 
 /// A headless app whose render errors panic, so a broken pass fails the test instead of
