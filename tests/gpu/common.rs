@@ -17,9 +17,9 @@ pub const NO_ADAPTER: &str = "no Vulkan adapter found: install Mesa's software d
 /// Panics with [`NO_ADAPTER`] unless wgpu finds a Vulkan adapter.
 ///
 /// The instance that looked is kept for the whole process, so that the Vulkan driver stays
-/// loaded while each test's app creates and drops its own. NVIDIA's Linux driver takes static
-/// TLS each time it is loaded and never gives it back: loaded and unloaded once per test, it
-/// failed to load from the thirteenth test on ("cannot allocate memory in static TLS block").
+/// loaded while each test's app creates and drops its own. Loaded and unloaded once per test,
+/// NVIDIA's Linux driver (580.159) failed to load from the thirteenth test on ("cannot allocate
+/// memory in static TLS block"): its loads seem to take static TLS that unloading keeps.
 pub fn assert_adapter() {
     static ADAPTER: OnceLock<(wgpu::Instance, bool)> = OnceLock::new();
     let (_, found) = ADAPTER.get_or_init(|| {
