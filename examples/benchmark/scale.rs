@@ -160,7 +160,7 @@ pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {
     let mut run =
         |sweep: &'static str, label: String, x: f64, mut scene: Scene, lod: Option<f32>| {
             if !wanted(sweep) {
-                return;
+                return Ok(());
             }
             scene.settings.draw_method = method;
             eprintln!("benchmark: scale, {sweep}: {label}");
@@ -177,6 +177,9 @@ pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {
                 runs,
                 dispatches,
             });
+            // After each configuration, so that a sweep stopped part-way (4K frames take minutes
+            // on llvmpipe) keeps the rows it measured.
+            write_tables(args, &adapter, method, &rows).map(drop)
         };
     let hd = (1280, 720);
     for count in [3_100, 38_000, 300_000, 1_200_000] {
@@ -187,11 +190,11 @@ pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {
             count as f64,
             s,
             None,
-        );
+        )?;
     }
     for clouds in [1, 10, 100] {
         let s = scene(puffs(clouds), 170.0, hd, cloud_sweep_settings());
-        run("clouds", format!("{clouds} clouds"), clouds as f64, s, None);
+        run("clouds", format!("{clouds} clouds"), clouds as f64, s, None)?;
     }
     let s = scene(puffs(100), 170.0, hd, cloud_sweep_settings());
     run(
@@ -200,20 +203,39 @@ pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {
         100.0,
         s,
         Some(2.0),
-    );
+    )?;
     for (w, h) in [(1280, 720), (1920, 1080), (3840, 2160)] {
         let s = scene(vec![cumulus(38_000)], 80.0, (w, h), default());
-        run("view", format!("{w}×{h}"), (w * h) as f64, s, None);
+        run("view", format!("{w}×{h}"), (w * h) as f64, s, None)?;
     }
     write_scale(args, &adapter, method, &rows)
 }
 
+/// Writes the sweep's tables, `scale.csv` and `scale.md`, then draws `scale.png`.
 fn write_scale(
     args: &Args,
     adapter: &str,
     method: DrawMethod,
     rows: &[ScaleRow],
 ) -> Result<(), String> {
+    let md = write_tables(args, adapter, method, rows)?;
+    let title = format!("{adapter}, drawn by {method:?}");
+    plot_scale(&args.out.join("scale.png"), &args.font, &title, rows)?;
+    println!("{md}");
+    eprintln!(
+        "benchmark: wrote scale.csv, scale.md and scale.png in {}",
+        args.out.display()
+    );
+    Ok(())
+}
+
+/// Writes `rows` as `scale.csv` and `scale.md` in the output folder; returns the Markdown.
+fn write_tables(
+    args: &Args,
+    adapter: &str,
+    method: DrawMethod,
+    rows: &[ScaleRow],
+) -> Result<String, String> {
     let names: Vec<&str> = CloudPass::ALL.iter().map(|p| p.name()).collect();
     let mut csv = format!(
         "adapter,draw_method,sweep,label,x,{},gpu_ms_total,gpu_ms_static,wall_ms,wall_ms_static,{},{}\n",
@@ -273,14 +295,7 @@ fn write_scale(
         let path = args.out.join(path);
         std::fs::write(&path, text).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
     }
-    let title = format!("{adapter}, drawn by {method:?}");
-    plot_scale(&args.out.join("scale.png"), &args.font, &title, rows)?;
-    println!("{md}");
-    eprintln!(
-        "benchmark: wrote scale.csv, scale.md and scale.png in {}",
-        args.out.display()
-    );
-    Ok(())
+    Ok(md)
 }
 
 /// `prefix_voxelize,prefix_shade,…`: one CSV column per pass.
