@@ -94,7 +94,7 @@ pub use settings::{
     BillboardShading, CloudQualitySettings, CloudRelightBudget, CloudTargetScale, Compositing,
     DefaultCloudQuality, DrawMethod, ScatterStencil,
 };
-pub use shadow_maps::CloudShadowMaps;
+pub use shadow_maps::{CloudLight, CloudLights, CloudShadowMaps};
 pub use stats::{CloudPass, CloudPassCounters, PASSES};
 
 /// Everything a Bevy user needs.
@@ -132,6 +132,8 @@ impl Plugin for ParticleCloudsPlugin {
             .init_resource::<CloudLevelOfDetail>()
             .register_type::<CloudShadowMaps>()
             .init_resource::<CloudShadowMaps>()
+            .register_type::<CloudLights>()
+            .init_resource::<CloudLights>()
             .init_resource::<CloudPassCounters>()
             .init_resource::<cloud::ParticlesValidity>()
             .add_systems(
@@ -143,9 +145,15 @@ impl Plugin for ParticleCloudsPlugin {
                     cloud::validate_changed_particles
                         .in_set(CloudSystems::ValidateParticles)
                         .after(bevy::asset::AssetEventSystems),
-                    shadow_maps::place_cloud_shadow_maps
-                        .after(CloudSystems::CalculateBounds)
-                        .after(bevy::transform::TransformSystems::Propagate),
+                    (
+                        shadow_maps::collect_cloud_lights
+                            .after(bevy::transform::TransformSystems::Propagate)
+                            .after(
+                                bevy::camera::visibility::VisibilitySystems::VisibilityPropagate,
+                            ),
+                        shadow_maps::place_cloud_shadow_maps.after(CloudSystems::CalculateBounds),
+                    )
+                        .chain(),
                     views::hide_clouds_from_other_projections
                         .after(bevy::camera::visibility::VisibilitySystems::CheckVisibility),
                     views::warn_of_clamped_target_scales,

@@ -22,7 +22,7 @@ use bevy::{
 use crate::{
     CloudSkyLight,
     cloud_shadowed_material::{CloudShadowReceiver, CloudShadowedMaterial},
-    shadow_maps::{CloudLightQuery, CloudShadowMaps, ShadowMapPlacement, cloud_lights},
+    shadow_maps::{CloudLight, CloudLights, CloudShadowMaps, ShadowMapPlacement},
 };
 
 /// The most lights a lit object takes.
@@ -144,17 +144,18 @@ impl TakesCloudShadows for CloudShadowedMaterial {
 }
 
 /// The lights and the sky every lit object takes this frame.
-fn lit_object_lights(
-    maps: &CloudShadowMaps,
-    sky: Vec3,
-    lights: impl Iterator<Item = (Entity, Vec3, Vec3)>,
-) -> LitObjectLights {
+fn lit_object_lights(maps: &CloudShadowMaps, sky: Vec3, lights: &[CloudLight]) -> LitObjectLights {
     let mut lit = LitObjectLights {
         sky,
         sky_map: maps.sky.unwrap_or_default(),
         ..default()
     };
-    for (entity, direction, irradiance) in lights.take(MAX_LIT_OBJECT_LIGHTS) {
+    for &CloudLight {
+        entity,
+        direction,
+        irradiance,
+    } in lights.iter().take(MAX_LIT_OBJECT_LIGHTS)
+    {
         let map = maps.map_of(entity);
         lit.lights[lit.count as usize] = LitLight {
             to_light: -direction,
@@ -172,11 +173,11 @@ fn lit_object_lights(
 fn update_cloud_lights<M: TakesCloudShadows>(
     maps: Res<CloudShadowMaps>,
     sky: Res<CloudSkyLight>,
-    lights: CloudLightQuery,
+    lights: Res<CloudLights>,
     mut materials: ResMut<Assets<M>>,
 ) {
     let sky = sky.radiance().unwrap_or(Vec3::ZERO);
-    let lit = lit_object_lights(&maps, sky, cloud_lights(&lights));
+    let lit = lit_object_lights(&maps, sky, &lights.0);
     let stale: Vec<AssetId<M>> = materials
         .iter()
         .filter(|(_, m)| m.cloud_lights() != (&lit, &maps.buffer))

@@ -17,6 +17,7 @@ use bevy::{
     asset::RenderAssetUsages,
     camera::primitives::Aabb,
     light::{DirectionalLight, NotShadowCaster},
+    platform::collections::HashMap,
     prelude::*,
     render::{render_resource::ShaderType, storage::ShaderBuffer},
 };
@@ -266,7 +267,7 @@ pub fn cloud_light_problem(
 /// A cloud as the shadow maps see it.
 type MappedCloud = (&'static GlobalTransform, &'static Aabb);
 
-/// The directional lights of the main world, for [`cloud_lights`].
+/// The directional lights of the main world, for [`collect_cloud_lights`].
 pub(crate) type CloudLightQuery<'w, 's> = Query<
     'w,
     's,
@@ -279,17 +280,54 @@ pub(crate) type CloudLightQuery<'w, 's> = Query<
     Without<NotCloudLight>,
 >;
 
-/// Every light of `lights` that lights clouds ([`cloud_light`]): its entity, direction and
-/// irradiance.
-pub(crate) fn cloud_lights<'a>(
-    lights: &'a CloudLightQuery,
-) -> impl Iterator<Item = (Entity, Vec3, Vec3)> + 'a {
-    lights
-        .iter()
-        .filter_map(|(entity, light, transform, visible)| {
-            let (direction, irradiance) = cloud_light(light, transform, visible.get())?;
-            Some((entity, direction, irradiance))
-        })
+/// A directional light that lights clouds: `E = color (linear) × illuminance`.
+#[derive(Clone, Copy, Debug, PartialEq, Reflect)]
+pub struct CloudLight {
+    /// The light's main-world entity.
+    pub entity: Entity,
+    /// World direction the light travels (unit).
+    pub direction: Vec3,
+    /// Linear RGB irradiance, W/m² (Bevy's lux × the colour).
+    pub irradiance: Vec3,
+}
+
+/// This frame's directional lights that light clouds ([`cloud_light`]; hidden, dark, opted-out and
+/// broken lights are not among them), in query order. Written by the plugin once a frame in
+/// `PostUpdate`, after transforms and visibility; the shadow maps, the lit objects and the render
+/// world read it.
+#[derive(Resource, Clone, Debug, Default, PartialEq, Reflect)]
+#[reflect(Resource)]
+pub struct CloudLights(pub Vec<CloudLight>);
+
+/// Collects [`CloudLights`] once transforms and visibility are up to date, and warns once per
+/// light, and again if its problem changes, of a visible light that [`cloud_light_problem`]
+/// refuses: such a light is skipped as a dark one would be.
+pub(crate) fn collect_cloud_lights(
+    query: CloudLightQuery,
+    mut lights: ResMut<CloudLights>,
+    mut refused: Local<HashMap<Entity, String>>,
+) {
+    let mut collected = Vec::new();
+    let mut broken = HashMap::default();
+    for (entity, light, transform, visible) in &query {
+        if !visible.get() {
+            continue;
+        }
+        if let Some(problem) = cloud_light_problem(light, transform) {
+            if refused.get(&entity) != Some(&problem) {
+                warn!("directional light {entity}: {problem}; it does not light the clouds");
+            }
+            broken.insert(entity, problem);
+        } else if let Some((direction, irradiance)) = cloud_light(light, transform, true) {
+            collected.push(CloudLight {
+                entity,
+                direction,
+                irradiance,
+            });
+        }
+    }
+    *refused = broken;
+    lights.set_if_neq(CloudLights(collected));
 }
 
 /// Places every cloud-lighting light's map over the clouds, and the sky map under a sky, and keeps
@@ -297,7 +335,7 @@ pub(crate) fn cloud_lights<'a>(
 pub(crate) fn place_cloud_shadow_maps(
     mut maps: ResMut<CloudShadowMaps>,
     clouds: Query<MappedCloud, (With<ParticleCloud>, Without<NotShadowCaster>)>,
-    lights: CloudLightQuery,
+    lights: Res<CloudLights>,
     (sky, ground): (Res<CloudSkyLight>, Option<Res<CloudGround>>),
     mut buffers: ResMut<Assets<ShaderBuffer>>,
 ) {
@@ -313,13 +351,12 @@ pub(crate) fn place_cloud_shadow_maps(
         })
         .collect();
     let size = maps.resolution;
-    let placed: Vec<(Entity, ShadowMapPlacement)> = cloud_lights(&lights)
-        .enumerate()
-        .filter_map(|(i, (entity, d, _))| {
+    let placed: Vec<(Entity, ShadowMapPlacement)> = (lights.0.iter().enumerate())
+        .filter_map(|(i, light)| {
             let first = i as u32 * size * size;
             Some((
-                entity,
-                ShadowMapPlacement::covering(d, &spheres, size, first)?,
+                light.entity,
+                ShadowMapPlacement::covering(light.direction, &spheres, size, first)?,
             ))
         })
         .filter(|_| size > 0)
@@ -404,6 +441,42 @@ mod tests {
             );
             assert_eq!(cloud_light(&good, &broken, true), None);
         }
+    }
+
+    /// The collected lights are the visible, valid, lit ones that are not opted out, in query
+    /// order; a light that changes is collected anew.
+    #[test]
+    fn the_lights_of_the_clouds_are_collected_once_a_frame() {
+        use bevy::ecs::system::RunSystemOnce;
+        let mut world = World::new();
+        world.init_resource::<CloudLights>();
+        let sun = |illuminance: f32| DirectionalLight {
+            illuminance,
+            ..default()
+        };
+        let down = GlobalTransform::from(Transform::default().looking_to(Vec3::NEG_Y, Vec3::X));
+        let visible = InheritedVisibility::VISIBLE;
+        let lit = world.spawn((sun(2.0), down, visible)).id();
+        world.spawn((sun(2.0), down, InheritedVisibility::HIDDEN));
+        world.spawn((sun(0.0), down, visible));
+        world.spawn((sun(f32::NAN), down, visible));
+        world.spawn((sun(5.0), down, visible, NotCloudLight));
+        let side = GlobalTransform::from(Transform::default().looking_to(Vec3::X, Vec3::Y));
+        let second = world.spawn((sun(3.0), side, visible)).id();
+        world.run_system_once(collect_cloud_lights).unwrap();
+        let lights = world.resource::<CloudLights>().0.clone();
+        assert_eq!(
+            lights.iter().map(|l| l.entity).collect::<Vec<_>>(),
+            [lit, second]
+        );
+        assert!((lights[0].direction - Vec3::NEG_Y).length() < 1e-6);
+        assert!((lights[1].direction - Vec3::X).length() < 1e-6);
+        assert_eq!(lights[1].irradiance, Vec3::splat(3.0));
+
+        world.entity_mut(second).insert(sun(0.0));
+        world.run_system_once(collect_cloud_lights).unwrap();
+        let lights = &world.resource::<CloudLights>().0;
+        assert_eq!(lights.iter().map(|l| l.entity).collect::<Vec<_>>(), [lit]);
     }
 
     #[test]

@@ -14,8 +14,10 @@ use crate::{
     ground::CloudGround,
     lod::{CloudLevelOfDetail, CloudLod},
     settings::{CloudQualitySettings, DefaultCloudQuality},
-    shadow_maps::{CloudLightQuery, cloud_light_problem, cloud_lights},
+    shadow_maps::CloudLights,
 };
+
+pub use crate::shadow_maps::CloudLight;
 
 /// A cloud as the render world sees it; only valid clouds are extracted.
 #[derive(Component, Clone, Debug)]
@@ -68,17 +70,6 @@ impl ExtractedCloud {
         let (_, rotation, _) = self.world_from_local.to_scale_rotation_translation();
         rotation
     }
-}
-
-/// A directional light that illuminates clouds: `E = color (linear) × illuminance`.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct CloudLight {
-    /// The light's main-world entity.
-    pub entity: Entity,
-    /// World direction the light travels (unit).
-    pub direction: Vec3,
-    /// Linear RGB irradiance.
-    pub irradiance: Vec3,
 }
 
 /// Every directional light that lights clouds this frame (non-zero irradiance, not opted out),
@@ -195,13 +186,11 @@ fn validate(
 
 pub(crate) fn extract_cloud_lights(
     mut lights: ResMut<ExtractedCloudLights>,
-    query: Extract<CloudLightQuery>,
+    cloud_lights: Extract<Res<CloudLights>>,
     sky: Extract<Res<CloudSkyLight>>,
     ground: Extract<Option<Res<CloudGround>>>,
     mut refused: Local<[Option<String>; 2]>,
-    mut refused_lights: Local<HashMap<Entity, String>>,
 ) {
-    warn_of_broken_lights(&query, &mut refused_lights);
     let [refused_sky, refused_ground] = &mut *refused;
     lights.sky = match sky.radiance() {
         Ok(radiance) => {
@@ -229,30 +218,6 @@ pub(crate) fn extract_cloud_lights(
             valid.and_then(Result::ok)
         }
     };
-    // Hidden, dark or broken lights cost nothing.
-    let lit = cloud_lights(&query).map(|(entity, direction, irradiance)| CloudLight {
-        entity,
-        direction,
-        irradiance,
-    });
-    lights.lights = lit.collect();
-}
-
-/// Warns once per light, and again if its problem changes, of a visible light that
-/// `cloud_light_problem` refuses: such a light is skipped as a dark one would be.
-fn warn_of_broken_lights(query: &CloudLightQuery, refused: &mut HashMap<Entity, String>) {
-    let mut broken = HashMap::default();
-    for (entity, light, transform, visible) in query {
-        if let Some(problem) = visible
-            .get()
-            .then(|| cloud_light_problem(light, transform))
-            .flatten()
-        {
-            if refused.get(&entity) != Some(&problem) {
-                warn!("directional light {entity}: {problem}; it does not light the clouds");
-            }
-            broken.insert(entity, problem);
-        }
-    }
-    *refused = broken;
+    // Hidden, dark or broken lights cost nothing: they are not among them.
+    lights.lights.clone_from(&cloud_lights.0);
 }
