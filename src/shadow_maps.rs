@@ -214,16 +214,23 @@ pub fn cloud_light(
     if !visible || cloud_light_problem(light, transform).is_some() {
         return None;
     }
-    let irradiance = light.color.to_linear().to_vec3() * light.illuminance;
-    (irradiance.max_element() > 0.0).then_some((light_direction(transform)?, irradiance))
+    valid_cloud_light(light, transform)
 }
 
-/// The light's forward (`-Z`), unit; none where the transform gives none. Not
-/// `GlobalTransform::forward`, which panics in debug builds on a degenerate transform.
-fn light_direction(transform: &GlobalTransform) -> Option<Vec3> {
-    (transform.affine().matrix3 * bevy::math::Vec3A::NEG_Z)
-        .try_normalize()
-        .map(Vec3::from)
+/// [`cloud_light`] of a visible light that [`cloud_light_problem`] accepts.
+fn valid_cloud_light(
+    light: &DirectionalLight,
+    transform: &GlobalTransform,
+) -> Option<(Vec3, Vec3)> {
+    let irradiance = light.color.to_linear().to_vec3() * light.illuminance;
+    let direction = light_forward(transform).try_normalize()?;
+    (irradiance.max_element() > 0.0).then_some((direction.into(), irradiance))
+}
+
+/// The light's forward (`-Z`) in the world, not normalised. Not `GlobalTransform::forward`, which
+/// panics in debug builds on a degenerate transform.
+fn light_forward(transform: &GlobalTransform) -> bevy::math::Vec3A {
+    transform.affine().matrix3 * bevy::math::Vec3A::NEG_Z
 }
 
 /// Why a directional light cannot light clouds, naming the field, its value and what is allowed;
@@ -254,8 +261,8 @@ pub fn cloud_light_problem(
             light.illuminance
         ));
     }
-    if light_direction(transform).is_none() {
-        let forward = transform.affine().matrix3 * bevy::math::Vec3A::NEG_Z;
+    let forward = light_forward(transform);
+    if forward.try_normalize().is_none() {
         return Some(format!(
             "the light's GlobalTransform maps its forward (-Z) to {forward}: it must be finite \
              and non-zero"
@@ -318,7 +325,7 @@ pub(crate) fn collect_cloud_lights(
                 warn!("directional light {entity}: {problem}; it does not light the clouds");
             }
             broken.insert(entity, problem);
-        } else if let Some((direction, irradiance)) = cloud_light(light, transform, true) {
+        } else if let Some((direction, irradiance)) = valid_cloud_light(light, transform) {
             collected.push(CloudLight {
                 entity,
                 direction,
