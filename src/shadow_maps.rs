@@ -294,7 +294,7 @@ pub struct CloudLight {
     pub entity: Entity,
     /// World direction the light travels (unit).
     pub direction: Vec3,
-    /// Linear RGB irradiance, W/m² (Bevy's lux × the colour).
+    /// Linear RGB irradiance: the light's linear colour × its `illuminance` (lux).
     pub irradiance: Vec3,
 }
 
