@@ -103,6 +103,7 @@ pub(crate) fn hide_clouds_from_other_projections(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use bevy::camera::CameraProjection;
 
     /// Allowed scales pass; outside or NaN, the warning names the value and what is drawn.
     #[test]
@@ -130,7 +131,6 @@ mod tests {
             assert!(problem.contains(expected), "{problem:?} lacks {expected:?}");
         }
     }
-    use bevy::camera::CameraProjection;
 
     #[test]
     fn perspective_projections_draw_clouds_and_others_do_not() {
