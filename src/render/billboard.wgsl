@@ -53,11 +53,40 @@ struct DrawParams {
 #else
 @group(0) @binding(1) var<uniform> fog: CloudFog;
 #endif
+// Where a cloud's elements start in the arrays below: 0 when the arrays are the cloud's own
+// ranges (the rasterised draw binds them so); a batch's clouds share whole buffers.
+struct CloudBases {
+    lights: u32,
+    optical_depth: u32,
+    multiple: u32,
+}
+var<private> bases: CloudBases;
+#ifdef COMPUTE_DRAW
+// One cloud of a splat batch (splat.rs, `SplatCloud`): every cloud of one volume pool and medium
+// that a view splats, in one dispatch. `load_splat_cloud` sets the private copies of its uniforms.
+struct SplatCloud {
+    draw: DrawParams,
+    cloud: CloudParams,
+    // Its particles start at `first_group * SPLAT_PARTICLES` of `particles`.
+    first_group: u32,
+    particle_count: u32,
+    // Its element of `view_volumes`.
+    view_volume: u32,
+    bases: CloudBases,
+}
+@group(1) @binding(0) var<storage, read> splat_clouds: array<SplatCloud>;
+var<private> params: DrawParams;
+var<private> cloud: CloudParams;
+var<private> view_volume: ViewVolumeParams;
+#else
 @group(1) @binding(0) var<uniform> params: DrawParams;
 @group(1) @binding(1) var<uniform> cloud: CloudParams;
+#endif
 @group(1) @binding(2) var<storage, read> particles: array<Particle>;
 #ifdef VIEW_TRANSMITTANCE
+#ifndef COMPUTE_DRAW
 @group(1) @binding(3) var<uniform> view_volume: ViewVolumeParams;
+#endif
 #else
 // Particle indices, back to front for this view.
 @group(1) @binding(3) var<storage, read> order: array<u32>;
@@ -265,11 +294,12 @@ fn beam_spread(cos: f32, m: f32) -> f32 {
 fn single_scattering_at(p: vec3<f32>, ray: vec3<f32>) -> vec3<f32> {
     var sum = vec3(0.0);
     for (var l = 0u; l < cloud.light_count; l++) {
-        let light = lights[l];
+        let light = lights[bases.lights + l];
         let t = clamped_lookup(light_coords(cloud, light, p), cloud.light_n);
+        let first = bases.optical_depth + light.offset;
         var tau = 0.0;
         for (var corner = 0u; corner < 8u; corner++) {
-            tau += corner_weight(t, corner) * optical_depth[light.offset + clamped_corner(t, corner, cloud.light_n)];
+            tau += corner_weight(t, corner) * optical_depth[first + clamped_corner(t, corner, cloud.light_n)];
         }
         let cos = -dot(light.w, ray);
         let phase = henyey_greenstein(cloud.anisotropy, cos);
@@ -291,7 +321,7 @@ fn seen_from_camera() -> bool {
 }
 
 fn first_multiple() -> u32 {
-    return select(0u, view_volume.seen_offset, seen_from_camera());
+    return select(bases.multiple, view_volume.seen_offset, seen_from_camera());
 }
 #else
 fn seen_from_camera() -> bool {
@@ -299,7 +329,7 @@ fn seen_from_camera() -> bool {
 }
 
 fn first_multiple() -> u32 {
-    return 0u;
+    return bases.multiple;
 }
 #endif
 
@@ -324,10 +354,10 @@ fn multiple_towards(p: vec3<f32>, w: vec3<f32>) -> vec3<f32> {
         let i = clamped_corner(t, corner, n);
         let weight = corner_weight(t, corner);
         for (var axis = 0u; axis < 3u; axis++) {
-            flux[axis] += weight * multiple[flux_element(0u, n, i, axis)].xyz;
+            flux[axis] += weight * multiple[flux_element(first, n, i, axis)].xyz;
         }
         for (var c = 0u; c < 5u; c++) {
-            quadrupole[c] += weight * multiple[quadrupole_element(0u, n, i, c)].xyz;
+            quadrupole[c] += weight * multiple[quadrupole_element(first, n, i, c)].xyz;
         }
     }
     return max(s_m + phase_on_moments(cloud.anisotropy, w, flux, quadrupole), vec3(0.0));
@@ -731,7 +761,29 @@ fn particle_of_pair(k: u32) -> u32 {
     return lo;
 }
 
-// One workgroup per SPLAT_PARTICLES particles and z slice. Each invocation finds its particle's
+// Makes the batch's cloud that workgroup `g` draws the one the shading functions read (the last
+// whose first workgroup is at most `g`), and returns the end of its particles.
+fn load_splat_cloud(g: u32) -> u32 {
+    var lo = 0u;
+    var hi = arrayLength(&splat_clouds) - 1u;
+    while lo < hi {
+        let mid = (lo + hi + 1u) / 2u;
+        if splat_clouds[mid].first_group <= g {
+            lo = mid;
+        } else {
+            hi = mid - 1u;
+        }
+    }
+    let c = splat_clouds[lo];
+    params = c.draw;
+    cloud = c.cloud;
+    view_volume = view_volumes[c.view_volume];
+    bases = c.bases;
+    return c.first_group * SPLAT_PARTICLES + c.particle_count;
+}
+
+// One workgroup per SPLAT_PARTICLES particles of a cloud and z slice (a workgroup never holds two
+// clouds' particles). Each invocation finds its particle's
 // texels; a scan of their counts lays every (particle, texel) pair of the workgroup end to end,
 // and the invocations take the pairs 64 at a time, dealt out over the slices: small particles
 // fill the invocations as well as large ones. Each pair is shaded as `accumulate` would shade it.
@@ -741,11 +793,13 @@ fn splat(
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lane: u32,
 ) {
-    let first = (group.x + group.y * groups.x) * SPLAT_PARTICLES;
+    let g = group.x + group.y * groups.x;
+    let end = load_splat_cloud(g);
+    let first = g * SPLAT_PARTICLES;
     let index = first + lane;
     var rect = vec4(0, 0, -1, -1);
     var count = 0u;
-    if index < arrayLength(&particles) {
+    if index < end {
         let b = billboard(index);
         let texels = covered_texels(b);
         if !b.behind && all(texels.zw >= texels.xy) {

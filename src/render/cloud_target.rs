@@ -45,7 +45,7 @@ use bevy::{
 };
 
 use super::{
-    draw::{CloudDrawBindGroups, cloud_draws, draw_billboards},
+    draw::{CloudDrawBindGroups, draw_billboards},
     extract::ExtractedCloud,
     fog::{CloudFogParams, CloudFogUniforms, ViewCloudFogOffset},
     gpu::uniform_bytes,
@@ -53,6 +53,7 @@ use super::{
     particles::GpuParticles,
     shaders::CloudShaders,
     splat::{SplatResources, ViewSplatPipelines, record_splats, splat_resources, sums_fit},
+    splat_batch::ViewSplatBatches,
 };
 use crate::{
     cloud::ParticleCloud,
@@ -493,7 +494,7 @@ type CloudTargetView = (
     &'static ViewCloudDraws,
     &'static ViewCloudTargetResources,
     &'static ViewCompositePipeline,
-    Option<(&'static ViewCloudSplats, &'static ViewSplatPipelines)>,
+    Option<(&'static ViewSplatBatches, &'static ViewSplatPipelines)>,
 );
 
 /// Draws the view's clouds into its cloud target (cleared to no cloud), then composites the
@@ -510,35 +511,29 @@ fn draw_cloud_target(
 ) {
     let (camera, extracted, target, offset, fog, draws, resources, composite, splats) =
         view.into_inner();
-    let view_splat_pipelines = splats.map(|(_, p)| p);
     let Some(composite) = cache.get_render_pipeline(composite.0) else {
         return;
     };
-    let splats = cloud_draws(
-        splats.map_or(&[][..], |(s, _)| &s.0[..]),
-        &extracted.retained_view_entity,
-        &particles,
-        |entity| clouds.get(entity).ok(),
-    );
-    if draws.0.is_empty() && splats.is_empty() {
+    let splatting = splats.filter(|(batches, _)| !batches.0.is_empty());
+    if draws.0.is_empty() && splatting.is_none() {
         return;
     }
     let recorder = ctx.diagnostic_recorder();
     let recorder = recorder.as_deref();
     // The draw's span (`CloudPass::Draw`), here around the cloud target's draw and composite.
     let span = recorder.time_span(ctx.command_encoder(), CloudPass::Draw.span_name());
-    let splatted = match (view_splat_pipelines, &resources.splat) {
-        (Some(pipelines), Some(splat)) if !splats.is_empty() => {
+    let splatted = match (splatting, &resources.splat) {
+        (Some((batches, pipelines)), Some(splat)) => {
             let offsets = [offset.offset, fog.0];
             let encoder = ctx.command_encoder();
-            let recorded = record_splats(encoder, &cache, pipelines, splat, offsets, &splats);
+            let recorded = record_splats(encoder, &cache, pipelines, splat, offsets, batches);
             let Some(dispatches) = recorded else {
                 // Still compiling: nothing is drawn this frame.
                 span.end(ctx.command_encoder());
                 return;
             };
             counters.add_dispatches(CloudPass::Draw, dispatches);
-            counters.add(CloudPass::Draw, splats.len() as u32);
+            counters.add(CloudPass::Draw, batches.0.values().map(|b| b.clouds).sum());
             true
         }
         _ => false,

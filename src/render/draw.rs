@@ -86,6 +86,19 @@ pub struct DrawParams {
     pub centre_shading: u32,
 }
 
+/// A cloud's billboard uniform.
+pub(crate) fn draw_params(cloud: &ExtractedCloud) -> DrawParams {
+    let world_from_local = Mat4::from(cloud.world_from_local);
+    DrawParams {
+        world_from_local,
+        local_from_world: world_from_local.inverse(),
+        scale: cloud.scale(),
+        extinction: cloud.extinction,
+        segments: cloud.settings.chord_segments,
+        centre_shading: (cloud.settings.billboard_shading == BillboardShading::Centre) as u32,
+    }
+}
+
 /// The billboard render pipeline's layouts and shader (specialized per view target).
 #[derive(Resource)]
 pub struct BillboardPipeline {
@@ -342,9 +355,16 @@ pub struct CloudDrawBindGroups {
     key: u64,
     _params: Buffer,
     /// The cloud's [`BeamPhase`] table (one element for a medium without one).
-    _beam_phase: Buffer,
+    beam_phase: Buffer,
     /// Group 1 of the billboard pipeline, per view.
     pub groups: HashMap<RetainedViewEntity, BindGroup>,
+}
+
+impl CloudDrawBindGroups {
+    /// The cloud's [`BeamPhase`] table.
+    pub fn beam_phase(&self) -> &Buffer {
+        &self.beam_phase
+    }
 }
 
 /// The view bind group of the billboard pipeline.
@@ -464,15 +484,7 @@ pub(crate) fn prepare_billboard_bind_groups(
         let multiple = pool.multiple(volumes.slot.index);
         let lights = pool.lights(volumes.slot.index);
         let layout = pipeline_cache.get_bind_group_layout(pipeline.cloud_layout(compositing));
-        let world_from_local = Mat4::from(cloud.world_from_local);
-        let params = DrawParams {
-            world_from_local,
-            local_from_world: world_from_local.inverse(),
-            scale: cloud.scale(),
-            extinction: cloud.extinction,
-            segments: cloud.settings.chord_segments,
-            centre_shading: (cloud.settings.billboard_shading == BillboardShading::Centre) as u32,
-        };
+        let params = draw_params(cloud);
         let per_view = per_view_buffers(sorts, view_volumes, &atlases, compositing);
         // Order-independent over the views (a hash map's order is arbitrary).
         let views = per_view
@@ -559,7 +571,7 @@ pub(crate) fn prepare_billboard_bind_groups(
         commands.entity(entity).insert(CloudDrawBindGroups {
             key,
             _params: params,
-            _beam_phase: beam_phase,
+            beam_phase,
             groups,
         });
     }

@@ -44,6 +44,7 @@ pub mod shadow_maps;
 pub mod sky_map;
 pub mod sort;
 pub mod splat;
+pub mod splat_batch;
 pub mod view_atlas;
 pub mod view_volume;
 pub mod volumes;

@@ -25,7 +25,8 @@ use super::{
     cloud_target::{CLOUD_TARGET_FORMAT, CloudTargetParams, ViewCloudTarget},
     draw::BillboardPipeline,
     fog::{CloudFogParams, ExtractedCloudFog, FogMode},
-    workgroups::{SLICE, linear_groups},
+    splat_batch::{ViewSplatBatches, prepare_splat_batches, splat_batch_layout},
+    workgroups::{LINEAR, SLICE, linear_groups},
 };
 
 /// Slices of a splat's dispatch (its z dimension): the (particle, texel) pairs of a workgroup's
@@ -85,7 +86,6 @@ pub(crate) fn splat_view_layout(multisampled: bool) -> BindGroupLayoutDescriptor
 #[derive(Resource)]
 pub struct SplatPipeline {
     shader: Handle<Shader>,
-    cloud_layout: BindGroupLayoutDescriptor,
 }
 
 /// What a splat pipeline depends on.
@@ -120,7 +120,7 @@ impl SpecializedComputePipeline for SplatPipeline {
             label: Some(format!("particle_clouds_{entry_point}").into()),
             layout: vec![
                 splat_view_layout(key.multisampled_depth),
-                self.cloud_layout.clone(),
+                splat_batch_layout(),
             ],
             shader: self.shader.clone(),
             shader_defs,
@@ -133,7 +133,6 @@ impl SpecializedComputePipeline for SplatPipeline {
 pub(crate) fn init_splat_pipeline(mut commands: Commands, billboards: Res<BillboardPipeline>) {
     commands.insert_resource(SplatPipeline {
         shader: billboards.shader(),
-        cloud_layout: billboards.view_transmittance_layout.clone(),
     });
 }
 
@@ -224,17 +223,16 @@ pub(crate) fn splat_resources(
     }
 }
 
-/// Records a computing view's splats into its sums (cleared first), then their resolve into its
-/// cloud target: `clouds` are each cloud's group 1 and particle count, `offsets` the view's and
-/// the fog's dynamic offsets. Returns the dispatches recorded, or `None` (nothing recorded) while
-/// the pipelines compile.
+/// Records a computing view's splats into its sums (cleared first), one dispatch per batch, then
+/// their resolve into its cloud target; `offsets` are the view's and the fog's dynamic offsets.
+/// Returns the dispatches recorded, or `None` (nothing recorded) while the pipelines compile.
 pub(crate) fn record_splats(
     encoder: &mut CommandEncoder,
     cache: &PipelineCache,
     pipelines: &ViewSplatPipelines,
     splat: &SplatResources,
     offsets: [u32; 2],
-    clouds: &[(&BindGroup, u32)],
+    batches: &ViewSplatBatches,
 ) -> Option<u32> {
     let splat_pipeline = cache.get_compute_pipeline(pipelines.splat)?;
     let resolve = cache.get_compute_pipeline(pipelines.resolve)?;
@@ -246,10 +244,10 @@ pub(crate) fn record_splats(
     pass.set_pipeline(splat_pipeline);
     pass.set_bind_group(0, &splat.group, &offsets);
     let mut dispatches = 0;
-    for &(group, count) in clouds.iter().filter(|c| c.1 > 0) {
-        pass.set_bind_group(1, group, &[]);
-        // A workgroup per `LINEAR` particles and slice.
-        let [x, y, _] = linear_groups(count);
+    for batch in batches.0.values() {
+        pass.set_bind_group(1, &batch.group, &[]);
+        // A workgroup per `LINEAR` particles of a cloud and slice.
+        let [x, y, _] = linear_groups(batch.groups * LINEAR);
         pass.dispatch_workgroups(x, y, splat_slices(x * y));
         dispatches += 1;
     }
@@ -267,7 +265,15 @@ pub(crate) fn finish(render_app: &mut SubApp) {
             bevy::render::RenderStartup,
             init_splat_pipeline.after(super::draw::init_billboard_pipeline),
         )
-        .add_systems(Render, queue_splat_pipelines.in_set(RenderSystems::Queue));
+        .add_systems(
+            Render,
+            (
+                queue_splat_pipelines.in_set(RenderSystems::Queue),
+                prepare_splat_batches
+                    .in_set(RenderSystems::PrepareBindGroups)
+                    .after(super::draw::prepare_billboard_bind_groups),
+            ),
+        );
 }
 
 #[cfg(test)]

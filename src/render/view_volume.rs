@@ -207,6 +207,11 @@ impl ViewVolume {
         self.written
     }
 
+    /// Its index in its view's atlas (`ViewVolumeAtlas::volumes`).
+    pub fn atlas_index(&self) -> u32 {
+        self.entry
+    }
+
     /// Whether the billboards read the cloud's multiple scattering seen from the camera from the
     /// view's atlas (an anisotropic cloud), not the pool's.
     pub fn sees_multiple(&self) -> bool {

@@ -3,13 +3,17 @@
 
 use bevy::prelude::*;
 use bevy_particle_clouds::{
-    CloudPass, Compositing, DrawMethod, Particle,
+    CloudPass, Compositing, DrawMethod, Medium, Particle,
     fog::{Falloff, Fog},
+    headless::{self, FrameRecorder},
 };
 
 use crate::{
     cloud_target::{occluded_setup, rgba16f, view_textures},
-    draw::{assert_images_match, cloud_setup, reference, render},
+    draw::{
+        SetupCloud, assert_images_match, cloud_setup, reference, reference_of_clouds, render,
+        spawn_clouds,
+    },
 };
 
 /// At full size the computed image is the CPU reference's, seen from outside the cloud, from
@@ -56,8 +60,8 @@ fn a_computed_cloud_equals_the_cpu_billboard_reference() {
 /// At half size, with one object in front of the cloud and one behind: the computed target is
 /// the rasterised one, texel by texel (the depth test included), but for f16 rounding (the
 /// rasteriser blends in f16 after every particle, the splat sums in f32). A sorted cloud is
-/// rasterised either way: the same target exactly. The draw dispatches one splat per cloud and
-/// one resolve.
+/// rasterised either way: the same target exactly. The draw dispatches one splat (the cloud's
+/// batch) and one resolve.
 #[test]
 fn a_computed_cloud_target_is_the_rasterised_one() {
     for compositing in [Compositing::ViewTransmittance, Compositing::Sorted] {
@@ -108,4 +112,54 @@ fn a_computed_cloud_target_is_the_rasterised_one() {
             "{compositing:?}: the computed target differs by {worst} f16 ulps ({particles} particles)"
         );
     }
+}
+
+/// Five clouds, overlapping on screen, in two batches: three isotropic ones of one volume shape,
+/// and two of one forward-scattering medium (whose volumes hold angular moments: another pool).
+/// Each batch is one dispatch, whatever its clouds (issue #11: the dispatches stay flat in
+/// clouds), and the image is the CPU reference's, each cloud's light seen through the others.
+#[test]
+fn the_splat_dispatches_once_per_batch_and_draws_every_cloud_of_it() {
+    let camera = Transform::from_xyz(0.2, 0.3, 5.0).looking_at(Vec3::ZERO, Vec3::Y);
+    let mut setup = cloud_setup(21, camera);
+    setup.settings.draw_method = DrawMethod::Compute;
+    let particles: Vec<Vec<Particle>> = (0..5)
+        .map(|i| cloud_setup(30 + i, camera).particles)
+        .collect();
+    let medium = |albedo, anisotropy| Medium {
+        extinction: 4.0,
+        albedo,
+        anisotropy,
+    };
+    let places = [
+        Vec3::new(-0.6, 0.0, -0.3),
+        Vec3::new(0.0, 0.2, 0.2),
+        Vec3::new(0.6, -0.1, -0.5),
+        Vec3::new(-0.3, -0.5, 0.6),
+        Vec3::new(0.4, 0.5, -0.9),
+    ];
+    let clouds: Vec<SetupCloud> = particles
+        .iter()
+        .zip(places)
+        .enumerate()
+        .map(|(i, (particles, place))| SetupCloud {
+            particles,
+            medium: if i < 3 {
+                medium(0.3 + 0.3 * i as f32, 0.0)
+            } else {
+                medium(0.9, 0.6)
+            },
+            transform: Transform::from_translation(place).with_scale(Vec3::splat(0.7)),
+            settings: None,
+        })
+        .collect();
+    let (mut app, target) = spawn_clouds(&setup, &clouds);
+    let mut frames = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut frames, target.drawable_clouds, 20).unwrap();
+    let image = headless::capture(&mut app, &mut frames, &target.image).unwrap();
+    let last = frames.frames.last().expect("a frame");
+    // Two splats and the resolve; every cloud drawn.
+    assert_eq!(last.dispatches(CloudPass::Draw), 3);
+    assert_eq!(last.runs(CloudPass::Draw), 5);
+    assert_images_match(&image, &reference_of_clouds(&setup, &clouds), "five clouds");
 }
