@@ -53,6 +53,7 @@
 //! | `headless` | rendering without a window (`headless`): spawn a scene, render until finished, capture; implies `scene`, `distance_fog`, `lit_object` |
 
 #![warn(missing_docs)]
+pub mod atmosphere;
 pub mod beam_phase;
 pub mod cloud;
 #[cfg(feature = "lit_object")]

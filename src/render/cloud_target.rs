@@ -613,6 +613,7 @@ mod tests {
             visible: true,
             casts_shadows: true,
             receives_shadows: true,
+            atmosphere_transmittance: Vec::new(),
         }
     }
 

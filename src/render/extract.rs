@@ -10,6 +10,7 @@ use bevy::{
 };
 
 use crate::{
+    atmosphere::AtmosphereLight,
     cloud::{CloudSkyLight, InvalidCloud, ParticleCloud, Particles, ParticlesValidity},
     ground::CloudGround,
     lod::{CloudLevelOfDetail, CloudLod},
@@ -47,6 +48,10 @@ pub struct ExtractedCloud {
     pub casts_shadows: bool,
     /// Other clouds shadow it (no [`NotShadowReceiver`]).
     pub receives_shadows: bool,
+    /// Per light of [`ExtractedCloudLights::lights`], the linear RGB part of its irradiance that
+    /// reaches the cloud's centre through Bevy's `Atmosphere` ([`crate::atmosphere`]); empty
+    /// (all of it) where the world has none.
+    pub atmosphere_transmittance: Vec<Vec3>,
 }
 
 impl ExtractedCloud {
@@ -63,6 +68,14 @@ impl ExtractedCloud {
     /// medium (docs/illumination.md §4).
     pub fn has_moments(&self) -> bool {
         self.anisotropy != 0.0
+    }
+
+    /// The part of light `index`'s irradiance that reaches the cloud through the atmosphere.
+    pub fn light_transmittance(&self, index: usize) -> Vec3 {
+        self.atmosphere_transmittance
+            .get(index)
+            .copied()
+            .unwrap_or(Vec3::ONE)
     }
 
     /// Rotation part, world from local.
@@ -110,6 +123,7 @@ type MainWorldCloud = (
     Has<NotShadowReceiver>,
 );
 
+#[allow(clippy::too_many_arguments)] // a system's parameters
 pub(crate) fn extract_clouds(
     mut commands: Commands,
     clouds: Extract<Query<MainWorldCloud>>,
@@ -117,6 +131,7 @@ pub(crate) fn extract_clouds(
     validity: Extract<Res<ParticlesValidity>>,
     default_quality: Extract<Res<DefaultCloudQuality>>,
     level_of_detail: Extract<Res<CloudLevelOfDetail>>,
+    air: Extract<AtmosphereLight>,
     mut refused: Local<RefusedClouds>,
 ) {
     for item in &clouds {
@@ -163,6 +178,7 @@ pub(crate) fn extract_clouds(
                     visible: visibility.get(),
                     casts_shadows: !not_caster,
                     receives_shadows: !not_receiver,
+                    atmosphere_transmittance: air.transmittances(transform.translation()),
                 });
             }
         }

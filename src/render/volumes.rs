@@ -631,7 +631,7 @@ fn light_params(
             LightParams::new(
                 params,
                 (to_local * l.direction).normalize(),
-                l.irradiance,
+                l.irradiance * cloud.light_transmittance(i as usize),
                 i,
             )
         })

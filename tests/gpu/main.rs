@@ -1,6 +1,7 @@
 //! The tests that render on the GPU (lavapipe on CI), linked as one binary. Each module compares
 //! what the GPU computed with a CPU reference, or counts the passes a scene runs.
 
+mod atmosphere;
 mod batching;
 mod between_clouds;
 mod budget;

@@ -1,0 +1,270 @@
+//! Clouds under Bevy's [`Atmosphere`]: the sun reaches each cloud through the atmosphere's
+//! transmittance, as it reaches Bevy's meshes (`pbr_lighting.wgsl` multiplies a directional
+//! light's colour by the transmittance from the shaded point to the light, and by the part of the
+//! sun's disk above the horizon), so that clouds redden and darken with the sun at dusk. Each
+//! cloud takes the transmittance at its centre, from the atmosphere whose planet centre is nearest
+//! to it. The atmosphere's sky light and aerial perspective are not modelled (README, "What clouds
+//! interact with").
+
+use bevy::{
+    ecs::system::SystemParam,
+    light::{Atmosphere, SunDisk, atmosphere::ScatteringMedium},
+    math::DVec3,
+    prelude::*,
+};
+
+use crate::shadow_maps::{CloudLight, CloudLights};
+
+/// Steps of the midpoint rule along the path to the light. Bevy's transmittance table takes 40
+/// (`AtmosphereSettings::transmittance_lut_samples`); 256 put the overhead optical depth of an
+/// 8 km scale height within 1e-4 of the exact one (the unit test).
+const STEPS: u32 = 256;
+
+/// One planet's atmosphere, in its own space (metres of the atmosphere, centred on the planet):
+/// what the transmittance to a light needs.
+pub struct AtmosphereTransmittance<'a> {
+    /// Planet radius and atmosphere top, atmosphere metres.
+    inner_radius: f64,
+    outer_radius: f64,
+    /// World → atmosphere space: the entity's translation and scale (its rotation is ignored, as
+    /// Bevy ignores it: the atmosphere is spherically symmetric).
+    centre: Vec3,
+    scale: Vec3,
+    medium: &'a ScatteringMedium,
+}
+
+impl<'a> AtmosphereTransmittance<'a> {
+    /// `atmosphere` placed by `transform`, made of `medium`.
+    pub fn new(
+        atmosphere: &Atmosphere,
+        transform: &GlobalTransform,
+        medium: &'a ScatteringMedium,
+    ) -> Self {
+        let (scale, _, centre) = transform.to_scale_rotation_translation();
+        Self {
+            inner_radius: atmosphere.inner_radius as f64,
+            outer_radius: atmosphere.outer_radius as f64,
+            centre,
+            scale,
+            medium,
+        }
+    }
+
+    /// Linear RGB transmittance from world point `point` to a directional light travelling along
+    /// `direction` (world) whose disk spans `sun_angular_size` radians: Bevy's
+    /// `transmittance(r, mu) * calculate_visible_sun_ratio(r, mu)`, with the point lifted onto
+    /// the ground where it lies below it.
+    pub fn towards_light(&self, point: Vec3, direction: Vec3, sun_angular_size: f32) -> Vec3 {
+        let p = ((point - self.centre) / self.scale).as_dvec3();
+        let r = p.length().max(self.inner_radius + 1e-3);
+        let up = p.try_normalize().unwrap_or(DVec3::Y);
+        let mu = (-direction.as_dvec3().normalize()).dot(up).clamp(-1.0, 1.0);
+        let visible = self.visible_sun_ratio(r, mu, sun_angular_size as f64);
+        if visible == 0.0 {
+            return Vec3::ZERO;
+        }
+        let tau = self.optical_depth(r, mu);
+        (tau.map(|t| (-t).exp()) * visible).as_vec3()
+    }
+
+    /// Extinction per atmosphere metre at radius `r`: every term's absorption and scattering
+    /// times its falloff at `p = 1 - (r - inner) / (outer - inner)` (1 on the ground, 0 at the
+    /// top), as Bevy's density table holds it.
+    fn extinction(&self, r: f64) -> DVec3 {
+        let altitude = (r - self.inner_radius) / (self.outer_radius - self.inner_radius);
+        let p = (1.0 - altitude).clamp(0.0, 1.0) as f32;
+        self.medium
+            .terms
+            .iter()
+            .map(|term| ((term.absorption + term.scattering) * term.falloff.sample(p)).as_dvec3())
+            .sum()
+    }
+
+    /// Optical depth from radius `r` along the direction at cosine `mu` from the zenith to the
+    /// top of the atmosphere, or to the ground where the ray meets it (Bevy's
+    /// `max_atmosphere_distance`); midpoint rule.
+    fn optical_depth(&self, r: f64, mu: f64) -> DVec3 {
+        let length = self.path_length(r, mu);
+        let dt = length / STEPS as f64;
+        (0..STEPS)
+            .map(|i| {
+                let t = (i as f64 + 0.5) * dt;
+                let r_t = (t * t + 2.0 * r * mu * t + r * r).sqrt();
+                self.extinction(r_t) * dt
+            })
+            .sum()
+    }
+
+    /// Distance from radius `r` along cosine `mu` to the atmosphere's top, or to the ground when
+    /// the ray meets it first.
+    fn path_length(&self, r: f64, mu: f64) -> f64 {
+        let discriminant = |radius: f64| r * r * (mu * mu - 1.0) + radius * radius;
+        let ground = discriminant(self.inner_radius);
+        if mu < 0.0 && ground >= 0.0 {
+            return (-r * mu - ground.sqrt()).max(0.0);
+        }
+        (-r * mu + discriminant(self.outer_radius).max(0.0).sqrt()).max(0.0)
+    }
+
+    /// The part of the sun's disk above the horizon seen from radius `r`, the sun's centre at
+    /// cosine `mu` from the zenith (Bevy's `calculate_visible_sun_ratio`: linear in the centre's
+    /// angle across the disk).
+    fn visible_sun_ratio(&self, r: f64, mu: f64, angular_size: f64) -> f64 {
+        let horizon = (-(1.0 - (self.inner_radius / r).powi(2)).max(0.0).sqrt()).acos();
+        let zenith = mu.acos();
+        let half = 0.5 * angular_size;
+        if zenith + half <= horizon {
+            return 1.0;
+        }
+        if zenith - half >= horizon {
+            return 0.0;
+        }
+        (0.5 + 0.5 * (horizon - zenith) / half).clamp(0.0, 1.0)
+    }
+}
+
+/// What the clouds' extraction reads to light them through the atmosphere: the lights that light
+/// clouds, Bevy's atmospheres and their media, and the lights' `SunDisk`s.
+#[derive(SystemParam)]
+pub struct AtmosphereLight<'w, 's> {
+    lights: Res<'w, CloudLights>,
+    atmospheres: Query<'w, 's, (&'static Atmosphere, &'static GlobalTransform)>,
+    media: Option<Res<'w, Assets<ScatteringMedium>>>,
+    suns: Query<'w, 's, &'static SunDisk>,
+}
+
+impl AtmosphereLight<'_, '_> {
+    /// Per light of [`CloudLights`], the transmittance from world point `point` to it through the
+    /// atmosphere nearest to the point; empty where there is none.
+    pub fn transmittances(&self, point: Vec3) -> Vec<Vec3> {
+        let Some(media) = self.media.as_deref() else {
+            return Vec::new();
+        };
+        let Some(air) = nearest_atmosphere(self.atmospheres.iter(), media, point) else {
+            return Vec::new();
+        };
+        // Bevy's meshes take a light without a `SunDisk` as having Earth's.
+        let disk = |l: &CloudLight| {
+            let sun = self.suns.get(l.entity).unwrap_or(&SunDisk::EARTH);
+            sun.angular_size
+        };
+        self.lights
+            .0
+            .iter()
+            .map(|l| air.towards_light(point, l.direction, disk(l)))
+            .collect()
+    }
+}
+
+/// The atmosphere of `atmospheres` whose planet centre is nearest to `point` (as Bevy picks a
+/// camera's), with its medium; `None` where there is none or its medium is not loaded.
+pub fn nearest_atmosphere<'a>(
+    atmospheres: impl Iterator<Item = (&'a Atmosphere, &'a GlobalTransform)>,
+    media: &'a Assets<ScatteringMedium>,
+    point: Vec3,
+) -> Option<AtmosphereTransmittance<'a>> {
+    let (atmosphere, transform) = atmospheres.min_by(|(_, a), (_, b)| {
+        let da = point.distance_squared(a.translation());
+        let db = point.distance_squared(b.translation());
+        da.total_cmp(&db)
+    })?;
+    let medium = media.get(&atmosphere.medium)?;
+    Some(AtmosphereTransmittance::new(atmosphere, transform, medium))
+}
+
+#[cfg(test)]
+mod tests {
+    use bevy::light::atmosphere::{Falloff, PhaseFunction, ScatteringTerm};
+
+    use super::*;
+
+    const INNER: f32 = 6_360_000.0;
+    const OUTER: f32 = 6_460_000.0;
+
+    /// A medium of one term of extinction `sigma` per metre, falling off exponentially with
+    /// Bevy's normalised curve of scale `s`.
+    fn one_term(sigma: Vec3, s: f32) -> ScatteringMedium {
+        let term = ScatteringTerm {
+            absorption: sigma * 0.25,
+            scattering: sigma * 0.75,
+            falloff: Falloff::Exponential { scale: s },
+            phase: PhaseFunction::Isotropic,
+        };
+        ScatteringMedium::new(256, 256, [term])
+    }
+
+    fn atmosphere() -> Atmosphere {
+        Atmosphere {
+            inner_radius: INNER,
+            outer_radius: OUTER,
+            ground_albedo: Vec3::splat(0.3),
+            medium: Handle::default(),
+        }
+    }
+
+    /// The planet centred `INNER` below the origin, as Bevy places it by default.
+    fn planet() -> GlobalTransform {
+        GlobalTransform::from_translation(-Vec3::Y * INNER)
+    }
+
+    #[test]
+    fn a_sun_overhead_sees_the_column_above_the_point() {
+        // Bevy's falloff f(p) = (e^((1 - p) s') - e^s') / (1 - e^s'), s' = -1 / s, with
+        // p = 1 - altitude / H: the column from the ground integrates to
+        // H / (1 - e^s') (1 / s' (e^s' - 1) - e^s'), the exact optical depth overhead.
+        let sigma = Vec3::new(5.8e-6, 13.6e-6, 33.1e-6);
+        let s = 8.0 / 100.0;
+        let medium = one_term(sigma, s);
+        let air = AtmosphereTransmittance::new(&atmosphere(), &planet(), &medium);
+        let sp = -1.0 / s as f64;
+        let h = (OUTER - INNER) as f64;
+        let column = h / (1.0 - sp.exp()) * ((sp.exp() - 1.0) / sp - sp.exp());
+        let got = air.towards_light(Vec3::ZERO, Vec3::NEG_Y, 0.0);
+        for (c, &g) in got.to_array().iter().enumerate() {
+            let want = (-(sigma[c] as f64) * column).exp();
+            assert!(
+                (g as f64 - want).abs() < 1e-4 * want,
+                "channel {c}: {g} against the exact {want}"
+            );
+        }
+        // Redder towards the horizon: less blue gets through a longer, lower path.
+        let low = air.towards_light(Vec3::ZERO, Vec3::new(-0.99, -0.14, 0.0), 0.0);
+        assert!(low.z < got.z * 0.5 && low.x / low.z > got.x / got.z);
+    }
+
+    #[test]
+    fn a_sun_below_the_horizon_gives_no_light_and_one_on_it_half() {
+        // A clear atmosphere: what reaches the point is the part of the disk above the horizon.
+        let medium = one_term(Vec3::ZERO, 0.1);
+        let air = AtmosphereTransmittance::new(&atmosphere(), &planet(), &medium);
+        // 1 km up, the horizon dips by acos(R / (R + 1 km)), about 0.0177 rad.
+        let point = Vec3::Y * 1000.0;
+        let dip = (INNER as f64 / (INNER as f64 + 1000.0)).acos();
+        let sun = |elevation: f64| -Vec3::new(elevation.cos() as f32, elevation.sin() as f32, 0.0);
+        let disk = 0.0093;
+        assert_eq!(air.towards_light(point, sun(-dip - 0.01), disk), Vec3::ZERO);
+        let on = air.towards_light(point, sun(-dip), disk);
+        assert!((on - Vec3::splat(0.5)).abs().max_element() < 0.01, "{on}");
+        assert_eq!(air.towards_light(point, sun(-dip + 0.01), disk), Vec3::ONE);
+    }
+
+    #[test]
+    fn a_clear_atmosphere_lets_all_the_light_through_and_the_nearest_is_chosen() {
+        let clear = one_term(Vec3::ZERO, 0.1);
+        let mut media = Assets::<ScatteringMedium>::default();
+        let handle = media.add(clear);
+        let mut near = atmosphere();
+        near.medium = handle.clone();
+        let far_transform = GlobalTransform::from_translation(Vec3::X * 1e9);
+        let far = Atmosphere {
+            medium: Handle::default(),
+            ..atmosphere()
+        };
+        let pairs = [(&far, &far_transform), (&near, &planet())];
+        let air = nearest_atmosphere(pairs.into_iter(), &media, Vec3::ZERO).expect("the near one");
+        assert_eq!(air.towards_light(Vec3::ZERO, Vec3::NEG_Y, 0.0), Vec3::ONE);
+        // The far one's medium is not loaded: no atmosphere.
+        let pairs = [(&far, &far_transform)];
+        assert!(nearest_atmosphere(pairs.into_iter(), &media, Vec3::ZERO).is_none());
+    }
+}
