@@ -3,17 +3,23 @@
 //! light's colour by the transmittance from the shaded point to the light, and by the part of the
 //! sun's disk above the horizon), so that clouds redden and darken with the sun at dusk. Each
 //! cloud takes the transmittance at its centre, from the atmosphere whose planet centre is nearest
-//! to it. The atmosphere's sky light and aerial perspective are not modelled (README, "What clouds
+//! to it, integrated on the CPU at extraction when the cloud, a light or the atmosphere changed. The atmosphere's sky light and aerial perspective are not modelled (README, "What clouds
 //! interact with").
 
 use bevy::{
     ecs::system::SystemParam,
-    light::{Atmosphere, SunDisk, atmosphere::ScatteringMedium},
+    light::{
+        Atmosphere, SunDisk,
+        atmosphere::{Falloff, ScatteringMedium},
+    },
     math::DVec3,
+    platform::collections::HashMap,
     prelude::*,
 };
 
-use crate::shadow_maps::{CloudLight, CloudLights};
+use std::sync::Arc;
+
+use crate::{render::key_of, shadow_maps::CloudLights};
 
 /// Steps of the midpoint rule along the path to the light. Bevy's transmittance table takes 40
 /// (`AtmosphereSettings::transmittance_lut_samples`); 256 put the overhead optical depth of an
@@ -65,6 +71,31 @@ impl<'a> AtmosphereTransmittance<'a> {
         }
         let tau = self.optical_depth(r, mu);
         (tau.map(|t| (-t).exp()) * visible).as_vec3()
+    }
+
+    /// A key of the atmosphere: its place, its radii and its medium's terms.
+    fn key(&self) -> u64 {
+        let bits = |v: Vec3| v.to_array().map(f32::to_bits);
+        let terms: Vec<_> = (self.medium.terms.iter())
+            .map(|t| {
+                let falloff = match &t.falloff {
+                    Falloff::Linear => [0, 0, 0],
+                    Falloff::Exponential { scale } => [1, scale.to_bits() as u64, 0],
+                    Falloff::Tent { center, width } => {
+                        [2, center.to_bits() as u64, width.to_bits() as u64]
+                    }
+                    // A curve is immutable behind its `Arc`: its address identifies it.
+                    Falloff::Curve(curve) => [3, Arc::as_ptr(curve) as *const () as u64, 0],
+                };
+                (bits(t.absorption), bits(t.scattering), falloff)
+            })
+            .collect();
+        key_of((
+            [self.inner_radius, self.outer_radius].map(f64::to_bits),
+            bits(self.centre),
+            bits(self.scale),
+            terms,
+        ))
     }
 
     /// Extinction per atmosphere metre at radius `r`: every term's absorption and scattering
@@ -133,26 +164,62 @@ pub struct AtmosphereLight<'w, 's> {
     suns: Query<'w, 's, &'static SunDisk>,
 }
 
+/// Each cloud's transmittances as last integrated, with the key of what they depend on: a cloud
+/// that stays put under a still sun and atmosphere is not integrated again.
+#[derive(Default)]
+pub struct TransmittanceCache(HashMap<Entity, (u64, Vec<Vec3>)>);
+
+impl TransmittanceCache {
+    /// Forgets the clouds `keep` refuses (despawned ones).
+    pub fn retain(&mut self, mut keep: impl FnMut(Entity) -> bool) {
+        self.0.retain(|&cloud, _| keep(cloud));
+    }
+}
+
 impl AtmosphereLight<'_, '_> {
-    /// Per light of [`CloudLights`], the transmittance from world point `point` to it through the
-    /// atmosphere nearest to the point; empty where there is none.
-    pub fn transmittances(&self, point: Vec3) -> Vec<Vec3> {
-        let Some(media) = self.media.as_deref() else {
-            return Vec::new();
-        };
-        let Some(air) = nearest_atmosphere(self.atmospheres.iter(), media, point) else {
+    /// Per light of [`CloudLights`], the transmittance from `cloud`'s centre `point` to it through
+    /// the atmosphere nearest to the point; empty where there is none. Integrated again only when
+    /// the point, a light or the atmosphere changed since `cache` took it.
+    pub fn transmittances(
+        &self,
+        cloud: Entity,
+        point: Vec3,
+        cache: &mut TransmittanceCache,
+    ) -> Vec<Vec3> {
+        let air = self
+            .media
+            .as_deref()
+            .and_then(|media| nearest_atmosphere(self.atmospheres.iter(), media, point));
+        let Some(air) = air else {
+            cache.0.remove(&cloud);
             return Vec::new();
         };
         // Bevy's meshes take a light without a `SunDisk` as having Earth's.
-        let disk = |l: &CloudLight| {
-            let sun = self.suns.get(l.entity).unwrap_or(&SunDisk::EARTH);
-            sun.angular_size
-        };
-        self.lights
-            .0
+        let suns: Vec<(Vec3, f32)> = (self.lights.0.iter())
+            .map(|l| {
+                let disk = self.suns.get(l.entity).unwrap_or(&SunDisk::EARTH);
+                (l.direction, disk.angular_size)
+            })
+            .collect();
+        let bits = |v: Vec3| v.to_array().map(f32::to_bits);
+        let key = key_of((
+            air.key(),
+            bits(point),
+            suns.iter()
+                .map(|&(d, a)| (bits(d), a.to_bits()))
+                .collect::<Vec<_>>(),
+        ));
+        if let Some((held, transmittances)) = cache.0.get(&cloud)
+            && *held == key
+        {
+            return transmittances.clone();
+        }
+        let transmittances: Vec<Vec3> = suns
             .iter()
-            .map(|l| air.towards_light(point, l.direction, disk(l)))
-            .collect()
+            .map(|&(direction, disk)| air.towards_light(point, direction, disk))
+            .collect();
+        cache.0.insert(cloud, (key, transmittances.clone()));
+        transmittances
     }
 }
 
@@ -174,9 +241,10 @@ pub fn nearest_atmosphere<'a>(
 
 #[cfg(test)]
 mod tests {
-    use bevy::light::atmosphere::{Falloff, PhaseFunction, ScatteringTerm};
+    use bevy::light::atmosphere::{PhaseFunction, ScatteringTerm};
 
     use super::*;
+    use crate::shadow_maps::CloudLight;
 
     const INNER: f32 = 6_360_000.0;
     const OUTER: f32 = 6_460_000.0;
@@ -266,5 +334,56 @@ mod tests {
         // The far one's medium is not loaded: no atmosphere.
         let pairs = [(&far, &far_transform)];
         assert!(nearest_atmosphere(pairs.into_iter(), &media, Vec3::ZERO).is_none());
+    }
+
+    #[test]
+    fn a_cloud_is_integrated_again_only_when_it_or_the_sun_moves() {
+        use bevy::ecs::system::SystemState;
+        let mut world = World::new();
+        let mut media = Assets::<ScatteringMedium>::default();
+        let medium = media.add(ScatteringMedium::earth(64, 64));
+        world.insert_resource(media);
+        world.spawn((Atmosphere::earth(medium), planet()));
+        let sun = world.spawn(SunDisk::EARTH).id();
+        let light = |direction: Vec3| CloudLight {
+            entity: sun,
+            direction,
+            irradiance: Vec3::ONE,
+        };
+        world.insert_resource(CloudLights(vec![light(
+            Vec3::new(-1.0, -0.2, 0.0).normalize(),
+        )]));
+        let cloud = world.spawn_empty().id();
+        let mut cache = TransmittanceCache::default();
+        let mut state = SystemState::<AtmosphereLight>::new(&mut world);
+        let first = state
+            .get(&world)
+            .unwrap()
+            .transmittances(cloud, Vec3::Y * 500.0, &mut cache);
+        assert_eq!(first.len(), 1);
+        assert!(first[0].z < first[0].x && first[0].x < 1.0, "{}", first[0]);
+        // A marker in the cache: returned while nothing changed, so nothing was integrated.
+        cache.0.get_mut(&cloud).unwrap().1[0] = Vec3::splat(-1.0);
+        let again = state
+            .get(&world)
+            .unwrap()
+            .transmittances(cloud, Vec3::Y * 500.0, &mut cache);
+        assert_eq!(again, [Vec3::splat(-1.0)]);
+        let moved = state
+            .get(&world)
+            .unwrap()
+            .transmittances(cloud, Vec3::Y * 800.0, &mut cache);
+        assert!(
+            moved[0].x > first[0].x,
+            "higher, less air: {} {}",
+            moved[0],
+            first[0]
+        );
+        world.insert_resource(CloudLights(vec![light(Vec3::NEG_Y)]));
+        let noon = state
+            .get(&world)
+            .unwrap()
+            .transmittances(cloud, Vec3::Y * 800.0, &mut cache);
+        assert!(noon[0].z > moved[0].z, "{} {}", noon[0], moved[0]);
     }
 }

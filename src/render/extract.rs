@@ -10,7 +10,7 @@ use bevy::{
 };
 
 use crate::{
-    atmosphere::AtmosphereLight,
+    atmosphere::{AtmosphereLight, TransmittanceCache},
     cloud::{CloudSkyLight, InvalidCloud, ParticleCloud, Particles, ParticlesValidity},
     ground::CloudGround,
     lod::{CloudLevelOfDetail, CloudLod},
@@ -132,8 +132,10 @@ pub(crate) fn extract_clouds(
     default_quality: Extract<Res<DefaultCloudQuality>>,
     level_of_detail: Extract<Res<CloudLevelOfDetail>>,
     air: Extract<AtmosphereLight>,
+    mut transmittances: Local<TransmittanceCache>,
     mut refused: Local<RefusedClouds>,
 ) {
+    transmittances.retain(|cloud| clouds.contains(cloud));
     for item in &clouds {
         let (entity, render_entity, cloud, transform, visibility, settings, lod, name, ..) = item;
         let (.., not_caster, not_receiver) = item;
@@ -178,7 +180,11 @@ pub(crate) fn extract_clouds(
                     visible: visibility.get(),
                     casts_shadows: !not_caster,
                     receives_shadows: !not_receiver,
-                    atmosphere_transmittance: air.transmittances(transform.translation()),
+                    atmosphere_transmittance: air.transmittances(
+                        entity,
+                        transform.translation(),
+                        &mut transmittances,
+                    ),
                 });
             }
         }
