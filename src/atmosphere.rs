@@ -107,7 +107,16 @@ impl<'a> AtmosphereTransmittance<'a> {
         self.medium
             .terms
             .iter()
-            .map(|term| ((term.absorption + term.scattering) * term.falloff.sample(p)).as_dvec3())
+            .map(|term| {
+                // A custom curve may leave [0, 1]; outside it, or NaN, it holds no medium.
+                let falloff = term.falloff.sample(p);
+                let falloff = if falloff.is_finite() {
+                    falloff.max(0.0)
+                } else {
+                    0.0
+                };
+                ((term.absorption + term.scattering) * falloff).as_dvec3()
+            })
             .sum()
     }
 
@@ -167,12 +176,16 @@ pub struct AtmosphereLight<'w, 's> {
 /// Each cloud's transmittances as last integrated, with the key of what they depend on: a cloud
 /// that stays put under a still sun and atmosphere is not integrated again.
 #[derive(Default)]
-pub struct TransmittanceCache(HashMap<Entity, (u64, Vec<Vec3>)>);
+pub struct TransmittanceCache {
+    held: HashMap<Entity, (u64, Vec<Vec3>)>,
+    /// The last atmosphere refused, and why (warned of once).
+    refused: Option<String>,
+}
 
 impl TransmittanceCache {
     /// Forgets the clouds `keep` refuses (despawned ones).
     pub fn retain(&mut self, mut keep: impl FnMut(Entity) -> bool) {
-        self.0.retain(|&cloud, _| keep(cloud));
+        self.held.retain(|&cloud, _| keep(cloud));
     }
 }
 
@@ -186,12 +199,22 @@ impl AtmosphereLight<'_, '_> {
         point: Vec3,
         cache: &mut TransmittanceCache,
     ) -> Vec<Vec3> {
-        let air = self
-            .media
-            .as_deref()
-            .and_then(|media| nearest_atmosphere(self.atmospheres.iter(), media, point));
+        let air = match self.media.as_deref() {
+            Some(media) => nearest_atmosphere(self.atmospheres.iter(), media, point),
+            None => Ok(None),
+        };
+        let air = match air {
+            Ok(air) => air,
+            Err(problem) => {
+                if cache.refused.as_ref() != Some(&problem) {
+                    warn!("{problem}; the clouds are lit as if there were no atmosphere");
+                    cache.refused = Some(problem);
+                }
+                None
+            }
+        };
         let Some(air) = air else {
-            cache.0.remove(&cloud);
+            cache.held.remove(&cloud);
             return Vec::new();
         };
         // Bevy's meshes take a light without a `SunDisk` as having Earth's.
@@ -209,7 +232,7 @@ impl AtmosphereLight<'_, '_> {
                 .map(|&(d, a)| (bits(d), a.to_bits()))
                 .collect::<Vec<_>>(),
         ));
-        if let Some((held, transmittances)) = cache.0.get(&cloud)
+        if let Some((held, transmittances)) = cache.held.get(&cloud)
             && *held == key
         {
             return transmittances.clone();
@@ -218,25 +241,74 @@ impl AtmosphereLight<'_, '_> {
             .iter()
             .map(|&(direction, disk)| air.towards_light(point, direction, disk))
             .collect();
-        cache.0.insert(cloud, (key, transmittances.clone()));
+        cache.held.insert(cloud, (key, transmittances.clone()));
         transmittances
     }
 }
 
 /// The atmosphere of `atmospheres` whose planet centre is nearest to `point` (as Bevy picks a
-/// camera's), with its medium; `None` where there is none or its medium is not loaded.
+/// camera's), with its medium: `Ok(None)` where there is none or its medium is not loaded, and
+/// why it cannot light the clouds where a field of it is out of range.
 pub fn nearest_atmosphere<'a>(
     atmospheres: impl Iterator<Item = (&'a Atmosphere, &'a GlobalTransform)>,
     media: &'a Assets<ScatteringMedium>,
     point: Vec3,
-) -> Option<AtmosphereTransmittance<'a>> {
-    let (atmosphere, transform) = atmospheres.min_by(|(_, a), (_, b)| {
+) -> Result<Option<AtmosphereTransmittance<'a>>, String> {
+    let nearest = atmospheres.min_by(|(_, a), (_, b)| {
         let da = point.distance_squared(a.translation());
         let db = point.distance_squared(b.translation());
         da.total_cmp(&db)
-    })?;
-    let medium = media.get(&atmosphere.medium)?;
-    Some(AtmosphereTransmittance::new(atmosphere, transform, medium))
+    });
+    let Some((atmosphere, transform)) = nearest else {
+        return Ok(None);
+    };
+    let Some(medium) = media.get(&atmosphere.medium) else {
+        return Ok(None);
+    };
+    validate(atmosphere, transform, medium)?;
+    Ok(Some(AtmosphereTransmittance::new(
+        atmosphere, transform, medium,
+    )))
+}
+
+/// Why an atmosphere cannot light the clouds, naming the field, its value and what is allowed.
+fn validate(
+    atmosphere: &Atmosphere,
+    transform: &GlobalTransform,
+    medium: &ScatteringMedium,
+) -> Result<(), String> {
+    let (inner, outer) = (atmosphere.inner_radius, atmosphere.outer_radius);
+    if !(inner.is_finite() && inner > 0.0) {
+        return Err(format!(
+            "`Atmosphere::inner_radius` is {inner}; it must be finite and > 0"
+        ));
+    }
+    if !(outer.is_finite() && outer > inner) {
+        return Err(format!(
+            "`Atmosphere::outer_radius` is {outer}; it must be finite and > `inner_radius` ({inner})"
+        ));
+    }
+    let (scale, _, centre) = transform.to_scale_rotation_translation();
+    if !(scale.is_finite() && scale.min_element() > 0.0 && centre.is_finite()) {
+        return Err(format!(
+            "the atmosphere's `GlobalTransform` has scale {scale} and translation {centre}; they \
+             must be finite and the scale > 0"
+        ));
+    }
+    for (i, term) in medium.terms.iter().enumerate() {
+        for (name, v) in [
+            ("absorption", term.absorption),
+            ("scattering", term.scattering),
+        ] {
+            if !(v.is_finite() && v.min_element() >= 0.0) {
+                return Err(format!(
+                    "`ScatteringMedium::terms[{i}].{name}` is {v}; every component must be \
+                     finite and >= 0"
+                ));
+            }
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -329,11 +401,17 @@ mod tests {
             ..atmosphere()
         };
         let pairs = [(&far, &far_transform), (&near, &planet())];
-        let air = nearest_atmosphere(pairs.into_iter(), &media, Vec3::ZERO).expect("the near one");
+        let air = nearest_atmosphere(pairs.into_iter(), &media, Vec3::ZERO)
+            .unwrap()
+            .expect("the near one");
         assert_eq!(air.towards_light(Vec3::ZERO, Vec3::NEG_Y, 0.0), Vec3::ONE);
         // The far one's medium is not loaded: no atmosphere.
         let pairs = [(&far, &far_transform)];
-        assert!(nearest_atmosphere(pairs.into_iter(), &media, Vec3::ZERO).is_none());
+        assert!(
+            nearest_atmosphere(pairs.into_iter(), &media, Vec3::ZERO)
+                .unwrap()
+                .is_none()
+        );
     }
 
     #[test]
@@ -363,7 +441,7 @@ mod tests {
         assert_eq!(first.len(), 1);
         assert!(first[0].z < first[0].x && first[0].x < 1.0, "{}", first[0]);
         // A marker in the cache: returned while nothing changed, so nothing was integrated.
-        cache.0.get_mut(&cloud).unwrap().1[0] = Vec3::splat(-1.0);
+        cache.held.get_mut(&cloud).unwrap().1[0] = Vec3::splat(-1.0);
         let again = state
             .get(&world)
             .unwrap()
@@ -385,5 +463,35 @@ mod tests {
             .unwrap()
             .transmittances(cloud, Vec3::Y * 800.0, &mut cache);
         assert!(noon[0].z > moved[0].z, "{} {}", noon[0], moved[0]);
+    }
+
+    #[test]
+    fn a_broken_atmosphere_is_refused_naming_its_field() {
+        let mut media = Assets::<ScatteringMedium>::default();
+        let mut broken = one_term(Vec3::ONE * 1e-5, 0.1);
+        broken.terms[0].scattering.y = f32::NAN;
+        let broken = media.add(broken);
+        let clear = media.add(one_term(Vec3::ZERO, 0.1));
+        let refusal = |atmosphere: Atmosphere, transform: GlobalTransform| {
+            let pairs = [(&atmosphere, &transform)];
+            match nearest_atmosphere(pairs.into_iter(), &media, Vec3::ZERO) {
+                Err(problem) => problem,
+                Ok(_) => panic!("accepted"),
+            }
+        };
+        let with = |medium: &Handle<ScatteringMedium>| Atmosphere {
+            medium: medium.clone(),
+            ..atmosphere()
+        };
+        let problem = refusal(with(&broken), planet());
+        assert!(problem.starts_with("`ScatteringMedium::terms[0].scattering` is ["));
+        assert!(problem.contains("NaN") && problem.ends_with("must be finite and >= 0"));
+        let inverted = Atmosphere {
+            outer_radius: INNER - 1.0,
+            ..with(&clear)
+        };
+        assert!(refusal(inverted, planet()).starts_with("`Atmosphere::outer_radius` is 6359999;"));
+        let flat = GlobalTransform::from_scale(Vec3::new(1.0, 0.0, 1.0));
+        assert!(refusal(with(&clear), flat).contains("scale [1, 0, 1]"));
     }
 }
