@@ -8,6 +8,7 @@
 use std::collections::BTreeMap;
 
 use bevy::{
+    platform::collections::HashMap,
     prelude::*,
     render::{
         render_asset::RenderAssets,
@@ -91,11 +92,41 @@ pub(crate) fn splat_batch_layout() -> BindGroupLayoutDescriptor {
 
 /// What makes clouds splat together: their pool, their medium's anisotropy (its beam table), and
 /// whether the view's atlas holds their multiple scattering (anisotropic media) or their pool.
+/// Clouds of one kind whose particles exceed one storage binding together are split into parts.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct BatchKey {
     pool: PoolId,
     anisotropy: u32,
     seen_from_camera: bool,
+    part: u32,
+}
+
+/// The part of its kind a batch's next cloud goes into: the current one while the particles fit
+/// in one storage binding of `max_bytes`, else a new one.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct PartFill {
+    part: u32,
+    bytes: u64,
+}
+
+impl PartFill {
+    /// Takes `bytes` of particles into the current part, or into a new one when they would not fit
+    /// (a cloud larger than a binding has a part of its own); returns the part.
+    fn take(&mut self, bytes: u64, max_bytes: u64) -> u32 {
+        if self.bytes > 0 && self.bytes + bytes > max_bytes {
+            *self = Self {
+                part: self.part + 1,
+                bytes: 0,
+            };
+        }
+        self.bytes += bytes;
+        self.part
+    }
+}
+
+/// Bytes of `count` particles in a batch's copy: whole workgroups of them.
+fn padded_bytes(count: u32) -> u64 {
+    (count.div_ceil(LINEAR) * LINEAR) as u64 * size_of::<GpuParticle>() as u64
 }
 
 /// One batch's buffers and group 1.
@@ -146,9 +177,11 @@ fn batch_members<'a>(
     view: &RetainedViewEntity,
     pools: &VolumePools,
     particles: &'a RenderAssets<GpuParticles>,
+    max_bytes: u64,
     cloud: impl Fn(Entity) -> Option<SplatSource<'a>>,
 ) -> Vec<(BatchKey, Vec<Member<'a>>)> {
     let mut batches: Vec<(BatchKey, Vec<Member<'a>>)> = Vec::new();
+    let mut fills: HashMap<BatchKey, PartFill> = HashMap::default();
     for &entity in entities {
         let Some((extracted, volumes, view_volumes, draws)) = cloud(entity) else {
             continue;
@@ -165,11 +198,14 @@ fn batch_members<'a>(
         }
         let pool = pools.pool(&volumes.slot);
         let index = volumes.slot.index;
-        let key = BatchKey {
+        let kind = BatchKey {
             pool: volumes.slot.pool,
             anisotropy: extracted.anisotropy.to_bits(),
             seen_from_camera: volume.sees_multiple(),
+            part: 0,
         };
+        let part = (fills.entry(kind).or_default()).take(padded_bytes(gpu.count), max_bytes);
+        let key = BatchKey { part, ..kind };
         let member = Member {
             cloud: SplatCloud {
                 draw: draw_params(extracted),
@@ -267,12 +303,18 @@ pub(crate) fn prepare_splat_batches(
     )>,
 ) {
     let layout = cache.get_bind_group_layout(&splat_batch_layout());
+    let limits = device.limits();
+    let max_bytes = limits
+        .max_storage_buffer_binding_size
+        .min(limits.max_buffer_size);
     for (entity, view, splats, existing) in &mut views {
         let retained = &view.retained_view_entity;
         let Some(atlas) = atlases.0.get(retained) else {
+            // No view volumes, so no cloud to splat: none of last frame's batches either.
+            commands.entity(entity).remove::<ViewSplatBatches>();
             continue;
         };
-        let batches = batch_members(&splats.0, retained, &pools, &particles, |e| {
+        let batches = batch_members(&splats.0, retained, &pools, &particles, max_bytes, |e| {
             clouds.get(e).ok()
         });
         let mut old = existing.map(|mut e| std::mem::take(&mut e.0));
@@ -351,5 +393,17 @@ mod tests {
         assert_eq!(firsts, [0, 1, 2, 4]);
         assert_eq!(total, 7);
         assert_eq!(first_groups(&[]), (vec![], 0));
+    }
+
+    #[test]
+    fn clouds_whose_particles_exceed_a_binding_together_go_into_parts() {
+        // 100 particles take two workgroups: 128 × 32 bytes.
+        assert_eq!(padded_bytes(100), 4096);
+        let mut fill = PartFill::default();
+        let parts: Vec<u32> = [4096, 4096, 4096, 20_000, 4096]
+            .map(|bytes| fill.take(bytes, 10_000))
+            .into();
+        // Two fit, the third opens part 1; a cloud above the limit has a part of its own.
+        assert_eq!(parts, [0, 0, 1, 2, 3]);
     }
 }
