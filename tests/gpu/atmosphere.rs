@@ -27,6 +27,8 @@ fn render(setup: &Setup, atmosphere: Option<ScatteringMedium>) -> LinearImage {
         world.spawn(Atmosphere::earth(medium));
     }
     let mut frames = FrameRecorder::default();
+    // Steady means frames with no illumination work: under the atmosphere too, a still scene
+    // re-lights nothing once lit (its transmittances are not integrated again).
     headless::render_until_steady(&mut app, &mut frames, target.drawable_clouds, 20).unwrap();
     headless::capture(&mut app, &mut frames, &target.image).unwrap()
 }
