@@ -13,9 +13,10 @@ use bevy::{
     render::{
         render_asset::RenderAssets,
         render_resource::{
-            BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer,
-            BufferDescriptor, BufferUsages, CommandEncoderDescriptor, PipelineCache, ShaderStages,
-            ShaderType, binding_types::storage_buffer_read_only_sized,
+            BindGroup, BindGroupEntries, BindGroupLayout, BindGroupLayoutDescriptor,
+            BindGroupLayoutEntries, Buffer, BufferDescriptor, BufferUsages,
+            CommandEncoderDescriptor, PipelineCache, ShaderStages, ShaderType,
+            binding_types::storage_buffer_read_only_sized,
         },
         renderer::{RenderDevice, RenderQueue},
         view::{ExtractedView, RetainedViewEntity},
@@ -29,7 +30,7 @@ use super::{
     gpu::storage_init,
     key_of,
     particles::{GpuParticle, GpuParticles},
-    pools::{PoolId, VolumePools},
+    pools::{PoolId, VolumePool, VolumePools},
     view_atlas::{ViewVolumeAtlas, ViewVolumeAtlases},
     view_volume::CloudViewVolumes,
     volumes::{CloudParams, CloudVolumes, LightParams},
@@ -318,67 +319,93 @@ pub(crate) fn prepare_splat_batches(
             clouds.get(e).ok()
         });
         let mut old = existing.map(|mut e| std::mem::take(&mut e.0));
-        let mut made = BTreeMap::new();
-        for (key, mut members) in batches {
-            let counts: Vec<u32> = members.iter().map(|m| m.cloud.particle_count).collect();
-            let (firsts, groups) = first_groups(&counts);
-            for (m, first) in members.iter_mut().zip(firsts) {
-                m.cloud.first_group = first;
-            }
-            let clouds: Vec<SplatCloud> = members.iter().map(|m| m.cloud).collect();
-            let clouds_bytes = super::gpu::storage_bytes(&clouds);
-            let particles_key = key_of(
-                members
-                    .iter()
-                    .map(|m| (m.particles.buffer.id(), m.particles.count))
-                    .collect::<Vec<_>>(),
-            );
-            let multiple = multiple_source(&key, atlas, &pools);
-            let pool = &pools.0[&key.pool];
-            let bound = key_of((
-                &clouds_bytes,
-                particles_key,
-                [&pool.lights, &pool.optical_depth, multiple].map(|b| b.id()),
-                [&atlas.optical_depth, &atlas.volumes, &atlas.neighbours].map(|b| b.id()),
-                members[0].beam_phase.id(),
-            ));
-            let previous = old.as_mut().and_then(|o| o.remove(&key));
-            let particles = match previous {
-                Some(batch) if batch.key == bound => {
-                    made.insert(key, batch);
-                    continue;
-                }
-                Some(batch) if batch.particles_key == particles_key => batch.particles,
-                _ => copy_particles(&device, &queue, &members, groups),
-            };
-            let clouds = storage_init(&device, "particle_clouds_splat_clouds", &clouds);
-            let group = device.create_bind_group(
-                "particle_clouds_splat_batch_bind_group",
-                &layout,
-                &BindGroupEntries::with_indices((
-                    (0, clouds.as_entire_binding()),
-                    (2, particles.as_entire_binding()),
-                    (4, pool.lights.as_entire_binding()),
-                    (5, pool.optical_depth.as_entire_binding()),
-                    (6, multiple.as_entire_binding()),
-                    (7, atlas.optical_depth.as_entire_binding()),
-                    (8, atlas.volumes.as_entire_binding()),
-                    (9, atlas.neighbours.as_entire_binding()),
-                    (10, members[0].beam_phase.as_entire_binding()),
-                )),
-            );
-            let batch = SplatBatch {
-                key: bound,
-                particles_key,
-                particles,
-                _clouds: clouds,
-                group,
-                groups,
-                clouds: members.len() as u32,
-            };
-            made.insert(key, batch);
-        }
+        let made = batches
+            .into_iter()
+            .map(|(key, members)| {
+                let previous = old.as_mut().and_then(|o| o.remove(&key));
+                let source = BatchSource {
+                    pool: &pools.0[&key.pool],
+                    multiple: multiple_source(&key, atlas, &pools),
+                    atlas,
+                };
+                let batch = make_batch(&device, &queue, &layout, source, members, previous);
+                (key, batch)
+            })
+            .collect();
         commands.entity(entity).insert(ViewSplatBatches(made));
+    }
+}
+
+/// What a batch binds besides its own buffers.
+struct BatchSource<'a> {
+    pool: &'a VolumePool,
+    multiple: &'a Buffer,
+    atlas: &'a ViewVolumeAtlas,
+}
+
+/// A batch of `members`: `previous` as it was when it binds the same, else its group made anew,
+/// its particles copied again only when they changed.
+fn make_batch(
+    device: &RenderDevice,
+    queue: &RenderQueue,
+    layout: &BindGroupLayout,
+    source: BatchSource,
+    mut members: Vec<Member>,
+    previous: Option<SplatBatch>,
+) -> SplatBatch {
+    let counts: Vec<u32> = members.iter().map(|m| m.cloud.particle_count).collect();
+    let (firsts, groups) = first_groups(&counts);
+    for (m, first) in members.iter_mut().zip(firsts) {
+        m.cloud.first_group = first;
+    }
+    let clouds: Vec<SplatCloud> = members.iter().map(|m| m.cloud).collect();
+    let particles_key = key_of(
+        (members.iter())
+            .map(|m| (m.particles.buffer.id(), m.particles.count))
+            .collect::<Vec<_>>(),
+    );
+    let BatchSource {
+        pool,
+        multiple,
+        atlas,
+    } = source;
+    let beam_phase = members[0].beam_phase;
+    let bound = key_of((
+        super::gpu::storage_bytes(&clouds),
+        particles_key,
+        [&pool.lights, &pool.optical_depth, multiple].map(|b| b.id()),
+        [&atlas.optical_depth, &atlas.volumes, &atlas.neighbours].map(|b| b.id()),
+        beam_phase.id(),
+    ));
+    let particles = match previous {
+        Some(batch) if batch.key == bound => return batch,
+        Some(batch) if batch.particles_key == particles_key => batch.particles,
+        _ => copy_particles(device, queue, &members, groups),
+    };
+    let clouds_buffer = storage_init(device, "particle_clouds_splat_clouds", &clouds);
+    let group = device.create_bind_group(
+        "particle_clouds_splat_batch_bind_group",
+        layout,
+        &BindGroupEntries::with_indices((
+            (0, clouds_buffer.as_entire_binding()),
+            (2, particles.as_entire_binding()),
+            (4, pool.lights.as_entire_binding()),
+            (5, pool.optical_depth.as_entire_binding()),
+            (6, multiple.as_entire_binding()),
+            (7, atlas.optical_depth.as_entire_binding()),
+            (8, atlas.volumes.as_entire_binding()),
+            (9, atlas.neighbours.as_entire_binding()),
+            (10, beam_phase.as_entire_binding()),
+        )),
+    );
+    SplatBatch {
+        key: bound,
+        particles_key,
+        particles,
+        _clouds: clouds_buffer,
+        group,
+        groups,
+        clouds: members.len() as u32,
     }
 }
 
