@@ -156,11 +156,10 @@ pub(crate) fn init_billboard_pipeline(mut commands: Commands, shaders: Res<Cloud
             ),
         ),
     );
-    // Also the splat's (`DrawMethod::Compute`, splat.rs).
     let view_transmittance_layout = BindGroupLayoutDescriptor::new(
         "particle_clouds_billboard_view_transmittance_layout",
         &BindGroupLayoutEntries::sequential(
-            ShaderStages::VERTEX_FRAGMENT | ShaderStages::COMPUTE,
+            ShaderStages::VERTEX_FRAGMENT,
             (
                 uniform(),
                 uniform(),
@@ -802,7 +801,7 @@ impl<P: PhaseItem, const I: usize> RenderCommand<P> for SetBillboardViewBindGrou
 }
 
 /// Each drawable cloud of `entities` as the draw binds it in `view`: its group 1 and its
-/// particle count (`draw_billboards`, and the splats of `DrawMethod::Compute`).
+/// particle count (`draw_billboards`).
 pub(crate) fn cloud_draws<'a>(
     entities: &[Entity],
     view: &RetainedViewEntity,
