@@ -1,0 +1,237 @@
+//! Section 3: single scattering, and the scattering source the multiple-scattering grid starts
+//! from, with its angular moments for an anisotropic medium.
+
+use std::f64::consts::PI;
+
+use bevy::math::DVec3;
+use rayon::prelude::*;
+
+use super::interpolation::unravel;
+use super::shade::LightVolume;
+use super::voxelize::DensityGrid;
+use crate::beam_phase::BeamPhase;
+use crate::math::henyey_greenstein;
+use crate::particle::DeltaEddington;
+
+/// Single scattering `S_1(p) = (1 / 4 pi) sum_l E_l exp(-tau_l(p))` at local point `p`, straight
+/// from the lights' volumes (each `(volume, irradiance E)`); units of `E` per steradian. The
+/// isotropic medium's, seen from any direction.
+pub fn single_scattering_at(lights: &[(LightVolume, DVec3)], p: DVec3) -> DVec3 {
+    lights.iter().fold(DVec3::ZERO, |acc, (vol, e)| {
+        acc + *e * vol.transmittance_at(p)
+    }) / (4.0 * PI)
+}
+
+/// Single scattering towards the camera at local point `p` of a medium of albedo `albedo` and
+/// anisotropy `g` (section 5): `S_1(p, w) = sum_l p_HG(g, d_l . (-w)) E_l (exp(-tau_l(p)) +
+/// (exp(-c tau_l(p)) - exp(-tau_l(p))) r)`, `w` the unit local direction of the view ray (from
+/// the camera), `d_l` the light's travel direction, `c` the δ-Eddington depth scale
+/// ([`DeltaEddington::depth_scale`]) and `r` the `beam` table's spread of the excess at
+/// `m = (1 - c) tau_l` (1 without a table). [`single_scattering_at`] for `g = 0`.
+pub fn single_scattering_towards(
+    lights: &[(LightVolume, DVec3)],
+    p: DVec3,
+    (albedo, g): (f64, f64),
+    ray: DVec3,
+    beam: Option<&BeamPhase>,
+) -> DVec3 {
+    let scale = DeltaEddington::new(albedo, g).depth_scale;
+    lights.iter().fold(DVec3::ZERO, |acc, (vol, e)| {
+        let cos = -vol.basis[2].dot(ray);
+        let phase = henyey_greenstein(g, cos);
+        let tau = vol.optical_depth_at(p);
+        let unscattered = (-tau).exp();
+        let excess = (-tau * scale).exp() - unscattered;
+        let spread = beam.map_or(1.0, |table| table.ratio(cos, tau * (1.0 - scale)));
+        acc + *e * ((unscattered + excess * spread) * phase)
+    })
+}
+
+/// The first angular moment of a radiance field at a voxel, `(1/4π) ∫ L ω dω`: one RGB per axis
+/// (x, y, z), in the units of `E` per steradian (contract section 4).
+pub type Flux = [DVec3; 3];
+
+/// The second angular moment of a radiance field at a voxel without its trace,
+/// `(1/4π) ∫ L (ω ω^T - I/3) dω`: the RGB of its `xx, yy, xy, xz, yz` entries (`zz = -xx - yy`).
+pub type Quadrupole = [DVec3; 5];
+
+/// The entries of [`Quadrupole`] for one unit direction `w`: `w w^T - I/3` at `xx, yy, xy, xz, yz`.
+pub fn quadrupole_basis(w: DVec3) -> [f64; 5] {
+    [
+        w.x * w.x - 1.0 / 3.0,
+        w.y * w.y - 1.0 / 3.0,
+        w.x * w.y,
+        w.x * w.z,
+        w.y * w.z,
+    ]
+}
+
+/// `w^T Q w` for unit `w`.
+pub(super) fn quadrupole_along(q: &Quadrupole, w: DVec3) -> DVec3 {
+    let zz = -(q[0] + q[1]);
+    q[0] * (w.x * w.x)
+        + q[1] * (w.y * w.y)
+        + zz * (w.z * w.z)
+        + (q[2] * (w.x * w.y) + q[3] * (w.x * w.z) + q[4] * (w.y * w.z)) * 2.0
+}
+
+/// `F . w` for unit `w`.
+pub(super) fn flux_along(f: &Flux, w: DVec3) -> DVec3 {
+    f[0] * w.x + f[1] * w.y + f[2] * w.z
+}
+
+/// A source or an order of the multiple scattering over the scattering grid (contract
+/// section 4): per voxel the mean radiance `(1/4π) ∫ L dω` (`S` of an isotropic medium) and, for
+/// an anisotropic medium, the [`Flux`]; `flux` is empty for an isotropic one.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Moments {
+    /// Mean radiance per voxel.
+    pub mean: Vec<DVec3>,
+    /// First angular moment per voxel; empty for an isotropic medium.
+    pub flux: Vec<Flux>,
+}
+
+impl Moments {
+    /// An isotropic source or order.
+    pub fn isotropic(mean: Vec<DVec3>) -> Self {
+        Self {
+            mean,
+            flux: Vec::new(),
+        }
+    }
+
+    /// `self + k other`, voxel by voxel.
+    pub(super) fn plus(&self, other: &Moments, k: DVec3) -> Moments {
+        Moments {
+            mean: zip_with(&self.mean, &other.mean, |a, b| *a + *b * k),
+            flux: zip_with(&self.flux, &other.flux, |a, b| {
+                std::array::from_fn(|i| a[i] + b[i] * k)
+            }),
+        }
+    }
+}
+
+pub(super) fn zip_with<T, U>(a: &[T], b: &[T], f: impl Fn(&T, &T) -> U) -> Vec<U> {
+    a.iter().zip(b).map(|(a, b)| f(a, b)).collect()
+}
+
+/// The multiple-scattering source `S_0` of every voxel of `grid` (contract section 3): the
+/// density-weighted mean of [`single_scattering_at`] over the centres of its `f³` children in
+/// `fine` (`f = fine.n / grid.n`), weighted by their density, or their plain mean where all of
+/// them are empty. Lights with zero irradiance may be left out.
+pub fn gather(
+    grid: &DensityGrid,
+    fine: &DensityGrid,
+    lights: &[(LightVolume, DVec3)],
+) -> Vec<DVec3> {
+    gather_source(grid, fine, lights, DeltaEddington::new(1.0, 0.0)).mean
+}
+
+/// [`gather`] for a medium of δ-Eddington transform `delta` (contract section 3): the lights'
+/// beams seen through `delta.depth_scale` of their optical depth, `E_l exp(-c tau_l) / 4π`, and,
+/// for an anisotropic medium, their flux `E_l exp(-c tau_l) d_l / 4π` (the moments of a
+/// collimated beam), density-weighted alike.
+pub fn gather_source(
+    grid: &DensityGrid,
+    fine: &DensityGrid,
+    lights: &[(LightVolume, DVec3)],
+    delta: DeltaEddington,
+) -> Moments {
+    let f = fine.n / grid.n;
+    let beams = |p: DVec3| {
+        lights
+            .iter()
+            .fold((DVec3::ZERO, [DVec3::ZERO; 3]), |(m, fl), (vol, e)| {
+                let t = *e * (-vol.optical_depth_at(p) * delta.depth_scale).exp() / (4.0 * PI);
+                let d = vol.basis[2];
+                (m + t, [fl[0] + t * d.x, fl[1] + t * d.y, fl[2] + t * d.z])
+            })
+    };
+    let voxels: Vec<(DVec3, Flux)> = (0..grid.len())
+        .into_par_iter()
+        .map(|idx| {
+            let (i, j, k) = unravel(idx, grid.n);
+            let (mut weighted, mut mass, mut plain) = (
+                (DVec3::ZERO, [DVec3::ZERO; 3]),
+                0.0,
+                (DVec3::ZERO, [DVec3::ZERO; 3]),
+            );
+            for child in 0..f * f * f {
+                let (a, b, c) = unravel(child, f);
+                let (fi, fj, fk) = (i * f + a, j * f + b, k * f + c);
+                let (m, fl) = beams(fine.voxel_centre(fi, fj, fk));
+                let rho = fine.rho[fine.index(fi, fj, fk)];
+                weighted.0 += m * rho;
+                plain.0 += m;
+                for ((w, p), f) in weighted.1.iter_mut().zip(&mut plain.1).zip(fl) {
+                    *w += f * rho;
+                    *p += f;
+                }
+                mass += rho;
+            }
+            let (sum, count) = if mass > 0.0 {
+                (weighted, mass)
+            } else {
+                (plain, (f * f * f) as f64)
+            };
+            (sum.0 / count, sum.1.map(|a| a / count))
+        })
+        .collect();
+    let (mean, flux) = voxels.into_iter().unzip();
+    Moments {
+        mean,
+        flux: if delta.anisotropy != 0.0 {
+            flux
+        } else {
+            Vec::new()
+        },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::reference::illumination::test_support::*;
+    use crate::reference::illumination::{shade, voxelize};
+
+    #[test]
+    fn gather_weights_the_children_by_their_density() {
+        let particles = random_cloud(20, 17);
+        let fine = voxelize(&particles, 16).unwrap();
+        let vol = shade(
+            &fine,
+            &inputs(3.0, 0.9, 0.0, 16),
+            DVec3::new(0.3, -1.0, 0.2),
+        );
+        let lights = [(vol, DVec3::new(1.0, 2.0, 3.0))];
+        // Without supersampling the source is S_1 at the voxel centre.
+        let same = gather(&fine, &fine, &lights);
+        for idx in [0, 100, 3000] {
+            let x = fine.voxel_centre_linear(idx);
+            assert!((same[idx] - single_scattering_at(&lights, x)).length() < 1e-15);
+        }
+        // With f = 2, each child's S_1 weighted by its density.
+        let grid = fine.downsample(2);
+        let source = gather(&grid, &fine, &lights);
+        let (mut checked, mut differs) = (0, false);
+        for (idx, source) in source.iter().enumerate() {
+            let (i, j, k) = unravel(idx, grid.n);
+            let (mut weighted, mut mass) = (DVec3::ZERO, 0.0);
+            for c in 0..8 {
+                let (a, b, cc) = unravel(c, 2);
+                let (fi, fj, fk) = (2 * i + a, 2 * j + b, 2 * k + cc);
+                let rho = fine.rho[fine.index(fi, fj, fk)];
+                weighted += single_scattering_at(&lights, fine.voxel_centre(fi, fj, fk)) * rho;
+                mass += rho;
+            }
+            if mass > 0.0 {
+                let expected = weighted / mass;
+                assert!((*source - expected).length() < 1e-12 * expected.length().max(1e-300));
+                let centre = single_scattering_at(&lights, grid.voxel_centre_linear(idx));
+                differs |= (*source - centre).length() > 1e-3 * centre.length();
+                checked += 1;
+            }
+        }
+        assert!(checked > 50 && differs, "{checked} voxels with density");
+    }
+}

@@ -1,0 +1,695 @@
+//! Every stage for one cloud, several clouds or a scene, and section 5: the illumination at a
+//! shading point.
+
+use bevy::math::{DQuat, DVec3};
+use rayon::prelude::*;
+
+use super::gather::{
+    Moments, flux_along, gather_source, quadrupole_along, single_scattering_towards,
+};
+use super::interpolation::unravel;
+use super::scatter::{Boundary, MultipleScattering, SweptMedium, scatter_through};
+use super::shade::{LightVolume, ShadeInputs, shade};
+use super::voxelize::{DensityGrid, voxelize};
+use crate::beam_phase::BeamPhase;
+use crate::ground::CloudGround;
+use crate::particle::{DeltaEddington, LightSample, Medium, Particle};
+use crate::reference::composite::CloudPlacement;
+use crate::reference::ground::GroundLight;
+use crate::settings::{CloudQualitySettings, Compositing};
+
+/// A directional light in the cloud's local space.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LocalLight {
+    /// Direction the light travels, local space; any non-zero length.
+    pub direction: DVec3,
+    /// Linear RGB irradiance `E` perpendicular to the direction.
+    pub irradiance: DVec3,
+}
+
+impl LocalLight {
+    /// The local light of a world light for a cloud with rotation `rotation`: direction
+    /// `normalize(R^-1 d)` (zero if `d` is zero), irradiance unchanged.
+    pub fn from_world(light: &LightSample, rotation: DQuat) -> Self {
+        Self {
+            direction: (rotation.inverse() * light.direction.as_dvec3()).normalize_or_zero(),
+            irradiance: light.irradiance.as_dvec3(),
+        }
+    }
+}
+
+/// Everything [`illuminate`] computed for one cloud.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CloudIllumination {
+    /// The scattering grid's density (section 1), `volume_resolution` voxels per side.
+    pub grid: DensityGrid,
+    /// The fine density grid the lights are shaded through (section 1), `light_resolution()`
+    /// voxels per side.
+    pub fine: DensityGrid,
+    /// Local extinction `K_local = K s` used, 1/local metre.
+    pub k_local: f64,
+    /// The medium's albedo used.
+    pub albedo: f64,
+    /// The medium's Henyey–Greenstein `g`.
+    pub anisotropy: f64,
+    /// Each shaded light's volume with its irradiance (section 2), in input order, with the
+    /// shadows of the clouds illuminated with it; lights with zero irradiance or zero direction
+    /// are left out.
+    pub lights: Vec<(LightVolume, DVec3)>,
+    /// The same light volumes before other clouds' shadows: the cloud's own optical depth, what
+    /// it casts on others and on the shadow maps.
+    pub own_lights: Vec<LightVolume>,
+    /// The multiple-scattering source `S_0` per voxel (section 3): its mean, and its flux for
+    /// an anisotropic medium.
+    pub source: Moments,
+    /// Multiple scattering per voxel (section 4).
+    pub multiple: MultipleScattering,
+    /// How the camera sees the δ-Eddington beam's excess (section 5); `None` for a medium the
+    /// transform does not truncate.
+    pub beam: Option<BeamPhase>,
+}
+
+/// [`illuminate_under_sky`] under a black sky.
+pub fn illuminate(
+    particles: &[Particle],
+    medium: &Medium,
+    scale: f64,
+    lights_local: &[LocalLight],
+    settings: &CloudQualitySettings,
+) -> Option<CloudIllumination> {
+    illuminate_under_sky(
+        particles,
+        medium,
+        scale,
+        lights_local,
+        DVec3::ZERO,
+        settings,
+    )
+}
+
+/// Runs every stage of the contract for one cloud, under a uniform sky of radiance `sky` (linear
+/// RGB, the units of `E` per steradian; section 4).
+///
+/// `scale`: the cloud's uniform world scale `s > 0` (so `K_local = medium.extinction * s`);
+/// `lights_local`: directions already in local space (see [`LocalLight::from_world`]). Lights with
+/// zero irradiance, or a zero / non-finite direction, are skipped. Returns `None` when no particle
+/// has `density > 0`. With no lights everything is zero; with zero extinction `T = 1` everywhere.
+pub fn illuminate_under_sky(
+    particles: &[Particle],
+    medium: &Medium,
+    scale: f64,
+    lights_local: &[LocalLight],
+    sky: DVec3,
+    settings: &CloudQualitySettings,
+) -> Option<CloudIllumination> {
+    shade_cloud(particles, medium, scale, lights_local, settings)
+        .map(|shaded| shaded.finish((sky, None), settings, None))
+}
+
+/// One of several clouds illuminated together ([`illuminate_clouds_under_sky`]).
+#[derive(Clone, Copy)]
+pub struct PlacedCloud<'a> {
+    /// Particles in cloud-local space.
+    pub particles: &'a [Particle],
+    /// The cloud's medium.
+    pub medium: Medium,
+    /// Its transform: lights are taken to its local space, and other clouds' points too.
+    pub placement: CloudPlacement,
+    /// Its quality knobs (clouds may differ, as in a game).
+    pub settings: CloudQualitySettings,
+}
+
+/// Runs every stage of the contract for clouds that shadow each other, under the world `lights`
+/// and a uniform sky `sky`, each cloud at its own settings: each cloud's light volumes take,
+/// beside its own optical depth, the optical depth every other cloud casts on it (section 2,
+/// [`LightVolume::cast_depth_at`]), before its single and multiple scattering are gathered and
+/// scattered. One entry per cloud, `None` for a cloud without density. A cloud alone is
+/// [`illuminate_under_sky`] exactly.
+pub fn illuminate_clouds_under_sky(
+    clouds: &[PlacedCloud],
+    lights: &[LightSample],
+    sky: DVec3,
+) -> Vec<Option<CloudIllumination>> {
+    illuminate_clouds_over_ground(clouds, lights, sky, None)
+}
+
+/// [`illuminate_clouds_under_sky`] over `ground` (section 4, "The ground"): each cloud's
+/// multiple scattering takes the ground's radiance in on the lattice lines that climb into its
+/// grid ([`GroundLight`], from its light volumes once the other clouds' shadows are in them),
+/// the sky's on the others. `None`: no ground, the sky's from every side.
+pub fn illuminate_clouds_over_ground(
+    clouds: &[PlacedCloud],
+    lights: &[LightSample],
+    sky: DVec3,
+    ground: Option<&CloudGround>,
+) -> Vec<Option<CloudIllumination>> {
+    let mut shaded: Vec<Option<ShadedCloud>> = clouds
+        .iter()
+        .map(|cloud| {
+            let rotation = cloud.placement.rotation;
+            let local: Vec<LocalLight> = lights
+                .iter()
+                .map(|l| LocalLight::from_world(l, rotation))
+                .collect();
+            let scale = cloud.placement.scale;
+            shade_cloud(
+                cloud.particles,
+                &cloud.medium,
+                scale,
+                &local,
+                &cloud.settings,
+            )
+        })
+        .collect();
+    let placements: Vec<CloudPlacement> = clouds.iter().map(|c| c.placement).collect();
+    cast_shadows(&mut shaded, &placements);
+    let foreign = foreign_media(&shaded, &placements);
+    shaded
+        .into_iter()
+        .zip(clouds)
+        .zip(&foreign)
+        .map(|((s, cloud), foreign)| {
+            let boundary = (sky, ground.map(|g| (g, cloud.placement)));
+            s.map(|s| s.finish(boundary, &cloud.settings, foreign.as_deref()))
+        })
+        .collect()
+}
+
+/// Adds to every cloud's light volumes the optical depth the other clouds cast on it (contract
+/// section 2): at each voxel centre `p` of cloud `a`'s volume of light `l`,
+/// `tau += sum_b cast_b,l(p)` over the other clouds `b`, with [`LightVolume::cast_depth_at`] of
+/// `b`'s *own* volume of light `l` at `p` taken to `b`'s local space. Optical depths add along a
+/// line, so this is the optical depth of all the clouds, each sampled on its own light box. The
+/// clouds' light lists must match (the same lights in the same order), as the scene's lights do.
+fn cast_shadows(clouds: &mut [Option<ShadedCloud>], placements: &[CloudPlacement]) {
+    let own: Vec<Option<Vec<LightVolume>>> = clouds
+        .iter()
+        .map(|c| c.as_ref().map(|c| c.own.clone()))
+        .collect();
+    for (a, cloud) in clouds.iter_mut().enumerate() {
+        let Some(cloud) = cloud else { continue };
+        for (l, (volume, _)) in cloud.lights.iter_mut().enumerate() {
+            let casters: Vec<(&LightVolume, &CloudPlacement)> = own
+                .iter()
+                .zip(placements)
+                .enumerate()
+                .filter(|&(b, _)| b != a)
+                .filter_map(|(_, (volumes, placement))| {
+                    Some((volumes.as_ref()?.get(l)?, placement))
+                })
+                .collect();
+            if casters.is_empty() {
+                continue;
+            }
+            let receiver = own[a].as_ref().map(|v| &v[l]).expect("a shaded cloud");
+            let n = receiver.n;
+            volume
+                .optical_depth
+                .par_iter_mut()
+                .enumerate()
+                .for_each(|(idx, tau)| {
+                    let (i, j, k) = unravel(idx, n);
+                    let world = placements[a].world_point(receiver.voxel_centre(i, j, k));
+                    *tau += casters
+                        .iter()
+                        .map(|(v, placement)| v.cast_depth_at(placement.local_point(world)))
+                        .sum::<f64>();
+                });
+        }
+    }
+}
+
+/// Per voxel of every cloud's scattering grid, the other clouds' media there (section 4,
+/// "Clouds that overlap"): at the voxel's centre, `sum_c c_c K_c rho_c / K` and
+/// `sum_c c_c albedo'_c K_c rho_c / K`, `rho_c` trilinear in cloud `c`'s scattering grid (zero
+/// outside it), `K` the world extinctions and `c_c`, `albedo'_c` cloud `c`'s δ-Eddington
+/// transform (1 and its albedo for an isotropic medium). `None` for a cloud no other cloud's
+/// medium reaches.
+fn foreign_media(
+    clouds: &[Option<ShadedCloud>],
+    placements: &[CloudPlacement],
+) -> Vec<Option<Vec<[f64; 2]>>> {
+    let world_extinction = |c: &ShadedCloud, p: &CloudPlacement| c.inputs.k_local / p.scale;
+    clouds
+        .iter()
+        .zip(placements)
+        .enumerate()
+        .map(|(a, (cloud, placement))| {
+            let cloud = cloud.as_ref()?;
+            let extinction = world_extinction(cloud, placement);
+            if extinction <= 0.0 {
+                return None;
+            }
+            let others: Vec<(&ShadedCloud, &CloudPlacement)> = clouds
+                .iter()
+                .zip(placements)
+                .enumerate()
+                .filter(|&(b, _)| b != a)
+                .filter_map(|(_, (c, p))| Some((c.as_ref()?, p)))
+                .collect();
+            let media: Vec<[f64; 2]> = (0..cloud.grid.len())
+                .into_par_iter()
+                .map(|i| {
+                    let world = placement.world_point(cloud.grid.voxel_centre_linear(i));
+                    others.iter().fold([0.0; 2], |[t, s], (c, p)| {
+                        let delta = c.delta();
+                        let sigma = delta.depth_scale * world_extinction(c, p) / extinction
+                            * c.grid.sample(p.local_point(world));
+                        [t + sigma, s + delta.albedo * sigma]
+                    })
+                })
+                .collect();
+            media.iter().any(|m| m[0] > 0.0).then_some(media)
+        })
+        .collect()
+}
+
+/// A cloud's density grids and light volumes (sections 1 and 2), before the other clouds cast
+/// their shadows on it and its scattering is gathered.
+struct ShadedCloud {
+    fine: DensityGrid,
+    grid: DensityGrid,
+    inputs: ShadeInputs,
+    anisotropy: f64,
+    lights: Vec<(LightVolume, DVec3)>,
+    /// The light volumes before other clouds' shadows.
+    own: Vec<LightVolume>,
+}
+
+/// Sections 1 and 2 for one cloud (see [`illuminate_under_sky`] for the arguments).
+fn shade_cloud(
+    particles: &[Particle],
+    medium: &Medium,
+    scale: f64,
+    lights_local: &[LocalLight],
+    settings: &CloudQualitySettings,
+) -> Option<ShadedCloud> {
+    let fine = voxelize(particles, settings.light_resolution() as usize)?;
+    let grid = fine.downsample(settings.supersampling() as usize);
+    let inputs = ShadeInputs {
+        k_local: medium.extinction as f64 * scale,
+        albedo: medium.albedo as f64,
+        forward_scattering: settings.forward_scattering as f64,
+        resolution: settings.light_resolution() as usize,
+    };
+    let lights: Vec<(LightVolume, DVec3)> = lights_local
+        .iter()
+        .filter(|l| l.irradiance != DVec3::ZERO && l.direction.try_normalize().is_some())
+        .map(|l| (shade(&fine, &inputs, l.direction), l.irradiance))
+        .collect();
+    Some(ShadedCloud {
+        fine,
+        grid,
+        inputs,
+        anisotropy: medium.anisotropy as f64,
+        own: lights.iter().map(|(v, _)| v.clone()).collect(),
+        lights,
+    })
+}
+
+impl ShadedCloud {
+    /// The δ-Eddington transform of its medium.
+    pub(super) fn delta(&self) -> DeltaEddington {
+        DeltaEddington::new(self.inputs.albedo, self.anisotropy)
+    }
+
+    /// Sections 3 and 4: the source gathered from the light volumes, and its multiple scattering
+    /// under the sky `sky` and, with a ground, over it (the cloud placed by the placement given),
+    /// and with `foreign`, other clouds' media in the scattering grid (section 4).
+    fn finish(
+        self,
+        (sky, ground): (DVec3, Option<(&CloudGround, CloudPlacement)>),
+        settings: &CloudQualitySettings,
+        foreign: Option<&[[f64; 2]]>,
+    ) -> CloudIllumination {
+        let ground = ground
+            .map(|(g, placement)| GroundLight::new(g, placement, &self.grid, &self.lights, sky));
+        let boundary = Boundary {
+            sky,
+            ground: ground.as_ref(),
+        };
+        let delta = self.delta();
+        let source = gather_source(&self.grid, &self.fine, &self.lights, delta);
+        let medium = SweptMedium {
+            grid: &self.grid,
+            k_local: self.inputs.k_local,
+            albedo: self.inputs.albedo,
+            delta,
+            foreign,
+        };
+        let stencil = settings.scatter_stencil;
+        let iterations = settings.scatter_iterations;
+        let multiple = scatter_through(medium, stencil, &source, boundary, iterations);
+        CloudIllumination {
+            grid: self.grid,
+            fine: self.fine,
+            k_local: self.inputs.k_local,
+            albedo: self.inputs.albedo,
+            anisotropy: self.anisotropy,
+            lights: self.lights,
+            own_lights: self.own,
+            source,
+            multiple,
+            beam: BeamPhase::new(self.anisotropy),
+        }
+    }
+}
+
+/// Cloud `index` of `scene` as [`illuminate_clouds_under_sky`] illuminates it among the scene's
+/// other clouds (their shadows included), with the scene's lights and its background as the sky.
+/// Scene clouds are translated only, so local and world directions agree.
+pub fn illuminate_scene_cloud(
+    scene: &crate::scene::Scene,
+    index: usize,
+    settings: &CloudQualitySettings,
+) -> Option<CloudIllumination> {
+    illuminate_scene(scene, settings).swap_remove(index)
+}
+
+/// Every cloud of `scene`, illuminated together ([`illuminate_clouds_over_ground`]), with the
+/// scene's lights, its background as the sky and its ground ([`Scene::cloud_ground`](crate::scene::Scene::cloud_ground)).
+pub fn illuminate_scene(
+    scene: &crate::scene::Scene,
+    settings: &CloudQualitySettings,
+) -> Vec<Option<CloudIllumination>> {
+    let clouds: Vec<PlacedCloud> = scene
+        .clouds
+        .iter()
+        .map(|c| PlacedCloud {
+            particles: &c.particles,
+            medium: c.medium,
+            placement: CloudPlacement::at(c.translation.as_dvec3()),
+            settings: *settings,
+        })
+        .collect();
+    let sky = scene.background.as_dvec3();
+    let ground = scene.cloud_ground();
+    illuminate_clouds_over_ground(&clouds, &scene.lights, sky, ground.as_ref())
+}
+
+impl CloudIllumination {
+    /// What a particle scatters towards the camera at local point `p` along the view ray's unit
+    /// local direction `ray` (section 5): `albedo (S_1(p, ray) + S_m(p))`, `S_1` from the light
+    /// volumes with the phase function towards the camera and `S_m` the multiple scattering,
+    /// trilinear and clamped to the edge. Radiance in the units of `E`.
+    pub fn scattered_at(&self, p: DVec3, ray: DVec3) -> DVec3 {
+        let medium = (self.albedo, self.anisotropy);
+        let single = single_scattering_towards(&self.lights, p, medium, ray, self.beam.as_ref());
+        (single + self.multiple_towards(p, -ray)) * self.albedo
+    }
+
+    /// The multiple scattering at local point `p` scattered towards the unit direction `w`
+    /// (section 5): `S_m(p)`, and for an anisotropic medium the Henyey–Greenstein phase function
+    /// applied to its first three angular moments,
+    /// `max(mean + 3 g F . w + (15/2) g² w^T Q w, 0)`; all trilinear and clamped to the edge.
+    pub fn multiple_towards(&self, p: DVec3, w: DVec3) -> DVec3 {
+        let m = &self.multiple;
+        let mean = self.grid.sample_clamped(&m.total, p);
+        if m.flux.is_empty() {
+            return mean;
+        }
+        let g = self.anisotropy;
+        let flux = self.grid.sample_clamped_array(&m.flux, p);
+        let quadrupole = self.grid.sample_clamped_array(&m.quadrupole, p);
+        (mean + flux_along(&flux, w) * (3.0 * g) + quadrupole_along(&quadrupole, w) * (7.5 * g * g))
+            .max(DVec3::ZERO)
+    }
+
+    /// `S_m` of every voxel of the scattering grid scattered towards a camera at local point
+    /// `camera` (section 5, "An anisotropic cloud seen from the camera"):
+    /// [`multiple_towards`](Self::multiple_towards) at the voxel's centre, towards the camera
+    /// (the mean alone where the camera is at the centre). `None` for an isotropic medium, whose
+    /// `S_m` is the same in every direction.
+    pub fn multiple_seen_from(&self, camera: DVec3) -> Option<Vec<DVec3>> {
+        if self.multiple.flux.is_empty() {
+            return None;
+        }
+        let seen = (0..self.multiple.total.len()).into_par_iter().map(|i| {
+            let centre = self.grid.voxel_centre_linear(i);
+            self.multiple_towards(centre, (camera - centre).normalize_or_zero())
+        });
+        Some(seen.collect())
+    }
+
+    /// What the billboards of this cloud see from a camera at local point `camera` with
+    /// `compositing`: through the view transmittance, an anisotropic cloud's `S_m` comes from
+    /// [`multiple_seen_from`](Self::multiple_seen_from), as on the GPU; otherwise the light is
+    /// [`scattered_at`](Self::scattered_at).
+    pub fn seen_from(&self, camera: DVec3, compositing: Compositing) -> SeenIllumination<'_> {
+        let seen = match compositing {
+            Compositing::ViewTransmittance => self.multiple_seen_from(camera),
+            Compositing::Sorted => None,
+        };
+        SeenIllumination {
+            illumination: self,
+            multiple: seen,
+        }
+    }
+}
+
+/// A cloud's illumination as the billboards of one camera see it
+/// ([`CloudIllumination::seen_from`]).
+pub struct SeenIllumination<'a> {
+    illumination: &'a CloudIllumination,
+    /// `S_m` per voxel towards the camera, where the billboards read it from a volume.
+    multiple: Option<Vec<DVec3>>,
+}
+
+impl SeenIllumination<'_> {
+    /// [`CloudIllumination::scattered_at`], with `S_m` trilinear in the volume seen from the
+    /// camera where there is one.
+    pub fn scattered_at(&self, p: DVec3, ray: DVec3) -> DVec3 {
+        let ill = self.illumination;
+        let Some(multiple) = &self.multiple else {
+            return ill.scattered_at(p, ray);
+        };
+        let medium = (ill.albedo, ill.anisotropy);
+        let single = single_scattering_towards(&ill.lights, p, medium, ray, ill.beam.as_ref());
+        (single + ill.grid.sample_clamped(multiple, p)) * ill.albedo
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::reference::illumination::{scatter, single_scattering_at};
+    use std::f64::consts::PI;
+
+    use crate::math::henyey_greenstein;
+    use crate::reference::illumination::test_support::*;
+    use bevy::math::Vec3;
+
+    #[test]
+    fn zero_extinction_gives_unattenuated_light_everywhere() {
+        let particles = random_cloud(20, 5);
+        let medium = Medium {
+            extinction: 0.0,
+            albedo: 0.8,
+            ..Default::default()
+        };
+        let lights = [
+            LocalLight {
+                direction: DVec3::new(0.0, -1.0, 0.0),
+                irradiance: DVec3::new(2.0, 3.0, 4.0),
+            },
+            LocalLight {
+                direction: DVec3::new(1.0, -1.0, 0.5),
+                irradiance: DVec3::new(1.0, 0.0, 0.5),
+            },
+            LocalLight {
+                direction: DVec3::X,
+                irradiance: DVec3::ZERO,
+            },
+            LocalLight {
+                direction: DVec3::ZERO,
+                irradiance: DVec3::ONE,
+            },
+        ];
+        let settings = CloudQualitySettings {
+            volume_resolution: 8,
+            light_supersampling: 2,
+            ..Default::default()
+        };
+        let ill = illuminate(&particles, &medium, 2.0, &lights, &settings).unwrap();
+        assert_eq!(
+            ill.lights.len(),
+            2,
+            "zero irradiance and zero direction lights are skipped"
+        );
+        for (vol, _) in &ill.lights {
+            assert_eq!(vol.n, 16);
+            assert!(vol.optical_depth.iter().all(|&t| t == 0.0));
+        }
+        let expected = DVec3::new(3.0, 3.0, 4.5) / (4.0 * PI);
+        for s in &ill.source.mean {
+            assert!((*s - expected).length() < 1e-15);
+        }
+        // Nothing scatters twice in a medium that does not interact.
+        assert!(ill.multiple.total.iter().all(|m| *m == DVec3::ZERO));
+        for idx in [0, 77, 511] {
+            let x = ill.grid.voxel_centre_linear(idx);
+            assert!((ill.scattered_at(x, DVec3::Z) - expected * ill.albedo).length() < 1e-15);
+        }
+    }
+
+    #[test]
+    fn illuminate_is_well_defined_without_lights_or_particles() {
+        let settings = CloudQualitySettings {
+            volume_resolution: 6,
+            ..Default::default()
+        };
+        let medium = Medium::default();
+        assert!(illuminate(&[], &medium, 1.0, &[], &settings).is_none());
+        let particles = random_cloud(5, 1);
+        let ill = illuminate(&particles, &medium, 1.0, &[], &settings).unwrap();
+        assert!(ill.lights.is_empty());
+        assert!(ill.multiple.total.iter().all(|a| *a == DVec3::ZERO));
+        assert_eq!(ill.scattered_at(DVec3::ZERO, DVec3::Z), DVec3::ZERO);
+    }
+
+    #[test]
+    fn transmittance_at_centre_of_particle_matches_half_chord() {
+        // tau at the centre of one particle lit from an oblique direction ~ K eta r 8/15.
+        let p = particle(0.0, 0.0, 0.0, 1.0, 1.0);
+        let grid = voxelize(&[p], 64).unwrap();
+        let k = 2.0;
+        let vol = shade(&grid, &inputs(k, 1.0, 0.0, 64), DVec3::new(0.4, -1.0, 0.3));
+        let tau = vol.optical_depth_at(DVec3::ZERO);
+        let expected = k * 8.0 / 15.0;
+        assert!(
+            (tau - expected).abs() < 0.01 * expected,
+            "tau {tau} vs {expected}"
+        );
+    }
+
+    #[test]
+    fn scattered_light_is_albedo_times_single_plus_multiple() {
+        let particles = random_cloud(10, 9);
+        let medium = Medium {
+            extinction: 5.0,
+            albedo: 0.7,
+            ..Default::default()
+        };
+        let settings = CloudQualitySettings {
+            volume_resolution: 8,
+            scatter_iterations: 4,
+            ..Default::default()
+        };
+        let light = LocalLight::from_world(
+            &LightSample {
+                direction: Vec3::new(0.0, -2.0, 0.0),
+                irradiance: Vec3::ONE,
+            },
+            DQuat::from_rotation_z(0.3),
+        );
+        assert!((light.direction.length() - 1.0).abs() < 1e-12);
+        let ill = illuminate(&particles, &medium, 1.5, &[light], &settings).unwrap();
+        assert_eq!(ill.k_local, 7.5);
+        // At a voxel centre the multiple part is that voxel's value.
+        let idx = ill.grid.index(3, 4, 5);
+        let x = ill.grid.voxel_centre(3, 4, 5);
+        let expected =
+            (single_scattering_at(&ill.lights, x) + ill.multiple.total[idx]) * ill.albedo;
+        assert!((ill.scattered_at(x, DVec3::X) - expected).length() < 1e-12 * expected.length());
+        assert!(
+            ill.multiple
+                .total
+                .iter()
+                .all(|a| a.is_finite() && a.min_element() >= 0.0)
+        );
+    }
+
+    /// A Henyey–Greenstein medium: single scattering takes the phase function towards the
+    /// camera (forward: the camera looks into the light) and sees the optical depths through the
+    /// δ-Eddington depth scale `1 - albedo g²`; the multiple scattering is seen through the phase
+    /// function's first three moments. `g = 0` is the isotropic medium exactly.
+    #[test]
+    fn anisotropic_medium_sees_single_and_multiple_scattering_with_its_phase_function() {
+        let particles = random_cloud(12, 4);
+        let medium = Medium {
+            extinction: 6.0,
+            albedo: 0.9,
+            anisotropy: 0.7,
+        };
+        let settings = CloudQualitySettings {
+            volume_resolution: 8,
+            scatter_iterations: 5,
+            ..Default::default()
+        };
+        let light = LocalLight {
+            direction: DVec3::new(0.3, -1.0, 0.2).normalize(),
+            irradiance: DVec3::new(1.0, 0.9, 0.8),
+        };
+        let ill = illuminate(&particles, &medium, 1.0, &[light], &settings).unwrap();
+        let x = ill.grid.voxel_centre(4, 3, 4);
+        let scale = DeltaEddington::new(ill.albedo, ill.anisotropy).depth_scale;
+        assert!((scale - (1.0 - 0.9 * 0.49)).abs() < 1e-6);
+        let (vol, e) = &ill.lights[0];
+        let tau = vol.optical_depth_at(x);
+        let table = ill.beam.as_ref().expect("g > 0 truncates the peak");
+        // The beam that never scattered, and its excess spread by the peak scatterings.
+        let beam = |cos| {
+            let excess = (-tau * scale).exp() - (-tau).exp();
+            *e * ((-tau).exp() + excess * table.ratio(cos, tau * (1.0 - scale)))
+        };
+        let m = &ill.multiple;
+        let (mean, flux, quadrupole) = (
+            ill.grid.sample_clamped(&m.total, x),
+            ill.grid.sample_clamped_array(&m.flux, x),
+            ill.grid.sample_clamped_array(&m.quadrupole, x),
+        );
+        for (ray, cos) in [(-light.direction, 1.0), (light.direction, -1.0)] {
+            let (w, g) = (-ray, ill.anisotropy);
+            let seen = (mean
+                + flux_along(&flux, w) * (3.0 * g)
+                + quadrupole_along(&quadrupole, w) * (7.5 * g * g))
+                .max(DVec3::ZERO);
+            assert_eq!(ill.multiple_towards(x, w), seen);
+            let expected = (beam(cos) * henyey_greenstein(ill.anisotropy, cos) + seen) * ill.albedo;
+            let got = ill.scattered_at(x, ray);
+            assert!(
+                (got - expected).length() < 1e-12 * expected.length(),
+                "cos {cos}: {got} against {expected}"
+            );
+        }
+        // The multiply scattered light flows on with the light: more of it is seen looking into
+        // the light than from where it comes.
+        assert!(
+            ill.multiple_towards(x, light.direction).x
+                > ill.multiple_towards(x, -light.direction).x
+        );
+        assert!(
+            ill.scattered_at(x, -light.direction).x > 10.0 * ill.scattered_at(x, light.direction).x
+        );
+        let isotropic = Medium {
+            anisotropy: 0.0,
+            ..medium
+        };
+        let iso = illuminate(&particles, &isotropic, 1.0, &[light], &settings).unwrap();
+        assert!(iso.source.flux.is_empty() && iso.multiple.flux.is_empty());
+        assert!(iso.multiple.quadrupole.is_empty() && iso.beam.is_none());
+        let plain = scatter(
+            &iso.grid,
+            iso.k_local,
+            iso.albedo,
+            settings.scatter_stencil,
+            &iso.source.mean,
+            5,
+        );
+        assert_eq!(iso.multiple, plain);
+        for ray in [DVec3::X, -light.direction] {
+            let expected = (single_scattering_at(&iso.lights, x)
+                + iso.grid.sample_clamped(&iso.multiple.total, x))
+                * iso.albedo;
+            assert!((iso.scattered_at(x, ray) - expected).length() < 1e-15 * expected.length());
+        }
+        assert_eq!(
+            DeltaEddington::new(0.9, 0.0),
+            DeltaEddington {
+                depth_scale: 1.0,
+                albedo: 0.9,
+                anisotropy: 0.0
+            }
+        );
+    }
+}
