@@ -1,5 +1,5 @@
 //! Accuracy against ground truth, on the CPU: the real-time discretization (its f64 reference,
-//! which the GPU passes match within 2e-4 of the maximum: tests/illumination.rs, tests/draw.rs)
+//! which the GPU passes match within 2e-4 of the maximum: tests/gpu/illumination.rs, tests/gpu/draw.rs)
 //! against the path tracer, on a small thick cloud lit from the side.
 //!
 //! A forward-scattering cloud lit from behind glows at its edges as the path tracer says; lit
