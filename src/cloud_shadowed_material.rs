@@ -53,7 +53,8 @@ pub type CloudShadowedMaterial = ExtendedMaterial<StandardMaterial, CloudShadowR
 /// The extension that makes a `StandardMaterial` take the clouds' shadows. Its fields are written
 /// by [`LitObjectPlugin`](crate::lit_object::LitObjectPlugin) every frame they change; create it
 /// with `default()`.
-#[derive(Asset, AsBindGroup, Clone, Debug, Default, TypePath)]
+#[derive(Asset, AsBindGroup, Clone, Debug, Default, Reflect)]
+#[reflect(Clone, Debug, Default)]
 pub struct CloudShadowReceiver {
     /// The cloud-lighting lights and their maps' placements (written by the plugin).
     #[uniform(100)]

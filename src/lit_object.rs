@@ -32,7 +32,8 @@ pub const MAX_LIT_OBJECT_LIGHTS: usize = 8;
 /// times the irradiance of the cloud-lighting lights (through the cloud shadow maps) and of the
 /// sky (through the sky map, as an upward-facing surface on its plane would take it). The plugin
 /// keeps its lights up to date every frame.
-#[derive(Asset, AsBindGroup, Clone, Debug, TypePath)]
+#[derive(Asset, AsBindGroup, Clone, Debug, Reflect)]
+#[reflect(Clone, Debug)]
 pub struct LitObjectMaterial {
     /// What it emits and reflects.
     #[uniform(0)]
@@ -46,7 +47,8 @@ pub struct LitObjectMaterial {
 }
 
 /// Mirror of `LitSurface` in `lit_object.wgsl`.
-#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
+#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq, Reflect)]
+#[reflect(Clone, Debug, Default, PartialEq)]
 pub struct LitSurface {
     /// Linear RGB radiance emitted.
     pub color: Vec3,
@@ -55,7 +57,8 @@ pub struct LitSurface {
 }
 
 /// Mirror of `LitLight` in `cloud_shadow_maps.wgsl`: one directional light and its shadow map.
-#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
+#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq, Reflect)]
+#[reflect(Clone, Debug, Default, PartialEq)]
 pub struct LitLight {
     /// Unit direction towards the light.
     pub to_light: Vec3,
@@ -70,7 +73,8 @@ pub struct LitLight {
 /// Mirror of `LitObjectLights` in `cloud_shadow_maps.wgsl`: what a surface under the clouds
 /// takes of them (bound at 100, the maps at 101, in [`LitObjectMaterial`] and
 /// [`CloudShadowReceiver`]).
-#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
+#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq, Reflect)]
+#[reflect(Clone, Debug, Default, PartialEq)]
 pub struct LitObjectLights {
     /// Linear RGB radiance of the sky.
     pub sky: Vec3,
@@ -102,6 +106,8 @@ impl Plugin for LitObjectPlugin {
             MaterialPlugin::<LitObjectMaterial>::default(),
             MaterialPlugin::<CloudShadowedMaterial>::default(),
         ))
+        .register_asset_reflect::<LitObjectMaterial>()
+        .register_asset_reflect::<CloudShadowedMaterial>()
         .add_systems(
             PostUpdate,
             (
@@ -248,5 +254,33 @@ mod tests {
                 ])
             )
         );
+    }
+
+    /// The material and what it holds reflect (inspectors and scenes edit them by path), and the
+    /// reflected clone is the material.
+    #[test]
+    fn the_material_reflects_by_path() {
+        use bevy::reflect::GetPath;
+        let mut material = LitObjectMaterial {
+            surface: LitSurface {
+                color: Vec3::ZERO,
+                reflectance: Vec3::new(0.25, 0.5, 0.75),
+            },
+            lights: LitObjectLights::default(),
+            shadow_maps: Handle::default(),
+        };
+        *material
+            .path_mut::<f32>("surface.reflectance.y")
+            .expect("a reflected field") = 0.375;
+        material.lights.lights[2].map.size = 7;
+        assert_eq!(material.surface.reflectance, Vec3::new(0.25, 0.375, 0.75));
+        assert_eq!(
+            *material.path::<u32>("lights.lights[2].map.size").unwrap(),
+            7
+        );
+        let clone = material.reflect_clone().expect("a clonable material");
+        let clone = clone.take::<LitObjectMaterial>().expect("the same type");
+        assert_eq!(clone.surface, material.surface);
+        assert_eq!(clone.lights, material.lights);
     }
 }

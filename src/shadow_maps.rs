@@ -38,18 +38,15 @@ pub struct CloudShadowMaps {
     /// every cloud, so a texel's width is the span of the clouds across the light over this.
     pub resolution: u32,
     /// Per cloud-lighting light, where its map lies (written by the plugin every frame).
-    #[reflect(ignore)]
     pub maps: Vec<(Entity, ShadowMapPlacement)>,
     /// Where the sky map lies, under a sky with clouds above the plane (written by the plugin
     /// every frame): a horizontal square at the [`CloudGround`]'s height (world `y = 0` without
     /// one), its texels the fraction `1 - V` of the sky's irradiance on an upward-facing surface
     /// there that the clouds take away; in the buffer after the lights' maps.
-    #[reflect(ignore)]
     pub sky: Option<ShadowMapPlacement>,
     /// The optical depths of every light's map, `resolution²` f32 per light, then the sky map's
     /// [`sky_map_size`]`²` occlusions (written by the plugin's render world; bind it read-only
     /// as `array<f32>`).
-    #[reflect(ignore)]
     pub buffer: Handle<ShaderBuffer>,
 }
 
@@ -79,7 +76,8 @@ impl CloudShadowMaps {
 /// `size²` texels across the light, its texel `(i, j)` the column through the world point
 /// `(corner.x + (i + 1/2) texel) u + (corner.y + (j + 1/2) texel) v + t d`, its value the optical
 /// depth of every cloud along that column, at element `first + i + size j` of the maps' buffer.
-#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
+#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq, Reflect)]
+#[reflect(Clone, Debug, Default, PartialEq)]
 pub struct ShadowMapPlacement {
     /// The map's first axis across the light (unit).
     pub u: Vec3,

@@ -558,3 +558,26 @@ fn a_refused_ground_leaves_the_sky_map_on_the_world_plane() {
     let image = headless::capture(&mut app, &mut recorder, &target.image).unwrap();
     assert!(image.pixels.iter().flatten().all(|v| v.is_finite()));
 }
+
+/// The plugin registers the materials' reflection, so inspectors and scenes can edit them.
+#[test]
+fn the_materials_are_registered_for_reflection() {
+    use bevy::asset::ReflectAsset;
+    use bevy_particle_clouds::lit_object::LitObjectMaterial;
+    use std::any::TypeId;
+    let (app, _) = spawn_with_maps(&cloud_over_ground(), 16);
+    let registry = app.world().resource::<AppTypeRegistry>().read();
+    for (name, id) in [
+        ("LitObjectMaterial", TypeId::of::<LitObjectMaterial>()),
+        (
+            "CloudShadowedMaterial",
+            TypeId::of::<CloudShadowedMaterial>(),
+        ),
+    ] {
+        assert!(
+            registry.get_type_data::<ReflectAsset>(id).is_some(),
+            "{name} is not registered as a reflected asset"
+        );
+    }
+    assert!(registry.get(TypeId::of::<CloudShadowMaps>()).is_some());
+}
