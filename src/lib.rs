@@ -119,7 +119,7 @@ impl Plugin for ParticleCloudsPlugin {
         app.init_asset::<Particles>()
             .init_asset_loader::<loader::ParticlesLoader>()
             .register_type::<ParticleCloud>()
-            .register_type::<Particles>()
+            .register_asset_reflect::<Particles>()
             .register_type::<NotCloudLight>()
             .register_type::<CloudSkyLight>()
             .init_resource::<CloudSkyLight>()

@@ -559,15 +559,17 @@ fn a_refused_ground_leaves_the_sky_map_on_the_world_plane() {
     assert!(image.pixels.iter().flatten().all(|v| v.is_finite()));
 }
 
-/// The plugin registers the materials' reflection, so inspectors and scenes can edit them.
+/// The plugins register the particles' and the materials' reflection, so inspectors and scenes
+/// can edit them.
 #[test]
-fn the_materials_are_registered_for_reflection() {
+fn the_assets_are_registered_for_reflection() {
     use bevy::asset::ReflectAsset;
-    use bevy_particle_clouds::lit_object::LitObjectMaterial;
+    use bevy_particle_clouds::{Particles, lit_object::LitObjectMaterial};
     use std::any::TypeId;
     let (app, _) = spawn_with_maps(&cloud_over_ground(), 16);
     let registry = app.world().resource::<AppTypeRegistry>().read();
     for (name, id) in [
+        ("Particles", TypeId::of::<Particles>()),
         ("LitObjectMaterial", TypeId::of::<LitObjectMaterial>()),
         (
             "CloudShadowedMaterial",
