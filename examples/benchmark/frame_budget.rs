@@ -475,7 +475,7 @@ pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
             continue;
         }
         let mut scene = build()?;
-        (scene.scene.camera.width, scene.scene.camera.height) = (args.view.0, args.view.1);
+        (scene.scene.camera.width, scene.scene.camera.height) = args.game_view();
         // `--settings`: each replaces the scene's own, one row each.
         let variants: Vec<Option<CloudQualitySettings>> = if args.settings.is_empty() {
             vec![None]
@@ -522,8 +522,8 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
          at {} TB/s. Runs and dispatches: in a re-lit frame.\n\n\
          | scene | pass | GPU ms | floor ms | GPU ÷ floor | runs | dispatches | lights moving, GPU ms |\n\
          |---|---|---:|---:|---:|---:|---:|---:|\n",
-        args.view.0,
-        args.view.1,
+        args.game_view().0,
+        args.game_view().1,
         args.frames(),
         args.bandwidth
     );
@@ -590,7 +590,8 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
     for r in rows {
         let draw_ms = r.timing.pass_ms[CloudPass::Draw as usize];
         let scale = r.target_scale as f64;
-        let pixels = (args.view.0 * args.view.1) as f64 * scale * scale;
+        let (width, height) = args.game_view();
+        let pixels = (width * height) as f64 * scale * scale;
         let _ = writeln!(
             md,
             "| {} | {:.1} | {:.1} | {:.2} |",

@@ -115,11 +115,15 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
          wall_ms_view,wall_ms_static\n",
     );
     let mut adapter = String::new();
+    let mut view = (0, 0);
     let mut lines: Vec<(usize, u32, String, Timing, WallPasses)> = Vec::new();
     let mut ratios = Vec::new();
     for name in ["paper_38k_1light", "paper_38k_5lights"] {
         let bench = SCENES.iter().find(|s| s.name == name).expect("scene");
-        let scene = load_scene(bench)?;
+        let mut scene = load_scene(bench)?;
+        let own = (scene.camera.width, scene.camera.height);
+        (scene.camera.width, scene.camera.height) = args.view_or(own);
+        view = (scene.camera.width, scene.camera.height);
         let mut b = Bench::new(&scene);
         adapter = b.adapter.clone();
         // Density grids of 32³ and 64³; the light volumes `light_supersampling` times finer.
@@ -131,6 +135,7 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
                     volume_resolution: n,
                     ..default()
                 });
+                eprintln!("benchmark: {name} {n}³ {method:?}…");
                 let (w, t) = wall_passes(&mut b, args.frames());
                 let method_name = format!("{method:?}");
                 eprintln!(
@@ -168,7 +173,7 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
         b.app.insert_resource(ShadingMethod::Incremental);
     }
     let mut table = format!(
-        "Adapter: `{adapter}`. The 38,000-particle cloud (benchmarks/scenes/paper_38k_*.ron, 640×480), \
+        "Adapter: `{adapter}`. The 38,000-particle cloud (benchmarks/scenes/paper_38k_*.ron, {}×{}), \
          the default knobs ({} scattering iterations, light volumes up to {}× the density grid's resolution) but \
          the density grid's resolution (`grid`). GPU: per-pass timestamps, median of {} frames in which \
          every pass reruns. Wall: per-pass cost from wall-time differences of frames that rerun nested sets of \
@@ -176,6 +181,8 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
          + voxelize: particles changed, including their upload; view pass (the view volume, or the sort when \
          sorted): camera moved; static: nothing changed, \
          the draw plus Bevy's per-frame work).\n\n",
+        view.0,
+        view.1,
         CloudQualitySettings::default().scatter_iterations,
         CloudQualitySettings::default().light_supersampling,
         args.frames()

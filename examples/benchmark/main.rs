@@ -6,7 +6,7 @@
 //! ```text
 //! cargo run --example benchmark -- [--quick] [--out DIR] [--scenes a,b] [--frames K] [--font TTF]
 //! cargo run --example benchmark -- --settings '(volume_resolution: 64)' [--settings …] [--scenes a,b]
-//! cargo run --example benchmark -- --illumination [--out DIR]
+//! cargo run --example benchmark -- --illumination [--view 640x480] [--out DIR]
 //! cargo run --example benchmark -- --voxelize [--out DIR]
 //! cargo run --example benchmark -- --scale [--out DIR]
 //! cargo run --example benchmark -- --frame-budget [--view 1920x1080] [--bandwidth 4.8] [--draw-methods raster,compute] [--out DIR]
@@ -148,9 +148,10 @@ pub(crate) struct Args {
     /// `paper`, `paper-half` (drawn at half size), `snow`, `cloudscape`.
     #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "scale", "voxelize"])]
     pub(crate) frame_budget: bool,
-    /// With --frame-budget: the view's size, pixels.
-    #[arg(long, default_value = "1920x1080", value_parser = parse_view)]
-    pub(crate) view: (u32, u32),
+    /// The view's size, pixels: with --frame-budget and --raster-vs-compute (default
+    /// 1920x1080), and with --illumination (default: the scenes' own 640x480).
+    #[arg(long, value_parser = parse_view)]
+    view: Option<(u32, u32)>,
     /// With --frame-budget: how the billboards are drawn, each in turn (comma-separated:
     /// `raster`, `compute`); with --scale, the last of them.
     #[arg(long, value_delimiter = ',', default_value = "raster", value_parser = parse_draw_method)]
@@ -224,6 +225,16 @@ impl Args {
     pub(crate) fn frames(&self) -> usize {
         self.frames as usize
     }
+
+    /// `--view`, or 1920×1080, a game's view.
+    pub(crate) fn game_view(&self) -> (u32, u32) {
+        self.view.unwrap_or((1920, 1080))
+    }
+
+    /// `--view`, or `scene`'s own.
+    pub(crate) fn view_or(&self, scene: (u32, u32)) -> (u32, u32) {
+        self.view.unwrap_or(scene)
+    }
 }
 
 /// `1920x1080`: a view's width and height, each 1–8192.
@@ -284,7 +295,7 @@ fn main() -> ExitCode {
 /// multiple scattering) and the bare fragments (no chord point), three ways each; writes
 /// `DIR/raster_vs_compute.md`.
 fn raster_vs_compute_benchmark(args: &Args) -> Result<(), String> {
-    let (width, height) = args.view;
+    let (width, height) = args.game_view();
     let mut md = String::new();
     for points in [9, 0] {
         let work = raster_vs_compute::Workload {
