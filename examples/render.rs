@@ -277,7 +277,9 @@ fn real_time(
     Ok((image, metadata))
 }
 
-/// Refuses a `volume_resolution` whose volumes the adapter cannot bind, naming the largest that fits.
+/// Refuses a `volume_resolution` whose volumes the adapter cannot bind, naming the largest that
+/// fits and the `light_supersampling` that would fit at this resolution. The renderer itself
+/// would lower the supersampling with a warning; a scene file renders what it says, or nothing.
 fn check_volume_fits(app: &mut bevy::app::App, scene: &Scene, adapter: &str) -> Result<(), String> {
     let limit = app
         .sub_app(RenderApp)
@@ -289,9 +291,10 @@ fn check_volume_fits(app: &mut bevy::app::App, scene: &Scene, adapter: &str) -> 
     let lights = scene.lights.len();
     // An anisotropic medium's scattering volumes also hold the radiance's angular moments.
     let moments = scene.clouds.iter().any(|c| c.medium.anisotropy != 0.0);
-    let fits = |n: u32| {
+    let fits = |n: u32, light_supersampling: u32| {
         let settings = CloudQualitySettings {
             volume_resolution: n,
+            light_supersampling,
             ..scene.settings
         };
         let shape = VolumeShape {
@@ -302,15 +305,22 @@ fn check_volume_fits(app: &mut bevy::app::App, scene: &Scene, adapter: &str) -> 
         };
         shape.max_slots(limit) > 0
     };
-    if !fits(resolution) {
-        return Err(format!(
-            "settings.volume_resolution is {resolution} (light volumes of {}³ for {lights} lights); \
-             this adapter ({adapter}) allows at most {} (its storage buffers hold {limit} bytes)",
-            scene.settings.light_resolution(),
-            (1..=resolution).rev().find(|&n| fits(n)).unwrap_or(0)
-        ));
+    let supersampling = scene.settings.light_supersampling;
+    if fits(resolution, supersampling) {
+        return Ok(());
     }
-    Ok(())
+    let largest = (1..=resolution).rev().find(|&n| fits(n, supersampling));
+    let lower = (1..supersampling).rev().find(|&f| fits(resolution, f));
+    let or_lower = lower.map_or(String::new(), |f| {
+        format!(", or settings.light_supersampling {f} at this resolution")
+    });
+    Err(format!(
+        "settings.volume_resolution is {resolution} (light volumes of {}³ for {lights} lights); \
+         this adapter ({adapter}) allows at most {}{or_lower} (its storage buffers hold {limit} \
+         bytes)",
+        scene.settings.light_resolution(),
+        largest.unwrap_or(0)
+    ))
 }
 
 /// The `--stats` file (schema in the README).

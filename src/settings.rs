@@ -122,7 +122,10 @@ pub struct CloudQualitySettings {
     /// `volume_resolution * light_supersampling` voxels per side (the factor lowered until that is
     /// at most `MAX_VOLUME_RESOLUTION`; see [`Self::light_resolution`]). Single scattering, which
     /// the billboards evaluate straight from these volumes, is then sharper than the
-    /// multiple-scattering grid. Allowed: `1..=MAX_LIGHT_SUPERSAMPLING`. Default 3.
+    /// multiple-scattering grid. Allowed: `1..=MAX_LIGHT_SUPERSAMPLING`. Default 3. Where one
+    /// cloud's light volumes (4 bytes a voxel, per light) would not fit the adapter's storage
+    /// binding (128 MiB on lavapipe and WebGPU's default: 5 lights at `volume_resolution` 64), the
+    /// renderer lowers the factor for that cloud until they do, with a warning.
     pub light_supersampling: u32,
     /// Segments `K` of each pixel's chord through a particle at which the billboard evaluates the
     /// illumination (a big particle shows its lit and its dark side). Alpha is exact whatever

@@ -598,23 +598,10 @@ mod tests {
     use crate::settings::CloudQualitySettings;
 
     fn cloud(scale: f32) -> ExtractedCloud {
-        ExtractedCloud {
-            particles: AssetId::default(),
-            extinction: 1.0,
-            albedo: 1.0,
-            anisotropy: 0.0,
-            world_from_local: default(),
-            settings: CloudQualitySettings {
-                cloud_target_scale: scale,
-                ..default()
-            },
-            lod_resolution: 48,
-            lod_enabled: false,
-            visible: true,
-            casts_shadows: true,
-            receives_shadows: true,
-            atmosphere_transmittance: Vec::new(),
-        }
+        ExtractedCloud::for_test(CloudQualitySettings {
+            cloud_target_scale: scale,
+            ..default()
+        })
     }
 
     #[test]

@@ -70,6 +70,25 @@ impl ExtractedCloud {
         self.anisotropy != 0.0
     }
 
+    /// A visible, isotropic, white cloud of unit extinction at the origin (unit tests).
+    #[cfg(test)]
+    pub(crate) fn for_test(settings: crate::settings::CloudQualitySettings) -> Self {
+        Self {
+            particles: AssetId::default(),
+            extinction: 1.0,
+            albedo: 1.0,
+            anisotropy: 0.0,
+            world_from_local: default(),
+            lod_resolution: settings.volume_resolution,
+            settings,
+            lod_enabled: false,
+            visible: true,
+            casts_shadows: true,
+            receives_shadows: true,
+            atmosphere_transmittance: Vec::new(),
+        }
+    }
+
     /// The part of light `index`'s irradiance that reaches the cloud through the atmosphere.
     pub fn light_transmittance(&self, index: usize) -> Vec3 {
         self.atmosphere_transmittance

@@ -273,7 +273,8 @@ pub(crate) fn prepare_cloud_volumes(
 ) {
     let budget = budget.map_or(0, |b| b.0);
     let mapped = maps.is_some_and(|m| m.resolution > 0);
-    let frames = cloud_frames(&clouds, &lights, &particles, mapped);
+    let max_binding = device.limits().max_storage_buffer_binding_size;
+    let frames = cloud_frames(&clouds, &lights, &particles, mapped, max_binding);
     let deferred = deferred_by_budget(&clouds, &frames, &lights, &particles, budget);
     // What each cloud's volumes will hold after this frame: a deferred cloud keeps what it has.
     let world = world_clouds(&frames, |entity, frame| {
@@ -284,7 +285,6 @@ pub(crate) fn prepare_cloud_volumes(
         }
     });
     let directions: Vec<Vec3> = lights.lights.iter().map(|l| l.direction).collect();
-    let max_binding = device.limits().max_storage_buffer_binding_size;
     pools.release_empty();
     for (entity, cloud, volumes, state) in &mut clouds {
         let Some(gpu) = particles.get(cloud.particles) else {
@@ -378,6 +378,7 @@ fn cloud_frames(
     lights: &ExtractedCloudLights,
     particles: &RenderAssets<GpuParticles>,
     mapped: bool,
+    max_binding: u64,
 ) -> HashMap<Entity, CloudFrame> {
     let mut frames: HashMap<Entity, CloudFrame> = HashMap::default();
     for (entity, cloud, volumes, state) in clouds {
@@ -388,13 +389,9 @@ fn cloud_frames(
             continue;
         };
         let held = volumes.zip(state);
-        let cloud = at_resolution(cloud, held_resolution(cloud, held, gpu, bounds, lights));
-        let shape = VolumeShape {
-            n: cloud.settings.volume_resolution,
-            m: cloud.settings.light_resolution(),
-            lights: lights.lights.len() as u32,
-            moments: cloud.has_moments(),
-        };
+        let n = held_resolution(cloud, held, gpu, bounds, lights, max_binding);
+        let cloud = at_resolution(cloud, n, lights, max_binding);
+        let shape = volume_shape(&cloud, lights);
         let frame = CloudFrame {
             sphere: CloudSphere::new(bounds, &cloud.world_from_local, cloud.scale()),
             needed: cloud.visible || (mapped && cloud.casts_shadows),
@@ -648,6 +645,7 @@ fn held_resolution(
     gpu: &GpuParticles,
     bounds: CloudBounds,
     lights: &ExtractedCloudLights,
+    max_binding: u64,
 ) -> u32 {
     let wanted = cloud.lod_resolution;
     let Some((volumes, state)) = held else {
@@ -657,7 +655,8 @@ fn held_resolution(
     if n == wanted || !cloud.lod_enabled || !state.ready || !lights.any() {
         return wanted;
     }
-    let now = frame_keys(&at_resolution(cloud, n), gpu, bounds, lights, &[], 0);
+    let at_n = at_resolution(cloud, n, lights, max_binding);
+    let now = frame_keys(&at_n, gpu, bounds, lights, &[], 0);
     let relit = now.density != state.keys.density || now.lights != state.keys.lights;
     if relit { wanted } else { n }
 }
@@ -686,11 +685,48 @@ fn frame_keys(
     )
 }
 
-/// `cloud` illuminated at `n` voxels per side.
-fn at_resolution(cloud: &ExtractedCloud, n: u32) -> ExtractedCloud {
+/// `cloud` illuminated at `n` voxels per side, its light supersampling lowered where one such
+/// cloud's volumes would not fit the adapter's storage binding (`max_binding` bytes).
+fn at_resolution(
+    cloud: &ExtractedCloud,
+    n: u32,
+    lights: &ExtractedCloudLights,
+    max_binding: u64,
+) -> ExtractedCloud {
     let mut cloud = cloud.clone();
     cloud.settings.volume_resolution = n;
+    let wanted = cloud.settings.supersampling();
+    let fitting = fitting_supersampling(wanted, |f| {
+        cloud.settings.light_supersampling = f;
+        volume_shape(&cloud, lights).max_slots(max_binding) > 0
+    });
+    cloud.settings.light_supersampling = fitting;
+    if fitting < wanted {
+        warn_once!(
+            "particle cloud: light volumes of {}³ voxels for {} lights exceed this adapter's \
+             storage buffer limit of {max_binding} bytes; `light_supersampling` is lowered from \
+             {wanted} to {fitting} for such clouds",
+            n * wanted,
+            lights.lights.len(),
+        );
+    }
     cloud
+}
+
+/// The largest supersampling from `wanted` down to 1 whose volumes `fit`; 1 when none does (the
+/// cloud is then refused with a warning when its volumes are allocated).
+fn fitting_supersampling(wanted: u32, mut fits: impl FnMut(u32) -> bool) -> u32 {
+    (1..=wanted).rev().find(|&f| fits(f)).unwrap_or(1)
+}
+
+/// The shape of the volumes `cloud` is illuminated in under `lights`.
+fn volume_shape(cloud: &ExtractedCloud, lights: &ExtractedCloudLights) -> VolumeShape {
+    VolumeShape {
+        n: cloud.settings.volume_resolution,
+        m: cloud.settings.light_resolution(),
+        lights: lights.lights.len() as u32,
+        moments: cloud.has_moments(),
+    }
 }
 
 /// The uniform of the fine grid (voxelize and shade): the same cube at `m` voxels per side.
@@ -845,5 +881,44 @@ mod tests {
         assert_eq!(e.size_offset[0], UVec4::new(144, 0, 0, 0));
         assert_eq!(e.size_offset[1], UVec4::new(72, 144u32.pow(3), 0, 0));
         assert_eq!(e.size_offset[6], UVec4::ZERO);
+    }
+
+    /// Five lights' volumes at 64³ × 3 (5 × 192³ floats, 141 MB) pass a 128 MiB binding
+    /// (lavapipe's, and WebGPU's default): the supersampling drops to 2 (5 × 128³, 42 MB); one
+    /// light keeps 3, and so do five under a larger binding.
+    #[test]
+    fn light_supersampling_is_lowered_until_the_volumes_fit_the_binding() {
+        let lights = |count| ExtractedCloudLights {
+            lights: vec![
+                CloudLight {
+                    entity: Entity::PLACEHOLDER,
+                    direction: Vec3::NEG_Y,
+                    irradiance: Vec3::ONE,
+                };
+                count
+            ],
+            ..default()
+        };
+        let cloud = ExtractedCloud::for_test(default());
+        let fitted = |lights: &ExtractedCloudLights, n, max_binding| {
+            at_resolution(&cloud, n, lights, max_binding)
+                .settings
+                .supersampling()
+        };
+        let mib_128 = 128 << 20;
+        assert_eq!(cloud.settings.light_supersampling, 3);
+        assert_eq!(fitted(&lights(5), 64, mib_128), 2);
+        assert_eq!(fitted(&lights(1), 64, mib_128), 3);
+        assert_eq!(fitted(&lights(5), 64, 1 << 30), 3);
+        assert_eq!(fitted(&lights(5), 48, mib_128), 3);
+        // At 128³ even one light's 384³ would pass MAX_VOLUME_RESOLUTION: 2 at most, then 1.
+        assert_eq!(fitted(&lights(1), 128, mib_128), 2);
+        assert_eq!(fitted(&lights(3), 128, mib_128), 1);
+        // Nothing fits: 1, and the allocation refuses the cloud with its own warning.
+        assert_eq!(fitted(&lights(1), 64, 1 << 20), 1);
+        let lowered = at_resolution(&cloud, 64, &lights(5), mib_128);
+        let shape = volume_shape(&lowered, &lights(5));
+        assert_eq!((shape.n, shape.m), (64, 128));
+        assert!(shape.max_slots(mib_128) >= 1);
     }
 }
