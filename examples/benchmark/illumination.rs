@@ -111,7 +111,7 @@ pub(crate) fn wall_passes(b: &mut Bench, frames: usize) -> Result<(WallPasses, T
 
 pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
     let mut csv = String::from(
-        "adapter,scene,lights,volume_resolution,shading,gpu_ms_voxelize,gpu_ms_shade,gpu_ms_gather,gpu_ms_scatter,\
+        "adapter,scene,lights,volume_resolution,light_resolution,shading,gpu_ms_voxelize,gpu_ms_shade,gpu_ms_gather,gpu_ms_scatter,\
          gpu_ms_view,gpu_ms_draw,gpu_ms_total,wall_ms,wall_ms_voxelize,wall_ms_shade,wall_ms_gather,wall_ms_scatter,\
          wall_ms_view,wall_ms_static\n",
     );
@@ -119,9 +119,16 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
     let mut view = (0, 0);
     // Configurations whose cloud the renderer refused on this adapter.
     let mut refused = Vec::new();
-    let mut lines: Vec<(usize, u32, String, Timing, WallPasses)> = Vec::new();
+    let mut lines: Vec<(usize, u32, u32, String, Timing, WallPasses)> = Vec::new();
     let mut ratios = Vec::new();
-    for name in ["paper_38k_1light", "paper_38k_5lights"] {
+    let wanted = |name: &&str| {
+        let names = args.scenes.as_ref();
+        names.is_none_or(|names| names.iter().any(|n| n == name))
+    };
+    for name in ["paper_38k_1light", "paper_38k_5lights"]
+        .into_iter()
+        .filter(wanted)
+    {
         let bench = SCENES.iter().find(|s| s.name == name).expect("scene");
         let mut scene = load_scene(bench)?;
         let own = (scene.camera.width, scene.camera.height);
@@ -155,11 +162,13 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
                     "benchmark: {name} {n}³ {method_name}: shade GPU {:.2} ms, wall {:.1} ms; GPU total {:.2} ms, wall {:.1} ms",
                     t.pass_ms[1], w.pass_ms[1], t.gpu_ms_total, t.wall_ms
                 );
+                // Lower than the settings' where the renderer lowered the supersampling to fit.
+                let m = b.light_resolution().unwrap_or(0);
                 let p = &t.pass_ms;
                 let q = &w.pass_ms;
                 let _ = writeln!(
                     csv,
-                    "\"{adapter}\",{name},{},{n},{method_name},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3}",
+                    "\"{adapter}\",{name},{},{n},{m},{method_name},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3}",
                     scene.lights.len(),
                     p[0],
                     p[1],
@@ -177,7 +186,7 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
                     q[6]
                 );
                 shade.insert(method, (t.pass_ms[1], w.pass_ms[1]));
-                lines.push((scene.lights.len(), n, method_name, t, w));
+                lines.push((scene.lights.len(), n, m, method_name, t, w));
             }
             if let (Some((gi, wi)), Some((gb, wb))) = (
                 shade.get(&ShadingMethod::Incremental),
@@ -191,7 +200,8 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
     let mut table = format!(
         "Adapter: `{adapter}`. The 38,000-particle cloud (benchmarks/scenes/paper_38k_*.ron, {}×{}), \
          the default knobs ({} scattering iterations, light volumes up to {}× the density grid's resolution) but \
-         the density grid's resolution (`grid`). GPU: per-pass timestamps, median of {} frames in which \
+         the density grid's resolution (`grid`); `light volumes`: their voxels per side, lower where the \
+         renderer lowered the supersampling to fit the adapter's storage binding. GPU: per-pass timestamps, median of {} frames in which \
          every pass reruns. Wall: per-pass cost from wall-time differences of frames that rerun nested sets of \
          passes (scatter: albedo changed; + gather: irradiance changed; + shade: light directions changed; \
          + voxelize: particles changed, including their upload; view pass (the view volume, or the sort when \
@@ -203,16 +213,16 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
         CloudQualitySettings::default().light_supersampling,
         args.frames()
     );
-    table.push_str("| lights | grid | shading | GPU: voxelize | shade | gather | scatter | view pass | draw | total | wall: voxelize | shade | gather | scatter | view pass | static frame | all passes |\n");
+    table.push_str("| lights | grid | light volumes | shading | GPU: voxelize | shade | gather | scatter | view pass | draw | total | wall: voxelize | shade | gather | scatter | view pass | static frame | all passes |\n");
     table.push_str(
-        "|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+        "|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
-    for (lights, n, method, t, w) in &lines {
+    for (lights, n, m, method, t, w) in &lines {
         let p = &t.pass_ms;
         let q = &w.pass_ms;
         let _ = writeln!(
             table,
-            "| {lights} | {n}³ | {method} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} |",
+            "| {lights} | {n}³ | {m}³ | {method} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} |",
             p[0],
             p[1],
             p[2],

@@ -121,7 +121,7 @@ pub(crate) struct Args {
     #[arg(long, default_value = "target/benchmark")]
     pub(crate) out: PathBuf,
     /// Only these scenes (comma-separated names); with --scale, only these sweeps (particles,
-    /// clouds, view).
+    /// clouds, view); with --illumination, `paper_38k_1light` or `paper_38k_5lights`.
     #[arg(long, value_delimiter = ',')]
     pub(crate) scenes: Option<Vec<String>>,
     /// Measured frames per setting (medians are reported).

@@ -283,6 +283,15 @@ impl Bench {
         query.iter(world).count() as u32
     }
 
+    /// The largest light volume's voxels per side among the clouds that hold volumes: the
+    /// settings' `volume_resolution × light_supersampling`, or less where the renderer lowered the
+    /// supersampling to fit the adapter's storage binding.
+    pub(crate) fn light_resolution(&mut self) -> Option<u32> {
+        let world = self.app.sub_app_mut(bevy::render::RenderApp).world_mut();
+        let mut query = world.query::<&bevy_particle_clouds::render::volumes::CloudVolumes>();
+        query.iter(world).map(|v| v.params.light_n).max()
+    }
+
     /// Renders the finished image of the current settings.
     pub(crate) fn image(&mut self) -> LinearImage {
         headless::render_until_steady(
