@@ -11,6 +11,32 @@ use crate::math::{SplitMix64, light_basis};
 use crate::reference::geometry::{nearest_object, object_normal};
 use crate::scene::{Scene, SceneObject};
 
+/// Walks the tentative collisions along `origin + t dir` (`dir` unit) in `[0, t_max]`:
+/// exponential steps at each majorant segment's majorant, `collide` called at each with its
+/// distance (metres), the coefficients there, the majorant and the generator, until it breaks.
+/// Exponential steps are memoryless, so restarting at each segment boundary with the new
+/// majorant is exact.
+fn tentative_collisions<M: Media>(
+    media: &M,
+    origin: DVec3,
+    dir: DVec3,
+    t_max: f64,
+    rng: &mut SplitMix64,
+    mut collide: impl FnMut(f64, Coefficients, f64, &mut SplitMix64) -> ControlFlow<()>,
+) {
+    let _ = media.visit_segments(origin, dir, t_max, |seg| {
+        let mut t = seg.t0;
+        loop {
+            t += rng.exponential() / seg.majorant;
+            if t >= seg.t1 {
+                return ControlFlow::Continue(());
+            }
+            let c = media.coefficients(origin + dir * t, &seg);
+            collide(t, c, seg.majorant, rng)?;
+        }
+    });
+}
+
 /// Delta tracking: samples a real collision along `origin + t dir` (`dir` unit) in `[0, t_max]`
 /// with density `T(0,t) σ_t(t)`. Returns the distance (metres) and the coefficients there, or
 /// `None` (probability `T(0, t_max)`) when the ray leaves `[0, t_max]` unscattered.
@@ -22,22 +48,13 @@ pub fn sample_free_flight<M: Media>(
     rng: &mut SplitMix64,
 ) -> Option<(f64, Coefficients)> {
     let mut hit = None;
-    let _ = media.visit_segments(origin, dir, t_max, |seg| {
-        // Exponential steps are memoryless, so restarting at each segment boundary with the new
-        // majorant is exact.
-        let mut t = seg.t0;
-        loop {
-            t += rng.exponential() / seg.majorant;
-            if t >= seg.t1 {
-                return ControlFlow::Continue(());
-            }
-            let c = media.coefficients(origin + dir * t, &seg);
-            // Real collision with probability σ_t / majorant, null collision otherwise.
-            if rng.next_f64() * seg.majorant < c.extinction {
-                hit = Some((t, c));
-                return ControlFlow::Break(());
-            }
+    tentative_collisions(media, origin, dir, t_max, rng, |t, c, majorant, rng| {
+        // Real collision with probability σ_t / majorant, null collision otherwise.
+        if rng.next_f64() * majorant < c.extinction {
+            hit = Some((t, c));
+            return ControlFlow::Break(());
         }
+        ControlFlow::Continue(())
     });
     hit
 }
@@ -57,24 +74,17 @@ pub fn transmittance<M: Media>(
     rng: &mut SplitMix64,
 ) -> f64 {
     let mut weight = 1.0;
-    let _ = media.visit_segments(origin, dir, t_max, |seg| {
-        let mut t = seg.t0;
-        loop {
-            t += rng.exponential() / seg.majorant;
-            if t >= seg.t1 {
-                return ControlFlow::Continue(());
+    tentative_collisions(media, origin, dir, t_max, rng, |_, c, majorant, rng| {
+        // Each tentative collision multiplies by the null-collision probability.
+        weight *= (1.0 - c.extinction / majorant).max(0.0);
+        if weight < RATIO_TRACKING_ROULETTE {
+            if weight == 0.0 || rng.next_f64() < 0.5 {
+                weight = 0.0;
+                return ControlFlow::Break(());
             }
-            let c = media.coefficients(origin + dir * t, &seg);
-            // Each tentative collision multiplies by the null-collision probability.
-            weight *= (1.0 - c.extinction / seg.majorant).max(0.0);
-            if weight < RATIO_TRACKING_ROULETTE {
-                if weight == 0.0 || rng.next_f64() < 0.5 {
-                    weight = 0.0;
-                    return ControlFlow::Break(());
-                }
-                weight *= 2.0;
-            }
+            weight *= 2.0;
         }
+        ControlFlow::Continue(())
     });
     weight
 }
