@@ -12,16 +12,37 @@
 /// # Panics
 /// If the images differ in size.
 pub fn relative_rmse(x: &[[f32; 4]], r: &[[f32; 4]]) -> f64 {
+    let num = channel_sum(x, r, |a, b| (a - b) * (a - b));
+    if num == 0.0 {
+        0.0
+    } else {
+        (num / channel_sum(x, r, |_, b| b * b)).sqrt()
+    }
+}
+
+/// `Σ f(x, r)` over all pixels and the three colour channels, in `f64`.
+///
+/// # Panics
+/// If the images differ in size.
+fn channel_sum(x: &[[f32; 4]], r: &[[f32; 4]], f: impl Fn(f64, f64) -> f64) -> f64 {
     assert_eq!(x.len(), r.len(), "images differ in size");
-    let (mut num, mut den) = (0.0f64, 0.0f64);
+    let mut sum = 0.0f64;
     for (a, b) in x.iter().zip(r) {
         for c in 0..3 {
-            let (a, b) = (a[c] as f64, b[c] as f64);
-            num += (a - b) * (a - b);
-            den += b * b;
+            sum += f(a[c] as f64, b[c] as f64);
         }
     }
-    if num == 0.0 { 0.0 } else { (num / den).sqrt() }
+    sum
+}
+
+/// `Σ f(x, r)` over all pixels and colour channels divided by their count; 0 for empty images.
+fn channel_mean(x: &[[f32; 4]], r: &[[f32; 4]], f: impl Fn(f64, f64) -> f64) -> f64 {
+    let sum = channel_sum(x, r, f);
+    if x.is_empty() {
+        0.0
+    } else {
+        sum / (3 * x.len()) as f64
+    }
 }
 
 /// relMSE: `mean( (x - r)² / (r² + 0.01) )` over all pixels and the three colour channels.
@@ -30,18 +51,7 @@ pub fn relative_rmse(x: &[[f32; 4]], r: &[[f32; 4]]) -> f64 {
 /// # Panics
 /// If the images differ in size.
 pub fn rel_mse(x: &[[f32; 4]], r: &[[f32; 4]]) -> f64 {
-    assert_eq!(x.len(), r.len(), "images differ in size");
-    if x.is_empty() {
-        return 0.0;
-    }
-    let mut sum = 0.0f64;
-    for (a, b) in x.iter().zip(r) {
-        for c in 0..3 {
-            let (a, b) = (a[c] as f64, b[c] as f64);
-            sum += (a - b) * (a - b) / (b * b + 0.01);
-        }
-    }
-    sum / (3 * x.len()) as f64
+    channel_mean(x, r, |a, b| (a - b) * (a - b) / (b * b + 0.01))
 }
 
 /// Mean absolute error `mean |x - r|` over all pixels and the three colour channels, in the
@@ -50,17 +60,7 @@ pub fn rel_mse(x: &[[f32; 4]], r: &[[f32; 4]]) -> f64 {
 /// # Panics
 /// If the images differ in size.
 pub fn mean_absolute_error(x: &[[f32; 4]], r: &[[f32; 4]]) -> f64 {
-    assert_eq!(x.len(), r.len(), "images differ in size");
-    if x.is_empty() {
-        return 0.0;
-    }
-    let mut sum = 0.0f64;
-    for (a, b) in x.iter().zip(r) {
-        for c in 0..3 {
-            sum += (a[c] as f64 - b[c] as f64).abs();
-        }
-    }
-    sum / (3 * x.len()) as f64
+    channel_mean(x, r, |a, b| (a - b).abs())
 }
 
 /// The largest difference between two volumes (any flat arrays), relative to the largest value
