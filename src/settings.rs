@@ -79,7 +79,7 @@ pub enum DrawMethod {
     /// their light and optical depth per pixel of a cloud target (at `cloud_target_scale`, full
     /// size included), which is then composited onto the view. For GPUs whose fragment shaders
     /// run this work far slower than their compute shaders: on an NVIDIA H200 the computed draw
-    /// takes 0.036× the rasterised one's time, on llvmpipe 0.57× (README, "On a real GPU").
+    /// takes 0.036× the rasterised one's time, on llvmpipe 0.57× (docs/performance.md, "On a real GPU").
     /// `Sorted` clouds are still rasterised, into the same target, over the computed ones.
     Compute,
 }
@@ -108,9 +108,9 @@ pub struct CloudQualitySettings {
     /// correction's series in this many iterations, closed like `scatter_iterations`' series
     /// (docs/illumination.md §4). The first frame the lights stay still, the full series settles
     /// it. 0 = always the full series. Allowed: 0 or `2..=MAX_SCATTER_ITERATIONS`. Default 4: in
-    /// the benchmark, a sun that jumps 5° between solves gives an image within 0.0026 (relative
-    /// RMSE) of the full solve's, for 0.06–0.26 of its scattering cost on lavapipe (README,
-    /// "Warm restart under a moving sun").
+    /// the benchmark, a sun that jumps 5° between solves gives an image within 0.0030 (relative
+    /// RMSE) of the full solve's, for 0.07–0.16 of its scattering cost on lavapipe
+    /// (docs/performance.md, "Warm restart under a moving sun").
     pub warm_scatter_iterations: u32,
     /// Fraction `f` in `[0, 1]` of scattered light treated as continuing forward in the shading
     /// pass (the paper's forward scattering): light attenuates with `sigma_t * (1 - f * albedo)`.

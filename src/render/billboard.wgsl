@@ -17,7 +17,7 @@
 // particles' fragments in a compute shader, over the target texels whose centres their
 // rectangles cover, and adds their light and optical depth into per-texel sums; `resolve_splats` writes
 // the sums into the cloud target as `accumulate`'s blending would have left it. Same image, but
-// fragment shaders run this work many times slower on some GPUs (README, "On a real GPU").
+// fragment shaders run this work many times slower on some GPUs (docs/performance.md, "On a real GPU").
 //
 // DISTANCE_FOG: every piece of every chord is fogged at its own distance (fog.wgsl).
 #import bevy_particle_clouds::fog::{CloudFog, fog_colour, fogged}
