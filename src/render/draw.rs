@@ -27,13 +27,14 @@ use bevy::{
             ViewSortedRenderPhases,
         },
         render_resource::{
-            BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries,
-            BindingResource, BlendComponent, BlendFactor, BlendOperation, BlendState, Buffer,
-            BufferInitDescriptor, BufferUsages, CachedRenderPipelineId, ColorTargetState,
-            ColorWrites, CompareFunction, DepthBiasState, DepthStencilState, FragmentState,
-            MultisampleState, PipelineCache, PrimitiveState, PrimitiveTopology, RenderPipeline,
-            RenderPipelineDescriptor, ShaderStages, ShaderType, SpecializedRenderPipeline,
-            SpecializedRenderPipelines, StencilState, TextureFormat, VertexState,
+            BindGroup, BindGroupEntries, BindGroupLayout, BindGroupLayoutDescriptor,
+            BindGroupLayoutEntries, BindingResource, BlendComponent, BlendFactor, BlendOperation,
+            BlendState, Buffer, BufferInitDescriptor, BufferUsages, CachedRenderPipelineId,
+            ColorTargetState, ColorWrites, CompareFunction, DepthBiasState, DepthStencilState,
+            FragmentState, MultisampleState, PipelineCache, PrimitiveState, PrimitiveTopology,
+            RenderPipeline, RenderPipelineDescriptor, ShaderStages, ShaderType,
+            SpecializedRenderPipeline, SpecializedRenderPipelines, StencilState, TextureFormat,
+            VertexState,
             binding_types::{storage_buffer_read_only_sized, uniform_buffer, uniform_buffer_sized},
         },
         renderer::RenderDevice,
@@ -55,7 +56,7 @@ use super::{
     key_of,
     particles::GpuParticles,
     plan::CloudIllumination,
-    pools::VolumePools,
+    pools::{BufferRange, VolumePools},
     shaders::CloudShaders,
     sort::CloudSorts,
     view_atlas::ViewVolumeAtlases,
@@ -513,59 +514,23 @@ pub(crate) fn prepare_billboard_bind_groups(
             contents: &params_bytes,
             usage: BufferUsages::UNIFORM,
         });
+        let shared = SharedBindings {
+            params: &params,
+            cloud_params: &volumes.params_buffer,
+            particles: &gpu.buffer,
+            lights: &lights,
+            optical_depth: &optical_depth,
+            multiple: &multiple,
+            beam_phase: &beam_phase,
+        };
         let groups = per_view
             .into_iter()
-            .map(
-                |PerView {
-                     view,
-                     buffers,
-                     seen_multiple,
-                 }| {
-                    let [a, atlas_depth, atlas_volumes, atlas_neighbours] = buffers;
-                    let multiple = match seen_multiple {
-                        Some(seen) => seen.as_entire_binding(),
-                        None => BindingResource::Buffer(multiple.binding()),
-                    };
-                    let shared = (
-                        params.as_entire_binding(),
-                        volumes.params_buffer.as_entire_binding(),
-                        gpu.buffer.as_entire_binding(),
-                        a.as_entire_binding(),
-                        lights.binding(),
-                        optical_depth.binding(),
-                        multiple,
-                        beam_phase.as_entire_binding(),
-                    );
-                    let group = match compositing {
-                        Compositing::Sorted => device.create_bind_group(
-                            "particle_clouds_billboard_bind_group",
-                            &layout,
-                            &BindGroupEntries::sequential(shared),
-                        ),
-                        Compositing::ViewTransmittance => {
-                            let (p, c, g, a, l, o, m, b) = shared;
-                            device.create_bind_group(
-                                "particle_clouds_billboard_bind_group",
-                                &layout,
-                                &BindGroupEntries::sequential((
-                                    p,
-                                    c,
-                                    g,
-                                    a,
-                                    l,
-                                    o,
-                                    m,
-                                    atlas_depth.as_entire_binding(),
-                                    atlas_volumes.as_entire_binding(),
-                                    atlas_neighbours.as_entire_binding(),
-                                    b,
-                                )),
-                            )
-                        }
-                    };
-                    (view, group)
-                },
-            )
+            .map(|p| {
+                (
+                    p.view,
+                    billboard_group(&device, &layout, compositing, &shared, &p),
+                )
+            })
             .collect();
         commands.entity(entity).insert(CloudDrawBindGroups {
             key,
@@ -573,6 +538,67 @@ pub(crate) fn prepare_billboard_bind_groups(
             beam_phase,
             groups,
         });
+    }
+}
+
+/// What a cloud's billboard bind group binds whatever the view.
+struct SharedBindings<'a> {
+    params: &'a Buffer,
+    cloud_params: &'a Buffer,
+    particles: &'a Buffer,
+    lights: &'a BufferRange,
+    optical_depth: &'a BufferRange,
+    multiple: &'a BufferRange,
+    beam_phase: &'a Buffer,
+}
+
+/// A cloud's billboard bind group for one view (group 1 of `billboard.wgsl`): its buffers, the
+/// view's sorted order or view volume, and through the view transmittance the view's atlas.
+fn billboard_group(
+    device: &RenderDevice,
+    layout: &BindGroupLayout,
+    compositing: Compositing,
+    shared: &SharedBindings,
+    view: &PerView,
+) -> BindGroup {
+    let [a, atlas_depth, atlas_volumes, atlas_neighbours] = view.buffers;
+    let multiple = match view.seen_multiple {
+        Some(seen) => seen.as_entire_binding(),
+        None => BindingResource::Buffer(shared.multiple.binding()),
+    };
+    let (p, c, g, a, l, o) = (
+        shared.params.as_entire_binding(),
+        shared.cloud_params.as_entire_binding(),
+        shared.particles.as_entire_binding(),
+        a.as_entire_binding(),
+        shared.lights.binding(),
+        shared.optical_depth.binding(),
+    );
+    let b = shared.beam_phase.as_entire_binding();
+    let label = "particle_clouds_billboard_bind_group";
+    match compositing {
+        Compositing::Sorted => device.create_bind_group(
+            label,
+            layout,
+            &BindGroupEntries::sequential((p, c, g, a, l, o, multiple, b)),
+        ),
+        Compositing::ViewTransmittance => device.create_bind_group(
+            label,
+            layout,
+            &BindGroupEntries::sequential((
+                p,
+                c,
+                g,
+                a,
+                l,
+                o,
+                multiple,
+                atlas_depth.as_entire_binding(),
+                atlas_volumes.as_entire_binding(),
+                atlas_neighbours.as_entire_binding(),
+                b,
+            )),
+        ),
     }
 }
 

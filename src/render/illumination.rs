@@ -12,8 +12,8 @@ use bevy::{
     render::{
         render_asset::RenderAssets,
         render_resource::{
-            BindGroup, BindGroupEntries, BindGroupEntry, Buffer, BufferBinding, PipelineCache,
-            ShaderType,
+            BindGroup, BindGroupEntries, BindGroupEntry, Buffer, BufferBinding, ComputePipeline,
+            PipelineCache, ShaderType,
         },
         renderer::{RenderContext, RenderDevice},
         storage::GpuShaderBuffer,
@@ -158,29 +158,22 @@ struct PoolWork {
     scatter: HashMap<(u32, ScatterStencil, bool), Vec<u32>>,
 }
 
-/// Makes the bind groups and work lists of every pool's batched passes, voxelize's included.
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn prepare_illumination_bind_groups(
-    mut commands: Commands,
-    clouds: Query<(Entity, &ExtractedCloud, &CloudVolumes, &CloudIllumination)>,
-    mut scratch: ResMut<VoxelizeScratch>,
-    particles: Res<RenderAssets<GpuParticles>>,
-    pools: Res<VolumePools>,
-    pipelines: Option<Res<IlluminationPipelines>>,
-    pipeline_cache: Res<PipelineCache>,
-    device: Res<RenderDevice>,
-    (maps, lights, storage, (mut map_keys, mut sky_key)): ShadowMapInputs,
+/// What each pool's passes do this frame, from its clouds' plans, and the clouds each pool
+/// voxelizes.
+fn pool_work(
+    clouds: &Query<IlluminatedCloud>,
+    particles: &RenderAssets<GpuParticles>,
+    lights: &ExtractedCloudLights,
+    pools: &VolumePools,
+) -> (
+    HashMap<PoolId, PoolWork>,
+    HashMap<PoolId, Vec<VoxelizeCloud>>,
 ) {
-    let Some(pipelines) = pipelines else { return };
-    let bind = |stage: &ComputeStage, entries: &[BindGroupEntry]| -> BindGroup {
-        let layout = pipeline_cache.get_bind_group_layout(&stage.layout);
-        device.create_bind_group(None, &layout, entries)
-    };
-    let mut work: HashMap<PoolId, PoolWork> = HashMap::default();
-    let mut voxelizing: HashMap<PoolId, Vec<VoxelizeCloud>> = HashMap::default();
     let placed: HashMap<Entity, (&ExtractedCloud, &CloudVolumes)> =
         clouds.iter().map(|(e, c, v, _)| (e, (c, v))).collect();
-    for (_, cloud, v, state) in &clouds {
+    let mut work: HashMap<PoolId, PoolWork> = HashMap::default();
+    let mut voxelizing: HashMap<PoolId, Vec<VoxelizeCloud>> = HashMap::default();
+    for (_, cloud, v, state) in clouds {
         let plan = &state.plan;
         let Some(gpu) = particles.get(cloud.particles).filter(|_| !plan.is_empty()) else {
             continue;
@@ -194,7 +187,7 @@ pub(crate) fn prepare_illumination_bind_groups(
         w.shade.extend(plan.shade.iter().map(|&l| [slot, l as u32]));
         for &l in &plan.cast {
             let casters = state.casters.get(l).map_or(&[][..], Vec::as_slice);
-            add_light_cast(&mut w.cast, (cloud, v), l, casters, &placed, &pools);
+            add_light_cast(&mut w.cast, (cloud, v), l, casters, &placed, pools);
         }
         if plan.gather {
             w.gather.push(slot);
@@ -211,11 +204,41 @@ pub(crate) fn prepare_illumination_bind_groups(
                     (cloud, v),
                     &state.neighbours,
                     &placed,
-                    &pools,
+                    pools,
                 );
             }
         }
     }
+    (work, voxelizing)
+}
+
+/// A cloud as the illumination's prepare system sees it.
+type IlluminatedCloud = (
+    Entity,
+    &'static ExtractedCloud,
+    &'static CloudVolumes,
+    &'static CloudIllumination,
+);
+
+/// Makes the bind groups and work lists of every pool's batched passes, voxelize's included.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn prepare_illumination_bind_groups(
+    mut commands: Commands,
+    clouds: Query<IlluminatedCloud>,
+    mut scratch: ResMut<VoxelizeScratch>,
+    particles: Res<RenderAssets<GpuParticles>>,
+    pools: Res<VolumePools>,
+    pipelines: Option<Res<IlluminationPipelines>>,
+    pipeline_cache: Res<PipelineCache>,
+    device: Res<RenderDevice>,
+    (maps, lights, storage, (mut map_keys, mut sky_key)): ShadowMapInputs,
+) {
+    let Some(pipelines) = pipelines else { return };
+    let bind = |stage: &ComputeStage, entries: &[BindGroupEntry]| -> BindGroup {
+        let layout = pipeline_cache.get_bind_group_layout(&stage.layout);
+        device.create_bind_group(None, &layout, entries)
+    };
+    let (work, voxelizing) = pool_work(&clouds, &particles, &lights, &pools);
     let lit: Vec<LitCloud> = clouds.iter().collect();
     let map_buffer = maps
         .as_deref()
@@ -281,120 +304,132 @@ pub(crate) fn prepare_illumination_bind_groups(
         device.limits().max_storage_buffer_binding_size,
         |entries| bind(&pipelines.voxelize, entries),
     );
-    let mut batches = Vec::new();
-    for (id, w) in work {
-        let pool = &pools.0[&id];
-        let shade = Batch::new(&device, &w.shade, |work| {
-            bind(
-                &pipelines.shade,
-                &BindGroupEntries::sequential((
-                    pool.slots.as_entire_binding(),
-                    pool.lights.as_entire_binding(),
-                    pool.densities.as_entire_binding(),
-                    pool.optical_depth.as_entire_binding(),
-                    pool.own_depth.as_entire_binding(),
-                    work.binding(),
-                )),
-            )
-        });
-        let mut casts: Vec<_> = w.cast.into_iter().collect();
-        casts.sort_by_key(|(caster_pool, _)| *caster_pool);
-        let cast = casts
-            .into_iter()
-            .filter_map(|(caster_pool, mut c)| {
-                if c.casters.is_empty() {
-                    c.casters.push(Caster::default()); // a binding may not be empty
-                }
-                let casters = storage_init(&device, "particle_clouds_casters", &c.casters);
-                Batch::new(&device, &c.targets, |work| {
-                    bind(
-                        &pipelines.cast,
-                        &BindGroupEntries::sequential((
-                            pool.own_depth.as_entire_binding(),
-                            pool.optical_depth.as_entire_binding(),
-                            casters.as_entire_binding(),
-                            pools.0[&caster_pool].own_depth.as_entire_binding(),
-                            work.binding(),
-                        )),
-                    )
-                })
-            })
-            .collect();
-        let moments = id.shape.moments;
-        let gather = Batch::new(&device, &w.gather, |work| {
-            bind(
-                pipelines.gather.stage(moments),
-                &BindGroupEntries::sequential((
-                    pool.slots.as_entire_binding(),
-                    pool.lights.as_entire_binding(),
-                    pool.optical_depth.as_entire_binding(),
-                    pool.densities.as_entire_binding(),
-                    pool.source.as_entire_binding(),
-                    work.binding(),
-                )),
-            )
-        });
-        let ground = Batch::new(&device, &w.ground, |work| {
-            bind(
-                &pipelines.ground,
-                &BindGroupEntries::sequential((
-                    pool.slots.as_entire_binding(),
-                    pool.lights.as_entire_binding(),
-                    pool.optical_depth.as_entire_binding(),
-                    pool.ground.as_entire_binding(),
-                    work.binding(),
-                )),
-            )
-        });
-        let scatter = w
-            .scatter
-            .into_iter()
-            .map(|((iterations, stencil, warm), slots)| {
-                let work = WorkList::new(&device, &slots);
-                let mut batch = scatter_batch(&bind, &pipelines, pool, iterations, work);
-                batch.sweep = stencil == ScatterStencil::DiscreteOrdinates;
-                batch.warm = warm;
-                batch
-            })
-            .collect();
-        let mut overlaps: Vec<_> = w.overlap.into_iter().collect();
-        overlaps.sort_by_key(|(neighbour_pool, _)| *neighbour_pool);
-        let overlap = overlaps
-            .into_iter()
-            .filter_map(|(neighbour_pool, o)| {
-                let neighbours = storage_init(&device, "particle_clouds_neighbours", &o.neighbours);
-                Batch::new(&device, &o.items, |work| {
-                    bind(
-                        &pipelines.overlap,
-                        &BindGroupEntries::sequential((
-                            pool.slots.as_entire_binding(),
-                            neighbours.as_entire_binding(),
-                            pools.0[&neighbour_pool].densities.as_entire_binding(),
-                            pool.foreign.as_entire_binding(),
-                            work.binding(),
-                        )),
-                    )
-                })
-            })
-            .collect();
-        batches.push(PoolBatches {
-            n: id.shape.n,
-            m: id.shape.m,
-            moments,
-            shade,
-            cast,
-            gather,
-            overlap,
-            ground,
-            scatter,
-        });
-    }
+    let batches = work
+        .into_iter()
+        .map(|(id, w)| pool_batches(id, w, &pools, &device, &bind, &pipelines))
+        .collect();
     commands.insert_resource(IlluminationBatches {
         voxelize,
         pools: batches,
         maps,
         sky,
     });
+}
+
+/// The bind groups and work lists of pool `id`'s batched passes, from its clouds' `work`.
+fn pool_batches(
+    id: PoolId,
+    w: PoolWork,
+    pools: &VolumePools,
+    device: &RenderDevice,
+    bind: &impl Fn(&ComputeStage, &[BindGroupEntry]) -> BindGroup,
+    pipelines: &IlluminationPipelines,
+) -> PoolBatches {
+    let pool = &pools.0[&id];
+    let shade = Batch::new(device, &w.shade, |work| {
+        bind(
+            &pipelines.shade,
+            &BindGroupEntries::sequential((
+                pool.slots.as_entire_binding(),
+                pool.lights.as_entire_binding(),
+                pool.densities.as_entire_binding(),
+                pool.optical_depth.as_entire_binding(),
+                pool.own_depth.as_entire_binding(),
+                work.binding(),
+            )),
+        )
+    });
+    let mut casts: Vec<_> = w.cast.into_iter().collect();
+    casts.sort_by_key(|(caster_pool, _)| *caster_pool);
+    let cast = casts
+        .into_iter()
+        .filter_map(|(caster_pool, mut c)| {
+            if c.casters.is_empty() {
+                c.casters.push(Caster::default()); // a binding may not be empty
+            }
+            let casters = storage_init(device, "particle_clouds_casters", &c.casters);
+            Batch::new(device, &c.targets, |work| {
+                bind(
+                    &pipelines.cast,
+                    &BindGroupEntries::sequential((
+                        pool.own_depth.as_entire_binding(),
+                        pool.optical_depth.as_entire_binding(),
+                        casters.as_entire_binding(),
+                        pools.0[&caster_pool].own_depth.as_entire_binding(),
+                        work.binding(),
+                    )),
+                )
+            })
+        })
+        .collect();
+    let moments = id.shape.moments;
+    let gather = Batch::new(device, &w.gather, |work| {
+        bind(
+            pipelines.gather.stage(moments),
+            &BindGroupEntries::sequential((
+                pool.slots.as_entire_binding(),
+                pool.lights.as_entire_binding(),
+                pool.optical_depth.as_entire_binding(),
+                pool.densities.as_entire_binding(),
+                pool.source.as_entire_binding(),
+                work.binding(),
+            )),
+        )
+    });
+    let ground = Batch::new(device, &w.ground, |work| {
+        bind(
+            &pipelines.ground,
+            &BindGroupEntries::sequential((
+                pool.slots.as_entire_binding(),
+                pool.lights.as_entire_binding(),
+                pool.optical_depth.as_entire_binding(),
+                pool.ground.as_entire_binding(),
+                work.binding(),
+            )),
+        )
+    });
+    let scatter = w
+        .scatter
+        .into_iter()
+        .map(|((iterations, stencil, warm), slots)| {
+            let work = WorkList::new(device, &slots);
+            let mut batch = scatter_batch(bind, pipelines, pool, iterations, work);
+            batch.sweep = stencil == ScatterStencil::DiscreteOrdinates;
+            batch.warm = warm;
+            batch
+        })
+        .collect();
+    let mut overlaps: Vec<_> = w.overlap.into_iter().collect();
+    overlaps.sort_by_key(|(neighbour_pool, _)| *neighbour_pool);
+    let overlap = overlaps
+        .into_iter()
+        .filter_map(|(neighbour_pool, o)| {
+            let neighbours = storage_init(device, "particle_clouds_neighbours", &o.neighbours);
+            Batch::new(device, &o.items, |work| {
+                bind(
+                    &pipelines.overlap,
+                    &BindGroupEntries::sequential((
+                        pool.slots.as_entire_binding(),
+                        neighbours.as_entire_binding(),
+                        pools.0[&neighbour_pool].densities.as_entire_binding(),
+                        pool.foreign.as_entire_binding(),
+                        work.binding(),
+                    )),
+                )
+            })
+        })
+        .collect();
+    PoolBatches {
+        n: id.shape.n,
+        m: id.shape.m,
+        moments,
+        shade,
+        cast,
+        gather,
+        overlap,
+        ground,
+        scatter,
+    }
 }
 
 /// Adds the cast of light slot `light` of `receiver` (its cloud and volumes) by `casters` (render
@@ -552,6 +587,125 @@ fn scatter_batch(
     }
 }
 
+impl IlluminationBatches {
+    /// Whether anything shades or casts this frame.
+    fn shades(&self) -> bool {
+        let casting = |b: &PoolBatches| b.shade.is_some() || !b.cast.is_empty();
+        self.pools.iter().any(casting) || !self.maps.batches.is_empty()
+    }
+
+    /// Whether anything gathers or marches the sky map this frame.
+    fn gathers(&self) -> bool {
+        self.pools.iter().any(|b| b.gather.is_some()) || !self.sky.marches.is_empty()
+    }
+
+    /// Whether any cloud scatters this frame.
+    fn scatters(&self) -> bool {
+        self.pools.iter().any(|b| !b.scatter.is_empty())
+    }
+
+    /// Shade (§2): one column per invocation, marching slice by slice away from the light (or,
+    /// with `ShadingMethod::BruteForce`, one voxel per invocation marching all the way to the
+    /// light); every (cloud, light) of a pool in one dispatch. Then, once every cloud's own
+    /// optical depth is shaded, other clouds' shadows and the shadow maps (§10), one
+    /// invocation per column along the light (`cast.wgsl`): their dispatches count as shade's,
+    /// their runs do not. Returns the runs: the lights shaded.
+    fn record_shade(
+        &self,
+        pass: &mut StagePass,
+        ready: &ReadyPipelines,
+        shade: &ComputePipeline,
+        brute_force: bool,
+    ) -> u32 {
+        pass.set_pipeline(shade);
+        let mut runs = 0;
+        for b in &self.pools {
+            let Some(batch) = &b.shade else { continue };
+            for (offset, items) in batch.work.chunks() {
+                pass.set_bind_group(0, &batch.group, &[offset]);
+                if brute_force {
+                    dispatch_linear(pass, b.m.pow(3), items);
+                } else {
+                    dispatch_columns(pass, b.m, items);
+                }
+            }
+            runs += batch.work.items;
+        }
+        pass.set_pipeline(ready.cast);
+        let pools = self.pools.iter();
+        let light_volumes = pools.flat_map(|b| b.cast.iter().map(move |c| (c, b.m.pow(2))));
+        let map_texels = self.maps.batches.iter().map(|(c, columns)| (c, *columns));
+        for (batch, columns) in light_volumes.chain(map_texels) {
+            for (offset, items) in batch.work.chunks() {
+                pass.set_bind_group(0, &batch.group, &[offset]);
+                dispatch_linear(pass, columns, items);
+            }
+        }
+        runs
+    }
+
+    /// Gather (§1, §3): the scattering grid's density, and every light's single scattering into
+    /// its source `S_0`; every cloud of a pool in one dispatch. Then the sky map (§10), marched
+    /// through the scattering grids' densities: every pool's clouds along each texel's
+    /// directions, then each texel's occlusion. Its dispatches count as gather's, not its runs.
+    fn record_gather(&self, pass: &mut StagePass, ready: &ReadyPipelines) -> u32 {
+        let mut runs = 0;
+        for b in &self.pools {
+            let Some(batch) = &b.gather else { continue };
+            pass.set_pipeline(ready.gather[b.moments as usize]);
+            for (offset, items) in batch.work.chunks() {
+                pass.set_bind_group(0, &batch.group, &[offset]);
+                dispatch_linear(pass, b.n.pow(3), items);
+            }
+            runs += batch.work.items;
+        }
+        let sky = &self.sky;
+        if let Some(first) = sky.marches.first() {
+            pass.set_pipeline(ready.march_sky);
+            for group in &sky.marches {
+                pass.set_bind_group(0, group, &[]);
+                dispatch_linear(pass, sky.texels * SKY_MAP_DIRECTIONS, 1);
+            }
+            pass.set_pipeline(ready.resolve_sky);
+            pass.set_bind_group(0, first, &[]);
+            dispatch_linear(pass, sky.texels, 1);
+        }
+        runs
+    }
+
+    /// Multiple scattering (§4): other clouds' media in the grids to scatter in (once every
+    /// density is gathered), the ground's radiance under the clouds it lights (once their light
+    /// volumes hold every shadow), then each batch's iterations and the series' closure.
+    /// Returns the runs: iterations times clouds.
+    fn record_scatter(&self, pass: &mut StagePass, ready: &ReadyPipelines) -> u32 {
+        pass.set_pipeline(ready.overlap);
+        for b in &self.pools {
+            for batch in &b.overlap {
+                for (offset, items) in batch.work.chunks() {
+                    pass.set_bind_group(0, &batch.group, &[offset]);
+                    dispatch_linear(pass, b.n.pow(3), items);
+                }
+            }
+        }
+        pass.set_pipeline(ready.ground);
+        let side = crate::ground::GROUND_MAP_SIDE;
+        for batch in self.pools.iter().filter_map(|b| b.ground.as_ref()) {
+            for (offset, items) in batch.work.chunks() {
+                pass.set_bind_group(0, &batch.group, &[offset]);
+                dispatch_linear(pass, side * side, items);
+            }
+        }
+        let mut runs = 0;
+        for b in &self.pools {
+            for batch in &b.scatter {
+                scatter_batch_passes(pass, ready, batch, b.n, b.moments);
+                runs += batch.iterations * batch.work.items;
+            }
+        }
+        runs
+    }
+}
+
 /// Records every planned illumination stage of every cloud.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn illuminate_clouds(
@@ -614,10 +768,7 @@ pub(crate) fn illuminate_clouds(
         );
     }
 
-    // Shade (§2): one column per invocation, marching slice by slice away from the light (or, with
-    // `ShadingMethod::BruteForce`, one voxel per invocation marching all the way to the light).
-    // Every (cloud, light) of a pool in one dispatch. Then the casts, in the same stage: their
-    // dispatches count as shade's, their runs do not (a run is a light shaded).
+    // Shade (§2), then the casts of other clouds' shadows and the shadow maps.
     let (maps, sky) = (&batches.maps, &batches.sky);
     if let Some(buffer) = &maps.buffer {
         for &(offset, size) in maps.clears.iter().chain(&sky.clear) {
@@ -625,89 +776,30 @@ pub(crate) fn illuminate_clouds(
                 .clear_buffer(buffer, offset, Some(size));
         }
     }
-    let casting = |b: &PoolBatches| b.shade.is_some() || !b.cast.is_empty();
-    if batches.pools.iter().any(casting) || !maps.batches.is_empty() {
+    if batches.shades() {
         record_stage(
             &mut ctx,
             recorder.as_deref(),
             &counters,
             CloudPass::Shade,
-            |pass| {
-                pass.set_pipeline(shade);
-                let mut runs = 0;
-                for b in &batches.pools {
-                    let Some(batch) = &b.shade else { continue };
-                    for (offset, items) in batch.work.chunks() {
-                        pass.set_bind_group(0, &batch.group, &[offset]);
-                        if brute_force {
-                            dispatch_linear(pass, b.m.pow(3), items);
-                        } else {
-                            dispatch_columns(pass, b.m, items);
-                        }
-                    }
-                    runs += batch.work.items;
-                }
-                // Other clouds' shadows (§2), once every cloud's own optical depth is shaded;
-                // and the shadow maps (§10).
-                pass.set_pipeline(ready.cast);
-                let pools = batches.pools.iter();
-                // One invocation per column along the light (`cast.wgsl`).
-                let light_volumes = pools.flat_map(|b| b.cast.iter().map(move |c| (c, b.m.pow(2))));
-                let map_texels = maps.batches.iter().map(|(c, columns)| (c, *columns));
-                for (batch, columns) in light_volumes.chain(map_texels) {
-                    for (offset, items) in batch.work.chunks() {
-                        pass.set_bind_group(0, &batch.group, &[offset]);
-                        dispatch_linear(pass, columns, items);
-                    }
-                }
-                runs
-            },
+            |pass| batches.record_shade(pass, &ready, shade, brute_force),
         );
     }
-
-    // Gather (§1, §3): the scattering grid's density, and every light's single scattering into
-    // its source S_0. Every cloud of a pool in one dispatch. Then the sky map (§10), marched
-    // through the scattering grids' densities; its dispatches count as gather's, not its runs.
-    if batches.pools.iter().any(|b| b.gather.is_some()) || !sky.marches.is_empty() {
+    // Gather (§1, §3), then the sky map.
+    if batches.gathers() {
         record_stage(
             &mut ctx,
             recorder.as_deref(),
             &counters,
             CloudPass::Gather,
-            |pass| {
-                let mut runs = 0;
-                for b in &batches.pools {
-                    let Some(batch) = &b.gather else { continue };
-                    pass.set_pipeline(ready.gather[b.moments as usize]);
-                    for (offset, items) in batch.work.chunks() {
-                        pass.set_bind_group(0, &batch.group, &[offset]);
-                        dispatch_linear(pass, b.n.pow(3), items);
-                    }
-                    runs += batch.work.items;
-                }
-                if let Some(first) = sky.marches.first() {
-                    // Every pool's clouds along each texel's directions, then each texel's
-                    // occlusion.
-                    pass.set_pipeline(ready.march_sky);
-                    for group in &sky.marches {
-                        pass.set_bind_group(0, group, &[]);
-                        dispatch_linear(pass, sky.texels * SKY_MAP_DIRECTIONS, 1);
-                    }
-                    pass.set_pipeline(ready.resolve_sky);
-                    pass.set_bind_group(0, first, &[]);
-                    dispatch_linear(pass, sky.texels, 1);
-                }
-                runs
-            },
+            |pass| batches.record_gather(pass, &ready),
         );
     }
-
-    // Multiple scattering (§4): the iterations, then the series' closure. A warm restart starts
-    // from what `multiple` holds; the full series from zero.
+    // Multiple scattering (§4): a warm restart starts from what `multiple` holds; the full
+    // series from zero.
     for (v, s) in &clouds {
         if (s.plan.scatter.is_some() && !s.plan.warm) || s.plan.unlit {
-            let pool = pools.pool(&v.slot);
-            let multiple = pool.multiple(v.slot.index);
+            let multiple = pools.pool(&v.slot).multiple(v.slot.index);
             ctx.command_encoder().clear_buffer(
                 &multiple.buffer,
                 multiple.offset,
@@ -715,42 +807,13 @@ pub(crate) fn illuminate_clouds(
             );
         }
     }
-    if batches.pools.iter().any(|b| !b.scatter.is_empty()) {
+    if batches.scatters() {
         record_stage(
             &mut ctx,
             recorder.as_deref(),
             &counters,
             CloudPass::Scatter,
-            |pass| {
-                // Other clouds' media in the grids to scatter in, once every density is gathered.
-                pass.set_pipeline(ready.overlap);
-                for b in &batches.pools {
-                    for batch in &b.overlap {
-                        for (offset, items) in batch.work.chunks() {
-                            pass.set_bind_group(0, &batch.group, &[offset]);
-                            dispatch_linear(pass, b.n.pow(3), items);
-                        }
-                    }
-                }
-                // The ground's radiance under the clouds it lights, once their light volumes
-                // hold every shadow.
-                pass.set_pipeline(ready.ground);
-                let side = crate::ground::GROUND_MAP_SIDE;
-                for batch in batches.pools.iter().filter_map(|b| b.ground.as_ref()) {
-                    for (offset, items) in batch.work.chunks() {
-                        pass.set_bind_group(0, &batch.group, &[offset]);
-                        dispatch_linear(pass, side * side, items);
-                    }
-                }
-                let mut runs = 0;
-                for b in &batches.pools {
-                    for batch in &b.scatter {
-                        scatter_batch_passes(pass, &ready, batch, b.n, b.moments);
-                        runs += batch.iterations * batch.work.items;
-                    }
-                }
-                runs
-            },
+            |pass| batches.record_scatter(pass, &ready),
         );
     }
 
