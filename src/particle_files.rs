@@ -358,110 +358,18 @@ fn parse_ply_header(path: &Path, bytes: &[u8]) -> Result<PlyHeader, ParticleFile
             continue;
         }
         let rest: Vec<&str> = words.collect();
+        let bad_line = |message: String| ParticleFileError::format(path, &at, message);
         match keyword {
             "" | "comment" | "obj_info" => {}
-            "format" => {
-                let f = match rest.first().copied() {
-                    Some("ascii") => PlyFormat::Ascii,
-                    Some("binary_little_endian") => PlyFormat::BinaryLittleEndian,
-                    Some("binary_big_endian") => PlyFormat::BinaryBigEndian,
-                    other => {
-                        return Err(ParticleFileError::format(
-                            path,
-                            &at,
-                            format!(
-                                "unknown format `{}`; allowed are `ascii` and `binary_little_endian`",
-                                other.unwrap_or("")
-                            ),
-                        ));
-                    }
-                };
-                if rest.get(1).copied() != Some("1.0") || rest.len() != 2 {
-                    return Err(ParticleFileError::format(
-                        path,
-                        &at,
-                        format!("expected `format {} 1.0`, found `{}`", rest[0], short(line)),
-                    ));
-                }
-                format = Some(f);
-            }
-            "element" => {
-                if rest.len() != 2 {
-                    return Err(ParticleFileError::format(
-                        path,
-                        &at,
-                        format!("expected `element <name> <count>`, found `{}`", short(line)),
-                    ));
-                }
-                let count = rest[1].parse::<usize>().map_err(|_| {
-                    ParticleFileError::format(
-                        path,
-                        &at,
-                        format!(
-                            "element `{}` has count `{}`; it must be an integer >= 0",
-                            rest[0], rest[1]
-                        ),
-                    )
-                })?;
-                elements.push(PlyElement {
-                    name: rest[0].to_string(),
-                    count,
-                    properties: Vec::new(),
-                });
-            }
+            "format" => format = Some(ply_format(&rest, line).map_err(bad_line)?),
+            "element" => elements.push(ply_element(&rest, line).map_err(bad_line)?),
             "property" => {
                 let Some(element) = elements.last_mut() else {
-                    return Err(ParticleFileError::format(
-                        path,
-                        &at,
-                        "`property` before any `element`",
-                    ));
+                    return Err(bad_line("`property` before any `element`".into()));
                 };
-                let bad_type = |t: &str| {
-                    ParticleFileError::format(
-                        path,
-                        &at,
-                        format!(
-                            "unknown property type `{t}`; allowed are char uchar short ushort int uint float double \
-                             (or int8 uint8 int16 uint16 int32 uint32 float32 float64)"
-                        ),
-                    )
-                };
-                let property = match rest.as_slice() {
-                    ["list", count, item, name] => {
-                        let count = ScalarType::parse(count).ok_or_else(|| bad_type(count))?;
-                        let item = ScalarType::parse(item).ok_or_else(|| bad_type(item))?;
-                        if !count.is_integer() {
-                            return Err(ParticleFileError::format(
-                                path,
-                                &at,
-                                format!("list property `{name}` has a non-integer count type"),
-                            ));
-                        }
-                        PlyProperty {
-                            name: name.to_string(),
-                            kind: PropertyKind::List { count, item },
-                        }
-                    }
-                    [ty, name] => {
-                        let ty = ScalarType::parse(ty).ok_or_else(|| bad_type(ty))?;
-                        PlyProperty {
-                            name: name.to_string(),
-                            kind: PropertyKind::Scalar(ty),
-                        }
-                    }
-                    _ => {
-                        return Err(ParticleFileError::format(
-                            path,
-                            &at,
-                            format!(
-                                "expected `property <type> <name>` or `property list <type> <type> <name>`, found `{}`",
-                                short(line)
-                            ),
-                        ));
-                    }
-                };
-                element.properties.push(property);
+                element
+                    .properties
+                    .push(ply_property(&rest, line).map_err(bad_line)?);
             }
             "end_header" => {
                 let format = format.ok_or_else(|| {
@@ -482,6 +390,82 @@ fn parse_ply_header(path: &Path, bytes: &[u8]) -> Result<PlyHeader, ParticleFile
                 ));
             }
         }
+    }
+}
+
+/// A `format` line's format (`rest`: its words after the keyword), or why not.
+fn ply_format(rest: &[&str], line: &str) -> Result<PlyFormat, String> {
+    let format = match rest.first().copied() {
+        Some("ascii") => PlyFormat::Ascii,
+        Some("binary_little_endian") => PlyFormat::BinaryLittleEndian,
+        Some("binary_big_endian") => PlyFormat::BinaryBigEndian,
+        other => {
+            return Err(format!(
+                "unknown format `{}`; allowed are `ascii` and `binary_little_endian`",
+                other.unwrap_or("")
+            ));
+        }
+    };
+    if rest.get(1).copied() != Some("1.0") || rest.len() != 2 {
+        return Err(format!(
+            "expected `format {} 1.0`, found `{}`",
+            rest[0],
+            short(line)
+        ));
+    }
+    Ok(format)
+}
+
+/// An `element <name> <count>` line's element, without properties yet, or why not.
+fn ply_element(rest: &[&str], line: &str) -> Result<PlyElement, String> {
+    let [name, count] = rest else {
+        return Err(format!(
+            "expected `element <name> <count>`, found `{}`",
+            short(line)
+        ));
+    };
+    let count = count
+        .parse::<usize>()
+        .map_err(|_| format!("element `{name}` has count `{count}`; it must be an integer >= 0"))?;
+    Ok(PlyElement {
+        name: name.to_string(),
+        count,
+        properties: Vec::new(),
+    })
+}
+
+/// A `property <type> <name>` or `property list <type> <type> <name>` line's property, or why
+/// not.
+fn ply_property(rest: &[&str], line: &str) -> Result<PlyProperty, String> {
+    let scalar = |t: &str| {
+        ScalarType::parse(t).ok_or_else(|| {
+            format!(
+                "unknown property type `{t}`; allowed are char uchar short ushort int uint float double \
+                 (or int8 uint8 int16 uint16 int32 uint32 float32 float64)"
+            )
+        })
+    };
+    match rest {
+        ["list", count, item, name] => {
+            let (count, item) = (scalar(count)?, scalar(item)?);
+            if !count.is_integer() {
+                return Err(format!(
+                    "list property `{name}` has a non-integer count type"
+                ));
+            }
+            Ok(PlyProperty {
+                name: name.to_string(),
+                kind: PropertyKind::List { count, item },
+            })
+        }
+        [ty, name] => Ok(PlyProperty {
+            name: name.to_string(),
+            kind: PropertyKind::Scalar(scalar(ty)?),
+        }),
+        _ => Err(format!(
+            "expected `property <type> <name>` or `property list <type> <type> <name>`, found `{}`",
+            short(line)
+        )),
     }
 }
 
@@ -1139,6 +1123,33 @@ mod tests {
         assert!(e.contains("line 4") && e.contains("float128"), "{e}");
         let e = err("plyx\n");
         assert!(e.contains("line 1") && e.contains("`ply`"), "{e}");
+        // Each header line names what it expected and what it found.
+        for (header, line, expected) in [
+            ("format ascii_le 1.0", 2, "unknown format `ascii_le`"),
+            (
+                "element vertex -1",
+                2,
+                "count `-1`; it must be an integer >= 0",
+            ),
+            ("element vertex", 2, "expected `element <name> <count>`"),
+            ("property float x", 2, "`property` before any `element`"),
+            (
+                "element v 1\nproperty list float int v",
+                3,
+                "non-integer count type",
+            ),
+            (
+                "element v 1\nproperty float",
+                3,
+                "expected `property <type> <name>`",
+            ),
+        ] {
+            let e = err(&format!("ply\n{header}\nend_header\n"));
+            assert!(
+                e.contains(&format!("line {line}")) && e.contains(expected),
+                "{e}"
+            );
+        }
         let e = err("ply\nformat ascii 1.0\nelement vertex 1\n");
         assert!(e.contains("end_header"), "{e}");
         let e =
