@@ -22,9 +22,9 @@ use bevy::{
         diagnostic::{DiagnosticsRecorder, RecordDiagnostics},
         render_asset::RenderAssets,
         render_phase::{
-            CachedRenderPipelinePhaseItem, DrawFunctions, PhaseItem, PhaseItemExtraIndex,
-            RenderCommand, RenderCommandResult, SetItemPipeline, TrackedRenderPass,
-            ViewSortedRenderPhases,
+            CachedRenderPipelinePhaseItem, DrawFunctionId, DrawFunctions, PhaseItem,
+            PhaseItemExtraIndex, RenderCommand, RenderCommandResult, SetItemPipeline,
+            SortedRenderPhase, TrackedRenderPass, ViewSortedRenderPhases,
         },
         render_resource::{
             BindGroup, BindGroupEntries, BindGroupLayout, BindGroupLayoutDescriptor,
@@ -738,26 +738,7 @@ pub(crate) fn queue_cloud_billboards(
                 .insert((ViewCloudDraws(draws), ViewCloudSplats(splats)));
             continue;
         }
-        let mut members = ViewCloudGroups::default();
-        for group in groups.0.into_values() {
-            let (leader, main_entity) = group.entities[0];
-            phase.add_transient(Transparent3d {
-                sorting_info: TransparentSortingInfo3d::Sorted {
-                    mesh_center: group.centre / group.entities.len() as f32,
-                    depth_bias: 0.0,
-                },
-                distance: 0.0,
-                pipeline: group.pipeline,
-                entity: (leader, main_entity),
-                draw_function,
-                batch_range: 0..1,
-                extra_index: PhaseItemExtraIndex::None,
-                indexed: false,
-            });
-            members
-                .0
-                .insert(leader, group.entities.into_iter().map(|e| e.0).collect());
-        }
+        let members = groups.queue(phase, draw_function);
         commands.entity(entity).insert(members);
     }
 }
@@ -791,6 +772,36 @@ impl CloudGroups {
         });
         queued.entities.push(entity);
         queued.centre += centre;
+    }
+
+    /// Adds each group to the view's `phase` as one item, sorted at the mean of its clouds'
+    /// centres and drawn by `draw_function`; returns the clouds each item draws.
+    fn queue(
+        self,
+        phase: &mut SortedRenderPhase<Transparent3d>,
+        draw_function: DrawFunctionId,
+    ) -> ViewCloudGroups {
+        let mut members = ViewCloudGroups::default();
+        for group in self.0.into_values() {
+            let (leader, main_entity) = group.entities[0];
+            phase.add_transient(Transparent3d {
+                sorting_info: TransparentSortingInfo3d::Sorted {
+                    mesh_center: group.centre / group.entities.len() as f32,
+                    depth_bias: 0.0,
+                },
+                distance: 0.0,
+                pipeline: group.pipeline,
+                entity: (leader, main_entity),
+                draw_function,
+                batch_range: 0..1,
+                extra_index: PhaseItemExtraIndex::None,
+                indexed: false,
+            });
+            members
+                .0
+                .insert(leader, group.entities.into_iter().map(|e| e.0).collect());
+        }
+        members
     }
 }
 
