@@ -282,6 +282,44 @@ fn the_command_line_is_checked_and_documented() {
     }
 }
 
+/// Light volumes past any adapter's storage binding (200 lights of 255³ floats: 13 GB) are
+/// refused before anything renders, naming the field, its value and the largest that fits.
+#[test]
+fn volumes_past_the_adapters_storage_binding_are_refused_with_what_fits() {
+    let dir = scratch_dir("too_many_lights");
+    let scene = dir.join("scene.ron");
+    let example = scene_format_example();
+    let start = example.find("    lights: [").expect("the example's lights");
+    let end = start + example[start..].find("    ],\n").expect("their end") + "    ],\n".len();
+    let light = "        (direction: (-0.5, -0.8, -0.35), irradiance: (0.01, 0.01, 0.01)),\n";
+    let lights = format!("    lights: [\n{}    ],\n", light.repeat(200));
+    std::fs::write(
+        &scene,
+        format!("{}{lights}{}", &example[..start], &example[end..]),
+    )
+    .unwrap();
+    let out = run(&[
+        scene.to_str().unwrap(),
+        "--out",
+        dir.join("x.png").to_str().unwrap(),
+        "--set",
+        "volume_resolution=85",
+    ]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    for expected in [
+        "settings.volume_resolution is 85 (light volumes of 255³ for 200 lights)",
+        "allows at most",
+        "its storage buffers hold",
+    ] {
+        assert!(
+            stderr.contains(expected),
+            "expected {expected:?} in {stderr}"
+        );
+    }
+    assert!(!dir.join("x.png").exists(), "nothing is written");
+}
+
 #[test]
 fn size_and_settings_overrides_reach_the_image_and_its_metadata() {
     let (dir, scene) = example_scene("overrides");
