@@ -288,29 +288,25 @@ fn check_volume_fits(app: &mut bevy::app::App, scene: &Scene, adapter: &str) -> 
         .limits()
         .max_storage_buffer_binding_size;
     let resolution = scene.settings.volume_resolution;
-    let lights = scene.lights.len();
+    let lights = scene.lights.len() as u32;
     // An anisotropic medium's scattering volumes also hold the radiance's angular moments.
     let moments = scene.clouds.iter().any(|c| c.medium.anisotropy != 0.0);
-    let fits = |n: u32, light_supersampling: u32| {
+    let fitting = |settings: &CloudQualitySettings| {
+        VolumeShape::fitting_supersampling(settings, lights, moments, limit)
+    };
+    // The scene's settings at resolution `n` fit without lowering their supersampling.
+    let fits = |n: u32| {
         let settings = CloudQualitySettings {
             volume_resolution: n,
-            light_supersampling,
             ..scene.settings
         };
-        let shape = VolumeShape {
-            n,
-            m: settings.light_resolution(),
-            lights: lights as u32,
-            moments,
-        };
-        shape.max_slots(limit) > 0
+        fitting(&settings) == Some(settings.supersampling())
     };
-    let supersampling = scene.settings.light_supersampling;
-    if fits(resolution, supersampling) {
+    if fits(resolution) {
         return Ok(());
     }
-    let largest = (1..=resolution).rev().find(|&n| fits(n, supersampling));
-    let lower = (1..supersampling).rev().find(|&f| fits(resolution, f));
+    let largest = (1..=resolution).rev().find(|&n| fits(n));
+    let lower = fitting(&scene.settings);
     let or_lower = lower.map_or(String::new(), |f| {
         format!(", or settings.light_supersampling {f} at this resolution")
     });

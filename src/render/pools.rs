@@ -16,6 +16,8 @@ use bevy::{
     },
 };
 
+use crate::settings::CloudQualitySettings;
+
 use super::{
     gpu::{dynamic_uniform, storage},
     ground::ground_map_bytes,
@@ -114,6 +116,36 @@ fn light_stride(lights: u32) -> u64 {
 }
 
 impl VolumeShape {
+    /// The shape of a cloud's volumes at `settings`, under `lights` lights, with angular
+    /// `moments` (an anisotropic medium).
+    pub fn new(settings: &CloudQualitySettings, lights: u32, moments: bool) -> Self {
+        Self {
+            n: settings.volume_resolution,
+            m: settings.light_resolution(),
+            lights,
+            moments,
+        }
+    }
+
+    /// The largest `light_supersampling`, from `settings`' own in effect down to 1, at which one
+    /// such cloud's volumes fit a storage binding of `max_binding` bytes; `None` when none does.
+    pub fn fitting_supersampling(
+        settings: &CloudQualitySettings,
+        lights: u32,
+        moments: bool,
+        max_binding: u64,
+    ) -> Option<u32> {
+        (1..=settings.supersampling())
+            .rev()
+            .find(|&light_supersampling| {
+                let at = CloudQualitySettings {
+                    light_supersampling,
+                    ..*settings
+                };
+                Self::new(&at, lights, moments).max_slots(max_binding) > 0
+            })
+    }
+
     fn bytes(&self) -> SlotBytes {
         let voxels = (self.n as u64).pow(3);
         let fine_density = DensityLevels::elements(self.m) * 4;

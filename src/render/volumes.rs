@@ -695,38 +695,30 @@ fn at_resolution(
 ) -> ExtractedCloud {
     let mut cloud = cloud.clone();
     cloud.settings.volume_resolution = n;
+    let (count, moments) = (lights.lights.len() as u32, cloud.has_moments());
     let wanted = cloud.settings.supersampling();
-    let fitting = fitting_supersampling(wanted, |f| {
-        cloud.settings.light_supersampling = f;
-        volume_shape(&cloud, lights).max_slots(max_binding) > 0
-    });
+    // None fits: 1, and the allocation refuses the cloud with its own warning.
+    let fitting = VolumeShape::fitting_supersampling(&cloud.settings, count, moments, max_binding)
+        .unwrap_or(1);
     cloud.settings.light_supersampling = fitting;
     if fitting < wanted {
         warn_once!(
-            "particle cloud: light volumes of {}³ voxels for {} lights exceed this adapter's \
+            "particle cloud: light volumes of {}³ voxels for {count} lights exceed this adapter's \
              storage buffer limit of {max_binding} bytes; `light_supersampling` is lowered from \
              {wanted} to {fitting} for such clouds",
             n * wanted,
-            lights.lights.len(),
         );
     }
     cloud
 }
 
-/// The largest supersampling from `wanted` down to 1 whose volumes `fit`; 1 when none does (the
-/// cloud is then refused with a warning when its volumes are allocated).
-fn fitting_supersampling(wanted: u32, mut fits: impl FnMut(u32) -> bool) -> u32 {
-    (1..=wanted).rev().find(|&f| fits(f)).unwrap_or(1)
-}
-
 /// The shape of the volumes `cloud` is illuminated in under `lights`.
 fn volume_shape(cloud: &ExtractedCloud, lights: &ExtractedCloudLights) -> VolumeShape {
-    VolumeShape {
-        n: cloud.settings.volume_resolution,
-        m: cloud.settings.light_resolution(),
-        lights: lights.lights.len() as u32,
-        moments: cloud.has_moments(),
-    }
+    VolumeShape::new(
+        &cloud.settings,
+        lights.lights.len() as u32,
+        cloud.has_moments(),
+    )
 }
 
 /// The uniform of the fine grid (voxelize and shade): the same cube at `m` voxels per side.

@@ -112,7 +112,7 @@ fn check(case: Case, sky: Vec3) {
         )
     });
     let settings = CloudQualitySettings {
-        light_supersampling: fitting_supersampling(&case, max_binding),
+        light_supersampling: expected_supersampling(&case, max_binding),
         ..case.settings
     };
     assert_eq!(
@@ -246,7 +246,7 @@ fn check(case: Case, sky: Vec3) {
 /// The case's supersampling, lowered while its lights' optical-depth volumes (one f32 per fine
 /// voxel and light, the largest of its volumes in these cases) pass one storage binding of
 /// `max_binding` bytes.
-fn fitting_supersampling(case: &Case, max_binding: u64) -> u32 {
+fn expected_supersampling(case: &Case, max_binding: u64) -> u32 {
     let n = case.settings.volume_resolution as u64;
     let lights = case.lights.len().max(1) as u64;
     let fits = |f: &u32| lights * (n * *f as u64).pow(3) * 4 <= max_binding;
