@@ -290,10 +290,9 @@ fn a_cloud_lit_from_behind_glows_as_the_path_tracer_says() {
 /// scattered light flows on with the light, and the camera sees it through the phase function's
 /// first three moments (docs/illumination.md §4, §5). Against the path tracer, at most a third of
 /// the error of the isotropic multiple scattering it replaced (0.35 and 0.85 here), and within
-/// 0.1. (This cloud is thinner than the benchmark's cumulus, optical depth about 5 through its
-/// core, and its multiply scattered light more forward-peaked than three moments hold: the
-/// benchmark's goal of 0.05 is not met lit from the side, 0.090; from the front 0.049; see
-/// README "Limitations".)
+/// 0.06 (0.030 from the side, 0.049 from the front; this cloud is thinner than the benchmark's
+/// cumulus, optical depth about 5 through its core). From the side it was 0.090 while the
+/// sweep's source was P1: see the next test.
 #[test]
 fn a_forward_scattering_cloud_lit_from_the_side_or_the_front_follows_the_path_tracer() {
     use bevy_particle_clouds::reference::illumination::{gather, scatter};
@@ -301,7 +300,7 @@ fn a_forward_scattering_cloud_lit_from_the_side_or_the_front_follows_the_path_tr
         let mut forward = scene();
         forward.lights[0].direction = direction;
         forward.clouds[0].medium.anisotropy = 0.7;
-        let (truth, noise) = reference(&forward, 4096);
+        let (truth, noise) = reference(&forward, 8192);
         let settings = CloudQualitySettings::default();
         let denoised = |image: &[[f32; 4]]| {
             let error = relative_rmse(image, &truth);
@@ -319,13 +318,90 @@ fn a_forward_scattering_cloud_lit_from_the_side_or_the_front_follows_the_path_tr
              multiple scattering (reference noise {noise:.4})"
         );
         assert!(
-            noise < 0.034,
+            noise < 0.023,
             "the reference is too noisy to compare: {noise}"
         );
-        assert!(error < 0.1, "relative RMSE {error}");
+        assert!(error < 0.06, "relative RMSE {error}");
         assert!(
             3.0 * error < isotropic,
             "isotropic multiple scattering errs by {isotropic}"
         );
     }
+}
+
+/// What the billboards of a forward-scattering cloud (g = 0.7) lit from the side shade towards
+/// the camera, past single scattering (the beam's excess seen through its spread, and the grid's
+/// multiple scattering through the phase function's first three moments), against the path
+/// tracer's in-scattered light at points inside the cloud, density-weighted: within 3 %. With a
+/// P1 source in the sweep it was 9 % bright: the grid held none of the remainder phase function's
+/// second moment `(1 - f) g'^2` (docs/illumination.md §4), so the light's quadrupole seen at 90°
+/// from the sun was 18 % short of the truth's.
+#[test]
+fn a_side_lit_forward_scattering_cloud_scatters_towards_the_camera_as_the_path_tracer_says() {
+    use bevy_particle_clouds::reference::illumination::single_scattering_towards;
+    let g = 0.7;
+    let mut scene = scene();
+    scene.clouds[0].medium.anisotropy = g as f32;
+    let settings = CloudQualitySettings::default();
+    let ill = illuminate_scene_cloud(&scene, 0, &settings).expect("a cloud with density");
+    let media = ParticleMedia::from_scene(&scene);
+    let lighting = Lighting::from_scene(&scene);
+    // Towards the camera, 90° from the sun; the points: a lattice over the cloud's middle.
+    let w = DVec3::Z;
+    let points: Vec<DVec3> = (0..11 * 5 * 9)
+        .map(|i| DVec3::new((i % 11) as f64, ((i / 11) % 5) as f64, (i / 55) as f64))
+        .map(|c| DVec3::new(-1.0, -0.6, -0.8) + c * DVec3::new(0.2, 0.3, 0.2))
+        .filter(|&x| ill.grid.sample(x) > 0.1)
+        .collect();
+    let samples = 8192;
+    // The path tracer: the radiance arriving from directions drawn from the phase function
+    // towards w, so their mean is the in-scattered light (the sun's own beam never arrives).
+    let truth: Vec<(f64, f64)> = points
+        .par_iter()
+        .enumerate()
+        .map(|(i, &x)| {
+            let (mut sum, mut squares) = (0.0, 0.0);
+            for s in 0..samples {
+                let mut rng = SplitMix64::for_sample(11, i as u64, s as u64);
+                let from = -rng.henyey_greenstein(g, w);
+                let l = radiance(&media, &lighting, x, from, MAX_SCATTER_EVENTS, &mut rng)
+                    .element_sum();
+                sum += l;
+                squares += l * l;
+            }
+            let mean = sum / samples as f64;
+            (
+                mean,
+                (squares / samples as f64 - mean * mean) / samples as f64,
+            )
+        })
+        .collect();
+    let medium = (ill.albedo, g);
+    let shaded = |x: DVec3| {
+        let excess = single_scattering_towards(&ill.lights, x, medium, -w, ill.beam.as_ref())
+            - single_scattering_towards(&ill.lights, x, (0.0, g), -w, None);
+        (ill.multiple_towards(x, w) + excess).element_sum()
+    };
+    let (mut real_time, mut path_traced, mut variance) = (0.0, 0.0, 0.0);
+    for (&x, (t, v)) in points.iter().zip(&truth) {
+        let rho = ill.grid.sample(x);
+        real_time += rho * shaded(x);
+        path_traced += rho * t;
+        variance += rho * rho * v;
+    }
+    let ratio = real_time / path_traced;
+    let noise = variance.sqrt() / path_traced;
+    eprintln!(
+        "towards the camera, {} points: real-time / path tracer {ratio:.4} (noise {noise:.4})",
+        points.len()
+    );
+    assert!(points.len() > 100, "{} points", points.len());
+    assert!(
+        noise < 0.01,
+        "the path tracer is too noisy to compare: {noise}"
+    );
+    assert!(
+        (ratio - 1.0).abs() < 0.03,
+        "real-time / path tracer {ratio}"
+    );
 }

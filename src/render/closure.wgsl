@@ -2,9 +2,9 @@
 // geometric with the per-channel ratio of the last two, lambda = sum rho |S_M| / sum rho |S_{M-1}|
 // (the absolute values matter for a warm restart's correction, whose orders may be negative),
 // and S_M lambda / (1 - lambda) is added to the multiple-scattering volume (with moments, its
-// flux too; the quadrupole takes no tail). Every cloud of a volume pool in one dispatch: z
+// flux and quadrupole alike). Every cloud of a volume pool in one dispatch: z
 // workgroup i closes slot `work[i]`.
-#import bevy_particle_clouds::types::{Slot, flat_invocation, flux_element}
+#import bevy_particle_clouds::types::{Slot, flat_invocation, flux_element, quadrupole_element}
 
 @group(0) @binding(0) var<storage, read> slots: array<Slot>;
 @group(0) @binding(1) var<storage, read> densities: array<f32>;
@@ -77,6 +77,9 @@ fn extrapolate(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgr
     let n = slot.cloud.n;
     for (var axis = 0u; axis < 3u; axis++) {
         multiple[flux_element(slot.multiple, n, v, axis)] += last[flux_element(slot.volume, n, v, axis)] * k;
+    }
+    for (var c = 0u; c < 5u; c++) {
+        multiple[quadrupole_element(slot.multiple, n, v, c)] += last[quadrupole_element(slot.volume, n, v, c)] * k;
     }
 #endif
 }

@@ -3,10 +3,10 @@
 // density-weighted mean over those children of the beams' radiance
 // (1 / 4 pi) sum_l E_l exp(-c tau_l), c the delta-Eddington depth scale (1 for an isotropic
 // medium), and for an anisotropic medium (shader def MOMENTS) of their flux
-// (1 / 4 pi) sum_l E_l exp(-c tau_l) d_l;
+// (1 / 4 pi) sum_l E_l exp(-c tau_l) d_l and quadrupole (1 / 4 pi) sum_l E_l exp(-c tau_l) (d_l d_l^T - I/3);
 // all lights in one dispatch (§3). Every cloud of a volume pool in that dispatch: z workgroup i
 // gathers slot `work[i]`.
-#import bevy_particle_clouds::types::{CloudParams, LightParams, Slot, PI, voxel_index, flat_invocation, light_coords, clamped_lookup, clamped_corner, corner_weight, flux_element}
+#import bevy_particle_clouds::types::{CloudParams, LightParams, Slot, PI, voxel_index, flat_invocation, light_coords, clamped_lookup, clamped_corner, corner_weight, flux_element, quadrupole_element, quadrupole_basis}
 
 @group(0) @binding(0) var<storage, read> slots: array<Slot>;
 @group(0) @binding(1) var<storage, read> lights: array<LightParams>;
@@ -20,11 +20,12 @@
 var<private> slot: Slot;
 var<private> cloud: CloudParams;
 
-// The beams' mean radiance and flux (x, y, z) at a cloud-local point. (billboard.wgsl
-// evaluates the same optical depths at its shading points.)
+// The beams' mean radiance, flux (x, y, z) and quadrupole (xx, yy, xy, xz, yz) at a
+// cloud-local point. (billboard.wgsl evaluates the same optical depths at its shading points.)
 struct Beams {
     mean: vec3<f32>,
     flux: array<vec3<f32>, 3>,
+    quadrupole: array<vec3<f32>, 5>,
 }
 
 fn beams_at(p: vec3<f32>) -> Beams {
@@ -42,6 +43,10 @@ fn beams_at(p: vec3<f32>) -> Beams {
 #ifdef MOMENTS
         for (var axis = 0u; axis < 3u; axis++) {
             beams.flux[axis] += radiance * light.w[axis];
+        }
+        let q = quadrupole_basis(light.w);
+        for (var c = 0u; c < 5u; c++) {
+            beams.quadrupole[c] += radiance * q[c];
         }
 #endif
     }
@@ -75,6 +80,10 @@ fn gather(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups)
             weighted.flux[axis] += rho * beams.flux[axis];
             plain.flux[axis] += beams.flux[axis];
         }
+        for (var c = 0u; c < 5u; c++) {
+            weighted.quadrupole[c] += rho * beams.quadrupole[c];
+            plain.quadrupole[c] += beams.quadrupole[c];
+        }
 #endif
         mass += rho;
     }
@@ -87,6 +96,10 @@ fn gather(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups)
     for (var axis = 0u; axis < 3u; axis++) {
         let flux = select(plain.flux[axis], weighted.flux[axis], filled) / count;
         source[flux_element(slot.volume, n, i, axis)] = vec4(flux, 0.0);
+    }
+    for (var c = 0u; c < 5u; c++) {
+        let q = select(plain.quadrupole[c], weighted.quadrupole[c], filled) / count;
+        source[quadrupole_element(slot.volume, n, i, c)] = vec4(q, 0.0);
     }
 #endif
 }

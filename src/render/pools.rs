@@ -80,7 +80,8 @@ struct SlotBytes {
     fine_density: u64,
     /// Every light's `m³` optical depth.
     optical_depth: u64,
-    /// One `n³` vec4 volume (`source`, each order), with its flux if the shape has moments.
+    /// One `n³` vec4 volume (`source`, each order), with its flux and quadrupole if the shape has
+    /// moments.
     volume: u64,
     /// The `n³` vec4 `multiple`, with its flux and quadrupole if the shape has moments.
     multiple: u64,
@@ -164,9 +165,9 @@ impl VolumeShape {
     }
 
     /// The vec4 per voxel of a scattering volume (`source`, an order) and of `multiple`: the
-    /// mean, and with moments the flux (3), and in `multiple` the quadrupole (5).
+    /// mean, and with moments the flux (3) and the quadrupole (5).
     fn vec4_per_voxel(&self) -> (u64, u64) {
-        if self.moments { (4, 9) } else { (1, 1) }
+        if self.moments { (9, 9) } else { (1, 1) }
     }
 
     /// The most slots a pool of this shape may hold under the adapter's `max_binding` (bytes of
@@ -248,7 +249,8 @@ pub struct VolumePool {
     pub optical_depth: Buffer,
     /// The same, the cloud's own optical depth only (other clouds' casts read it; same layout).
     pub own_depth: Buffer,
-    /// vec4 multiple-scattering source `S_0` per slot (its means, then with moments its flux).
+    /// vec4 multiple-scattering source `S_0` per slot (its means, then with moments its flux and
+    /// its quadrupole).
     pub source: Buffer,
     /// vec4 ping-pong scattering orders per slot (laid out like `source`).
     pub orders: [Buffer; 2],
@@ -524,13 +526,13 @@ mod tests {
         assert!(b.optical_depth >= 3 * 1000 * 4);
         assert!(b.volume >= 125 * 16 && b.multiple == b.volume);
         assert!(b.foreign >= 125 * 8);
-        // With moments: the flux after the means, and in `multiple` the quadrupole after it.
+        // With moments: the flux after the means, and the quadrupole after it.
         let moments = VolumeShape {
             moments: true,
             ..shape
         }
         .bytes();
-        assert!(moments.volume >= 125 * 16 * 4 && moments.multiple >= 125 * 16 * 9);
+        assert!(moments.volume >= 125 * 16 * 9 && moments.multiple == moments.volume);
         assert_eq!(
             (moments.foreign, moments.optical_depth),
             (b.foreign, b.optical_depth)

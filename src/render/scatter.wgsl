@@ -3,14 +3,14 @@
 // Two stencils, one entry point each: the discrete-ordinates sweep and the paper's.
 // Every cloud of a volume pool in one dispatch: z workgroup i scatters slot `work[i]`.
 // An anisotropic medium's volumes hold angular moments beside their means (shader def MOMENTS):
-// the sweep's source takes the P1 phase function of the transformed medium, and each order's
-// flux (and in `multiple` the quadrupole) is gathered from the radiance of every direction.
-#import bevy_particle_clouds::types::{CloudParams, Slot, GroundMap, GROUND_MAP_SIDE, voxel_index, flat_invocation, flux_element, quadrupole_element, quadrupole_basis, affine_point, affine_vector}
+// the sweep's source takes the P2 phase function of the transformed medium, and each order's
+// flux and quadrupole are gathered from the radiance of every direction.
+#import bevy_particle_clouds::types::{CloudParams, Slot, GroundMap, GROUND_MAP_SIDE, voxel_index, flat_invocation, flux_element, quadrupole_element, quadrupole_basis, quadrupole_weights, affine_point, affine_vector}
 
 // One direction pair (o, -o) of the discrete-ordinates sweep, o's first non-zero component
 // positive; `first` is 1 for the first of an iteration's 13 dispatches (it overwrites S_{n+1});
-// `accumulate` is 0 for the first sweep of a warm restart, which leaves `multiple` alone (else
-// the sweeps add the quadrupole, and `accumulate_order` the rest, after them); `sky`
+// `accumulate` is 0 for the first sweep of a warm restart (the paper's stencil then leaves
+// `multiple` alone; the sweep never writes it: `accumulate_order` adds each order); `sky`
 // is the sky's radiance and `boundary` 1 in the first iteration of a series, where the light
 // entering the grid from outside (the sky's, and the ground's on lines that climb) comes in (so
 // S_1 = K S_0 + their single scattering); else 0 and nothing enters.
@@ -64,7 +64,8 @@ fn medium(i: u32) -> vec2<f32> {
 }
 
 // The in-scattered radiance of order n at voxel i towards the unit direction w, per unit
-// scattering coefficient: its mean, plus 3 g' F . w with moments (the P1 phase function).
+// scattering coefficient: its mean, plus with moments 3 g' F . w + (15/2) g'^2 w^T Q w (the P2
+// phase function).
 fn order_in(i: u32, w: vec3<f32>) -> vec3<f32> {
     var s = s_in[slot.volume + i].xyz;
 #ifdef MOMENTS
@@ -72,7 +73,13 @@ fn order_in(i: u32, w: vec3<f32>) -> vec3<f32> {
     for (var axis = 0u; axis < 3u; axis++) {
         along += s_in[flux_element(slot.volume, cloud.n, i, axis)].xyz * w[axis];
     }
-    s += 3.0 * cloud.scatter_anisotropy * along;
+    var quadratic = vec3(0.0);
+    let q = quadrupole_weights(w);
+    for (var c = 0u; c < 5u; c++) {
+        quadratic += s_in[quadrupole_element(slot.volume, cloud.n, i, c)].xyz * q[c];
+    }
+    let g = cloud.scatter_anisotropy;
+    s += 3.0 * g * along + 7.5 * g * g * quadratic;
 #endif
     return s;
 }
@@ -174,11 +181,9 @@ fn add_to(element: u32, share: vec4<f32>, overwrite: bool) {
 }
 
 // Voxel `voxel`'s share of the radiance arriving there travelling along w: 1/26 of it to the
-// next order's mean (and with moments its flux), added, or written over what the volume held
-// (`overwrite`, in an iteration's first dispatch). `multiple` takes the order once the
-// iteration's sweeps are done (`accumulate_order`), but for the quadrupole, which only
-// `multiple` holds (the sweep's source is P1): added here, or, in a warm restart's first sweep,
-// which does not accumulate, written anew (§4).
+// next order's mean (and with moments its flux and quadrupole), added, or written over what the
+// volume held (`overwrite`, in an iteration's first dispatch). `multiple` takes the order once
+// the iteration's sweeps are done (`accumulate_order`).
 fn deposit(voxel: u32, radiance: vec3<f32>, w: vec3<f32>, overwrite: bool) {
     let share = vec4(radiance / 26.0, 0.0);
     add_to(slot.volume + voxel, share, overwrite);
@@ -187,14 +192,9 @@ fn deposit(voxel: u32, radiance: vec3<f32>, w: vec3<f32>, overwrite: bool) {
     for (var axis = 0u; axis < 3u; axis++) {
         add_to(flux_element(slot.volume, n, voxel, axis), share * w[axis], overwrite);
     }
-    var q = quadrupole_basis(w);
+    let q = quadrupole_basis(w);
     for (var c = 0u; c < 5u; c++) {
-        let at = quadrupole_element(slot.multiple, n, voxel, c);
-        if overwrite && direction.accumulate == 0u {
-            multiple[at] = share * q[c];
-        } else {
-            multiple[at] += share * q[c];
-        }
+        add_to(quadrupole_element(slot.volume, n, voxel, c), share * q[c], overwrite);
     }
 #endif
 }
@@ -290,7 +290,8 @@ fn march(start: vec3<i32>, flip: vec3<bool>, first: i32, dt: i32, count: i32, w:
     }
 }
 
-// After an accumulating iteration's sweeps: `multiple` += S_(n+1), and with moments its flux.
+// After an accumulating iteration's sweeps: `multiple` += S_(n+1), and with moments its flux and
+// quadrupole.
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn accumulate_order(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let v = slot_voxel(id, groups);
@@ -302,6 +303,9 @@ fn accumulate_order(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_w
     for (var axis = 0u; axis < 3u; axis++) {
         let at = flux_element(slot.volume, cloud.n, v, axis);
         multiple[flux_element(slot.multiple, cloud.n, v, axis)] += s_out[at];
+    }
+    for (var c = 0u; c < 5u; c++) {
+        multiple[quadrupole_element(slot.multiple, cloud.n, v, c)] += s_out[quadrupole_element(slot.volume, cloud.n, v, c)];
     }
 #endif
 }
@@ -350,7 +354,7 @@ fn slot_voxel(id: vec3<u32>, groups: vec3<u32>) -> u32 {
 
 // A warm restart (docs/illumination.md §4) from the solution X that `multiple` holds: its first
 // sweep scatters S_0 + X (written here into s_out, from S_0 in s_in) without accumulating. With
-// moments, their flux alike.
+// moments, their flux and quadrupole alike.
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn warm_start(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let v = slot_voxel(id, groups);
@@ -363,12 +367,15 @@ fn warm_start(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgro
         let at = flux_element(slot.volume, cloud.n, v, axis);
         s_out[at] = s_in[at] + multiple[flux_element(slot.multiple, cloud.n, v, axis)];
     }
+    for (var c = 0u; c < 5u; c++) {
+        let at = quadrupole_element(slot.volume, cloud.n, v, c);
+        s_out[at] = s_in[at] + multiple[quadrupole_element(slot.multiple, cloud.n, v, c)];
+    }
 #endif
 }
 
 // Then s_out holds K (S_0 + X): the correction W_0 = K (S_0 + X) - X becomes the series' first
-// order, and `multiple` becomes X + W_0 (its quadrupole, that of K (S_0 + X), the first sweep
-// wrote).
+// order, and `multiple` becomes X + W_0. With moments, their flux and quadrupole alike.
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn warm_correction(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let v = slot_voxel(id, groups);
@@ -379,6 +386,9 @@ fn warm_correction(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_wo
 #ifdef MOMENTS
     for (var axis = 0u; axis < 3u; axis++) {
         correct(flux_element(slot.volume, cloud.n, v, axis), flux_element(slot.multiple, cloud.n, v, axis));
+    }
+    for (var c = 0u; c < 5u; c++) {
+        correct(quadrupole_element(slot.volume, cloud.n, v, c), quadrupole_element(slot.multiple, cloud.n, v, c));
     }
 #endif
 }

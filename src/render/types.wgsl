@@ -118,8 +118,8 @@ fn flux_element(first: u32, n: u32, i: u32, axis: u32) -> u32 {
     return first + n * n * n + 3u * i + axis;
 }
 
-// The element of entry `c` (xx, yy, xy, xz, yz) of voxel i's quadrupole in `multiple`: after the
-// means and the flux, 5 vec4 (RGB) per voxel.
+// The element of entry `c` (xx, yy, xy, xz, yz) of voxel i's quadrupole in a volume whose means
+// start at `first`: after the means and the flux, 5 vec4 (RGB) per voxel.
 fn quadrupole_element(first: u32, n: u32, i: u32, c: u32) -> u32 {
     return first + 4u * n * n * n + 5u * i + c;
 }

@@ -70,7 +70,7 @@ pub struct CloudParams {
     pub foreign: u32,
     /// The albedo the multiple scattering sweeps with ([`DeltaEddington::albedo`]).
     pub scatter_albedo: f32,
-    /// The asymmetry `g'` of the sweep's P1 source ([`DeltaEddington::anisotropy`]).
+    /// The asymmetry `g'` of the sweep's P2 source ([`DeltaEddington::anisotropy`]).
     pub scatter_anisotropy: f32,
     /// 1 when the scattering volumes hold angular moments beside their means (an anisotropic
     /// medium; docs/illumination.md §4, §9), else 0.

@@ -201,12 +201,12 @@ fn check(case: Case, sky: Vec3) {
             max_relative_difference(&gpu_ratio[..3], &cpu.multiple.ratio.to_array()),
         ));
     }
-    // An anisotropic medium's moments: after the n³ means, 3 vec4 of flux per voxel, and in
-    // `multiple` then 5 of quadrupole.
+    // An anisotropic medium's moments: after the n³ means, 3 vec4 of flux per voxel, then 5 of
+    // quadrupole, in the source as in `multiple`.
     let moments = case.medium.anisotropy != 0.0;
     assert_eq!(
-        gpu_multiple.len() == 27 * n3,
-        moments,
+        (gpu_multiple.len() == 27 * n3, gpu_source.len() == 27 * n3),
+        (moments, moments),
         "moments held for anisotropic media only"
     );
     if moments {
@@ -216,6 +216,13 @@ fn check(case: Case, sky: Vec3) {
             (
                 "source flux",
                 max_relative_difference(&gpu_source[flux.clone()], &flat_entries(&cpu.source.flux)),
+            ),
+            (
+                "source quadrupole",
+                max_relative_difference(
+                    &gpu_source[quadrupole.clone()],
+                    &flat_entries(&cpu.source.quadrupole),
+                ),
             ),
             (
                 "multiple flux",

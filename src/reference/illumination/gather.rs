@@ -82,13 +82,16 @@ pub(super) fn flux_along(f: &Flux, w: DVec3) -> DVec3 {
 
 /// A source or an order of the multiple scattering over the scattering grid (contract
 /// section 4): per voxel the mean radiance `(1/4π) ∫ L dω` (`S` of an isotropic medium) and, for
-/// an anisotropic medium, the [`Flux`]; `flux` is empty for an isotropic one.
+/// an anisotropic medium, the [`Flux`] and the [`Quadrupole`]; both are empty for an isotropic
+/// one.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Moments {
     /// Mean radiance per voxel.
     pub mean: Vec<DVec3>,
     /// First angular moment per voxel; empty for an isotropic medium.
     pub flux: Vec<Flux>,
+    /// Second angular moment (without its trace) per voxel; empty for an isotropic medium.
+    pub quadrupole: Vec<Quadrupole>,
 }
 
 impl Moments {
@@ -97,6 +100,7 @@ impl Moments {
         Self {
             mean,
             flux: Vec::new(),
+            quadrupole: Vec::new(),
         }
     }
 
@@ -105,6 +109,9 @@ impl Moments {
         Moments {
             mean: zip_with(&self.mean, &other.mean, |a, b| *a + *b * k),
             flux: zip_with(&self.flux, &other.flux, |a, b| {
+                std::array::from_fn(|i| a[i] + b[i] * k)
+            }),
+            quadrupole: zip_with(&self.quadrupole, &other.quadrupole, |a, b| {
                 std::array::from_fn(|i| a[i] + b[i] * k)
             }),
         }
@@ -129,8 +136,9 @@ pub fn gather(
 
 /// [`gather`] for a medium of δ-Eddington transform `delta` (contract section 3): the lights'
 /// beams seen through `delta.depth_scale` of their optical depth, `E_l exp(-c tau_l) / 4π`, and,
-/// for an anisotropic medium, their flux `E_l exp(-c tau_l) d_l / 4π` (the moments of a
-/// collimated beam), density-weighted alike.
+/// for an anisotropic medium, their flux `E_l exp(-c tau_l) d_l / 4π` and quadrupole
+/// `E_l exp(-c tau_l) (d_l d_l^T - I/3) / 4π` (the moments of a collimated beam), density-weighted
+/// alike.
 pub fn gather_source(
     grid: &DensityGrid,
     fine: &DensityGrid,
@@ -139,52 +147,73 @@ pub fn gather_source(
 ) -> Moments {
     let f = fine.n / grid.n;
     let beams = |p: DVec3| {
-        lights
-            .iter()
-            .fold((DVec3::ZERO, [DVec3::ZERO; 3]), |(m, fl), (vol, e)| {
-                let t = *e * (-vol.optical_depth_at(p) * delta.depth_scale).exp() / (4.0 * PI);
-                let d = vol.basis[2];
-                (m + t, [fl[0] + t * d.x, fl[1] + t * d.y, fl[2] + t * d.z])
-            })
+        lights.iter().fold(BeamMoments::default(), |sum, (vol, e)| {
+            let t = *e * (-vol.optical_depth_at(p) * delta.depth_scale).exp() / (4.0 * PI);
+            sum.plus(&BeamMoments::collimated(t, vol.basis[2]), 1.0)
+        })
     };
-    let voxels: Vec<(DVec3, Flux)> = (0..grid.len())
+    let voxels: Vec<BeamMoments> = (0..grid.len())
         .into_par_iter()
         .map(|idx| {
             let (i, j, k) = unravel(idx, grid.n);
-            let (mut weighted, mut mass, mut plain) = (
-                (DVec3::ZERO, [DVec3::ZERO; 3]),
-                0.0,
-                (DVec3::ZERO, [DVec3::ZERO; 3]),
-            );
+            let (mut weighted, mut mass, mut plain) =
+                (BeamMoments::default(), 0.0, BeamMoments::default());
             for child in 0..f * f * f {
                 let (a, b, c) = unravel(child, f);
                 let (fi, fj, fk) = (i * f + a, j * f + b, k * f + c);
-                let (m, fl) = beams(fine.voxel_centre(fi, fj, fk));
+                let beams = beams(fine.voxel_centre(fi, fj, fk));
                 let rho = fine.rho[fine.index(fi, fj, fk)];
-                weighted.0 += m * rho;
-                plain.0 += m;
-                for ((w, p), f) in weighted.1.iter_mut().zip(&mut plain.1).zip(fl) {
-                    *w += f * rho;
-                    *p += f;
-                }
+                weighted = weighted.plus(&beams, rho);
+                plain = plain.plus(&beams, 1.0);
                 mass += rho;
             }
-            let (sum, count) = if mass > 0.0 {
-                (weighted, mass)
+            if mass > 0.0 {
+                weighted.scaled(1.0 / mass)
             } else {
-                (plain, (f * f * f) as f64)
-            };
-            (sum.0 / count, sum.1.map(|a| a / count))
+                plain.scaled(1.0 / (f * f * f) as f64)
+            }
         })
         .collect();
-    let (mean, flux) = voxels.into_iter().unzip();
+    let mean = voxels.iter().map(|b| b.mean).collect();
+    if delta.anisotropy == 0.0 {
+        return Moments::isotropic(mean);
+    }
     Moments {
         mean,
-        flux: if delta.anisotropy != 0.0 {
-            flux
-        } else {
-            Vec::new()
-        },
+        flux: voxels.iter().map(|b| b.flux).collect(),
+        quadrupole: voxels.iter().map(|b| b.quadrupole).collect(),
+    }
+}
+
+/// The mean, flux and quadrupole of one point's beams.
+#[derive(Clone, Copy, Default)]
+struct BeamMoments {
+    mean: DVec3,
+    flux: Flux,
+    quadrupole: Quadrupole,
+}
+
+impl BeamMoments {
+    /// A collimated beam of mean radiance `t` travelling along the unit direction `d`.
+    fn collimated(t: DVec3, d: DVec3) -> Self {
+        Self {
+            mean: t,
+            flux: [t * d.x, t * d.y, t * d.z],
+            quadrupole: quadrupole_basis(d).map(|q| t * q),
+        }
+    }
+
+    /// `self + k other`.
+    fn plus(&self, other: &Self, k: f64) -> Self {
+        Self {
+            mean: self.mean + other.mean * k,
+            flux: std::array::from_fn(|i| self.flux[i] + other.flux[i] * k),
+            quadrupole: std::array::from_fn(|i| self.quadrupole[i] + other.quadrupole[i] * k),
+        }
+    }
+
+    fn scaled(&self, k: f64) -> Self {
+        Self::default().plus(self, k)
     }
 }
 

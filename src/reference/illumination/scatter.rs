@@ -4,7 +4,9 @@
 use bevy::math::DVec3;
 use rayon::prelude::*;
 
-use super::gather::{Flux, Moments, Quadrupole, flux_along, quadrupole_basis, zip_with};
+use super::gather::{
+    Flux, Moments, Quadrupole, flux_along, quadrupole_along, quadrupole_basis, zip_with,
+};
 use super::interpolation::unravel;
 use super::voxelize::DensityGrid;
 use crate::particle::DeltaEddington;
@@ -110,15 +112,18 @@ impl<'a> SweptMedium<'a> {
         }
     }
 
-    /// `J = albedo S(w)` at voxel `i` towards the unit direction `w`, with the P1 phase function
-    /// of the cloud's transformed anisotropy `g'`: `albedo (mean + 3 g' F . w)`.
+    /// `J = albedo S(w)` at voxel `i` towards the unit direction `w`, with the P2 phase function
+    /// of the cloud's transformed anisotropy `g'`: `albedo (mean + 3 g' F . w + (15/2) g'^2 w^T Q w)`.
     fn source(&self, s: &Moments, i: usize, w: DVec3) -> DVec3 {
-        let mean = s.mean[i];
-        let directional = match s.flux.get(i) {
-            Some(f) => flux_along(f, w) * (3.0 * self.delta.anisotropy),
-            None => DVec3::ZERO,
-        };
-        (mean + directional) * self.albedo(i)
+        let g = self.delta.anisotropy;
+        let mut j = s.mean[i];
+        if let Some(f) = s.flux.get(i) {
+            j += flux_along(f, w) * (3.0 * g);
+        }
+        if let Some(q) = s.quadrupole.get(i) {
+            j += quadrupole_along(q, w) * (7.5 * g * g);
+        }
+        j * self.albedo(i)
     }
 }
 
@@ -227,10 +232,10 @@ fn sweep_direction(
 
 /// One discrete-ordinates iteration (section 4): the next order's moments over the 26 lattice
 /// directions, each weighing `1/26`, `mean = sum_o I_o / 26`, and for an anisotropic medium (one
-/// whose source has a flux) `F = sum_o I_o w_o / 26` and the quadrupole
-/// `sum_o I_o (w_o w_o^T - I/3) / 26`, `w_o` the radiance's travel direction; the radiance
-/// `boundary` gives entering the grid from outside.
-fn sweep(medium: SweptMedium, s: &Moments, boundary: Boundary) -> (Moments, Vec<Quadrupole>) {
+/// whose source has a flux) `F = sum_o I_o w_o / 26` and `Q = sum_o I_o (w_o w_o^T - I/3) / 26`,
+/// `w_o` the radiance's travel direction; the radiance `boundary` gives entering the grid from
+/// outside.
+fn sweep(medium: SweptMedium, s: &Moments, boundary: Boundary) -> Moments {
     let directional = !s.flux.is_empty();
     let voxels = s.mean.len();
     let empty = || Swept {
@@ -256,13 +261,11 @@ fn sweep(medium: SweptMedium, s: &Moments, boundary: Boundary) -> (Moments, Vec<
             out
         })
         .reduce(empty, Swept::add);
-    (
-        Moments {
-            mean: swept.mean,
-            flux: swept.flux,
-        },
-        swept.quadrupole,
-    )
+    Moments {
+        mean: swept.mean,
+        flux: swept.flux,
+        quadrupole: swept.quadrupole,
+    }
 }
 
 /// What one sweep accumulates (see [`sweep`]).
@@ -352,17 +355,17 @@ pub struct MultipleScattering {
     pub total: Vec<DVec3>,
     /// The same sum of the orders' [`Flux`]es, closed alike; empty for an isotropic medium.
     pub flux: Vec<Flux>,
-    /// The sum of the orders' [`Quadrupole`]s (the closure's tail adds none: the light of the
-    /// late orders is nearly isotropic); empty for an isotropic medium.
+    /// The same sum of the orders' [`Quadrupole`]s, closed alike; empty for an isotropic medium.
     pub quadrupole: Vec<Quadrupole>,
 }
 
 impl MultipleScattering {
-    /// The solution's mean and flux, as a warm restart starts from it.
+    /// The solution's moments, as a warm restart starts from it.
     pub fn moments(&self) -> Moments {
         Moments {
             mean: self.total.clone(),
             flux: self.flux.clone(),
+            quadrupole: self.quadrupole.clone(),
         }
     }
 }
@@ -405,7 +408,7 @@ pub fn scatter_under_sky(
 }
 
 /// [`scatter_under_sky`] for a medium of anisotropy `g` (section 4): the sweep goes through the
-/// medium's δ-Eddington transform, with the P1 source of its asymmetry `g'`, from the source
+/// medium's δ-Eddington transform, with the P2 source of its asymmetry `g'`, from the source
 /// `s0` of [`gather_source`](super::gather_source) (with its flux unless `g = 0`).
 #[allow(clippy::too_many_arguments)]
 pub fn scatter_medium(
@@ -460,16 +463,12 @@ fn scatter_series(
         ScatterStencil::Paper => Moments::isotropic(s0.mean.clone()),
     };
     let zero = s0.plus(&s0, DVec3::splat(-1.0));
-    let mut quadrupole = vec![[DVec3::ZERO; 5]; s0.flux.len()];
     let (mut total, mut last, mut before) = (zero.clone(), s0.clone(), s0.mean.clone());
     let mut orders: Vec<Vec<DVec3>> = Vec::with_capacity(iterations as usize);
     for k in 0..iterations {
         let entering = if k == 0 { boundary } else { Boundary::NONE };
-        let (next, q) = scatter_once(medium, stencil, &last, entering);
+        let next = scatter_once(medium, stencil, &last, entering);
         total = total.plus(&next, DVec3::ONE);
-        for (t, q) in quadrupole.iter_mut().zip(&q) {
-            (0..5).for_each(|i| t[i] += q[i]);
-        }
         before = std::mem::replace(&mut last, next).mean;
         orders.push(last.mean.clone());
     }
@@ -486,30 +485,26 @@ fn scatter_series(
         ratio,
         total: total.mean,
         flux: total.flux,
-        quadrupole,
+        quadrupole: total.quadrupole,
     }
 }
 
-/// One iteration of `stencil`: `K s` (and the quadrupole of the sweep's radiance), with the
-/// radiance `sky` entering the grid (the sweep only; the paper's stencil sees the cloud's own
-/// medium only, isotropically).
+/// One iteration of `stencil`: `K s`, with the radiance `sky` entering the grid (the sweep only;
+/// the paper's stencil sees the cloud's own medium only, isotropically).
 fn scatter_once(
     medium: SweptMedium,
     stencil: ScatterStencil,
     s: &Moments,
     boundary: Boundary,
-) -> (Moments, Vec<Quadrupole>) {
+) -> Moments {
     match stencil {
         ScatterStencil::DiscreteOrdinates => sweep(medium, s, boundary),
-        ScatterStencil::Paper => (
-            Moments::isotropic(paper_stencil(
-                medium.grid,
-                medium.k_local,
-                medium.albedo,
-                &s.mean,
-            )),
-            Vec::new(),
-        ),
+        ScatterStencil::Paper => Moments::isotropic(paper_stencil(
+            medium.grid,
+            medium.k_local,
+            medium.albedo,
+            &s.mean,
+        )),
     }
 }
 
@@ -545,8 +540,8 @@ pub fn scatter_warm(
 }
 
 /// [`scatter_warm`] for a medium of anisotropy `g` ([`scatter_medium`]), from the moments of the
-/// solution held ([`MultipleScattering::moments`]). Its quadrupole is that of `K (s0 + previous)`
-/// and of the `W_k`.
+/// solution held ([`MultipleScattering::moments`]), its flux and quadrupole restarted like its
+/// mean.
 #[allow(clippy::too_many_arguments)]
 pub fn scatter_warm_medium(
     grid: &DensityGrid,
@@ -569,7 +564,7 @@ pub fn scatter_warm_medium(
         "one previous value per voxel"
     );
     let entering = Boundary::sky(sky);
-    let (once, q_once) = scatter_once(medium, stencil, &s0.plus(previous, DVec3::ONE), entering);
+    let once = scatter_once(medium, stencil, &s0.plus(previous, DVec3::ONE), entering);
     let correction = once.plus(previous, DVec3::splat(-1.0));
     let series = scatter_series(medium, stencil, &correction, Boundary::NONE, iterations - 1);
     // Clamped at 0 like the GPU's: the truncated correction may overshoot where the light fell.
@@ -577,7 +572,7 @@ pub fn scatter_warm_medium(
     let flux = zip_with(&once.flux, &series.flux, |k, t| {
         std::array::from_fn(|i| k[i] + t[i])
     });
-    let quadrupole = zip_with(&q_once, &series.quadrupole, |k, t| {
+    let quadrupole = zip_with(&once.quadrupole, &series.quadrupole, |k, t| {
         std::array::from_fn(|i| k[i] + t[i])
     });
     let mut orders = vec![correction.mean];
@@ -671,11 +666,13 @@ mod tests {
     }
 
     #[test]
-    fn sweep_scales_a_p1_field_by_albedo_and_its_flux_by_g_inside_a_thick_medium() {
-        // Deep inside a homogeneous medium a uniform source of mean S and flux F sends
-        // albedo' (S + 3 g' F . w) along every direction w; over the 26 lattice directions (whose
-        // second moment is exactly I/3) the next order holds albedo' S and albedo' g' F, as the
-        // transport operator of the δ-Eddington medium does, and no quadrupole.
+    fn sweep_scales_a_p2_field_by_albedo_and_its_moments_by_powers_of_g_inside_a_thick_medium() {
+        // Deep inside a homogeneous medium a uniform source of mean S, flux F and quadrupole Q
+        // sends albedo' (S + 3 g' F . w + (15/2) g'^2 w^T Q w) along every direction w; over the 26
+        // lattice directions (whose second moment is exactly I/3) the next order holds albedo' S
+        // and albedo' g' F, as the transport operator of the δ-Eddington medium does, and a
+        // quadrupole within the lattice's fourth-moment error of albedo' g'^2 Q (its weights
+        // hold w_x^4 at 0.188 and w_x^2 w_y^2 at 0.073, against the sphere's 1/5 and 1/15).
         let (n, albedo, g) = (16, 0.9, 0.6);
         let grid = uniform_grid(n, 1.0);
         let k = 1.0 / DeltaEddington::new(albedo, g).depth_scale; // one mean free path per voxel
@@ -684,23 +681,51 @@ mod tests {
             DVec3::new(-0.1, 0.0, 0.05),
             DVec3::new(0.0, 0.3, 0.1),
         ];
+        let quadrupole = [
+            DVec3::new(0.1, 0.2, 0.0),
+            DVec3::new(-0.05, 0.1, 0.1),
+            DVec3::new(0.1, 0.0, -0.1),
+            DVec3::new(0.0, 0.05, 0.1),
+            DVec3::new(-0.1, 0.1, 0.05),
+        ];
         let s = Moments {
             mean: vec![DVec3::new(1.0, 2.0, 0.5); grid.len()],
             flux: vec![flux; grid.len()],
+            quadrupole: vec![quadrupole; grid.len()],
         };
         let medium = SweptMedium::alone(&grid, k, albedo, g);
         let delta = medium.delta;
         assert!((delta.anisotropy - g / (1.0 + g)).abs() < 1e-12);
-        let (next, quadrupole) = sweep(medium, &s, Boundary::NONE);
+        let next = sweep(medium, &s, Boundary::NONE);
         let centre = grid.index(n / 2, n / 2, n / 2);
-        let close = |a: DVec3, b: DVec3| (a - b).abs().max_element() < 2e-3 * b.abs().max_element();
-        assert!(close(next.mean[centre], s.mean[centre] * delta.albedo));
+        let close = |a: DVec3, b: DVec3, within: f64| {
+            (a - b).abs().max_element() <= within * b.abs().max_element()
+        };
+        assert!(close(
+            next.mean[centre],
+            s.mean[centre] * delta.albedo,
+            2e-3
+        ));
         for (axis, (swept, f)) in next.flux[centre].iter().zip(flux).enumerate() {
             let expected = f * (delta.albedo * delta.anisotropy);
-            assert!(close(*swept, expected), "{axis}: {swept}");
+            assert!(close(*swept, expected, 2e-3), "{axis}: {swept}");
         }
+        let scale = delta.albedo * delta.anisotropy.powi(2);
+        for (entry, (swept, q)) in next.quadrupole[centre].iter().zip(quadrupole).enumerate() {
+            assert!(
+                close(*swept, q * scale, 0.15),
+                "{entry}: {swept} against {}",
+                q * scale
+            );
+        }
+        // Without the source's quadrupole the next order holds none.
+        let p1 = Moments {
+            quadrupole: vec![[DVec3::ZERO; 5]; grid.len()],
+            ..s
+        };
+        let next = sweep(medium, &p1, Boundary::NONE);
         assert!(
-            quadrupole[centre]
+            next.quadrupole[centre]
                 .iter()
                 .all(|q| q.abs().max_element() < 2e-3)
         );
@@ -823,7 +848,7 @@ mod tests {
             })
             .collect();
         let medium = SweptMedium::alone(&grid, sigma, albedo, 0.0);
-        let (next, _) = sweep(medium, &Moments::isotropic(s.clone()), Boundary::NONE);
+        let next = sweep(medium, &Moments::isotropic(s.clone()), Boundary::NONE);
         let v = grid.index(n / 2, n / 2, n / 2);
         let laplacian = 0.06;
         let expected = albedo * (s[v].x + laplacian / (3.0 * sigma * sigma));
