@@ -374,6 +374,36 @@ fn queue_composites(
     }
 }
 
+/// The cloud target of `size` texels, from the texture cache.
+fn cloud_target_texture(
+    textures: &mut TextureCache,
+    device: &RenderDevice,
+    size: UVec2,
+) -> CachedTexture {
+    textures.get(
+        device,
+        TextureDescriptor {
+            label: Some("particle_clouds_cloud_target"),
+            size: bevy::render::render_resource::Extent3d {
+                width: size.x,
+                height: size.y,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: TextureDimension::D2,
+            format: CLOUD_TARGET_FORMAT,
+            // Copied out by the tests that check the upsample against its CPU reference; written
+            // as storage by the splats' resolve.
+            usage: TextureUsages::RENDER_ATTACHMENT
+                | TextureUsages::TEXTURE_BINDING
+                | TextureUsages::STORAGE_BINDING
+                | TextureUsages::COPY_SRC,
+            view_formats: &[],
+        },
+    )
+}
+
 /// Takes each cloud target's texture from the texture cache (every frame, which keeps it alive;
 /// the same texture while its size holds) and makes its bind groups when what they bind changed.
 #[allow(clippy::too_many_arguments)] // a render system's resources
@@ -400,29 +430,7 @@ fn prepare_cloud_targets(
         return;
     };
     for (entity, target, depth, existing) in &views {
-        let size = target.params.target_size;
-        let texture = textures.get(
-            &device,
-            TextureDescriptor {
-                label: Some("particle_clouds_cloud_target"),
-                size: bevy::render::render_resource::Extent3d {
-                    width: size.x,
-                    height: size.y,
-                    depth_or_array_layers: 1,
-                },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: TextureDimension::D2,
-                format: CLOUD_TARGET_FORMAT,
-                // Copied out by the tests that check the upsample against its CPU reference;
-                // written as storage by the splats' resolve.
-                usage: TextureUsages::RENDER_ATTACHMENT
-                    | TextureUsages::TEXTURE_BINDING
-                    | TextureUsages::STORAGE_BINDING
-                    | TextureUsages::COPY_SRC,
-                view_formats: &[],
-            },
-        );
+        let texture = cloud_target_texture(&mut textures, &device, target.params.target_size);
         // The bind groups are remade only when what they bind changes.
         let p = &target.params;
         let key = key_of((

@@ -282,96 +282,138 @@ pub(crate) fn write_sweep_sky(
     }
 }
 
+/// The bind group layouts of the illumination passes, one per shader (its entry points share it).
+struct IlluminationLayouts {
+    voxelize: BindGroupLayoutDescriptor,
+    shade: BindGroupLayoutDescriptor,
+    cast: BindGroupLayoutDescriptor,
+    sky_map: BindGroupLayoutDescriptor,
+    gather: BindGroupLayoutDescriptor,
+    scatter: BindGroupLayoutDescriptor,
+    ground: BindGroupLayoutDescriptor,
+    overlap: BindGroupLayoutDescriptor,
+    closure: BindGroupLayoutDescriptor,
+}
+
+impl IlluminationLayouts {
+    fn new() -> Self {
+        let read = || storage_buffer_read_only_sized(false, None);
+        let write = || storage_buffer_sized(false, None);
+        // The batched passes' work list, a chunk of it per dispatch (illumination.rs, `WorkList`).
+        let work = || storage_buffer_read_only_sized(true, None);
+        let voxelize = BindGroupLayoutDescriptor::new(
+            "particle_clouds_voxelize_layout",
+            &BindGroupLayoutEntries::sequential(
+                ShaderStages::COMPUTE,
+                (
+                    read(),
+                    read(),
+                    write(),
+                    write(),
+                    uniform_buffer::<DensityLevels>(true),
+                    work(),
+                ),
+            ),
+        );
+        let shade = BindGroupLayoutDescriptor::new(
+            "particle_clouds_shade_layout",
+            &BindGroupLayoutEntries::sequential(
+                ShaderStages::COMPUTE,
+                (read(), read(), read(), write(), write(), work()),
+            ),
+        );
+        let cast = BindGroupLayoutDescriptor::new(
+            "particle_clouds_cast_layout",
+            &BindGroupLayoutEntries::sequential(
+                ShaderStages::COMPUTE,
+                (read(), write(), read(), read(), work()),
+            ),
+        );
+        let sky_map = BindGroupLayoutDescriptor::new(
+            "particle_clouds_sky_map_layout",
+            &BindGroupLayoutEntries::sequential(
+                ShaderStages::COMPUTE,
+                (read(), read(), read(), write(), read(), write(), read()),
+            ),
+        );
+        let gather = BindGroupLayoutDescriptor::new(
+            "particle_clouds_gather_layout",
+            &BindGroupLayoutEntries::sequential(
+                ShaderStages::COMPUTE,
+                (read(), read(), read(), write(), write(), work()),
+            ),
+        );
+        let scatter = BindGroupLayoutDescriptor::new(
+            "particle_clouds_scatter_layout",
+            &BindGroupLayoutEntries::sequential(
+                ShaderStages::COMPUTE,
+                (
+                    read(),
+                    uniform_buffer::<SweepDirection>(true),
+                    read(),
+                    read(),
+                    write(),
+                    write(),
+                    work(),
+                    read(),
+                    read(),
+                ),
+            ),
+        );
+        let ground = BindGroupLayoutDescriptor::new(
+            "particle_clouds_ground_layout",
+            &BindGroupLayoutEntries::sequential(
+                ShaderStages::COMPUTE,
+                (read(), read(), read(), write(), work()),
+            ),
+        );
+        let overlap = BindGroupLayoutDescriptor::new(
+            "particle_clouds_overlap_layout",
+            &BindGroupLayoutEntries::sequential(
+                ShaderStages::COMPUTE,
+                (read(), read(), read(), write(), work()),
+            ),
+        );
+        let closure = BindGroupLayoutDescriptor::new(
+            "particle_clouds_closure_layout",
+            &BindGroupLayoutEntries::sequential(
+                ShaderStages::COMPUTE,
+                (read(), read(), read(), read(), write(), write(), work()),
+            ),
+        );
+        Self {
+            voxelize,
+            shade,
+            cast,
+            sky_map,
+            gather,
+            scatter,
+            ground,
+            overlap,
+            closure,
+        }
+    }
+}
+
+/// Queues the illumination passes' compute pipelines (those of the scattering volumes with and
+/// without moments) and makes the sweep's direction uniforms.
 pub(crate) fn init_illumination_pipelines(
     mut commands: Commands,
     shaders: Res<CloudShaders>,
     pipeline_cache: Res<PipelineCache>,
     device: Res<RenderDevice>,
 ) {
-    let read = || storage_buffer_read_only_sized(false, None);
-    let write = || storage_buffer_sized(false, None);
-    // The batched passes' work list, a chunk of it per dispatch (illumination.rs, `WorkList`).
-    let work = || storage_buffer_read_only_sized(true, None);
-    let voxelize = BindGroupLayoutDescriptor::new(
-        "particle_clouds_voxelize_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::COMPUTE,
-            (
-                read(),
-                read(),
-                write(),
-                write(),
-                uniform_buffer::<DensityLevels>(true),
-                work(),
-            ),
-        ),
-    );
-    let shade = BindGroupLayoutDescriptor::new(
-        "particle_clouds_shade_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::COMPUTE,
-            (read(), read(), read(), write(), write(), work()),
-        ),
-    );
-    let cast = BindGroupLayoutDescriptor::new(
-        "particle_clouds_cast_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::COMPUTE,
-            (read(), write(), read(), read(), work()),
-        ),
-    );
-    let sky_map = BindGroupLayoutDescriptor::new(
-        "particle_clouds_sky_map_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::COMPUTE,
-            (read(), read(), read(), write(), read(), write(), read()),
-        ),
-    );
-    let gather = BindGroupLayoutDescriptor::new(
-        "particle_clouds_gather_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::COMPUTE,
-            (read(), read(), read(), write(), write(), work()),
-        ),
-    );
-    let scatter = BindGroupLayoutDescriptor::new(
-        "particle_clouds_scatter_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::COMPUTE,
-            (
-                read(),
-                uniform_buffer::<SweepDirection>(true),
-                read(),
-                read(),
-                write(),
-                write(),
-                work(),
-                read(),
-                read(),
-            ),
-        ),
-    );
-    let ground = BindGroupLayoutDescriptor::new(
-        "particle_clouds_ground_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::COMPUTE,
-            (read(), read(), read(), write(), work()),
-        ),
-    );
-    let overlap = BindGroupLayoutDescriptor::new(
-        "particle_clouds_overlap_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::COMPUTE,
-            (read(), read(), read(), write(), work()),
-        ),
-    );
-    let closure = BindGroupLayoutDescriptor::new(
-        "particle_clouds_closure_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::COMPUTE,
-            (read(), read(), read(), read(), write(), write(), work()),
-        ),
-    );
+    let IlluminationLayouts {
+        voxelize,
+        shade,
+        cast,
+        sky_map,
+        gather,
+        scatter,
+        ground,
+        overlap,
+        closure,
+    } = IlluminationLayouts::new();
     let cache = pipeline_cache.as_ref();
     let stage =
         |shader: &Handle<Shader>, entry: &'static str, layout: &BindGroupLayoutDescriptor| {

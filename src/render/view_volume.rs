@@ -509,35 +509,11 @@ pub(crate) fn march_view_volumes(
     ) else {
         return;
     };
-    let mut marches: HashMap<(RetainedViewEntity, PoolId), MarchBatch> = HashMap::default();
-    let mut sights: HashMap<(RetainedViewEntity, PoolId), MarchBatch> = HashMap::default();
-    let mut runs = 0;
-    for (illumination, volumes, mut all) in &mut clouds {
-        let scattered = illumination.scattered;
-        let due = |v: &ViewVolume| v.pending || v.must_see(scattered);
-        if !illumination.ready || !all.0.values().any(due) {
-            continue;
-        }
-        let slot = volumes.slot.index;
-        for (view, volume) in all.0.iter_mut().filter(|(_, v)| due(v)) {
-            let at = (*view, volumes.slot.pool);
-            if volume.pending {
-                let batch = marches.entry(at).or_default();
-                batch.items.push([volume.entry, slot]);
-                batch.n = volumes.fine_params.n.max(2);
-            }
-            if volume.must_see(scattered) {
-                let batch = sights.entry(at).or_default();
-                batch.items.push([volume.entry, slot]);
-                batch.n = volumes.params.n;
-                volume.seen_pending = false;
-                volume.seen_from = Some(scattered);
-            }
-            volume.pending = false;
-            volume.ready = true;
-            runs += 1;
-        }
-    }
+    let DueVolumes {
+        marches,
+        sights,
+        runs,
+    } = due_volumes(&mut clouds);
     // A view's front maps are summed again after any of its volumes was marched, or when its
     // volumes or lists changed.
     for (view, _) in marches.keys() {
@@ -602,7 +578,55 @@ pub(crate) fn march_view_volumes(
     );
 }
 
-/// One dispatch per batch: its work list, and the bind group `group` makes for it.
+/// The view volumes due this frame, batched per view and pool.
+struct DueVolumes {
+    /// Those to march (their cloud's density or the view changed).
+    marches: HashMap<(RetainedViewEntity, PoolId), MarchBatch>,
+    /// Those whose multiple scattering must be seen from the camera again.
+    sights: HashMap<(RetainedViewEntity, PoolId), MarchBatch>,
+    /// The volumes that run, for the pass counters.
+    runs: u32,
+}
+
+/// Collects the volumes of illuminated clouds that are pending or must be seen again, and marks
+/// them done.
+fn due_volumes(
+    clouds: &mut Query<(&CloudIllumination, &CloudVolumes, &mut CloudViewVolumes)>,
+) -> DueVolumes {
+    let mut due_now = DueVolumes {
+        marches: HashMap::default(),
+        sights: HashMap::default(),
+        runs: 0,
+    };
+    for (illumination, volumes, mut all) in clouds {
+        let scattered = illumination.scattered;
+        let due = |v: &ViewVolume| v.pending || v.must_see(scattered);
+        if !illumination.ready || !all.0.values().any(due) {
+            continue;
+        }
+        let slot = volumes.slot.index;
+        for (view, volume) in all.0.iter_mut().filter(|(_, v)| due(v)) {
+            let at = (*view, volumes.slot.pool);
+            if volume.pending {
+                let batch = due_now.marches.entry(at).or_default();
+                batch.items.push([volume.entry, slot]);
+                batch.n = volumes.fine_params.n.max(2);
+            }
+            if volume.must_see(scattered) {
+                let batch = due_now.sights.entry(at).or_default();
+                batch.items.push([volume.entry, slot]);
+                batch.n = volumes.params.n;
+                volume.seen_pending = false;
+                volume.seen_from = Some(scattered);
+            }
+            volume.pending = false;
+            volume.ready = true;
+            due_now.runs += 1;
+        }
+    }
+    due_now
+}
+
 fn dispatches(
     batches: HashMap<(RetainedViewEntity, PoolId), MarchBatch>,
     atlases: &ViewVolumeAtlases,
