@@ -880,6 +880,14 @@ fn scatter_batch_passes(
         pass.set_pipeline(stencil);
         for k in first..batch.iterations {
             iterate(pass, &batch.groups[scatter_group(k)], true, k == 0);
+            // Orders M - 2 and M - 3 lie where the closure reads M and M - 1 (the two order
+            // volumes alternate): their sizes, for a two-mode closure of the full series.
+            if !batch.warm && batch.iterations >= 4 && k + 3 == batch.iterations {
+                pass.set_bind_group(0, &batch.closure, &[work]);
+                pass.set_pipeline(ready.order_sizes);
+                pass.dispatch(1, 1, items);
+                pass.set_pipeline(stencil);
+            }
         }
     }
     for (work, items) in batch.work.chunks() {

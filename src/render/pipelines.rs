@@ -173,7 +173,9 @@ pub struct IlluminationPipelines {
     pub warm_start: ByMoments,
     /// `scatter.wgsl`, `warm_correction` (a warm restart's first order; same layout).
     pub warm_correction: ByMoments,
-    /// `closure.wgsl`, `order_ratio`.
+    /// `closure.wgsl`, `order_sizes`: the sizes of orders `M - 3` and `M - 2`.
+    pub order_sizes: ComputeStage,
+    /// `closure.wgsl`, `order_ratio` (same layout as `order_sizes`).
     pub order_ratio: ComputeStage,
     /// `closure.wgsl`, `extrapolate` (same layout as `order_ratio`).
     pub extrapolate: ByMoments,
@@ -216,6 +218,8 @@ pub struct ReadyPipelines<'a> {
     pub warm_start: [&'a ComputePipeline; 2],
     /// A warm restart's first order.
     pub warm_correction: [&'a ComputePipeline; 2],
+    /// The closure's early order sizes.
+    pub order_sizes: &'a ComputePipeline,
     /// The closure's ratio.
     pub order_ratio: &'a ComputePipeline,
     /// The closure's extrapolation.
@@ -240,6 +244,7 @@ impl IlluminationPipelines {
             scatter_paper: self.scatter_paper.get(cache)?,
             warm_start: self.warm_start.get(cache)?,
             warm_correction: self.warm_correction.get(cache)?,
+            order_sizes: self.order_sizes.get(cache)?,
             order_ratio: self.order_ratio.get(cache)?,
             extrapolate: self.extrapolate.get(cache)?,
         })
@@ -436,6 +441,7 @@ pub(crate) fn init_illumination_pipelines(
         scatter_paper: stage(&shaders.scatter, "scatter_paper", &scatter),
         warm_start: ByMoments::new(cache, &shaders.scatter, "warm_start", &scatter),
         warm_correction: ByMoments::new(cache, &shaders.scatter, "warm_correction", &scatter),
+        order_sizes: stage(&shaders.closure, "order_sizes", &closure),
         order_ratio: stage(&shaders.closure, "order_ratio", &closure),
         extrapolate: ByMoments::new(cache, &shaders.closure, "extrapolate", &closure),
         sweep_directions: dynamic_uniform(

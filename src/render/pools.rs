@@ -28,6 +28,9 @@ use super::{
 /// `min_storage_buffer_offset_alignment`.
 pub const SLOT_ALIGNMENT: u64 = 256;
 
+/// Bytes of a slot's series closure (`closure.wgsl`): 4 vec4.
+const CLOSURE_BYTES: u64 = 64;
+
 /// Clouds whose volumes can share a pool.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct VolumeShape {
@@ -257,7 +260,8 @@ pub struct VolumePool {
     /// vec4 multiple scattering `S_m` per slot (its means, then with moments its flux and its
     /// quadrupole).
     pub multiple: Buffer,
-    /// vec4 closure ratio per slot.
+    /// The series' closure per slot, 4 vec4 (`closure.wgsl`): two order sizes and the tail's
+    /// two coefficients.
     pub order_ratios: Buffer,
     /// vec2 per voxel of the scattering grid: other clouds' media there (extinction, scattering;
     /// [`overlap`](super::overlap)).
@@ -291,7 +295,7 @@ impl VolumePool {
                 storage(device, "particle_clouds_order_b", b.volume * c),
             ],
             multiple: storage(device, "particle_clouds_multiple", b.multiple * c),
-            order_ratios: storage(device, "particle_clouds_order_ratios", 16 * c),
+            order_ratios: storage(device, "particle_clouds_order_ratios", CLOSURE_BYTES * c),
             foreign: storage(device, "particle_clouds_foreign", b.foreign * c),
             ground: storage(device, "particle_clouds_ground", ground_map_bytes() * c),
             density_levels: dynamic_uniform(
@@ -449,9 +453,9 @@ impl VolumePool {
         Self::range(&self.ground, index, size, 0, size)
     }
 
-    /// Slot `index`'s closure ratio.
+    /// Slot `index`'s closure: the tail's coefficients of `S_M` and `S_{M-1}` (2 vec4).
     pub fn order_ratio(&self, index: u32) -> BufferRange {
-        Self::range(&self.order_ratios, index, 16, 0, 16)
+        Self::range(&self.order_ratios, index, CLOSURE_BYTES, 32, 32)
     }
 }
 

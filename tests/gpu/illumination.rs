@@ -22,6 +22,9 @@ use crate::common;
 
 pub(crate) const TOLERANCE: f64 = 2e-4;
 
+/// Largest difference of the series closure's coefficients, relative to the largest.
+const CLOSURE_TOLERANCE: f64 = 1e-2;
+
 struct Case {
     particles: Vec<Particle>,
     medium: Medium,
@@ -196,10 +199,16 @@ fn check(case: Case, sky: Vec3) {
         ),
     ];
     if settings.scatter_iterations > 0 {
-        errors.push((
-            "order ratio",
-            max_relative_difference(&gpu_ratio[..3], &cpu.multiple.ratio.to_array()),
-        ));
+        // The tail's coefficients of S_M and S_{M-1}. A two-mode fit takes differences of the
+        // orders' size ratios, which f32 orders move: measured up to 0.4 % in these cases.
+        let closure = cpu.multiple.closure;
+        let coefficients = [closure.last.to_array(), closure.before.to_array()].concat();
+        let error = max_relative_difference(&gpu_ratio[..6], &coefficients);
+        assert!(
+            error <= CLOSURE_TOLERANCE,
+            "closure: GPU {:?} against the CPU's {closure:?}",
+            &gpu_ratio[..6]
+        );
     }
     // An anisotropic medium's moments: after the n³ means, 3 vec4 of flux per voxel, then 5 of
     // quadrupole, in the source as in `multiple`.
@@ -238,9 +247,27 @@ fn check(case: Case, sky: Vec3) {
             "the multiply scattered light is not isotropic"
         );
     }
+    // The two-mode tail a S_M + b S_{M-1} is a difference of terms up to (|a| + |b|) / (a + b)
+    // times its size, and carries its coefficients' error that much larger.
+    let closure = cpu.multiple.closure;
+    let amplification = (0..3)
+        .map(|c| {
+            let (a, b) = (closure.last[c], closure.before[c]);
+            if a + b > 0.0 {
+                (a.abs() + b.abs()) / (a + b)
+            } else {
+                1.0
+            }
+        })
+        .fold(1.0, f64::max);
     for (name, error) in errors {
+        let tolerance = if name.starts_with("multiple") {
+            TOLERANCE * amplification
+        } else {
+            TOLERANCE
+        };
         assert!(
-            error <= TOLERANCE,
+            error <= tolerance,
             "{name}: GPU differs from the CPU reference by {error:e} of its maximum"
         );
     }

@@ -318,30 +318,121 @@ fn paper_stencil(grid: &DensityGrid, k_local: f64, albedo: f64, s: &[DVec3]) -> 
 /// Largest per-order ratio `lambda` the series closure assumes.
 pub const MAX_ORDER_RATIO: f64 = 0.995;
 
-/// The per-order ratio of the last two orders, per channel:
-/// `lambda = sum rho |S_M| / sum rho |S_{M-1}|`, clamped to `[0, MAX_ORDER_RATIO]` (0 where the
-/// earlier order carries nothing). The orders of the full series are never negative; those of a
-/// warm restart's correction may be, and their absolute values keep the ratio from cancelling.
+/// The two-mode closure's slower ratio must leave at least this many times the faster one's
+/// distance to 1: nearer, its coefficients cancel so strongly that the tail follows the last two
+/// orders' differences rather than their sum, and the geometric closure is taken instead.
+pub const MODE_SEPARATION: f64 = 1.5;
+
+/// An order's size for the closure, per channel: `sum rho |S_k|` over the voxels. The orders of
+/// the full series are never negative; those of a warm restart's correction may be, and their
+/// absolute values keep the ratio from cancelling.
+pub fn order_size(grid: &DensityGrid, order: &[DVec3]) -> DVec3 {
+    grid.rho
+        .iter()
+        .zip(order)
+        .fold(DVec3::ZERO, |acc, (rho, s)| acc + s.abs() * *rho)
+}
+
+/// The per-order ratio of the last two orders, per channel: `lambda = |S_M| / |S_{M-1}|`
+/// ([`order_size`]), clamped to `[0, MAX_ORDER_RATIO]` (0 where the earlier order carries
+/// nothing).
 pub fn order_ratio(grid: &DensityGrid, last: &[DVec3], before: &[DVec3]) -> DVec3 {
-    let weighted = |s: &[DVec3]| {
-        grid.rho
-            .iter()
-            .zip(s)
-            .fold(DVec3::ZERO, |acc, (rho, s)| acc + s.abs() * *rho)
-    };
-    let (num, den) = (weighted(last), weighted(before));
-    let ratio = |a: f64, b: f64| {
-        if b > 0.0 {
-            (a / b).clamp(0.0, MAX_ORDER_RATIO)
-        } else {
-            0.0
+    let (num, den) = (order_size(grid, last), order_size(grid, before));
+    DVec3::from_array(std::array::from_fn(|c| geometric_ratio(num[c], den[c])))
+}
+
+fn geometric_ratio(last: f64, before: f64) -> f64 {
+    if before > 0.0 {
+        (last / before).clamp(0.0, MAX_ORDER_RATIO)
+    } else {
+        0.0
+    }
+}
+
+/// How the scattering series is closed past its last order `S_M` (docs/illumination.md §4): the
+/// orders left over sum to `last S_M + before S_{M-1}`, per channel.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SeriesClosure {
+    /// The coefficient of `S_M`.
+    pub last: DVec3,
+    /// The coefficient of `S_{M-1}`.
+    pub before: DVec3,
+}
+
+impl SeriesClosure {
+    /// The orders past `S_M` taken as geometric with the ratio of the last two order sizes:
+    /// `S_M lambda / (1 - lambda)`. `sizes` ends with `|S_{M-1}|, |S_M|`.
+    pub fn geometric(sizes: &[DVec3]) -> Self {
+        let mut closure = Self::default();
+        if let [.., before, last] = sizes {
+            for c in 0..3 {
+                let lambda = geometric_ratio(last[c], before[c]);
+                closure.last[c] = lambda / (1.0 - lambda);
+            }
         }
-    };
-    DVec3::new(
-        ratio(num.x, den.x),
-        ratio(num.y, den.y),
-        ratio(num.z, den.z),
-    )
+        closure
+    }
+
+    /// The orders past `S_M` taken as the sum of two geometric modes, `A r1^k + B r2^k` per
+    /// voxel, whose ratios fit the last four order sizes exactly (`sizes` ends with
+    /// `|S_{M-3}|, ..., |S_M|`). Their sizes obey `N_{k+2} = p N_{k+1} - q N_k`
+    /// (`p = r1 + r2`, `q = r1 r2`), so the tail is `((p - q) S_M - q S_{M-1}) / (1 - p + q)`.
+    /// The per-order ratio still rises after the first orders (light reaching the cloud's
+    /// inside); one geometric mode holds it at its last value, and shapes the tail like the
+    /// last order. A channel whose fit is not two real modes with
+    /// `0 <= r2 < r1 <= MAX_ORDER_RATIO`, separated by [`MODE_SEPARATION`], is closed
+    /// geometrically; so is every channel where `sizes` holds fewer than four.
+    pub fn two_mode(sizes: &[DVec3]) -> Self {
+        let mut closure = Self::geometric(sizes);
+        let [.., n0, n1, n2, n3] = sizes else {
+            return closure;
+        };
+        for c in 0..3 {
+            if let Some((last, before)) = two_mode_coefficients([n0[c], n1[c], n2[c], n3[c]]) {
+                closure.last[c] = last;
+                closure.before[c] = before;
+            }
+        }
+        closure
+    }
+
+    /// The orders past `last` (`S_M`; `before`: `S_{M-1}`): `last S_M + before S_{M-1}`, every
+    /// moment alike. Where a channel has two modes, its mean is kept within
+    /// `[0, MAX_ORDER_RATIO / (1 - MAX_ORDER_RATIO) S_M]`, the tails of one geometric mode from
+    /// ratio 0 to the largest, so that no fit can take the solution past the energy bound
+    /// ([`energy_bound`]). `zero`: moments of zeros shaped like the orders.
+    pub(super) fn tail(&self, zero: &Moments, last: &Moments, before: &Moments) -> Moments {
+        let mut tail = zero.plus(last, self.last).plus(before, self.before);
+        let most = MAX_ORDER_RATIO / (1.0 - MAX_ORDER_RATIO);
+        for (t, s) in tail.mean.iter_mut().zip(&last.mean) {
+            for c in 0..3 {
+                if self.before[c] != 0.0 {
+                    t[c] = t[c].min(most * s[c]).max(0.0);
+                }
+            }
+        }
+        tail
+    }
+}
+
+/// The two-mode tail's coefficients of `S_M` and `S_{M-1}` from the sizes
+/// `[N_{M-3}, N_{M-2}, N_{M-1}, N_M]`, or `None` where the fit is not two valid modes.
+fn two_mode_coefficients([n0, n1, n2, n3]: [f64; 4]) -> Option<(f64, f64)> {
+    // N_M = p N_{M-1} - q N_{M-2} and N_{M-1} = p N_{M-2} - q N_{M-3}.
+    let det = n1 * n1 - n2 * n0;
+    if !det.is_finite() || det.abs() <= 1e-12 * n1 * n1 {
+        return None;
+    }
+    let p = (n1 * n2 - n3 * n0) / det;
+    let q = (n2 * n2 - n1 * n3) / det;
+    let disc = p * p - 4.0 * q;
+    if !disc.is_finite() || disc < 0.0 {
+        return None;
+    }
+    let (r1, r2) = ((p + disc.sqrt()) / 2.0, (p - disc.sqrt()) / 2.0);
+    let valid = r2 >= 0.0 && r1 <= MAX_ORDER_RATIO && 1.0 - r2 >= MODE_SEPARATION * (1.0 - r1);
+    let d = 1.0 - p + q;
+    valid.then(|| ((p - q) / d, -q / d))
 }
 
 /// Multiple scattering, every order past the first (contract section 4).
@@ -349,9 +440,9 @@ pub fn order_ratio(grid: &DensityGrid, last: &[DVec3], before: &[DVec3]) -> DVec
 pub struct MultipleScattering {
     /// `S_1, ..., S_M` (one mean per voxel each), the orders computed.
     pub orders: Vec<Vec<DVec3>>,
-    /// The closure's per-channel ratio `lambda` (zero for `M = 0`).
-    pub ratio: DVec3,
-    /// `sum_{n=1..M} S_n + S_M lambda / (1 - lambda)` per voxel (the means).
+    /// How the series is closed past `S_M` (zero for `M = 0`).
+    pub closure: SeriesClosure,
+    /// `sum_{n=1..M} S_n` and the closure's tail per voxel (the means).
     pub total: Vec<DVec3>,
     /// The same sum of the orders' [`Flux`]es, closed alike; empty for an isotropic medium.
     pub flux: Vec<Flux>,
@@ -434,12 +525,20 @@ pub(super) fn scatter_through(
     boundary: Boundary,
     iterations: u32,
 ) -> MultipleScattering {
-    let mut series = scatter_series(medium, stencil, s0, boundary, iterations);
+    let mut series = scatter_series(medium, stencil, s0, boundary, iterations, Tail::TwoModes);
     series
         .total
         .iter_mut()
         .for_each(|t| *t = t.max(DVec3::ZERO));
     series
+}
+
+/// How [`scatter_series`] closes the series: the full series with two modes, a warm restart's
+/// correction (whose orders may change sign) geometrically.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Tail {
+    TwoModes,
+    Geometric,
 }
 
 /// The orders of the series from `s0` and their closed sum, signed (a warm restart's correction
@@ -450,6 +549,7 @@ fn scatter_series(
     s0: &Moments,
     boundary: Boundary,
     iterations: u32,
+    tail: Tail,
 ) -> MultipleScattering {
     let grid = medium.grid;
     assert_eq!(
@@ -463,26 +563,29 @@ fn scatter_series(
         ScatterStencil::Paper => Moments::isotropic(s0.mean.clone()),
     };
     let zero = s0.plus(&s0, DVec3::splat(-1.0));
-    let (mut total, mut last, mut before) = (zero.clone(), s0.clone(), s0.mean.clone());
+    let (mut total, mut last, mut before) = (zero.clone(), s0.clone(), zero.clone());
     let mut orders: Vec<Vec<DVec3>> = Vec::with_capacity(iterations as usize);
+    // |S_0|, |S_1|, ..., |S_M|: a single iteration is closed with the ratio |S_1| / |S_0|.
+    let mut sizes = vec![order_size(grid, &s0.mean)];
     for k in 0..iterations {
         let entering = if k == 0 { boundary } else { Boundary::NONE };
         let next = scatter_once(medium, stencil, &last, entering);
         total = total.plus(&next, DVec3::ONE);
-        before = std::mem::replace(&mut last, next).mean;
+        before = std::mem::replace(&mut last, next);
         orders.push(last.mean.clone());
+        sizes.push(order_size(grid, &last.mean));
     }
-    let ratio = if iterations == 0 {
-        DVec3::ZERO
-    } else {
-        order_ratio(grid, &last.mean, &before)
+    // The two modes fit orders 1 to M only: S_0 is no order of the series under a sky.
+    let closure = match tail {
+        Tail::TwoModes if iterations >= 4 => SeriesClosure::two_mode(&sizes),
+        _ => SeriesClosure::geometric(&sizes),
     };
     if iterations > 0 {
-        total = total.plus(&last, ratio / (DVec3::ONE - ratio));
+        total = total.plus(&closure.tail(&zero, &last, &before), DVec3::ONE);
     }
     MultipleScattering {
         orders,
-        ratio,
+        closure,
         total: total.mean,
         flux: total.flux,
         quadrupole: total.quadrupole,
@@ -566,7 +669,14 @@ pub fn scatter_warm_medium(
     let entering = Boundary::sky(sky);
     let once = scatter_once(medium, stencil, &s0.plus(previous, DVec3::ONE), entering);
     let correction = once.plus(previous, DVec3::splat(-1.0));
-    let series = scatter_series(medium, stencil, &correction, Boundary::NONE, iterations - 1);
+    let series = scatter_series(
+        medium,
+        stencil,
+        &correction,
+        Boundary::NONE,
+        iterations - 1,
+        Tail::Geometric,
+    );
     // Clamped at 0 like the GPU's: the truncated correction may overshoot where the light fell.
     let total = zip_with(&once.mean, &series.total, |k, t| (*k + *t).max(DVec3::ZERO));
     let flux = zip_with(&once.flux, &series.flux, |k, t| {
@@ -579,7 +689,7 @@ pub fn scatter_warm_medium(
     orders.extend(series.orders);
     MultipleScattering {
         orders,
-        ratio: series.ratio,
+        closure: series.closure,
         total,
         flux,
         quadrupole,
@@ -871,9 +981,67 @@ mod tests {
     }
 
     #[test]
+    fn two_modes_close_a_series_of_two_geometric_modes_exactly() {
+        // Per voxel S_k = A r1^k + B r2^k, B of either sign; the sizes are the sums over voxels.
+        let (r1, r2) = (0.95f64, 0.7f64);
+        let (a, b) = ([3.0, 1.0, 0.5], [-1.0, 2.0, 0.2]);
+        let order = |k: i32| -> Vec<f64> {
+            (0..3)
+                .map(|v| a[v] * r1.powi(k) + b[v] * r2.powi(k))
+                .collect()
+        };
+        let size = |k: i32| DVec3::splat(order(k).iter().map(|s| s.abs()).sum());
+        let m = 10;
+        let sizes: Vec<DVec3> = (1..=m).map(size).collect();
+        let closure = SeriesClosure::two_mode(&sizes);
+        for v in 0..3 {
+            let tail = closure.last.x * order(m)[v] + closure.before.x * order(m - 1)[v];
+            let exact = a[v] * r1.powi(m + 1) / (1.0 - r1) + b[v] * r2.powi(m + 1) / (1.0 - r2);
+            assert!(
+                (tail - exact).abs() < 1e-9 * exact.abs(),
+                "voxel {v}: {tail} vs {exact}"
+            );
+        }
+    }
+
+    #[test]
+    fn two_modes_fall_back_to_one_where_the_fit_is_not_two_modes() {
+        let geometric = |sizes: &[DVec3]| SeriesClosure::geometric(sizes);
+        // One mode: the fit is singular.
+        let one: Vec<DVec3> = (0..6).map(|k| DVec3::splat(0.9f64.powi(k))).collect();
+        assert_eq!(SeriesClosure::two_mode(&one), geometric(&one));
+        let lambda = 0.9 / (1.0 - 0.9);
+        assert!((geometric(&one).last.x - lambda).abs() < 1e-9);
+        // A negative mode, a mode past MAX_ORDER_RATIO, and modes 0.95 and 0.93 (too close).
+        for sizes in [
+            [1.0, 0.5, 0.45, 0.1],
+            [1.0, 0.999, 0.9985, 0.9982],
+            [2.0, 1.88, 1.7674, 1.661732],
+        ] {
+            let sizes: Vec<DVec3> = sizes.iter().map(|n| DVec3::splat(*n)).collect();
+            assert_eq!(
+                SeriesClosure::two_mode(&sizes),
+                geometric(&sizes),
+                "{sizes:?}"
+            );
+        }
+        // Too few orders, and channels closed each on its own.
+        assert_eq!(SeriesClosure::two_mode(&one[..3]), geometric(&one[..3]));
+        let mixed: Vec<DVec3> = (0..6)
+            .map(|k| DVec3::new(0.9f64.powi(k), 0.95f64.powi(k) + 0.6f64.powi(k), 1.0))
+            .collect();
+        let closure = SeriesClosure::two_mode(&mixed);
+        assert_eq!(closure.before.x, 0.0);
+        assert!(closure.before.y < 0.0);
+        let most = MAX_ORDER_RATIO / (1.0 - MAX_ORDER_RATIO);
+        assert_eq!((closure.last.z, closure.before.z), (most, 0.0));
+    }
+
+    #[test]
     fn series_closure_recovers_the_orders_left_over() {
-        // A thick, bright cloud: 8 iterations closed with lambda agree with 400 iterations
-        // (whose tail is negligible) within 3 %; without the closure they would be short.
+        // A thick, bright cloud: 8 iterations closed agree with 400 iterations (whose tail is
+        // negligible) within 3 %, nearer than one geometric mode would; without the closure
+        // they would be short.
         let particles = random_cloud(40, 21);
         let grid = voxelize(&particles, 12).unwrap();
         let k = 4.0 / (grid.max() * grid.h); // ~4 mean free paths per voxel at the densest
@@ -884,10 +1052,22 @@ mod tests {
         let long = scatter(&grid, k, 0.99, ScatterStencil::DiscreteOrdinates, &s0, 400);
         let (closed, converged) = (total(short.total.clone()), total(long.total));
         let plain: f64 = short.orders.iter().map(|o| total(o.clone())).sum();
-        assert!(short.ratio.x > 0.5 && short.ratio.x <= MAX_ORDER_RATIO);
+        assert!(
+            short.closure.before.x < 0.0,
+            "two modes: {:?}",
+            short.closure
+        );
         assert!(
             (closed / converged - 1.0).abs() < 0.03,
             "{closed} vs {converged}"
+        );
+        let mut sizes = vec![order_size(&grid, &s0)];
+        sizes.extend(short.orders.iter().map(|o| order_size(&grid, o)));
+        let one_mode =
+            plain + SeriesClosure::geometric(&sizes).last.x * total(short.orders[7].clone());
+        assert!(
+            (closed - converged).abs() < 0.7 * (one_mode - converged).abs(),
+            "two modes {closed}, one {one_mode}, converged {converged}"
         );
         assert!(
             plain < 0.95 * converged,
@@ -899,7 +1079,7 @@ mod tests {
     fn a_warm_restart_corrects_towards_the_new_solution() {
         // The sun moves by 10 degrees over a thick, bright cloud. Restarted from the old
         // solution, 4 iterations land far closer to the converged new solution than 4 from zero,
-        // or than the old solution; from zero, the warm restart is the plain series; from the
+        // or than the old solution; from zero, the warm restart computes the plain series; from the
         // converged solution, it stays.
         let particles = random_cloud(40, 21);
         let grid = voxelize(&particles, 12).unwrap();
@@ -941,12 +1121,18 @@ mod tests {
             error(&before)
         );
 
+        // From zero it computes the plain series' orders; it closes them with one mode (a
+        // correction's orders may change sign), the plain series with two.
         let zero = vec![DVec3::ZERO; grid.len()];
         let from_zero = scatter_warm(&grid, k, 0.99, stencil, &new, &zero, DVec3::ZERO, 4);
         assert!(error(&from_zero.total) > 0.0);
-        for (a, b) in from_zero.total.iter().zip(&cold.total) {
-            assert!((*a - *b).abs().max_element() <= 1e-12 * b.max_element().max(1e-300));
+        assert_eq!(from_zero.orders.len(), cold.orders.len());
+        for (warm_order, cold_order) in from_zero.orders.iter().zip(&cold.orders) {
+            for (a, b) in warm_order.iter().zip(cold_order) {
+                assert!((*a - *b).abs().max_element() <= 1e-12 * b.max_element().max(1e-300));
+            }
         }
+        assert_eq!(from_zero.closure.before, DVec3::ZERO);
         let stays = scatter_warm(&grid, k, 0.99, stencil, &new, &after, DVec3::ZERO, 2);
         assert!(error(&stays.total) < 1e-3, "{}", error(&stays.total));
     }
