@@ -23,9 +23,9 @@ use bevy::{
         extract_component::ExtractComponentPlugin,
         render_asset::RenderAssets,
         render_resource::{
-            BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries,
-            BlendState, BufferInitDescriptor, BufferUsages, CachedRenderPipelineId,
-            ColorTargetState, ColorWrites, FragmentState, LoadOp, Operations, PipelineCache,
+            BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BlendState,
+            BufferInitDescriptor, BufferUsages, CachedRenderPipelineId, ColorTargetState,
+            ColorWrites, FragmentState, LoadOp, Operations, PipelineCache,
             RenderPassColorAttachment, RenderPassDescriptor, RenderPipelineDescriptor,
             ShaderStages, ShaderType, SpecializedRenderPipeline, SpecializedRenderPipelines,
             StoreOp, TextureDescriptor, TextureDimension, TextureFormat, TextureSampleType,
@@ -48,7 +48,7 @@ use super::{
     draw::{CloudDrawBindGroups, draw_billboards},
     extract::ExtractedCloud,
     fog::{CloudFogParams, CloudFogUniforms, ViewCloudFogOffset},
-    gpu::uniform_bytes,
+    gpu::{sequential_layout, uniform_bytes},
     key_of,
     particles::GpuParticles,
     shaders::CloudShaders,
@@ -147,30 +147,26 @@ pub struct ViewCloudTargetResources {
 
 /// Group 0 of the billboard pipeline when drawing into a cloud target.
 pub(crate) fn billboard_view_layout(multisampled: bool) -> BindGroupLayoutDescriptor {
-    BindGroupLayoutDescriptor::new(
+    sequential_layout(
         "particle_clouds_cloud_target_view_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::VERTEX_FRAGMENT,
-            (
-                uniform_buffer::<ViewUniform>(true),
-                uniform_buffer::<CloudTargetParams>(false),
-                depth_binding(multisampled),
-                uniform_buffer::<CloudFogParams>(true),
-            ),
+        ShaderStages::VERTEX_FRAGMENT,
+        (
+            uniform_buffer::<ViewUniform>(true),
+            uniform_buffer::<CloudTargetParams>(false),
+            depth_binding(multisampled),
+            uniform_buffer::<CloudFogParams>(true),
         ),
     )
 }
 
 fn composite_layout(multisampled: bool) -> BindGroupLayoutDescriptor {
-    BindGroupLayoutDescriptor::new(
+    sequential_layout(
         "particle_clouds_cloud_target_composite_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::FRAGMENT,
-            (
-                uniform_buffer_sized(false, None),
-                texture_2d(TextureSampleType::Float { filterable: false }),
-                depth_binding(multisampled),
-            ),
+        ShaderStages::FRAGMENT,
+        (
+            uniform_buffer_sized(false, None),
+            texture_2d(TextureSampleType::Float { filterable: false }),
+            depth_binding(multisampled),
         ),
     )
 }

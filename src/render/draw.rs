@@ -28,13 +28,12 @@ use bevy::{
         },
         render_resource::{
             BindGroup, BindGroupEntries, BindGroupLayout, BindGroupLayoutDescriptor,
-            BindGroupLayoutEntries, BindingResource, BlendComponent, BlendFactor, BlendOperation,
-            BlendState, Buffer, BufferInitDescriptor, BufferUsages, CachedRenderPipelineId,
-            ColorTargetState, ColorWrites, CompareFunction, DepthBiasState, DepthStencilState,
-            FragmentState, MultisampleState, PipelineCache, PrimitiveState, PrimitiveTopology,
-            RenderPipeline, RenderPipelineDescriptor, ShaderStages, ShaderType,
-            SpecializedRenderPipeline, SpecializedRenderPipelines, StencilState, TextureFormat,
-            VertexState,
+            BindingResource, BlendComponent, BlendFactor, BlendOperation, BlendState, Buffer,
+            BufferInitDescriptor, BufferUsages, CachedRenderPipelineId, ColorTargetState,
+            ColorWrites, CompareFunction, DepthBiasState, DepthStencilState, FragmentState,
+            MultisampleState, PipelineCache, PrimitiveState, PrimitiveTopology, RenderPipeline,
+            RenderPipelineDescriptor, ShaderStages, ShaderType, SpecializedRenderPipeline,
+            SpecializedRenderPipelines, StencilState, TextureFormat, VertexState,
             binding_types::{storage_buffer_read_only_sized, uniform_buffer, uniform_buffer_sized},
         },
         renderer::RenderDevice,
@@ -52,7 +51,7 @@ use super::{
     cloud_target::{ViewCloudDraws, ViewCloudSplats, ViewCloudTarget},
     extract::ExtractedCloud,
     fog::{CloudFogParams, CloudFogUniforms, ExtractedCloudFog, FogMode, ViewCloudFogOffset},
-    gpu::uniform_bytes,
+    gpu::{sequential_layout, uniform_bytes},
     key_of,
     particles::GpuParticles,
     plan::CloudIllumination,
@@ -129,51 +128,45 @@ impl BillboardPipeline {
 }
 
 pub(crate) fn init_billboard_pipeline(mut commands: Commands, shaders: Res<CloudShaders>) {
-    let view_layout = BindGroupLayoutDescriptor::new(
+    let view_layout = sequential_layout(
         "particle_clouds_view_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::VERTEX_FRAGMENT,
-            (
-                uniform_buffer::<ViewUniform>(true),
-                uniform_buffer::<CloudFogParams>(true),
-            ),
+        ShaderStages::VERTEX_FRAGMENT,
+        (
+            uniform_buffer::<ViewUniform>(true),
+            uniform_buffer::<CloudFogParams>(true),
         ),
     );
     let read = || storage_buffer_read_only_sized(false, None);
     let uniform = || uniform_buffer_sized(false, None);
-    let sorted_layout = BindGroupLayoutDescriptor::new(
+    let sorted_layout = sequential_layout(
         "particle_clouds_billboard_sorted_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::VERTEX_FRAGMENT,
-            (
-                uniform(),
-                uniform(),
-                read(),
-                read(),
-                read(),
-                read(),
-                read(),
-                read(),
-            ),
+        ShaderStages::VERTEX_FRAGMENT,
+        (
+            uniform(),
+            uniform(),
+            read(),
+            read(),
+            read(),
+            read(),
+            read(),
+            read(),
         ),
     );
-    let view_transmittance_layout = BindGroupLayoutDescriptor::new(
+    let view_transmittance_layout = sequential_layout(
         "particle_clouds_billboard_view_transmittance_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::VERTEX_FRAGMENT,
-            (
-                uniform(),
-                uniform(),
-                read(),
-                uniform(),
-                read(),
-                read(),
-                read(),
-                read(),
-                read(),
-                read(),
-                read(),
-            ),
+        ShaderStages::VERTEX_FRAGMENT,
+        (
+            uniform(),
+            uniform(),
+            read(),
+            uniform(),
+            read(),
+            read(),
+            read(),
+            read(),
+            read(),
+            read(),
+            read(),
         ),
     );
     commands.insert_resource(BillboardPipeline {

@@ -7,8 +7,10 @@ use bevy::{
     render::{
         diagnostic::{DiagnosticsRecorder, RecordDiagnostics},
         render_resource::{
-            BindGroup, Buffer, BufferBinding, BufferDescriptor, BufferInitDescriptor, BufferUsages,
-            ComputePass, ComputePassDescriptor, ComputePipeline, ShaderType, encase,
+            BindGroup, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, BufferBinding,
+            BufferDescriptor, BufferInitDescriptor, BufferUsages, ComputePass,
+            ComputePassDescriptor, ComputePipeline, IntoBindGroupLayoutEntryBuilderArray,
+            IntoIndexedBindGroupLayoutEntryBuilderArray, ShaderStages, ShaderType, encase,
         },
         renderer::{RenderContext, RenderDevice},
     },
@@ -24,6 +26,30 @@ pub(crate) fn storage(device: &RenderDevice, label: &'static str, size: u64) -> 
         usage: BufferUsages::STORAGE | BufferUsages::COPY_DST | BufferUsages::COPY_SRC,
         mapped_at_creation: false,
     })
+}
+
+/// A bind group layout whose bindings are numbered in order, all seen by the same stages.
+pub(crate) fn sequential_layout<const N: usize>(
+    label: &'static str,
+    visibility: ShaderStages,
+    entries: impl IntoBindGroupLayoutEntryBuilderArray<N>,
+) -> BindGroupLayoutDescriptor {
+    BindGroupLayoutDescriptor::new(
+        label,
+        &BindGroupLayoutEntries::sequential(visibility, entries),
+    )
+}
+
+/// A bind group layout of numbered bindings (a subset of a shader's), all seen by the same stages.
+pub(crate) fn indexed_layout<const N: usize>(
+    label: &'static str,
+    visibility: ShaderStages,
+    entries: impl IntoIndexedBindGroupLayoutEntryBuilderArray<N>,
+) -> BindGroupLayoutDescriptor {
+    BindGroupLayoutDescriptor::new(
+        label,
+        &BindGroupLayoutEntries::with_indices(visibility, entries),
+    )
 }
 
 /// Work items per dispatch of a batched pass: the most z workgroups (65535) rounded down so that

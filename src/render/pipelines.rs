@@ -2,7 +2,7 @@
 
 use super::{
     extract::ExtractedCloudLights,
-    gpu::{DYNAMIC_UNIFORM_STRIDE, dynamic_uniform, uniform_bytes},
+    gpu::{DYNAMIC_UNIFORM_STRIDE, dynamic_uniform, sequential_layout, uniform_bytes},
     shaders::CloudShaders,
     volumes::DensityLevels,
 };
@@ -10,8 +10,8 @@ use bevy::{
     prelude::*,
     render::{
         render_resource::{
-            BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, CachedComputePipelineId,
-            ComputePipeline, ComputePipelineDescriptor, PipelineCache, ShaderStages, ShaderType,
+            BindGroupLayoutDescriptor, Buffer, CachedComputePipelineId, ComputePipeline,
+            ComputePipelineDescriptor, PipelineCache, ShaderStages, ShaderType,
             binding_types::{storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer},
         },
         renderer::{RenderDevice, RenderQueue},
@@ -306,9 +306,9 @@ impl IlluminationLayouts {
         let write = || storage_buffer_sized(false, None);
         // The batched passes' work list, a chunk of it per dispatch (illumination.rs, `WorkList`).
         let work = || storage_buffer_read_only_sized(true, None);
-        let voxelize = BindGroupLayoutDescriptor::new(
-            "particle_clouds_voxelize_layout",
-            &BindGroupLayoutEntries::sequential(
+        Self {
+            voxelize: sequential_layout(
+                "particle_clouds_voxelize_layout",
                 ShaderStages::COMPUTE,
                 (
                     read(),
@@ -319,38 +319,28 @@ impl IlluminationLayouts {
                     work(),
                 ),
             ),
-        );
-        let shade = BindGroupLayoutDescriptor::new(
-            "particle_clouds_shade_layout",
-            &BindGroupLayoutEntries::sequential(
+            shade: sequential_layout(
+                "particle_clouds_shade_layout",
                 ShaderStages::COMPUTE,
                 (read(), read(), read(), write(), write(), work()),
             ),
-        );
-        let cast = BindGroupLayoutDescriptor::new(
-            "particle_clouds_cast_layout",
-            &BindGroupLayoutEntries::sequential(
+            cast: sequential_layout(
+                "particle_clouds_cast_layout",
                 ShaderStages::COMPUTE,
                 (read(), write(), read(), read(), work()),
             ),
-        );
-        let sky_map = BindGroupLayoutDescriptor::new(
-            "particle_clouds_sky_map_layout",
-            &BindGroupLayoutEntries::sequential(
+            sky_map: sequential_layout(
+                "particle_clouds_sky_map_layout",
                 ShaderStages::COMPUTE,
                 (read(), read(), read(), write(), read(), write(), read()),
             ),
-        );
-        let gather = BindGroupLayoutDescriptor::new(
-            "particle_clouds_gather_layout",
-            &BindGroupLayoutEntries::sequential(
+            gather: sequential_layout(
+                "particle_clouds_gather_layout",
                 ShaderStages::COMPUTE,
                 (read(), read(), read(), write(), write(), work()),
             ),
-        );
-        let scatter = BindGroupLayoutDescriptor::new(
-            "particle_clouds_scatter_layout",
-            &BindGroupLayoutEntries::sequential(
+            scatter: sequential_layout(
+                "particle_clouds_scatter_layout",
                 ShaderStages::COMPUTE,
                 (
                     read(),
@@ -364,38 +354,21 @@ impl IlluminationLayouts {
                     read(),
                 ),
             ),
-        );
-        let ground = BindGroupLayoutDescriptor::new(
-            "particle_clouds_ground_layout",
-            &BindGroupLayoutEntries::sequential(
+            ground: sequential_layout(
+                "particle_clouds_ground_layout",
                 ShaderStages::COMPUTE,
                 (read(), read(), read(), write(), work()),
             ),
-        );
-        let overlap = BindGroupLayoutDescriptor::new(
-            "particle_clouds_overlap_layout",
-            &BindGroupLayoutEntries::sequential(
+            overlap: sequential_layout(
+                "particle_clouds_overlap_layout",
                 ShaderStages::COMPUTE,
                 (read(), read(), read(), write(), work()),
             ),
-        );
-        let closure = BindGroupLayoutDescriptor::new(
-            "particle_clouds_closure_layout",
-            &BindGroupLayoutEntries::sequential(
+            closure: sequential_layout(
+                "particle_clouds_closure_layout",
                 ShaderStages::COMPUTE,
                 (read(), read(), read(), read(), write(), write(), work()),
             ),
-        );
-        Self {
-            voxelize,
-            shade,
-            cast,
-            sky_map,
-            gather,
-            scatter,
-            ground,
-            overlap,
-            closure,
         }
     }
 }

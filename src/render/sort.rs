@@ -8,10 +8,9 @@ use bevy::{
     render::{
         render_asset::RenderAssets,
         render_resource::{
-            BindGroup, BindGroupEntries, BindGroupLayout, BindGroupLayoutDescriptor,
-            BindGroupLayoutEntries, Buffer, BufferDescriptor, BufferUsages,
-            CachedComputePipelineId, ComputePipeline, ComputePipelineDescriptor, PipelineCache,
-            ShaderStages, ShaderType,
+            BindGroup, BindGroupEntries, BindGroupLayout, BindGroupLayoutDescriptor, Buffer,
+            BufferDescriptor, BufferUsages, CachedComputePipelineId, ComputePipeline,
+            ComputePipelineDescriptor, PipelineCache, ShaderStages, ShaderType,
             binding_types::{
                 storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer_sized,
             },
@@ -23,7 +22,7 @@ use bevy::{
 
 use super::{
     extract::ExtractedCloud,
-    gpu::{StagePass, record_stage, storage, uniform_bytes},
+    gpu::{StagePass, record_stage, sequential_layout, storage, uniform_bytes},
     key_of,
     particles::GpuParticles,
     shaders::CloudShaders,
@@ -95,19 +94,17 @@ pub(crate) fn init_sort_pipelines(
     cache: Res<PipelineCache>,
 ) {
     let write = || storage_buffer_sized(false, None);
-    let layout = BindGroupLayoutDescriptor::new(
+    let layout = sequential_layout(
         "particle_clouds_sort_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::COMPUTE,
-            (
-                uniform_buffer_sized(false, None),
-                storage_buffer_read_only_sized(false, None),
-                write(),
-                write(),
-                write(),
-                write(),
-                write(),
-            ),
+        ShaderStages::COMPUTE,
+        (
+            uniform_buffer_sized(false, None),
+            storage_buffer_read_only_sized(false, None),
+            write(),
+            write(),
+            write(),
+            write(),
+            write(),
         ),
     );
     let queue = |entry_point: &'static str| {

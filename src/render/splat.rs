@@ -9,11 +9,10 @@ use bevy::{
     prelude::*,
     render::{
         render_resource::{
-            BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer,
-            BufferDescriptor, BufferUsages, CachedComputePipelineId, CommandEncoder,
-            ComputePassDescriptor, ComputePipelineDescriptor, PipelineCache, ShaderStages,
-            SpecializedComputePipeline, SpecializedComputePipelines, StorageTextureAccess,
-            TextureView, WgpuLimits,
+            BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, Buffer, BufferDescriptor,
+            BufferUsages, CachedComputePipelineId, CommandEncoder, ComputePassDescriptor,
+            ComputePipelineDescriptor, PipelineCache, ShaderStages, SpecializedComputePipeline,
+            SpecializedComputePipelines, StorageTextureAccess, TextureView, WgpuLimits,
             binding_types::{storage_buffer_sized, texture_storage_2d, uniform_buffer},
         },
         renderer::RenderDevice,
@@ -25,6 +24,7 @@ use super::{
     cloud_target::{CLOUD_TARGET_FORMAT, CloudTargetParams, ViewCloudTarget},
     draw::BillboardPipeline,
     fog::{CloudFogParams, ExtractedCloudFog, FogMode},
+    gpu::sequential_layout,
     splat_batch::{ViewSplatBatches, prepare_splat_batches, splat_batch_layout},
     workgroups::{LINEAR, SLICE, linear_groups},
 };
@@ -66,18 +66,16 @@ pub fn sums_fit(size: UVec2, limits: &WgpuLimits) -> bool {
 /// Group 0 of the splat and resolve pipelines: the cloud target's billboard view group (view,
 /// target parameters, depth, fog), then the sums and the target as storage.
 pub(crate) fn splat_view_layout(multisampled: bool) -> BindGroupLayoutDescriptor {
-    BindGroupLayoutDescriptor::new(
+    sequential_layout(
         "particle_clouds_splat_view_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::COMPUTE,
-            (
-                uniform_buffer::<ViewUniform>(true),
-                uniform_buffer::<CloudTargetParams>(false),
-                super::cloud_target::depth_binding(multisampled),
-                uniform_buffer::<CloudFogParams>(true),
-                storage_buffer_sized(false, None),
-                texture_storage_2d(CLOUD_TARGET_FORMAT, StorageTextureAccess::WriteOnly),
-            ),
+        ShaderStages::COMPUTE,
+        (
+            uniform_buffer::<ViewUniform>(true),
+            uniform_buffer::<CloudTargetParams>(false),
+            super::cloud_target::depth_binding(multisampled),
+            uniform_buffer::<CloudFogParams>(true),
+            storage_buffer_sized(false, None),
+            texture_storage_2d(CLOUD_TARGET_FORMAT, StorageTextureAccess::WriteOnly),
         ),
     )
 }

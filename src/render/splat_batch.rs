@@ -13,10 +13,9 @@ use bevy::{
     render::{
         render_asset::RenderAssets,
         render_resource::{
-            BindGroup, BindGroupEntries, BindGroupLayout, BindGroupLayoutDescriptor,
-            BindGroupLayoutEntries, Buffer, BufferDescriptor, BufferUsages,
-            CommandEncoderDescriptor, PipelineCache, ShaderStages, ShaderType,
-            binding_types::storage_buffer_read_only_sized,
+            BindGroup, BindGroupEntries, BindGroupLayout, BindGroupLayoutDescriptor, Buffer,
+            BufferDescriptor, BufferUsages, CommandEncoderDescriptor, PipelineCache, ShaderStages,
+            ShaderType, binding_types::storage_buffer_read_only_sized,
         },
         renderer::{RenderDevice, RenderQueue},
         view::{ExtractedView, RetainedViewEntity},
@@ -27,7 +26,7 @@ use super::{
     cloud_target::ViewCloudSplats,
     draw::{CloudDrawBindGroups, DrawParams, draw_params},
     extract::ExtractedCloud,
-    gpu::storage_init,
+    gpu::{indexed_layout, storage_init},
     key_of,
     particles::{GpuParticle, GpuParticles},
     pools::{PoolId, VolumePool, VolumePools},
@@ -72,21 +71,19 @@ pub struct SplatCloud {
 /// numbers are the billboards' group 1 numbers for the same arrays.
 pub(crate) fn splat_batch_layout() -> BindGroupLayoutDescriptor {
     let read = || storage_buffer_read_only_sized(false, None);
-    BindGroupLayoutDescriptor::new(
+    indexed_layout(
         "particle_clouds_splat_batch_layout",
-        &BindGroupLayoutEntries::with_indices(
-            ShaderStages::COMPUTE,
-            (
-                (0, read()),
-                (2, read()),
-                (4, read()),
-                (5, read()),
-                (6, read()),
-                (7, read()),
-                (8, read()),
-                (9, read()),
-                (10, read()),
-            ),
+        ShaderStages::COMPUTE,
+        (
+            (0, read()),
+            (2, read()),
+            (4, read()),
+            (5, read()),
+            (6, read()),
+            (7, read()),
+            (8, read()),
+            (9, read()),
+            (10, read()),
         ),
     )
 }

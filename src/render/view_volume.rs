@@ -13,9 +13,9 @@ use bevy::{
     prelude::*,
     render::{
         render_resource::{
-            BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer,
-            BufferDescriptor, BufferUsages, CachedComputePipelineId, ComputePipelineDescriptor,
-            PipelineCache, ShaderStages, ShaderType,
+            BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, Buffer, BufferDescriptor,
+            BufferUsages, CachedComputePipelineId, ComputePipelineDescriptor, PipelineCache,
+            ShaderStages, ShaderType,
             binding_types::{storage_buffer_read_only_sized, storage_buffer_sized},
         },
         renderer::{RenderContext, RenderDevice, RenderQueue},
@@ -25,7 +25,7 @@ use bevy::{
 
 use super::{
     extract::ExtractedCloud,
-    gpu::{WorkList, record_stage, uniform_bytes},
+    gpu::{WorkList, indexed_layout, record_stage, sequential_layout, uniform_bytes},
     key_of,
     plan::CloudIllumination,
     pools::{PoolId, VolumePool, VolumePools},
@@ -104,42 +104,36 @@ pub(crate) fn init_view_volume_pipeline(
     shaders: Res<CloudShaders>,
     cache: Res<PipelineCache>,
 ) {
-    let layout = BindGroupLayoutDescriptor::new(
+    let layout = sequential_layout(
         "particle_clouds_view_volume_layout",
-        &BindGroupLayoutEntries::sequential(
-            ShaderStages::COMPUTE,
-            (
-                storage_buffer_read_only_sized(false, None),
-                storage_buffer_read_only_sized(false, None),
-                storage_buffer_read_only_sized(false, None),
-                storage_buffer_sized(false, None),
-                storage_buffer_read_only_sized(true, None),
-            ),
+        ShaderStages::COMPUTE,
+        (
+            storage_buffer_read_only_sized(false, None),
+            storage_buffer_read_only_sized(false, None),
+            storage_buffer_read_only_sized(false, None),
+            storage_buffer_sized(false, None),
+            storage_buffer_read_only_sized(true, None),
         ),
     );
-    let front_layout = BindGroupLayoutDescriptor::new(
+    let front_layout = indexed_layout(
         "particle_clouds_view_volume_front_layout",
-        &BindGroupLayoutEntries::with_indices(
-            ShaderStages::COMPUTE,
-            (
-                (1, storage_buffer_read_only_sized(false, None)),
-                (3, storage_buffer_sized(false, None)),
-                (4, storage_buffer_read_only_sized(true, None)),
-                (5, storage_buffer_read_only_sized(false, None)),
-            ),
+        ShaderStages::COMPUTE,
+        (
+            (1, storage_buffer_read_only_sized(false, None)),
+            (3, storage_buffer_sized(false, None)),
+            (4, storage_buffer_read_only_sized(true, None)),
+            (5, storage_buffer_read_only_sized(false, None)),
         ),
     );
-    let seen_layout = BindGroupLayoutDescriptor::new(
+    let seen_layout = indexed_layout(
         "particle_clouds_view_volume_seen_layout",
-        &BindGroupLayoutEntries::with_indices(
-            ShaderStages::COMPUTE,
-            (
-                (0, storage_buffer_read_only_sized(false, None)),
-                (1, storage_buffer_read_only_sized(false, None)),
-                (4, storage_buffer_read_only_sized(true, None)),
-                (6, storage_buffer_read_only_sized(false, None)),
-                (7, storage_buffer_sized(false, None)),
-            ),
+        ShaderStages::COMPUTE,
+        (
+            (0, storage_buffer_read_only_sized(false, None)),
+            (1, storage_buffer_read_only_sized(false, None)),
+            (4, storage_buffer_read_only_sized(true, None)),
+            (6, storage_buffer_read_only_sized(false, None)),
+            (7, storage_buffer_sized(false, None)),
         ),
     );
     let compute = |label: &'static str, layout: &BindGroupLayoutDescriptor, entry: &'static str| {
