@@ -123,9 +123,9 @@ impl Particle {
 }
 
 impl Medium {
-    /// The medium's δ-Eddington transform (docs/illumination.md §4, §5).
-    pub fn delta_eddington(&self) -> DeltaEddington {
-        DeltaEddington::new(self.albedo as f64, self.anisotropy as f64)
+    /// The medium's δ-M transform (docs/illumination.md §4, §5).
+    pub fn delta_m(&self) -> DeltaM {
+        DeltaM::new(self.albedo as f64, self.anisotropy as f64)
     }
 
     /// Checks the medium against docs/physics.md.
@@ -143,35 +143,45 @@ impl Medium {
     }
 }
 
-/// The δ-Eddington transform of a Henyey–Greenstein medium (Joseph, Wiscombe & Weinman 1976;
-/// docs/illumination.md §4): the fraction `f = g²` of its scattering (for `g > 0`; none for
-/// `g <= 0`) goes on in the forward direction as if not scattered at all, and the rest scatters
-/// with the asymmetry `g' = (g - f) / (1 - f)`. The transformed medium keeps the phase function's
-/// first two Legendre moments, `g` and `g²`. Identity for `g = 0`: `depth_scale` 1, `albedo`
-/// unchanged, `anisotropy` 0.
+/// The fraction `f` of a Henyey–Greenstein medium's scattering that its δ-M transform takes as
+/// not scattered at all: `g³` for `g > 0` (Wiscombe 1977's rule for a phase function kept to
+/// three Legendre terms, the sweep's P2 source), none for `g <= 0`.
+pub fn peak_fraction(g: f64) -> f64 {
+    // A backward peak is not a forward one: only g > 0 is truncated (the remainder's moments
+    // would leave [-1, 1] otherwise).
+    g.max(0.0).powi(3)
+}
+
+/// The δ-M transform of a Henyey–Greenstein medium (Wiscombe 1977; docs/illumination.md §4):
+/// the fraction `f` of its scattering ([`peak_fraction`]) goes on in the forward direction as if
+/// not scattered at all, and the rest scatters with the remainder's Legendre moments
+/// `chi'_l = (g^l - f) / (1 - f)`, `l = 1, 2`, what the sweep's P2 source holds. So the
+/// transformed medium keeps the phase function's first four moments, `1, g, g², g³`. Identity
+/// for `g = 0`: `depth_scale` 1, `albedo` unchanged, `anisotropy` 0, `second_moment` 0.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct DeltaEddington {
+pub struct DeltaM {
     /// The fraction of the optical depth the transformed medium keeps, `1 - albedo f`: the
     /// light's beam and the multiple scattering see `depth_scale * tau`.
     pub depth_scale: f64,
     /// The transformed medium's albedo, `albedo (1 - f) / (1 - albedo f)`.
     pub albedo: f64,
-    /// The transformed medium's asymmetry `g'`: `g / (1 + g)` for `g > 0`, else `g`.
+    /// The remainder's first moment, its asymmetry `g' = (g - f) / (1 - f)`.
     pub anisotropy: f64,
+    /// The remainder's second moment, `(g² - f) / (1 - f)`: `g²` where nothing is truncated.
+    pub second_moment: f64,
 }
 
-impl DeltaEddington {
+impl DeltaM {
     /// The transform of a medium of albedo `albedo` in `[0, 1]` and anisotropy `g` in `(-1, 1)`.
     pub fn new(albedo: f64, g: f64) -> Self {
-        // A backward peak is not a forward one: only g > 0 is truncated (g' would leave [-1, 1]
-        // for g < -1/2 otherwise).
-        let f = g.max(0.0).powi(2);
+        let f = peak_fraction(g);
         // > 0: f < 1.
         let depth_scale = 1.0 - albedo * f;
         Self {
             depth_scale,
             albedo: albedo * (1.0 - f) / depth_scale,
             anisotropy: (g - f) / (1.0 - f),
+            second_moment: (g * g - f) / (1.0 - f),
         }
     }
 }
@@ -198,25 +208,29 @@ pub struct LightSample {
 mod tests {
     use super::*;
 
-    /// The transformed phase function `f δ + (1 - f) p_g'` keeps the first two Legendre moments
-    /// of Henyey–Greenstein's, `g` and `g²`; the transformed medium's scattering coefficient is
-    /// `(1 - f)` of the medium's; `g = 0` and backward media are not truncated.
+    /// The transformed phase function `f δ + (1 - f) p'` keeps the first four Legendre moments
+    /// of Henyey–Greenstein's, `1, g, g², g³` (`p'` holds the first three, `1, g', chi'_2`); the
+    /// transformed medium's scattering coefficient is `(1 - f)` of the medium's; `g = 0` and
+    /// backward media are not truncated.
     #[test]
-    fn delta_eddington_keeps_the_phase_functions_first_two_moments() {
+    fn delta_m_keeps_the_phase_functions_first_four_moments() {
         for (albedo, g) in [(0.9, 0.7), (1.0, 0.85), (0.5, 0.2), (0.99, 0.0)] {
-            let d = DeltaEddington::new(albedo, g);
-            let f = g * g;
+            let d = DeltaM::new(albedo, g);
+            let f = g.powi(3);
             assert!((f + (1.0 - f) * d.anisotropy - g).abs() < 1e-12);
+            assert!((f + (1.0 - f) * d.second_moment - g * g).abs() < 1e-12);
             assert!((d.depth_scale - (1.0 - albedo * f)).abs() < 1e-12);
             assert!((d.albedo * d.depth_scale - albedo * (1.0 - f)).abs() < 1e-12);
             assert!((0.0..=1.0).contains(&d.albedo) && d.anisotropy.abs() < 1.0);
+            assert!((0.0..1.0).contains(&d.second_moment));
         }
         assert_eq!(
-            DeltaEddington::new(0.8, -0.6),
-            DeltaEddington {
+            DeltaM::new(0.8, -0.6),
+            DeltaM {
                 depth_scale: 1.0,
                 albedo: 0.8,
-                anisotropy: -0.6
+                anisotropy: -0.6,
+                second_moment: -0.6 * -0.6
             }
         );
     }

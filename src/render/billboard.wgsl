@@ -104,7 +104,7 @@ var<private> view_volume: ViewVolumeParams;
 @group(1) @binding(8) var<storage, read> view_volumes: array<ViewVolumeParams>;
 @group(1) @binding(9) var<storage, read> neighbours: array<u32>;
 #endif
-// The spread of the delta-Eddington beam's excess relative to the phase function,
+// The spread of the delta-M beam's excess relative to the phase function,
 // BEAM_PHASE_ANGLES x BEAM_PHASE_DEPTHS, angle-major (src/beam_phase.rs); one element when the
 // medium has no excess.
 #ifdef VIEW_TRANSMITTANCE
@@ -289,7 +289,7 @@ fn beam_spread(cos: f32, m: f32) -> f32 {
 // S_1 at a cloud-local point towards the camera, straight from the light volumes: each light's
 // share weighted by the phase function between its travel direction and -ray, `ray` the view
 // ray's cloud-local unit direction. Its beam goes through `depth_scale` of the optical depth
-// (the delta-Eddington beam; 1 for an isotropic medium), and the excess over the light that
+// (the delta-M beam; 1 for an isotropic medium), and the excess over the light that
 // never scattered is seen spread by the peak scatterings it took (docs/illumination.md §5).
 fn single_scattering_at(p: vec3<f32>, ray: vec3<f32>) -> vec3<f32> {
     var sum = vec3(0.0);

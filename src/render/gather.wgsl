@@ -1,7 +1,7 @@
 // Gather: for every voxel of the scattering grid, its density (the mean of its f^3 children in
 // the fine grid, docs/illumination.md §1) and its multiple-scattering source S_0, the
 // density-weighted mean over those children of the beams' radiance
-// (1 / 4 pi) sum_l E_l exp(-c tau_l), c the delta-Eddington depth scale (1 for an isotropic
+// (1 / 4 pi) sum_l E_l exp(-c tau_l), c the delta-M depth scale (1 for an isotropic
 // medium), and for an anisotropic medium (shader def MOMENTS) of their flux
 // (1 / 4 pi) sum_l E_l exp(-c tau_l) d_l and quadrupole (1 / 4 pi) sum_l E_l exp(-c tau_l) (d_l d_l^T - I/3);
 // all lights in one dispatch (§3). Every cloud of a volume pool in that dispatch: z workgroup i

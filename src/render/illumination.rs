@@ -41,7 +41,7 @@ use super::{
     workgroups::{dispatch_columns, dispatch_linear},
 };
 use crate::{
-    particle::DeltaEddington,
+    particle::DeltaM,
     settings::{ScatterStencil, ShadingMethod},
     shadow_maps::{CloudShadowMaps, SKY_MAP_DIRECTIONS},
     stats::{CloudPass, CloudPassCounters},
@@ -503,8 +503,8 @@ fn add_overlaps(
         .filter_map(|e| placed.get(e))
         .map(|&(cloud, v)| {
             let first = pools.pool(&v.slot).density(v.slot.index).offset / 4;
-            // Its medium as the sweep takes it: δ-Eddington transformed (docs/illumination.md §4).
-            let delta = DeltaEddington::new(cloud.albedo as f64, cloud.anisotropy as f64);
+            // Its medium as the sweep takes it: δ-M transformed (docs/illumination.md §4).
+            let delta = DeltaM::new(cloud.albedo as f64, cloud.anisotropy as f64);
             let neighbour = Neighbour::new(
                 v.params.grid_origin,
                 v.params.h,

@@ -61,9 +61,9 @@ pub struct Neighbour {
     /// Voxels per side of that grid.
     pub n: u32,
     /// The neighbour's extinction over the receiver's (world, at density 1), as the sweep takes
-    /// it: times the neighbour's δ-Eddington depth scale (docs/illumination.md §4).
+    /// it: times the neighbour's δ-M depth scale (docs/illumination.md §4).
     pub extinction: f32,
-    /// The neighbour's δ-Eddington transformed albedo.
+    /// The neighbour's δ-M transformed albedo.
     pub albedo: f32,
 }
 

@@ -14,7 +14,7 @@ struct Neighbour {
     first: u32,
     n: u32,
     // Its extinction over the receiver's, and its albedo, both as the sweep takes them:
-    // delta-Eddington transformed (docs/illumination.md §4).
+    // delta-M transformed (docs/illumination.md §4).
     extinction: f32,
     albedo: f32,
 }

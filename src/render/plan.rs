@@ -86,7 +86,7 @@ impl StageKeys {
             .zip(lights)
             .map(|(key, light)| (*key, bits(light.irradiance)))
             .collect();
-        // The beams are seen through the δ-Eddington depth scale (docs/illumination.md §3).
+        // The beams are seen through the δ-M depth scale (docs/illumination.md §3).
         let gather = key_of((
             &gather_inputs,
             density,

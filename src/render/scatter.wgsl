@@ -50,7 +50,7 @@ fn density(i: u32) -> f32 {
     return densities[slot.density + i];
 }
 
-// The medium the sweep goes through at voxel i, delta-Eddington transformed (§4): its density
+// The medium the sweep goes through at voxel i, delta-M transformed (§4): its density
 // in units of the cloud's extinction at density 1 (x) and its albedo (y), over every cloud whose
 // medium reaches it (§4, "Clouds that overlap"); the cloud's own albedo where none does.
 fn medium(i: u32) -> vec2<f32> {
@@ -64,8 +64,8 @@ fn medium(i: u32) -> vec2<f32> {
 }
 
 // The in-scattered radiance of order n at voxel i towards the unit direction w, per unit
-// scattering coefficient: its mean, plus with moments 3 g' F . w + (15/2) g'^2 w^T Q w (the P2
-// phase function).
+// scattering coefficient: its mean, plus with moments 3 g' F . w + (15/2) chi'_2 w^T Q w (the P2
+// phase function of the transformed medium's moments).
 fn order_in(i: u32, w: vec3<f32>) -> vec3<f32> {
     var s = s_in[slot.volume + i].xyz;
 #ifdef MOMENTS
@@ -78,8 +78,7 @@ fn order_in(i: u32, w: vec3<f32>) -> vec3<f32> {
     for (var c = 0u; c < 5u; c++) {
         quadratic += s_in[quadrupole_element(slot.volume, cloud.n, i, c)].xyz * q[c];
     }
-    let g = cloud.scatter_anisotropy;
-    s += 3.0 * g * along + 7.5 * g * g * quadratic;
+    s += 3.0 * cloud.scatter_anisotropy * along + 7.5 * cloud.scatter_second_moment * quadratic;
 #endif
     return s;
 }
@@ -180,10 +179,20 @@ fn add_to(element: u32, share: vec4<f32>, overwrite: bool) {
     }
 }
 
+#ifdef MOMENTS
+// The 26-point Lebedev rule's weight of this dispatch's lattice directions (exact to degree 7):
+// 1/21 along an axis, 4/105 along a face diagonal, 9/280 along a body diagonal.
+fn lebedev_weight() -> f32 {
+    let moving = dot(abs(vec3<f32>(direction.o)), vec3(1.0));
+    return select(select(9.0 / 280.0, 4.0 / 105.0, moving == 2.0), 1.0 / 21.0, moving == 1.0);
+}
+#endif
+
 // Voxel `voxel`'s share of the radiance arriving there travelling along w: 1/26 of it to the
-// next order's mean (and with moments its flux and quadrupole), added, or written over what the
-// volume held (`overwrite`, in an iteration's first dispatch). `multiple` takes the order once
-// the iteration's sweeps are done (`accumulate_order`).
+// next order's mean (and with moments its flux), and with moments its Lebedev weight to the
+// quadrupole (§4: gathering a P2 radiance's quadrupole integrates degree 4, which equal weights
+// miss); added, or written over what the volume held (`overwrite`, in an iteration's first
+// dispatch). `multiple` takes the order once the iteration's sweeps are done (`accumulate_order`).
 fn deposit(voxel: u32, radiance: vec3<f32>, w: vec3<f32>, overwrite: bool) {
     let share = vec4(radiance / 26.0, 0.0);
     add_to(slot.volume + voxel, share, overwrite);
@@ -193,8 +202,9 @@ fn deposit(voxel: u32, radiance: vec3<f32>, w: vec3<f32>, overwrite: bool) {
         add_to(flux_element(slot.volume, n, voxel, axis), share * w[axis], overwrite);
     }
     let q = quadrupole_basis(w);
+    let weighted = vec4(radiance * lebedev_weight(), 0.0);
     for (var c = 0u; c < 5u; c++) {
-        add_to(quadrupole_element(slot.volume, n, voxel, c), share * q[c], overwrite);
+        add_to(quadrupole_element(slot.volume, n, voxel, c), weighted * q[c], overwrite);
     }
 #endif
 }

@@ -37,16 +37,18 @@ struct CloudParams {
     rows: u32,
     // Henyey-Greenstein g of the scattering towards the camera.
     anisotropy: f32,
-    // The medium's delta-Eddington transform (docs/illumination.md §4): the fraction of the
+    // The medium's delta-M transform (docs/illumination.md §4): the fraction of the
     // optical depths the light's beam and the multiple scattering see, 1 - albedo f ...
     depth_scale: f32,
     // 1 when a light or the sky reaches the cloud.
     lit: u32,
     // 1 when other clouds' media reach into its scattering grid (the sweep reads `foreign`).
     foreign: u32,
-    // ... the transformed albedo and asymmetry g' the multiple scattering sweeps with.
+    // ... the transformed albedo, and the moments g' and chi'_2 of the P2 phase function, the
+    // multiple scattering sweeps with.
     scatter_albedo: f32,
     scatter_anisotropy: f32,
+    scatter_second_moment: f32,
     // 1 when the scattering volumes hold angular moments beside their means (an anisotropic
     // medium): the flux after the means, and in `multiple` the quadrupole after the flux.
     moments: u32,

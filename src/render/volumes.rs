@@ -28,7 +28,7 @@ use crate::math::{
     LEVEL_KERNEL_NARROWING, MAX_DENSITY_LEVELS, MAX_RADIUS_IN_LEVEL_VOXELS, density_level,
     density_level_sizes, light_basis,
 };
-use crate::particle::DeltaEddington;
+use crate::particle::DeltaM;
 use crate::settings::CloudRelightBudget;
 use crate::shadow_maps::CloudShadowMaps;
 
@@ -62,16 +62,18 @@ pub struct CloudParams {
     /// Henyey–Greenstein anisotropy `g` of the scattering towards the camera.
     pub anisotropy: f32,
     /// The fraction of the shaded optical depths the light's beam and the multiple scattering
-    /// see ([`DeltaEddington::depth_scale`]; 1 for an isotropic medium).
+    /// see ([`DeltaM::depth_scale`]; 1 for an isotropic medium).
     pub depth_scale: f32,
     /// 1 when a light or the sky reaches the cloud, else 0 (it only absorbs).
     pub lit: u32,
     /// 1 when other clouds' media reach into its scattering grid ([`overlap`](super::overlap)).
     pub foreign: u32,
-    /// The albedo the multiple scattering sweeps with ([`DeltaEddington::albedo`]).
+    /// The albedo the multiple scattering sweeps with ([`DeltaM::albedo`]).
     pub scatter_albedo: f32,
-    /// The asymmetry `g'` of the sweep's P2 source ([`DeltaEddington::anisotropy`]).
+    /// The asymmetry `g'` of the sweep's P2 source ([`DeltaM::anisotropy`]).
     pub scatter_anisotropy: f32,
+    /// The second moment `chi'_2` of the sweep's P2 source ([`DeltaM::second_moment`]).
+    pub scatter_second_moment: f32,
     /// 1 when the scattering volumes hold angular moments beside their means (an anisotropic
     /// medium; docs/illumination.md §4, §9), else 0.
     pub moments: u32,
@@ -773,7 +775,7 @@ fn cloud_params(
     lights: &ExtractedCloudLights,
 ) -> CloudParams {
     let n = cloud.settings.volume_resolution;
-    let delta = DeltaEddington::new(cloud.albedo as f64, cloud.anisotropy as f64);
+    let delta = DeltaM::new(cloud.albedo as f64, cloud.anisotropy as f64);
     CloudParams {
         n,
         particle_count: gpu.count,
@@ -793,6 +795,7 @@ fn cloud_params(
         foreign: 0,
         scatter_albedo: delta.albedo as f32,
         scatter_anisotropy: delta.anisotropy as f32,
+        scatter_second_moment: delta.second_moment as f32,
         moments: cloud.has_moments() as u32,
     }
 }

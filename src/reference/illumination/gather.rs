@@ -11,7 +11,7 @@ use super::shade::LightVolume;
 use super::voxelize::DensityGrid;
 use crate::beam_phase::BeamPhase;
 use crate::math::henyey_greenstein;
-use crate::particle::DeltaEddington;
+use crate::particle::DeltaM;
 
 /// Single scattering `S_1(p) = (1 / 4 pi) sum_l E_l exp(-tau_l(p))` at local point `p`, straight
 /// from the lights' volumes (each `(volume, irradiance E)`); units of `E` per steradian. The
@@ -25,8 +25,8 @@ pub fn single_scattering_at(lights: &[(LightVolume, DVec3)], p: DVec3) -> DVec3 
 /// Single scattering towards the camera at local point `p` of a medium of albedo `albedo` and
 /// anisotropy `g` (section 5): `S_1(p, w) = sum_l p_HG(g, d_l . (-w)) E_l (exp(-tau_l(p)) +
 /// (exp(-c tau_l(p)) - exp(-tau_l(p))) r)`, `w` the unit local direction of the view ray (from
-/// the camera), `d_l` the light's travel direction, `c` the δ-Eddington depth scale
-/// ([`DeltaEddington::depth_scale`]) and `r` the `beam` table's spread of the excess at
+/// the camera), `d_l` the light's travel direction, `c` the δ-M depth scale
+/// ([`DeltaM::depth_scale`]) and `r` the `beam` table's spread of the excess at
 /// `m = (1 - c) tau_l` (1 without a table). [`single_scattering_at`] for `g = 0`.
 pub fn single_scattering_towards(
     lights: &[(LightVolume, DVec3)],
@@ -35,7 +35,7 @@ pub fn single_scattering_towards(
     ray: DVec3,
     beam: Option<&BeamPhase>,
 ) -> DVec3 {
-    let scale = DeltaEddington::new(albedo, g).depth_scale;
+    let scale = DeltaM::new(albedo, g).depth_scale;
     lights.iter().fold(DVec3::ZERO, |acc, (vol, e)| {
         let cos = -vol.basis[2].dot(ray);
         let phase = henyey_greenstein(g, cos);
@@ -131,10 +131,10 @@ pub fn gather(
     fine: &DensityGrid,
     lights: &[(LightVolume, DVec3)],
 ) -> Vec<DVec3> {
-    gather_source(grid, fine, lights, DeltaEddington::new(1.0, 0.0)).mean
+    gather_source(grid, fine, lights, DeltaM::new(1.0, 0.0)).mean
 }
 
-/// [`gather`] for a medium of δ-Eddington transform `delta` (contract section 3): the lights'
+/// [`gather`] for a medium of δ-M transform `delta` (contract section 3): the lights'
 /// beams seen through `delta.depth_scale` of their optical depth, `E_l exp(-c tau_l) / 4π`, and,
 /// for an anisotropic medium, their flux `E_l exp(-c tau_l) d_l / 4π` and quadrupole
 /// `E_l exp(-c tau_l) (d_l d_l^T - I/3) / 4π` (the moments of a collimated beam), density-weighted
@@ -143,7 +143,7 @@ pub fn gather_source(
     grid: &DensityGrid,
     fine: &DensityGrid,
     lights: &[(LightVolume, DVec3)],
-    delta: DeltaEddington,
+    delta: DeltaM,
 ) -> Moments {
     let f = fine.n / grid.n;
     let beams = |p: DVec3| {

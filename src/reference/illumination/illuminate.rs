@@ -13,7 +13,7 @@ use super::shade::{LightVolume, ShadeInputs, shade};
 use super::voxelize::{DensityGrid, voxelize};
 use crate::beam_phase::BeamPhase;
 use crate::ground::CloudGround;
-use crate::particle::{DeltaEddington, LightSample, Medium, Particle};
+use crate::particle::{DeltaM, LightSample, Medium, Particle};
 use crate::reference::composite::CloudPlacement;
 use crate::reference::ground::GroundLight;
 use crate::settings::{CloudQualitySettings, Compositing};
@@ -64,7 +64,7 @@ pub struct CloudIllumination {
     pub source: Moments,
     /// Multiple scattering per voxel (section 4).
     pub multiple: MultipleScattering,
-    /// How the camera sees the δ-Eddington beam's excess (section 5); `None` for a medium the
+    /// How the camera sees the δ-M beam's excess (section 5); `None` for a medium the
     /// transform does not truncate.
     pub beam: Option<BeamPhase>,
 }
@@ -222,7 +222,7 @@ fn cast_shadows(clouds: &mut [Option<ShadedCloud>], placements: &[CloudPlacement
 /// Per voxel of every cloud's scattering grid, the other clouds' media there (section 4,
 /// "Clouds that overlap"): at the voxel's centre, `sum_c c_c K_c rho_c / K` and
 /// `sum_c c_c albedo'_c K_c rho_c / K`, `rho_c` trilinear in cloud `c`'s scattering grid (zero
-/// outside it), `K` the world extinctions and `c_c`, `albedo'_c` cloud `c`'s δ-Eddington
+/// outside it), `K` the world extinctions and `c_c`, `albedo'_c` cloud `c`'s δ-M
 /// transform (1 and its albedo for an isotropic medium). `None` for a cloud no other cloud's
 /// medium reaches.
 fn foreign_media(
@@ -308,9 +308,9 @@ fn shade_cloud(
 }
 
 impl ShadedCloud {
-    /// The δ-Eddington transform of its medium.
-    pub(super) fn delta(&self) -> DeltaEddington {
-        DeltaEddington::new(self.inputs.albedo, self.anisotropy)
+    /// The δ-M transform of its medium.
+    pub(super) fn delta(&self) -> DeltaM {
+        DeltaM::new(self.inputs.albedo, self.anisotropy)
     }
 
     /// Sections 3 and 4: the source gathered from the light volumes, and its multiple scattering
@@ -601,7 +601,7 @@ mod tests {
 
     /// A Henyey–Greenstein medium: single scattering takes the phase function towards the
     /// camera (forward: the camera looks into the light) and sees the optical depths through the
-    /// δ-Eddington depth scale `1 - albedo g²`; the multiple scattering is seen through the phase
+    /// δ-M depth scale `1 - albedo g³`; the multiple scattering is seen through the phase
     /// function's first three moments. `g = 0` is the isotropic medium exactly.
     #[test]
     fn anisotropic_medium_sees_single_and_multiple_scattering_with_its_phase_function() {
@@ -622,8 +622,8 @@ mod tests {
         };
         let ill = illuminate(&particles, &medium, 1.0, &[light], &settings).unwrap();
         let x = ill.grid.voxel_centre(4, 3, 4);
-        let scale = DeltaEddington::new(ill.albedo, ill.anisotropy).depth_scale;
-        assert!((scale - (1.0 - 0.9 * 0.49)).abs() < 1e-6);
+        let scale = DeltaM::new(ill.albedo, ill.anisotropy).depth_scale;
+        assert!((scale - (1.0 - 0.9 * 0.343)).abs() < 1e-6);
         let (vol, e) = &ill.lights[0];
         let tau = vol.optical_depth_at(x);
         let table = ill.beam.as_ref().expect("g > 0 truncates the peak");
@@ -684,11 +684,12 @@ mod tests {
             assert!((iso.scattered_at(x, ray) - expected).length() < 1e-15 * expected.length());
         }
         assert_eq!(
-            DeltaEddington::new(0.9, 0.0),
-            DeltaEddington {
+            DeltaM::new(0.9, 0.0),
+            DeltaM {
                 depth_scale: 1.0,
                 albedo: 0.9,
-                anisotropy: 0.0
+                anisotropy: 0.0,
+                second_moment: 0.0
             }
         );
     }

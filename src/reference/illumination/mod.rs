@@ -33,8 +33,8 @@ pub use illuminate::{
 };
 pub use scatter::{
     MAX_ORDER_RATIO, MODE_SEPARATION, MultipleScattering, SERIES_BELOW, SeriesClosure,
-    curvature_weight, energy_bound, lattice_directions, order_ratio, order_size, scatter,
-    scatter_medium, scatter_under_sky, scatter_warm, scatter_warm_medium, segment_weights,
+    curvature_weight, energy_bound, lattice_directions, lebedev_weight, order_ratio, order_size,
+    scatter, scatter_medium, scatter_under_sky, scatter_warm, scatter_warm_medium, segment_weights,
 };
 pub use shade::{LightVolume, ShadeInputs, shade, shade_brute_force};
 pub use shadow_maps::{
