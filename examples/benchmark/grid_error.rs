@@ -59,7 +59,7 @@ fn settings(n: u32, m: u32) -> CloudQualitySettings {
 }
 
 /// The real-time image (CPU reference) of cloud 0 lit as `ill`, at the reference's resolution.
-fn image(
+pub(crate) fn image(
     scene: &Scene,
     ill: &CloudIllumination,
     s: &CloudQualitySettings,
@@ -78,13 +78,13 @@ fn image(
 
 /// Errors of one image: relative RMSE and after a 4×4 box (the reference's noise removed from
 /// both), and its energy over the truth's.
-struct Errors {
-    rmse: f64,
-    boxed: f64,
-    energy: f64,
+pub(crate) struct Errors {
+    pub(crate) rmse: f64,
+    pub(crate) boxed: f64,
+    pub(crate) energy: f64,
 }
 
-fn errors(image: &LinearImage, reference: &Reference, sky: bevy::math::Vec3) -> Errors {
+pub(crate) fn errors(image: &LinearImage, reference: &Reference, sky: bevy::math::Vec3) -> Errors {
     let truth = &reference.image;
     let rmse = relative_rmse(
         &cloud_pixels(&image.pixels, truth, sky),

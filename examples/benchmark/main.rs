@@ -14,6 +14,7 @@
 //! cargo run --example benchmark -- --decompose [--scenes a,b] [--spp N] [--out DIR]
 //! cargo run --example benchmark -- --grid-error [--scenes albedo_one] [--out DIR]
 //! cargo run --example benchmark -- --sky-map [--scenes cloud_over_ground_sky] [--out DIR]
+//! cargo run --example benchmark -- --coarse-cycles [--scenes albedo_one] [--settings '(volume_resolution: 64)'] [--out DIR]
 //! cargo run --example benchmark -- --raster-vs-compute [--view 1920x1080] [--layers 13] [--out DIR]
 //! cargo run --example benchmark -- --line-sweep [--grid 128] [--segments 8] [--out DIR]
 //! ```
@@ -30,6 +31,8 @@
 //! iterations up to the converged series, and where the scattering grid's error lies (CPU
 //! references; see `grid_error.rs`). `--sky-map` writes `DIR/sky_map.md`: the sky map's error
 //! against its direction count and size (CPU references) and its cost (see `sky_map.rs`).
+//! `--coarse-cycles` writes `DIR/coarse_cycles.md`: the scattering series against two-grid
+//! cycles of as many sweeps or fewer (CPU references; see `coarse_cycles.rs`).
 //!
 //! Timing. The GPU time of a setting is the sum of the per-pass GPU times (Bevy's render
 //! diagnostics; `FrameStats::gpu_ms` of the headless harness) of a frame in which every pass runs:
@@ -39,6 +42,7 @@
 //! nothing changed: the draw only. Both are medians over `--frames` frames, wall time beside them.
 
 mod cloud_target_scale;
+mod coarse_cycles;
 mod decompose;
 mod fog;
 mod frame_budget;
@@ -185,6 +189,11 @@ pub(crate) struct Args {
     /// for one cloud and a field of 100 (default scene `cloud_over_ground_sky`).
     #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "scale", "voxelize", "frame_budget", "warm_start", "grid_error"])]
     pub(crate) sky_map: bool,
+    /// The scattering series against two-grid cycles of as many sweeps or fewer (CPU only, the
+    /// GPU does not run the cycles yet; one cloud under a black sky, without a ground; default
+    /// scene `albedo_one`).
+    #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "scale", "voxelize", "frame_budget", "warm_start", "grid_error", "sky_map"])]
+    pub(crate) coarse_cycles: bool,
     /// Clouds do not shadow each other (every cloud `NotShadowCaster`): what the cast of their
     /// shadows costs and what its absence does to the error.
     #[arg(long)]
@@ -372,6 +381,37 @@ fn grid_error_benchmark(args: &Args) -> Result<(), String> {
     write_report(args, "grid_error.md", &md)
 }
 
+/// `--coarse-cycles`: each chosen scene's (default `albedo_one`) error with the series and with
+/// two-grid cycles.
+fn coarse_cycles_benchmark(args: &Args) -> Result<(), String> {
+    let mut md = String::from(
+        "# Coarse-grid cycles\n\nThe scattering series against two-grid cycles \
+         (`cargo run --example benchmark -- --coarse-cycles`; docs/illumination.md §4, \
+         \"Coarse-grid cycles\"), computed with the f64 CPU references (the GPU does not run \
+         the cycles yet).\n",
+    );
+    for (bench, scene) in named_scenes(args, "albedo_one")? {
+        // The CPU image (`grid_error::image`) is the cloud's alone, over black.
+        if scene.clouds.len() != 1
+            || scene.cloud_ground().is_some()
+            || scene.background != Vec3::ZERO
+        {
+            return Err(format!(
+                "`{}` has several clouds, a ground or a sky; --coarse-cycles takes one cloud \
+                 under a black sky",
+                bench.name
+            ));
+        }
+        let spp = args.spp.unwrap_or(bench.spp);
+        let reference = reference(&scene, bench, spp, &args.out)?;
+        let settings = args.settings.first().copied().unwrap_or(scene.settings);
+        md.push_str(&coarse_cycles::coarse_cycles(
+            bench, &scene, settings, &reference,
+        ));
+    }
+    write_report(args, "coarse_cycles.md", &md)
+}
+
 /// `--sky-map`: the sky map's error and cost on each chosen scene (default
 /// `cloud_over_ground_sky`).
 fn sky_map_benchmark(args: &Args) -> Result<(), String> {
@@ -445,6 +485,9 @@ fn run() -> Result<(), String> {
     }
     if args.grid_error {
         return grid_error_benchmark(&args);
+    }
+    if args.coarse_cycles {
+        return coarse_cycles_benchmark(&args);
     }
     if args.sky_map {
         return sky_map_benchmark(&args);

@@ -11,7 +11,10 @@
 //! One file per stage, as the GPU passes are laid out: `voxelize`, `shade`, `gather`, `scatter`,
 //! `illuminate` (every stage for a cloud or a scene, and the illumination at a shading point) and
 //! `shadow_maps` (section 10); `interpolation` holds the trilinear lookups they share.
+//! `coarse_cycles` accelerates the scattering series with a grid of half the resolution; the GPU
+//! does not run it yet.
 
+mod coarse_cycles;
 mod gather;
 mod illuminate;
 mod interpolation;
@@ -22,6 +25,7 @@ mod shadow_maps;
 mod test_support;
 mod voxelize;
 
+pub use coarse_cycles::{CoarseCycles, scatter_coarse_cycles};
 pub use gather::{
     Flux, Moments, Quadrupole, gather, gather_source, quadrupole_basis, single_scattering_at,
     single_scattering_towards,

@@ -138,13 +138,13 @@ pub(super) struct Boundary<'a> {
 
 impl Boundary<'_> {
     /// Nothing enters: the later iterations.
-    const NONE: Self = Self {
+    pub(super) const NONE: Self = Self {
         sky: DVec3::ZERO,
         ground: None,
     };
 
     /// The sky alone.
-    fn sky(sky: DVec3) -> Self {
+    pub(super) fn sky(sky: DVec3) -> Self {
         Self { sky, ground: None }
     }
 
@@ -248,7 +248,7 @@ fn sweep_direction(
 /// flux) `F = sum_o I_o w_o / 26` and `Q = sum_o u_o I_o (w_o w_o^T - I/3)`, `u_o` the
 /// [`lebedev_weight`], `w_o` the radiance's travel direction; the radiance `boundary` gives
 /// entering the grid from outside.
-fn sweep(medium: SweptMedium, s: &Moments, boundary: Boundary) -> Moments {
+pub(super) fn sweep(medium: SweptMedium, s: &Moments, boundary: Boundary) -> Moments {
     let directional = !s.flux.is_empty();
     let voxels = s.mean.len();
     let empty = || Swept {
@@ -550,14 +550,14 @@ pub(super) fn scatter_through(
 /// How [`scatter_series`] closes the series: the full series with two modes, a warm restart's
 /// correction (whose orders may change sign) geometrically.
 #[derive(Clone, Copy, PartialEq, Eq)]
-enum Tail {
+pub(super) enum Tail {
     TwoModes,
     Geometric,
 }
 
 /// The orders of the series from `s0` and their closed sum, signed (a warm restart's correction
 /// may be negative).
-fn scatter_series(
+pub(super) fn scatter_series(
     medium: SweptMedium,
     stencil: ScatterStencil,
     s0: &Moments,
