@@ -16,7 +16,10 @@ use bevy_particle_clouds::{
     CloudQualitySettings, ScatterStencil,
     image_io::LinearImage,
     reference::{
-        illumination::{CloudIllumination, DensityGrid, illuminate_scene_cloud, scatter},
+        illumination::{
+            CloudIllumination, DensityGrid, Moments, illuminate_scene_cloud, restrict_by_density,
+            scatter,
+        },
         metrics::relative_rmse,
     },
     scene::Scene,
@@ -118,24 +121,9 @@ fn block_energies(pixels: &[[f32; 4]], width: u32, height: u32) -> Vec<f64> {
     out
 }
 
-/// `values` (one per voxel of `fine`) averaged onto `coarse` (whose voxels hold `f³` of
-/// `fine`'s each), weighted by `fine`'s density: what a coarse voxel scatters is `rho S`.
+/// `values` averaged onto `coarse` by `fine`'s density (what a coarse voxel scatters is `rho S`).
 fn restrict(values: &[DVec3], fine: &DensityGrid, coarse: &DensityGrid) -> Vec<DVec3> {
-    let f = fine.n / coarse.n;
-    let mut sums = vec![(DVec3::ZERO, 0.0); coarse.len()];
-    for (idx, (s, rho)) in values.iter().zip(&fine.rho).enumerate() {
-        let (i, j, k) = (
-            idx % fine.n,
-            (idx / fine.n) % fine.n,
-            idx / (fine.n * fine.n),
-        );
-        let sum = &mut sums[coarse.index(i / f, j / f, k / f)];
-        sum.0 += *s * *rho;
-        sum.1 += rho;
-    }
-    sums.iter()
-        .map(|(s, mass)| if *mass > 0.0 { *s / *mass } else { DVec3::ZERO })
-        .collect()
+    restrict_by_density(&Moments::isotropic(values.to_vec()), fine, coarse).mean
 }
 
 /// The markdown section of one scene.
@@ -291,43 +279,6 @@ fn coarse_fine_table(bench: &BenchScene, scene: &Scene, reference: &Reference) -
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn grid(n: usize, rho: impl Fn(usize) -> f64) -> DensityGrid {
-        DensityGrid {
-            n,
-            centre: DVec3::ZERO,
-            side: 1.0,
-            h: 1.0 / n as f64,
-            rho: (0..n * n * n).map(rho).collect(),
-        }
-    }
-
-    #[test]
-    fn restriction_weighs_each_fine_voxel_by_its_density() {
-        let fine = grid(4, |i| (i % 3) as f64);
-        let coarse = fine.downsample(2);
-        let values: Vec<DVec3> = (0..64).map(|i| DVec3::splat(i as f64)).collect();
-        let restricted = restrict(&values, &fine, &coarse);
-        // Coarse voxel (0, 0, 0) holds fine voxels i + 4 j + 16 k for i, j, k in {0, 1}.
-        let children = [0usize, 1, 4, 5, 16, 17, 20, 21];
-        let mass: f64 = children.iter().map(|&c| fine.rho[c]).sum();
-        let expected = children
-            .iter()
-            .map(|&c| c as f64 * fine.rho[c])
-            .sum::<f64>()
-            / mass;
-        assert!(
-            (restricted[0].x - expected).abs() < 1e-12,
-            "{} vs {expected}",
-            restricted[0].x
-        );
-        // Where the fine voxels hold no density, nothing scatters there.
-        let empty = grid(4, |_| 0.0);
-        assert_eq!(
-            restrict(&values, &empty, &empty.downsample(2))[0],
-            DVec3::ZERO
-        );
-    }
 
     #[test]
     fn the_blocks_hold_the_whole_image_s_energy() {

@@ -68,7 +68,7 @@ pub fn scatter_coarse_cycles(
         s = s.plus(&r, DVec3::ONE);
         if let Some(coarse_grid) = &coarse_grid {
             let coarse = SweptMedium::alone(coarse_grid, k_local, albedo, g);
-            let r_coarse = restrict(&r, grid, coarse_grid);
+            let r_coarse = restrict_by_density(&r, grid, coarse_grid);
             let e = scatter_series(
                 coarse,
                 stencil,
@@ -94,12 +94,14 @@ fn residual(medium: SweptMedium, boundary: Boundary, s0: &Moments, s: &Moments) 
     sweep(medium, &s0.plus(s, DVec3::ONE), boundary).plus(s, DVec3::splat(-1.0))
 }
 
-/// `values` averaged onto `coarse` (each of its voxels `2³` of `fine`'s), weighted by `fine`'s
-/// density: a coarse voxel scatters the fine ones' `rho S`. Empty voxels take their plain mean.
-pub(super) fn restrict(values: &Moments, fine: &DensityGrid, coarse: &DensityGrid) -> Moments {
+/// `values` (one per voxel of `fine`) averaged onto `coarse`, whose voxels hold `f³` of
+/// `fine`'s each, weighted by `fine`'s density: a coarse voxel scatters the fine ones' `rho S`.
+/// Where they hold no density nothing scatters, and the coarse voxel takes 0.
+pub fn restrict_by_density(values: &Moments, fine: &DensityGrid, coarse: &DensityGrid) -> Moments {
+    let f = fine.n / coarse.n;
     let parent = |idx: usize| {
         let (i, j, k) = unravel(idx, fine.n);
-        coarse.index(i / 2, j / 2, k / 2)
+        coarse.index(i / f, j / f, k / f)
     };
     let mut mass = vec![0.0; coarse.len()];
     fine.rho
@@ -108,11 +110,7 @@ pub(super) fn restrict(values: &Moments, fine: &DensityGrid, coarse: &DensityGri
         .for_each(|(idx, rho)| mass[parent(idx)] += rho);
     let weight = |idx: usize| {
         let m = mass[parent(idx)];
-        if m > 0.0 {
-            fine.rho[idx] / m
-        } else {
-            1.0 / 8.0
-        }
+        if m > 0.0 { fine.rho[idx] / m } else { 0.0 }
     };
     Moments {
         mean: restrict_each(&values.mean, coarse.len(), parent, weight),
@@ -284,7 +282,7 @@ mod tests {
             quadrupole: s0.iter().map(|s| [*s; 5]).collect(),
             mean: s0,
         };
-        let restricted = restrict(&moments, &grid, &coarse);
+        let restricted = restrict_by_density(&moments, &grid, &coarse);
         let scattered = |g: &DensityGrid, values: &[DVec3]| -> DVec3 {
             values
                 .iter()
@@ -335,5 +333,31 @@ mod tests {
                 .iter()
                 .all(|q| (q[4] - DVec3::Y).length() < 1e-12)
         );
+    }
+
+    /// Each fine voxel weighs by its density; where they hold none, nothing scatters.
+    #[test]
+    fn restriction_weighs_each_fine_voxel_by_its_density() {
+        let mut fine = uniform_grid(4, 0.0);
+        fine.rho = (0..64).map(|i| (i % 3) as f64).collect();
+        let coarse = fine.downsample(2);
+        let values = Moments::isotropic((0..64).map(|i| DVec3::splat(i as f64)).collect());
+        let restricted = restrict_by_density(&values, &fine, &coarse).mean;
+        // Coarse voxel (0, 0, 0) holds fine voxels i + 4 j + 16 k for i, j, k in {0, 1}.
+        let children = [0usize, 1, 4, 5, 16, 17, 20, 21];
+        let mass: f64 = children.iter().map(|&c| fine.rho[c]).sum();
+        let expected = children
+            .iter()
+            .map(|&c| c as f64 * fine.rho[c])
+            .sum::<f64>()
+            / mass;
+        assert!(
+            (restricted[0].x - expected).abs() < 1e-12,
+            "{} vs {expected}",
+            restricted[0].x
+        );
+        let empty = uniform_grid(4, 0.0);
+        let restricted = restrict_by_density(&values, &empty, &empty.downsample(2));
+        assert_eq!(restricted.mean[0], DVec3::ZERO);
     }
 }

@@ -25,7 +25,7 @@ mod shadow_maps;
 mod test_support;
 mod voxelize;
 
-pub use coarse_cycles::{CoarseCycles, scatter_coarse_cycles};
+pub use coarse_cycles::{CoarseCycles, restrict_by_density, scatter_coarse_cycles};
 pub use gather::{
     Flux, Moments, Quadrupole, gather, gather_source, quadrupole_basis, single_scattering_at,
     single_scattering_towards,
