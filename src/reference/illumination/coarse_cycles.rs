@@ -80,7 +80,7 @@ pub fn scatter_coarse_cycles(
             s = s.plus(&prolong(&e.moments(), grid, coarse_grid), DVec3::ONE);
         }
         // S <- K (S_0 + S) + b: what the coarse grid left at the voxels' scale is damped.
-        s = s.plus(&residual(medium, boundary, s0, &s), DVec3::ONE);
+        s = sweep(medium, &s0.plus(&s, DVec3::ONE), boundary);
     }
     series.total = s.mean.iter().map(|t| t.max(DVec3::ZERO)).collect();
     series.flux = s.flux;
