@@ -1128,6 +1128,10 @@ mod tests {
             "settings.warm_scatter_iterations is 1; allowed is 0 (off) or 2..=4096",
         ),
         (
+            |f| f.settings.scatter_coarse_cycles = 65,
+            "settings.scatter_coarse_cycles is 65; allowed is 0..=64",
+        ),
+        (
             |f| f.settings.forward_scattering = 2.0,
             "settings.forward_scattering is 2; it must lie in [0, 1]",
         ),

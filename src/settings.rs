@@ -112,6 +112,16 @@ pub struct CloudQualitySettings {
     /// RMSE) of the full solve's, for 0.07–0.16 of its scattering cost on lavapipe
     /// (docs/performance.md, "Warm restart under a moving sun").
     pub warm_scatter_iterations: u32,
+    /// Two-grid cycles after the full series' `scatter_iterations` orders (docs/illumination.md
+    /// §4, "Coarse-grid cycles"): each sweeps the grid for the residual of the solution, solves
+    /// for its smooth part in [`COARSE_GRID_ORDERS`] orders on a grid of half the resolution,
+    /// adds it, and sweeps once more. They converge to the grid's own solution, which thick,
+    /// bright clouds reach only after hundreds of orders; a cycle costs about 6 sweeps of the
+    /// grid (2 fine, and 32 of an eighth of the voxels). With the discrete-ordinates stencil
+    /// only (the paper's ignores it); an odd `volume_resolution` has no coarse grid, and its
+    /// cycles only sweep. Not in a warm restart. 0 = off. Allowed:
+    /// `0..=MAX_SCATTER_COARSE_CYCLES`. Default 0.
+    pub scatter_coarse_cycles: u32,
     /// Fraction `f` in `[0, 1]` of scattered light treated as continuing forward in the shading
     /// pass (the paper's forward scattering): light attenuates with `sigma_t * (1 - f * albedo)`.
     /// Default 0, which is exactly the isotropic model of docs/physics.md.
@@ -154,6 +164,11 @@ pub const MIN_VOLUME_RESOLUTION: u32 = 4;
 pub const MAX_VOLUME_RESOLUTION: u32 = 256;
 /// Largest allowed `scatter_iterations`.
 pub const MAX_SCATTER_ITERATIONS: u32 = 4096;
+/// Largest allowed `scatter_coarse_cycles`.
+pub const MAX_SCATTER_COARSE_CYCLES: u32 = 64;
+/// Orders of the series each coarse-grid cycle sums on the grid of half the resolution, closed
+/// with two modes (docs/illumination.md §4, "Coarse-grid cycles").
+pub const COARSE_GRID_ORDERS: u32 = 32;
 /// Largest allowed `light_supersampling`.
 pub const MAX_LIGHT_SUPERSAMPLING: u32 = 4;
 /// Largest allowed `chord_segments`.
@@ -167,6 +182,7 @@ impl Default for CloudQualitySettings {
             volume_resolution: 48,
             scatter_iterations: 32,
             warm_scatter_iterations: 4,
+            scatter_coarse_cycles: 0,
             forward_scattering: 0.0,
             scatter_stencil: ScatterStencil::DiscreteOrdinates,
             light_supersampling: 3,
@@ -192,6 +208,23 @@ impl CloudQualitySettings {
     pub fn light_resolution(&self) -> u32 {
         self.volume_resolution * self.supersampling()
     }
+
+    /// The coarse-grid cycles the full series is followed by: `scatter_coarse_cycles` with the
+    /// discrete-ordinates stencil and at least one iteration, else 0.
+    pub fn coarse_cycles(&self) -> u32 {
+        let sweeps = self.scatter_stencil == ScatterStencil::DiscreteOrdinates;
+        if sweeps && self.scatter_iterations > 0 {
+            self.scatter_coarse_cycles
+        } else {
+            0
+        }
+    }
+
+    /// Whether the scattering grid has a coarse grid of half its side for the cycles: they run,
+    /// and `volume_resolution` is even.
+    pub fn has_coarse_grid(&self) -> bool {
+        self.coarse_cycles() > 0 && self.volume_resolution.is_multiple_of(2)
+    }
 }
 
 /// Why a settings value is refused; each variant names the field, its value and what is allowed.
@@ -204,6 +237,8 @@ pub enum InvalidSettings {
     ScatterIterations(u32),
     /// `warm_scatter_iterations` 1 or above `MAX_SCATTER_ITERATIONS`.
     WarmScatterIterations(u32),
+    /// `scatter_coarse_cycles` above `MAX_SCATTER_COARSE_CYCLES`.
+    ScatterCoarseCycles(u32),
     /// `forward_scattering` outside `[0, 1]` (or NaN).
     ForwardScattering(f32),
     /// `light_supersampling` outside `1..=MAX_LIGHT_SUPERSAMPLING`.
@@ -221,6 +256,7 @@ impl InvalidSettings {
             Self::VolumeResolution(_) => "volume_resolution",
             Self::ScatterIterations(_) => "scatter_iterations",
             Self::WarmScatterIterations(_) => "warm_scatter_iterations",
+            Self::ScatterCoarseCycles(_) => "scatter_coarse_cycles",
             Self::ForwardScattering(_) => "forward_scattering",
             Self::LightSupersampling(_) => "light_supersampling",
             Self::ChordSegments(_) => "chord_segments",
@@ -234,6 +270,7 @@ impl InvalidSettings {
             Self::VolumeResolution(v)
             | Self::ScatterIterations(v)
             | Self::WarmScatterIterations(v)
+            | Self::ScatterCoarseCycles(v)
             | Self::LightSupersampling(v)
             | Self::ChordSegments(v) => v.to_string(),
             Self::ForwardScattering(v) | Self::CloudTargetScale(v) => v.to_string(),
@@ -250,6 +287,7 @@ impl InvalidSettings {
             Self::WarmScatterIterations(_) => {
                 format!("allowed is 0 (off) or 2..={MAX_SCATTER_ITERATIONS}")
             }
+            Self::ScatterCoarseCycles(_) => format!("allowed is 0..={MAX_SCATTER_COARSE_CYCLES}"),
             Self::ForwardScattering(_) => "it must lie in [0, 1]".into(),
             Self::LightSupersampling(_) => format!("allowed is 1..={MAX_LIGHT_SUPERSAMPLING}"),
             Self::ChordSegments(_) => format!("allowed is 1..={MAX_CHORD_SEGMENTS}"),
@@ -272,6 +310,11 @@ impl CloudQualitySettings {
         let warm = self.warm_scatter_iterations;
         if warm == 1 || warm > MAX_SCATTER_ITERATIONS {
             return Err(InvalidSettings::WarmScatterIterations(warm));
+        }
+        if self.scatter_coarse_cycles > MAX_SCATTER_COARSE_CYCLES {
+            return Err(InvalidSettings::ScatterCoarseCycles(
+                self.scatter_coarse_cycles,
+            ));
         }
         if !(0.0..=1.0).contains(&self.forward_scattering) {
             return Err(InvalidSettings::ForwardScattering(self.forward_scattering));

@@ -833,6 +833,8 @@ fn replot(args: &Args) -> Result<(), String> {
     // billboard shading knob all shaded along the chord.
     let compositing = compositing.ok();
     let shading = table.column("billboard_shading").ok();
+    // Written before the coarse-grid cycles existed: none.
+    let cycles = table.column("scatter_coarse_cycles").ok();
     let (gpu, wall, rmse, noise, spp, pareto, axis) =
         (gpu?, wall?, rmse?, noise?, spp?, pareto?, axis?);
     let mut rows = Vec::new();
@@ -876,6 +878,7 @@ fn replot(args: &Args) -> Result<(), String> {
             draw_method: DrawMethod::Raster,
             // The sweep's frames are still; `--warm-start` measures the warm restart.
             warm_scatter_iterations: 0,
+            scatter_coarse_cycles: cycles.map_or(0, |c| num(c) as u32),
         };
         let timing = Timing {
             gpu_ms_total: num(gpu),

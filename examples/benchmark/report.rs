@@ -59,8 +59,12 @@ pub(crate) fn setting_label(s: &CloudQualitySettings) -> String {
         DrawMethod::Raster => "",
         DrawMethod::Compute => " compute",
     };
+    let cycles = match s.scatter_coarse_cycles {
+        0 => String::new(),
+        c => format!(" +{c} cycles"),
+    };
     format!(
-        "{}³ ×{} {stencil} K{} L{}{compositing}{shading}{target}{method}",
+        "{}³ ×{}{cycles} {stencil} K{} L{}{compositing}{shading}{target}{method}",
         s.volume_resolution, s.scatter_iterations, s.chord_segments, s.light_supersampling
     )
 }
@@ -132,6 +136,7 @@ struct CsvRow<'a> {
     light_supersampling: u32,
     compositing: String,
     billboard_shading: String,
+    scatter_coarse_cycles: u32,
     is_default: bool,
     gpu_ms_total: f64,
     gpu_ms_voxelize: f64,
@@ -176,6 +181,7 @@ impl<'a> CsvRow<'a> {
             light_supersampling: s.light_supersampling,
             compositing: format!("{:?}", s.compositing),
             billboard_shading: format!("{:?}", s.billboard_shading),
+            scatter_coarse_cycles: s.scatter_coarse_cycles,
             is_default: *s == CloudQualitySettings::default(),
             gpu_ms_total: t.gpu_ms_total,
             gpu_ms_voxelize: t.pass_ms[0],

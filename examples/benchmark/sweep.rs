@@ -8,6 +8,7 @@ pub(crate) const PREVIOUS_DEFAULT: CloudQualitySettings = CloudQualitySettings {
     volume_resolution: 48,
     scatter_iterations: 16,
     warm_scatter_iterations: 0,
+    scatter_coarse_cycles: 0,
     forward_scattering: 0.0,
     scatter_stencil: ScatterStencil::DiscreteOrdinates,
     light_supersampling: 2,

@@ -146,7 +146,9 @@ fn extrapolate(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgr
     var tail = s_m * a + before[slot.volume + v] * b;
     let bounded = max(min(tail, s_m * (MAX_ORDER_RATIO / (1.0 - MAX_ORDER_RATIO))), vec4(0.0));
     tail = select(tail, bounded, b != vec4(0.0));
-    multiple[m] = max(multiple[m] + tail, vec4(0.0));
+    // A coarse grid's sum is a correction, of either sign.
+    let sum = multiple[m] + tail;
+    multiple[m] = select(max(sum, vec4(0.0)), sum, slot.coarse == 1u);
 #ifdef MOMENTS
     let n = slot.cloud.n;
     for (var axis = 0u; axis < 3u; axis++) {

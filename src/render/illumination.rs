@@ -22,6 +22,7 @@ use bevy::{
 
 use super::{
     cast::{CastStart, CastTarget, CastWork, Caster, CasterVolume, add_cast, by_pool},
+    coarse_grid::CycleBatch,
     extract::{ExtractedCloud, ExtractedCloudLights},
     gpu::{StagePass, WorkList, record_stage, storage_init},
     overlap::{Neighbour, OverlapItem},
@@ -85,6 +86,8 @@ struct ScatterBatch {
     /// The closure, reading the last two orders.
     closure: BindGroup,
     work: WorkList,
+    /// The coarse-grid cycles after the series, if any.
+    cycles: Option<CycleBatch>,
 }
 
 /// The batched passes of one volume pool this frame.
@@ -146,7 +149,7 @@ fn scatter_group(k: u32) -> usize {
 
 /// What each pool's clouds run this frame: (slot, light) to shade, light volumes to cast on per
 /// pool their casters lie in, slots to gather, and slots to scatter per (iterations, stencil,
-/// warm restart).
+/// warm restart, coarse-grid cycles).
 #[derive(Default)]
 struct PoolWork {
     shade: Vec<[u32; 2]>,
@@ -155,7 +158,7 @@ struct PoolWork {
     gather: Vec<u32>,
     /// The clouds a ground lights whose scattering runs (their ground maps are filled first).
     ground: Vec<u32>,
-    scatter: HashMap<(u32, ScatterStencil, bool), Vec<u32>>,
+    scatter: HashMap<(u32, ScatterStencil, bool, u32), Vec<u32>>,
 }
 
 /// What each pool's passes do this frame, from its clouds' plans, and the clouds each pool
@@ -193,7 +196,7 @@ fn pool_work(
             w.gather.push(slot);
         }
         if let Some(iterations) = plan.scatter.filter(|&i| i > 0) {
-            let key = (iterations, plan.stencil, plan.warm);
+            let key = (iterations, plan.stencil, plan.warm, plan.cycles);
             w.scatter.entry(key).or_default().push(slot);
             if lights.ground.is_some() && plan.stencil == ScatterStencil::DiscreteOrdinates {
                 w.ground.push(slot);
@@ -391,11 +394,13 @@ fn pool_batches(
     let scatter = w
         .scatter
         .into_iter()
-        .map(|((iterations, stencil, warm), slots)| {
+        .map(|((iterations, stencil, warm, cycles), slots)| {
             let work = WorkList::new(device, &slots);
             let mut batch = scatter_batch(bind, pipelines, pool, iterations, work);
             batch.sweep = stencil == ScatterStencil::DiscreteOrdinates;
             batch.warm = warm;
+            batch.cycles =
+                (cycles > 0).then(|| CycleBatch::new(bind, pipelines, pool, &batch.work, cycles));
             batch
         })
         .collect();
@@ -584,6 +589,7 @@ fn scatter_batch(
         groups,
         closure,
         work,
+        cycles: None,
     }
 }
 
@@ -826,8 +832,9 @@ pub(crate) fn illuminate_clouds(
 }
 
 /// Records a batch's scattering iterations (the discrete-ordinates `sweep`, else the paper's
-/// stencil) on its clouds' `n³` grids, and the closure (§4). A warm restart's first iteration
-/// scatters `S_0` plus the solution held, and turns it into the correction's first order.
+/// stencil) on its clouds' `n³` grids, the closure (§4), then its coarse-grid cycles. A warm
+/// restart's first iteration scatters `S_0` plus the solution held, and turns it into the
+/// correction's first order.
 fn scatter_batch_passes(
     pass: &mut StagePass,
     ready: &ReadyPipelines,
@@ -836,85 +843,150 @@ fn scatter_batch_passes(
     moments: bool,
 ) {
     let variant = moments as usize;
-    let stencil = if batch.sweep {
-        ready.sweep[variant]
-    } else {
-        ready.scatter_paper
+    let series = SeriesPasses {
+        ready,
+        sweep: batch.sweep,
+        n,
+        variant,
     };
     for (work, items) in batch.work.chunks() {
-        // The sky enters the grid in the first iteration of the series (§4).
-        let iterate = |pass: &mut StagePass, group: &BindGroup, accumulate: bool, sky: bool| {
-            if batch.sweep {
-                // One dispatch per direction pair: the lines of one direction partition the grid.
-                for (i, o) in sweep_directions().enumerate() {
-                    let direction = sweep_direction_offset(i, accumulate, sky);
-                    pass.set_bind_group(0, group, &[direction, work]);
-                    dispatch_linear(pass, sweep_lines(o, n), items);
-                }
-                // The order into `multiple` once, not in each direction's dispatch.
-                if accumulate {
-                    pass.set_pipeline(ready.accumulate_order[variant]);
-                    dispatch_linear(pass, n.pow(3), items);
-                    pass.set_pipeline(stencil);
-                }
-            } else {
-                let direction = sweep_direction_offset(0, accumulate, sky);
-                pass.set_bind_group(0, group, &[direction, work]);
-                dispatch_linear(pass, n.pow(3), items);
-            }
-        };
         let first = if batch.warm {
-            // S_0 + X → b, scattered into a without accumulating, then a = W_0 and multiple += W_0.
-            pass.set_pipeline(ready.warm_start[variant]);
-            pass.set_bind_group(0, &batch.groups[3], &[0, work]);
-            dispatch_linear(pass, n.pow(3), items);
-            pass.set_pipeline(stencil);
-            iterate(pass, &batch.groups[2], false, true);
-            pass.set_pipeline(ready.warm_correction[variant]);
-            pass.set_bind_group(0, &batch.groups[2], &[0, work]);
-            dispatch_linear(pass, n.pow(3), items);
+            series.restart_sweep(pass, &batch.groups, work, items);
             1
         } else {
             0
         };
-        pass.set_pipeline(stencil);
+        series.set_stencil(pass);
         for k in first..batch.iterations {
-            iterate(pass, &batch.groups[scatter_group(k)], true, k == 0);
+            series.iterate(pass, &batch.groups[scatter_group(k)], (work, items), k == 0);
             // Orders M - 2 and M - 3 lie where the closure reads M and M - 1 (the two order
             // volumes alternate): their sizes, for a two-mode closure of the full series.
             if !batch.warm && batch.iterations >= 4 && k + 3 == batch.iterations {
-                pass.set_bind_group(0, &batch.closure, &[work]);
-                pass.set_pipeline(ready.order_sizes);
-                pass.dispatch(1, 1, items);
-                pass.set_pipeline(stencil);
+                series.order_sizes(pass, &batch.closure, work, items);
             }
         }
     }
     for (work, items) in batch.work.chunks() {
-        pass.set_bind_group(0, &batch.closure, &[work]);
-        pass.set_pipeline(ready.order_ratio);
-        pass.dispatch(1, 1, items);
-        pass.set_pipeline(ready.extrapolate[variant]);
-        dispatch_linear(pass, n.pow(3), items);
+        series.close(pass, &batch.closure, work, items);
+    }
+    if let Some(cycles) = &batch.cycles {
+        for (work, items) in batch.work.chunks() {
+            cycles.record(pass, &series, &batch.groups, (work, items));
+        }
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
+/// Records the passes of a scattering series on a pool's `n³` grids (or on its coarse grids).
+pub(super) struct SeriesPasses<'a> {
+    pub(super) ready: &'a ReadyPipelines<'a>,
+    /// The discrete-ordinates sweep, else the paper's stencil.
+    pub(super) sweep: bool,
+    /// Voxels per side of the grids.
+    pub(super) n: u32,
+    /// 1 for the pipelines with angular moments, else 0.
+    pub(super) variant: usize,
+}
 
-    /// The three bind groups cover every iteration's (read, write) pair of order volumes.
-    #[test]
-    fn scatter_groups_alternate_like_the_orders() {
-        // (read, write) of iteration k, as indices: 0 = S_0, 1 = a, 2 = b.
-        let order = |k: u32| if k == 0 { 0 } else { 1 + (k - 1) % 2 };
-        let pairs = [(0, 1), (1, 2), (2, 1)];
-        for k in 0..10 {
-            assert_eq!(
-                pairs[scatter_group(k)],
-                (order(k), order(k + 1)),
-                "iteration {k}"
-            );
+impl SeriesPasses<'_> {
+    fn stencil(&self) -> &ComputePipeline {
+        if self.sweep {
+            self.ready.sweep[self.variant]
+        } else {
+            self.ready.scatter_paper
         }
+    }
+
+    pub(super) fn set_stencil(&self, pass: &mut StagePass) {
+        pass.set_pipeline(self.stencil());
+    }
+
+    /// One iteration with the stencil set: with `accumulate`, its order goes into `multiple`;
+    /// with `boundary`, the light entering the grid comes in.
+    fn pass_once(
+        &self,
+        pass: &mut StagePass,
+        group: &BindGroup,
+        (work, items): (u32, u32),
+        accumulate: bool,
+        boundary: bool,
+    ) {
+        let n = self.n;
+        if !self.sweep {
+            let direction = sweep_direction_offset(0, accumulate, boundary);
+            pass.set_bind_group(0, group, &[direction, work]);
+            dispatch_linear(pass, n.pow(3), items);
+            return;
+        }
+        // One dispatch per direction pair: the lines of one direction partition the grid.
+        for (i, o) in sweep_directions().enumerate() {
+            let direction = sweep_direction_offset(i, accumulate, boundary);
+            pass.set_bind_group(0, group, &[direction, work]);
+            dispatch_linear(pass, sweep_lines(o, n), items);
+        }
+        // The order into `multiple` once, not in each direction's dispatch.
+        if accumulate {
+            pass.set_pipeline(self.ready.accumulate_order[self.variant]);
+            dispatch_linear(pass, n.pow(3), items);
+            pass.set_pipeline(self.stencil());
+        }
+    }
+
+    /// An accumulating iteration of the series, the first (`boundary`) bringing the light
+    /// entering the grid in (§4).
+    pub(super) fn iterate(
+        &self,
+        pass: &mut StagePass,
+        group: &BindGroup,
+        work: (u32, u32),
+        boundary: bool,
+    ) {
+        self.pass_once(pass, group, work, true, boundary);
+    }
+
+    /// `S <- K (S_0 + S) + b` on what `multiple` holds, the change `K (S_0 + S) + b - S` left in
+    /// order a: a warm restart's first order, and a coarse-grid cycle's residual and smoothing
+    /// sweeps. `S_0 + S` goes into b, is scattered into a without accumulating, then
+    /// `multiple` takes a and a the change. Leaves the stencil set.
+    pub(super) fn restart_sweep(
+        &self,
+        pass: &mut StagePass,
+        groups: &[BindGroup; 4],
+        work: u32,
+        items: u32,
+    ) {
+        let n3 = self.n.pow(3);
+        pass.set_pipeline(self.ready.warm_start[self.variant]);
+        pass.set_bind_group(0, &groups[3], &[0, work]);
+        dispatch_linear(pass, n3, items);
+        self.set_stencil(pass);
+        self.pass_once(pass, &groups[2], (work, items), false, true);
+        pass.set_pipeline(self.ready.warm_correction[self.variant]);
+        pass.set_bind_group(0, &groups[2], &[0, work]);
+        dispatch_linear(pass, n3, items);
+        self.set_stencil(pass);
+    }
+
+    /// The sizes of orders `M - 3` and `M - 2` (the full series' two-mode closure), from the
+    /// closure's bindings while they hold them; leaves the stencil set.
+    pub(super) fn order_sizes(
+        &self,
+        pass: &mut StagePass,
+        closure: &BindGroup,
+        work: u32,
+        items: u32,
+    ) {
+        pass.set_bind_group(0, closure, &[work]);
+        pass.set_pipeline(self.ready.order_sizes);
+        pass.dispatch(1, 1, items);
+        self.set_stencil(pass);
+    }
+
+    /// The closure: the tail's coefficients, then the tail added to `multiple`.
+    pub(super) fn close(&self, pass: &mut StagePass, closure: &BindGroup, work: u32, items: u32) {
+        pass.set_bind_group(0, closure, &[work]);
+        pass.set_pipeline(self.ready.order_ratio);
+        pass.dispatch(1, 1, items);
+        pass.set_pipeline(self.ready.extrapolate[self.variant]);
+        dispatch_linear(pass, self.n.pow(3), items);
     }
 }

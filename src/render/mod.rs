@@ -28,6 +28,7 @@
 pub mod budget;
 pub mod cast;
 pub mod cloud_target;
+pub mod coarse_grid;
 pub mod draw;
 pub mod extract;
 pub mod fog;

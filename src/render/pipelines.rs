@@ -179,6 +179,10 @@ pub struct IlluminationPipelines {
     pub order_ratio: ComputeStage,
     /// `closure.wgsl`, `extrapolate` (same layout as `order_ratio`).
     pub extrapolate: ByMoments,
+    /// `coarse_grid.wgsl`, `restrict_residual`: a coarse-grid cycle's start.
+    pub restrict_residual: ByMoments,
+    /// `coarse_grid.wgsl`, `prolong_correction` (same layout): its correction added.
+    pub prolong_correction: ByMoments,
     /// The 13 `SweepDirection`s in each of the four sets of [`sweep_direction_offset`]
     /// (accumulating or not, bringing the sky in or not), `DYNAMIC_UNIFORM_STRIDE` bytes apart (a
     /// dynamic uniform; `write_sweep_sky` writes the sky into them).
@@ -224,6 +228,10 @@ pub struct ReadyPipelines<'a> {
     pub order_ratio: &'a ComputePipeline,
     /// The closure's extrapolation.
     pub extrapolate: [&'a ComputePipeline; 2],
+    /// The coarse-grid cycles' restriction.
+    pub restrict_residual: [&'a ComputePipeline; 2],
+    /// The coarse-grid cycles' prolongation.
+    pub prolong_correction: [&'a ComputePipeline; 2],
 }
 
 impl IlluminationPipelines {
@@ -247,6 +255,8 @@ impl IlluminationPipelines {
             order_sizes: self.order_sizes.get(cache)?,
             order_ratio: self.order_ratio.get(cache)?,
             extrapolate: self.extrapolate.get(cache)?,
+            restrict_residual: self.restrict_residual.get(cache)?,
+            prolong_correction: self.prolong_correction.get(cache)?,
         })
     }
 }
@@ -298,6 +308,7 @@ struct IlluminationLayouts {
     ground: BindGroupLayoutDescriptor,
     overlap: BindGroupLayoutDescriptor,
     closure: BindGroupLayoutDescriptor,
+    coarse_grid: BindGroupLayoutDescriptor,
 }
 
 impl IlluminationLayouts {
@@ -369,6 +380,21 @@ impl IlluminationLayouts {
                 ShaderStages::COMPUTE,
                 (read(), read(), read(), read(), write(), write(), work()),
             ),
+            coarse_grid: sequential_layout(
+                "particle_clouds_coarse_grid_layout",
+                ShaderStages::COMPUTE,
+                (
+                    read(),
+                    read(),
+                    read(),
+                    read(),
+                    write(),
+                    write(),
+                    write(),
+                    write(),
+                    work(),
+                ),
+            ),
         }
     }
 }
@@ -391,6 +417,7 @@ pub(crate) fn init_illumination_pipelines(
         ground,
         overlap,
         closure,
+        coarse_grid,
     } = IlluminationLayouts::new();
     let cache = pipeline_cache.as_ref();
     let stage =
@@ -417,6 +444,18 @@ pub(crate) fn init_illumination_pipelines(
         order_sizes: stage(&shaders.closure, "order_sizes", &closure),
         order_ratio: stage(&shaders.closure, "order_ratio", &closure),
         extrapolate: ByMoments::new(cache, &shaders.closure, "extrapolate", &closure),
+        restrict_residual: ByMoments::new(
+            cache,
+            &shaders.coarse_grid,
+            "restrict_residual",
+            &coarse_grid,
+        ),
+        prolong_correction: ByMoments::new(
+            cache,
+            &shaders.coarse_grid,
+            "prolong_correction",
+            &coarse_grid,
+        ),
         sweep_directions: dynamic_uniform(
             &device,
             "particle_clouds_sweep_directions",

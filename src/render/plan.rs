@@ -107,6 +107,7 @@ impl StageKeys {
             settings.scatter_stencil,
             settings.scatter_iterations,
             settings.warm_scatter_iterations,
+            settings.coarse_cycles(),
             media,
         ));
         Self {
@@ -141,6 +142,9 @@ pub struct WorkPlan {
     /// The scattering restarts from the solution the volumes hold (only the source changed):
     /// `scatter` is then `warm_scatter_iterations` (docs/illumination.md §4).
     pub warm: bool,
+    /// Coarse-grid cycles after the full series (`scatter_coarse_cycles`; 0 in a warm
+    /// restart).
+    pub cycles: u32,
 }
 
 impl WorkPlan {
@@ -196,6 +200,11 @@ pub fn plan(cached: &StageKeys, now: &StageKeys, settings: &CloudQualitySettings
         },
         unlit: false,
         warm,
+        cycles: if changed.is_some() && !warm {
+            settings.coarse_cycles()
+        } else {
+            0
+        },
     }
 }
 
@@ -309,6 +318,7 @@ mod tests {
                 stencil: settings.scatter_stencil,
                 unlit: false,
                 warm: false,
+                cycles: 0,
             }
         );
         // Nothing changed: nothing runs.
@@ -401,6 +411,41 @@ mod tests {
         state.update(keys(&[light(Vec3::X, 1.0, 0)], 1, &cold), &cold);
         state.update(keys(&[light(Vec3::Y, 1.0, 0)], 1, &cold), &cold);
         assert_eq!((state.plan.scatter, state.plan.warm), (Some(32), false));
+    }
+
+    #[test]
+    fn coarse_grid_cycles_follow_the_full_series_only() {
+        let settings = CloudQualitySettings {
+            scatter_coarse_cycles: 3,
+            ..default()
+        };
+        let mut state = CloudIllumination::default();
+        let lit = |w: Vec3, s: &CloudQualitySettings| keys(&[light(w, 1.0, 0)], 1, s);
+        state.update(lit(Vec3::X, &settings), &settings);
+        assert_eq!((state.plan.scatter, state.plan.cycles), (Some(32), 3));
+        // A warm restart runs none.
+        state.update(lit(Vec3::new(1.0, 0.1, 0.0), &settings), &settings);
+        assert_eq!((state.plan.warm, state.plan.cycles), (true, 0));
+        state.update(lit(Vec3::new(1.0, 0.1, 0.0), &settings), &settings);
+        assert_eq!((state.plan.warm, state.plan.cycles), (false, 3));
+        // More cycles: the scattering reruns, and only it.
+        let more = CloudQualitySettings {
+            scatter_coarse_cycles: 5,
+            ..settings
+        };
+        state.update(lit(Vec3::new(1.0, 0.1, 0.0), &more), &more);
+        let p = &state.plan;
+        assert_eq!(
+            (p.gather, p.shade.len(), p.scatter, p.cycles),
+            (false, 0, Some(32), 5)
+        );
+        // The paper's stencil has none.
+        let paper = CloudQualitySettings {
+            scatter_stencil: ScatterStencil::Paper,
+            ..more
+        };
+        state.update(lit(Vec3::new(1.0, 0.1, 0.0), &paper), &paper);
+        assert_eq!((state.plan.scatter, state.plan.cycles), (Some(32), 0));
     }
 
     #[test]

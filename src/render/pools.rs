@@ -44,6 +44,9 @@ pub struct VolumeShape {
     /// the source and the orders their flux (3 vec4 per voxel), `multiple` its flux and
     /// quadrupole (8 vec4 per voxel).
     pub moments: bool,
+    /// Each slot has a coarse grid of half the side for the scattering's coarse-grid cycles
+    /// (docs/illumination.md §4): [`CoarseGrids`].
+    pub coarse: bool,
 }
 
 /// Mirror of `Slot` in `types.wgsl`: one cloud's uniforms and the first element of each of its
@@ -70,6 +73,9 @@ pub struct Slot {
     pub lights: u32,
     /// Its element of the closure's `order_ratios`.
     pub ratio: u32,
+    /// 1 for a coarse grid's slot ([`CoarseGrids`]): its series sums a signed correction, which
+    /// the closure does not clamp at 0; else 0.
+    pub coarse: u32,
 }
 
 /// Bytes of one slot in each kind of pool buffer.
@@ -128,7 +134,18 @@ impl VolumeShape {
             m: settings.light_resolution(),
             lights,
             moments,
+            coarse: settings.has_coarse_grid(),
         }
+    }
+
+    /// Bytes of one slot's coarse grid ([`CoarseGrids`]) in its density buffer and in each of
+    /// its volume buffers (half the side).
+    fn coarse_bytes(&self) -> (u64, u64) {
+        let voxels = (self.n as u64 / 2).pow(3);
+        (
+            aligned(voxels * 4),
+            aligned(voxels * 16 * self.vec4_per_voxel().0),
+        )
     }
 
     /// The largest `light_supersampling`, from `settings`' own in effect down to 1, at which one
@@ -272,6 +289,62 @@ pub struct VolumePool {
     /// The `DensityLevels` uniform of the shape's fine grid, one entry per `upsample_from`,
     /// `DYNAMIC_UNIFORM_STRIDE` bytes apart (voxelize).
     pub density_levels: Buffer,
+    /// Each slot's coarse grid, where the shape has them.
+    pub coarse: Option<CoarseGrids>,
+}
+
+/// A pool's coarse grids (docs/illumination.md §4, "Coarse-grid cycles"): per slot, a grid of
+/// half the side on which the scattering's corrections are solved, its volumes laid out like
+/// those of a pool of that side, slot for slot. The sweep and the closure bind these in place of
+/// the pool's own buffers.
+pub struct CoarseGrids {
+    /// The coarse grid's `Slot` per slot (its `cloud.n` half the pool's).
+    pub slots: Buffer,
+    /// f32 density per slot: the mean of the 8 fine voxels each coarse one holds.
+    pub densities: Buffer,
+    /// vec4 residual per slot, averaged from the fine grid by density: the coarse series' start.
+    pub source: Buffer,
+    /// vec4 ping-pong orders per slot.
+    pub orders: [Buffer; 2],
+    /// vec4 correction per slot: the coarse series' sum past its start.
+    pub multiple: Buffer,
+    /// The coarse series' closure per slot (`closure.wgsl`).
+    pub order_ratios: Buffer,
+}
+
+impl CoarseGrids {
+    /// For `capacity` slots of a pool of `shape` (the fine grids').
+    fn new(device: &RenderDevice, shape: VolumeShape, capacity: u32) -> Self {
+        let (density, volume) = shape.coarse_bytes();
+        let c = capacity as u64;
+        Self {
+            slots: storage(
+                device,
+                "particle_clouds_coarse_slots",
+                Slot::min_size().get() * c,
+            ),
+            densities: storage(device, "particle_clouds_coarse_densities", density * c),
+            source: storage(device, "particle_clouds_coarse_source", volume * c),
+            orders: [
+                storage(device, "particle_clouds_coarse_order_a", volume * c),
+                storage(device, "particle_clouds_coarse_order_b", volume * c),
+            ],
+            multiple: storage(device, "particle_clouds_coarse_multiple", volume * c),
+            order_ratios: storage(device, "particle_clouds_coarse_ratios", CLOSURE_BYTES * c),
+        }
+    }
+
+    fn buffers(&self) -> [&Buffer; 7] {
+        [
+            &self.slots,
+            &self.densities,
+            &self.source,
+            &self.orders[0],
+            &self.orders[1],
+            &self.multiple,
+            &self.order_ratios,
+        ]
+    }
 }
 
 impl VolumePool {
@@ -303,10 +376,14 @@ impl VolumePool {
                 "particle_clouds_density_levels",
                 DensityLevels::entries(shape.m).0,
             ),
+            coarse: shape
+                .coarse
+                .then(|| CoarseGrids::new(device, shape, capacity)),
         }
     }
 
-    fn buffers(&self) -> [&Buffer; 12] {
+    fn buffers(&self) -> impl Iterator<Item = &Buffer> {
+        let coarse = self.coarse.iter().flat_map(CoarseGrids::buffers);
         [
             &self.slots,
             &self.lights,
@@ -321,6 +398,8 @@ impl VolumePool {
             &self.foreign,
             &self.ground,
         ]
+        .into_iter()
+        .chain(coarse)
     }
 
     /// Doubles the capacity (within `max_slots`), copying every slot's contents on the GPU.
@@ -330,7 +409,7 @@ impl VolumePool {
         let mut encoder = device.create_command_encoder(&CommandEncoderDescriptor {
             label: Some("particle_clouds_grow_pool"),
         });
-        for (old, new) in self.buffers().into_iter().zip(grown.buffers()) {
+        for (old, new) in self.buffers().zip(grown.buffers()) {
             encoder.copy_buffer_to_buffer(old, 0, new, 0, old.size());
         }
         queue.submit([encoder.finish()]);
@@ -395,6 +474,35 @@ impl VolumePool {
             foreign: element(i * b.foreign, 8),
             lights: element(i * b.lights, LightParams::min_size().get()),
             ratio: index,
+            coarse: 0,
+        }
+    }
+
+    /// The `Slot` of slot `index`'s coarse grid ([`CoarseGrids`]), for a cloud whose scattering
+    /// grid has the uniform `cloud`: half the side, twice the voxel, and the cloud's own medium
+    /// only (the fine sweeps take other clouds' media).
+    pub fn coarse_slot(&self, index: u32, cloud: CloudParams) -> Slot {
+        let (density, volume) = self.shape.coarse_bytes();
+        let i = index as u64;
+        let element = |bytes: u64, size: u64| (bytes / size) as u32;
+        let cloud = CloudParams {
+            n: cloud.n / 2,
+            h: cloud.h * 2.0,
+            foreign: 0,
+            ..cloud
+        };
+        Slot {
+            cloud,
+            fine: cloud,
+            fine_density: 0,
+            density: element(i * density, 4),
+            optical_depth: 0,
+            volume: element(i * volume, 16),
+            multiple: element(i * volume, 16),
+            foreign: 0,
+            lights: 0,
+            ratio: index,
+            coarse: 1,
         }
     }
 
@@ -512,6 +620,7 @@ mod tests {
             m: 10,
             lights: 3,
             moments: false,
+            coarse: false,
         };
         let b = shape.bytes();
         for bytes in [
@@ -533,6 +642,7 @@ mod tests {
         // With moments: the flux after the means, and the quadrupole after it.
         let moments = VolumeShape {
             moments: true,
+            coarse: false,
             ..shape
         }
         .bytes();
@@ -553,6 +663,7 @@ mod tests {
             m: 32,
             lights: 1,
             moments: false,
+            coarse: false,
         };
         // The fine density levels of 32³ and the 16³ density: 37,448 + 4,096 f32.
         let largest = shape.bytes().densities;

@@ -34,6 +34,8 @@ pub struct CloudShaders {
     pub scatter: Handle<Shader>,
     /// `closure.wgsl`.
     pub closure: Handle<Shader>,
+    /// `coarse_grid.wgsl`.
+    pub coarse_grid: Handle<Shader>,
     /// `sort.wgsl`.
     pub sort: Handle<Shader>,
     /// `view_volume.wgsl`.
@@ -60,6 +62,7 @@ impl CloudShaders {
         embedded_asset!(app, "ground.wgsl");
         embedded_asset!(app, "scatter.wgsl");
         embedded_asset!(app, "closure.wgsl");
+        embedded_asset!(app, "coarse_grid.wgsl");
         embedded_asset!(app, "sort.wgsl");
         embedded_asset!(app, "view_volume.wgsl");
         embedded_asset!(app, "fog.wgsl");
@@ -77,6 +80,7 @@ impl CloudShaders {
             ground: load_embedded_asset!(&*app, "ground.wgsl"),
             scatter: load_embedded_asset!(&*app, "scatter.wgsl"),
             closure: load_embedded_asset!(&*app, "closure.wgsl"),
+            coarse_grid: load_embedded_asset!(&*app, "coarse_grid.wgsl"),
             sort: load_embedded_asset!(&*app, "sort.wgsl"),
             view_volume: load_embedded_asset!(&*app, "view_volume.wgsl"),
             fog: load_embedded_asset!(&*app, "fog.wgsl"),

@@ -96,6 +96,9 @@ struct Slot {
     lights: u32,
     // Its element of the closure's `order_ratios`.
     ratio: u32,
+    // 1 for a coarse grid's slot: its series sums a signed correction, which the closure does not
+    // clamp at 0; else 0.
+    coarse: u32,
 }
 
 // The density levels of a fine grid (docs/illumination.md §1). Rust mirror: `DensityLevels` in

@@ -242,12 +242,7 @@ impl CloudVolumes {
 
     /// The shape of its volumes (its pool's).
     pub fn shape(&self) -> VolumeShape {
-        VolumeShape {
-            n: self.params.n,
-            m: self.params.light_n,
-            lights: self.params.light_count,
-            moments: self.params.moments != 0,
-        }
+        self.slot.pool.shape
     }
 }
 
@@ -603,6 +598,11 @@ fn plan_cloud(
         index as u64 * slot_bytes,
         &storage_bytes(&[slot]),
     );
+    if let Some(coarse) = &pool.coarse {
+        let coarse_slot = pool.coarse_slot(index, params);
+        let at = index as u64 * slot_bytes;
+        queue.write_buffer(&coarse.slots, at, &storage_bytes(&[coarse_slot]));
+    }
     if !light_params.is_empty() {
         let first = slot.lights as u64 * LightParams::min_size().get();
         queue.write_buffer(&pool.lights, first, &storage_bytes(&light_params));

@@ -6,6 +6,7 @@ mod batching;
 mod between_clouds;
 mod budget;
 mod cloud_target;
+mod coarse_cycles;
 mod common;
 mod draw;
 mod ground;

@@ -23,7 +23,7 @@ use crate::{
 
 /// Each part of a multiple-scattering volume the GPU holds (the means, and with moments the
 /// flux and the quadrupole) against the CPU's, relative to its own maximum: the largest.
-fn difference(gpu: &[f64], cpu: &MultipleScattering) -> f64 {
+pub(crate) fn difference(gpu: &[f64], cpu: &MultipleScattering) -> f64 {
     let mut parts = vec![flat(&cpu.total)];
     if !cpu.flux.is_empty() {
         parts.extend([flat_entries(&cpu.flux), flat_entries(&cpu.quadrupole)]);
@@ -39,7 +39,8 @@ fn difference(gpu: &[f64], cpu: &MultipleScattering) -> f64 {
         .fold(0.0, f64::max)
 }
 
-fn gpu_multiple(app: &mut App) -> Vec<f64> {
+/// The one cloud's `multiple` volume as the GPU holds it, its moments included.
+pub(crate) fn gpu_multiple(app: &mut App) -> Vec<f64> {
     let range = common::with_render_world(app, |world| {
         let volumes = world
             .query::<&CloudVolumes>()

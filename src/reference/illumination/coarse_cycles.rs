@@ -14,7 +14,9 @@ use bevy::math::DVec3;
 
 use super::gather::Moments;
 use super::interpolation::unravel;
-use super::scatter::{Boundary, MultipleScattering, SweptMedium, Tail, scatter_series, sweep};
+use super::scatter::{
+    Boundary, MultipleScattering, SweptMedium, Tail, scatter_series, scatter_through, sweep,
+};
 use super::voxelize::DensityGrid;
 use crate::settings::ScatterStencil;
 
@@ -41,7 +43,7 @@ impl CoarseCycles {
 /// The multiple scattering of a cloud alone under a uniform sky, as
 /// [`scatter_medium`](super::scatter_medium) with the discrete-ordinates sweep, accelerated by
 /// `schedule`'s two-grid cycles. A grid whose side is odd has no coarse grid: its cycles only
-/// sweep. `orders` of the result holds the fine orders; its sum is clamped at 0.
+/// sweep. `orders` of the result holds the fine orders.
 pub fn scatter_coarse_cycles(
     grid: &DensityGrid,
     k_local: f64,
@@ -51,23 +53,33 @@ pub fn scatter_coarse_cycles(
     schedule: CoarseCycles,
 ) -> MultipleScattering {
     let medium = SweptMedium::alone(grid, k_local, albedo, g);
-    let boundary = Boundary::sky(sky);
+    scatter_cycles_through(medium, s0, Boundary::sky(sky), schedule)
+}
+
+/// [`scatter_coarse_cycles`] through `medium`, the light `boundary` entering the grid. The
+/// coarse grid holds the cloud's own medium only: other clouds' media and the light entering
+/// slow its corrections down, but the fine sweeps, which take them, set the solution.
+pub(super) fn scatter_cycles_through(
+    medium: SweptMedium,
+    s0: &Moments,
+    boundary: Boundary,
+    schedule: CoarseCycles,
+) -> MultipleScattering {
+    let grid = medium.grid;
     let stencil = ScatterStencil::DiscreteOrdinates;
-    let mut series = scatter_series(
-        medium,
-        stencil,
-        s0,
-        boundary,
-        schedule.fine_orders,
-        Tail::TwoModes,
-    );
+    // Clamped at 0 like the GPU's closure, before the cycles start from it.
+    let mut series = scatter_through(medium, stencil, s0, boundary, schedule.fine_orders);
     let mut s = series.moments();
     let coarse_grid = (grid.n.is_multiple_of(2) && grid.n >= 4).then(|| grid.downsample(2));
     for _ in 0..schedule.cycles {
         let r = residual(medium, boundary, s0, &s);
         s = s.plus(&r, DVec3::ONE);
         if let Some(coarse_grid) = &coarse_grid {
-            let coarse = SweptMedium::alone(coarse_grid, k_local, albedo, g);
+            let coarse = SweptMedium {
+                grid: coarse_grid,
+                foreign: None,
+                ..medium
+            };
             let r_coarse = restrict_by_density(&r, grid, coarse_grid);
             let e = scatter_series(
                 coarse,
@@ -82,7 +94,9 @@ pub fn scatter_coarse_cycles(
         // S <- K (S_0 + S) + b: what the coarse grid left at the voxels' scale is damped.
         s = sweep(medium, &s0.plus(&s, DVec3::ONE), boundary);
     }
-    series.total = s.mean.iter().map(|t| t.max(DVec3::ZERO)).collect();
+    // Not clamped, like the GPU's last sweep: the parabolic source may dip below 0 beside a
+    // sharp edge of the light (a relative 1e-4).
+    series.total = s.mean;
     series.flux = s.flux;
     series.quadrupole = s.quadrupole;
     series

@@ -4,6 +4,7 @@
 use bevy::math::{DQuat, DVec3};
 use rayon::prelude::*;
 
+use super::coarse_cycles::{CoarseCycles, scatter_cycles_through};
 use super::gather::{
     Moments, flux_along, gather_source, quadrupole_along, single_scattering_towards,
 };
@@ -16,7 +17,7 @@ use crate::ground::CloudGround;
 use crate::particle::{DeltaM, LightSample, Medium, Particle};
 use crate::reference::composite::CloudPlacement;
 use crate::reference::ground::GroundLight;
-use crate::settings::{CloudQualitySettings, Compositing};
+use crate::settings::{COARSE_GRID_ORDERS, CloudQualitySettings, Compositing};
 
 /// A directional light in the cloud's local space.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -339,7 +340,17 @@ impl ShadedCloud {
         };
         let stencil = settings.scatter_stencil;
         let iterations = settings.scatter_iterations;
-        let multiple = scatter_through(medium, stencil, &source, boundary, iterations);
+        let multiple = match settings.coarse_cycles() {
+            0 => scatter_through(medium, stencil, &source, boundary, iterations),
+            cycles => {
+                let schedule = CoarseCycles {
+                    fine_orders: iterations,
+                    cycles,
+                    coarse_orders: COARSE_GRID_ORDERS,
+                };
+                scatter_cycles_through(medium, &source, boundary, schedule)
+            }
+        };
         CloudIllumination {
             grid: self.grid,
             fine: self.fine,

@@ -1,0 +1,166 @@
+//! The coarse-grid cycles of the multiple scattering (docs/illumination.md §4, "Coarse-grid
+//! cycles"), after a batch's full series. Each cycle sweeps the fine grids for their residual
+//! `r = K (S_0 + S) + b - S` (adding it to `S`), averages it onto each cloud's grid of half the
+//! side ([`CoarseGrids`]), sums the series of [`COARSE_GRID_ORDERS`] orders from it there and
+//! closes it, adds that correction back trilinearly, and sweeps the fine grids once more. A pool
+//! without coarse grids (an odd side) only sweeps. The CPU reference is
+//! [`scatter_coarse_cycles`](crate::reference::illumination::scatter_coarse_cycles).
+
+use bevy::render::render_resource::{
+    BindGroup, BindGroupEntries, BindGroupEntry, Buffer, BufferBinding, ShaderType,
+};
+
+use super::{
+    gpu::{StagePass, WorkList},
+    illumination::SeriesPasses,
+    pipelines::{ComputeStage, IlluminationPipelines, SweepDirection},
+    pools::{CoarseGrids, VolumePool},
+    workgroups::dispatch_linear,
+};
+use crate::settings::COARSE_GRID_ORDERS;
+
+/// A scattering batch's coarse-grid cycles.
+pub(super) struct CycleBatch {
+    cycles: u32,
+    /// The coarse grids' passes; `None` in a pool without them.
+    coarse: Option<CoarseBatch>,
+}
+
+/// The bind groups of the coarse series and of the transfers between the grids.
+struct CoarseBatch {
+    /// The coarse series' order pairs: its start → a, a → b, b → a.
+    sweeps: [BindGroup; 3],
+    /// Its closure, reading its last two orders.
+    closure: BindGroup,
+    /// The restriction and the prolongation (`coarse_grid.wgsl`).
+    transfer: BindGroup,
+}
+
+/// `start` for `k = 0`, else the coarse order written by iteration `k - 1`.
+fn coarse_order(coarse: &CoarseGrids, k: u32) -> &Buffer {
+    if k == 0 {
+        &coarse.source
+    } else {
+        &coarse.orders[(k as usize - 1) % 2]
+    }
+}
+
+/// Which of [`CoarseBatch::sweeps`] iteration `k` reads and writes with.
+fn coarse_group(k: u32) -> usize {
+    match k {
+        0 => 0,
+        k if k % 2 == 1 => 1,
+        _ => 2,
+    }
+}
+
+impl CycleBatch {
+    /// `cycles` cycles for the slots of `work` in `pool`.
+    pub(super) fn new(
+        bind: &impl Fn(&ComputeStage, &[BindGroupEntry]) -> BindGroup,
+        pipelines: &IlluminationPipelines,
+        pool: &VolumePool,
+        work: &WorkList,
+        cycles: u32,
+    ) -> Self {
+        let coarse = pool.coarse.as_ref().map(|coarse| {
+            let moments = pool.shape().moments;
+            let pair = |from: &Buffer, to: &Buffer| {
+                bind(
+                    pipelines.sweep.stage(moments),
+                    &BindGroupEntries::sequential((
+                        coarse.slots.as_entire_binding(),
+                        BufferBinding {
+                            buffer: &pipelines.sweep_directions,
+                            offset: 0,
+                            size: Some(SweepDirection::min_size()),
+                        },
+                        coarse.densities.as_entire_binding(),
+                        from.as_entire_binding(),
+                        to.as_entire_binding(),
+                        coarse.multiple.as_entire_binding(),
+                        work.binding(),
+                        // Unread: a coarse grid holds its cloud's medium alone, and no light
+                        // enters it.
+                        pool.foreign.as_entire_binding(),
+                        pool.ground.as_entire_binding(),
+                    )),
+                )
+            };
+            let sweep = |k: u32| pair(coarse_order(coarse, k), coarse_order(coarse, k + 1));
+            let closure = bind(
+                &pipelines.order_ratio,
+                &BindGroupEntries::sequential((
+                    coarse.slots.as_entire_binding(),
+                    coarse.densities.as_entire_binding(),
+                    coarse_order(coarse, COARSE_GRID_ORDERS).as_entire_binding(),
+                    coarse_order(coarse, COARSE_GRID_ORDERS - 1).as_entire_binding(),
+                    coarse.multiple.as_entire_binding(),
+                    coarse.order_ratios.as_entire_binding(),
+                    work.binding(),
+                )),
+            );
+            let transfer = bind(
+                pipelines.restrict_residual.stage(moments),
+                &BindGroupEntries::sequential((
+                    pool.slots.as_entire_binding(),
+                    coarse.slots.as_entire_binding(),
+                    pool.densities.as_entire_binding(),
+                    // Where the residual sweep leaves the residual (order a).
+                    pool.orders[0].as_entire_binding(),
+                    coarse.densities.as_entire_binding(),
+                    coarse.source.as_entire_binding(),
+                    coarse.multiple.as_entire_binding(),
+                    pool.multiple.as_entire_binding(),
+                    work.binding(),
+                )),
+            );
+            CoarseBatch {
+                sweeps: [sweep(0), sweep(1), sweep(2)],
+                closure,
+                transfer,
+            }
+        });
+        Self { cycles, coarse }
+    }
+
+    /// Records the cycles of the chunk `(work, items)` of the batch whose fine series `series`
+    /// records, with its order pairs `groups`.
+    pub(super) fn record(
+        &self,
+        pass: &mut StagePass,
+        series: &SeriesPasses,
+        groups: &[BindGroup; 4],
+        (work, items): (u32, u32),
+    ) {
+        let ready = series.ready;
+        let n = series.n;
+        let coarse_series = SeriesPasses {
+            n: n / 2,
+            ..*series
+        };
+        for _ in 0..self.cycles {
+            // S += r, r left in order a.
+            series.restart_sweep(pass, groups, work, items);
+            if let Some(coarse) = &self.coarse {
+                pass.set_pipeline(ready.restrict_residual[series.variant]);
+                pass.set_bind_group(0, &coarse.transfer, &[work]);
+                dispatch_linear(pass, (n / 2).pow(3), items);
+                coarse_series.set_stencil(pass);
+                for k in 0..COARSE_GRID_ORDERS {
+                    let group = &coarse.sweeps[coarse_group(k)];
+                    coarse_series.iterate(pass, group, (work, items), false);
+                    if k + 3 == COARSE_GRID_ORDERS {
+                        coarse_series.order_sizes(pass, &coarse.closure, work, items);
+                    }
+                }
+                coarse_series.close(pass, &coarse.closure, work, items);
+                pass.set_pipeline(ready.prolong_correction[series.variant]);
+                pass.set_bind_group(0, &coarse.transfer, &[work]);
+                dispatch_linear(pass, n.pow(3), items);
+            }
+            // The smoothing sweep: S <- K (S_0 + S) + b.
+            series.restart_sweep(pass, groups, work, items);
+        }
+    }
+}

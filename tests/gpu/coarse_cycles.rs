@@ -1,0 +1,110 @@
+//! The coarse-grid cycles of the scattering (`scatter_coarse_cycles`) on the GPU against the f64
+//! CPU reference: a few orders of the series, then cycles that solve for the residual's smooth
+//! part on a grid of half the side. Under a sky, for an isotropic medium and for an anisotropic
+//! one (whose volumes hold angular moments), and at an odd side, where the cycles only sweep.
+
+use bevy::prelude::*;
+use bevy_particle_clouds::headless::{self, FrameRecorder};
+use bevy_particle_clouds::{
+    CloudPass, CloudQualitySettings, CloudSkyLight, Medium,
+    reference::{
+        illumination::{LocalLight, illuminate_under_sky},
+        metrics::max_relative_difference,
+    },
+};
+
+use crate::{
+    common,
+    illumination::{TOLERANCE, flat, random_particles},
+    warm_start::{difference, gpu_multiple},
+};
+
+/// Dispatches of the scattering: `fine` orders of the series (13 sweeps and an accumulation
+/// each, the two-mode closure's three), then per cycle two restart sweeps (15 each) and, with a
+/// coarse grid, the restriction, 32 coarse orders closed alike and the prolongation.
+fn scatter_dispatches(fine: u32, cycles: u32, coarse: bool) -> u32 {
+    let series = |orders: u32| orders * 14 + 3;
+    let transfer = if coarse { 2 + series(32) } else { 0 };
+    series(fine) + cycles * (2 * 15 + transfer)
+}
+
+#[test]
+fn cycles_match_the_cpu_reference() {
+    check_cycles(16, 0.0);
+}
+
+#[test]
+fn cycles_carry_the_moments_of_an_anisotropic_medium() {
+    check_cycles(16, 0.6);
+}
+
+#[test]
+fn an_odd_side_has_no_coarse_grid_and_only_sweeps() {
+    check_cycles(15, 0.0);
+}
+
+fn check_cycles(side: u32, anisotropy: f32) {
+    let particles = random_particles(5, 60);
+    let medium = Medium {
+        extinction: 12.0,
+        albedo: 0.99,
+        anisotropy,
+    };
+    let settings = CloudQualitySettings {
+        scatter_coarse_cycles: 2,
+        ..common::quality(side, 4)
+    };
+    let sky = Vec3::new(0.1, 0.2, 0.4);
+    let direction = Vec3::new(0.2, -1.0, 0.1);
+    let irradiance = Vec3::new(1.0, 0.9, 0.8);
+
+    let mut app = common::headless_app();
+    app.insert_resource(CloudSkyLight::from_radiance(sky));
+    let image = headless::float_target(&mut app, 16, 16);
+    let eye = Transform::from_xyz(0.0, 0.0, 6.0).looking_at(Vec3::ZERO, Vec3::Y);
+    headless::spawn_linear_camera(&mut app, image, eye, 60.0, Vec3::ZERO);
+    headless::spawn_light(&mut app, direction, irradiance);
+    headless::spawn_cloud(
+        &mut app,
+        particles.clone(),
+        medium,
+        settings,
+        Transform::IDENTITY,
+    );
+    let mut recorder = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut recorder, 1, 20).unwrap();
+    let frame = recorder
+        .frames
+        .iter()
+        .find(|f| f.runs(CloudPass::Scatter) > 0)
+        .expect("a frame that scatters")
+        .clone();
+    assert_eq!(
+        frame.dispatches(CloudPass::Scatter),
+        scatter_dispatches(4, 2, side % 2 == 0)
+    );
+    let gpu = gpu_multiple(&mut app);
+
+    let cpu = |settings: &CloudQualitySettings| {
+        let light = LocalLight {
+            direction: direction.as_dvec3(),
+            irradiance: irradiance.as_dvec3(),
+        };
+        illuminate_under_sky(&particles, &medium, 1.0, &[light], sky.as_dvec3(), settings)
+            .unwrap()
+            .multiple
+    };
+    let cycled = cpu(&settings);
+    let error = difference(&gpu, &cycled);
+    assert!(error <= TOLERANCE, "GPU differs by {error:e}");
+    // The cycles changed the solution: the series alone is far from it.
+    let series = cpu(&CloudQualitySettings {
+        scatter_coarse_cycles: 0,
+        ..settings
+    });
+    let apart = max_relative_difference(&flat(&series.total), &flat(&cycled.total));
+    assert!(
+        apart > 20.0 * TOLERANCE,
+        "cycles moved it by {apart:e} only"
+    );
+}
