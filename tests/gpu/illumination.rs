@@ -6,13 +6,13 @@
 //! atomics in arbitrary order and multiplies `n` slice attenuations, so its error relative to the
 //! volume's maximum stays within ~`n * 2^-23`; the tests allow 2e-4 of the maximum.
 
-use bevy::{prelude::*, render::renderer::RenderDevice};
+use bevy::{math::DVec3, prelude::*, render::renderer::RenderDevice};
 use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
     CloudQualitySettings, CloudSkyLight, LightSample, Medium, Particle, ScatterStencil,
     generators::SplitMix64,
     reference::{
-        illumination::{LocalLight, illuminate_under_sky},
+        illumination::{LocalLight, SeriesClosure, illuminate_under_sky},
         metrics::max_relative_difference,
     },
     render::{pools::VolumePools, volumes::CloudVolumes},
@@ -169,6 +169,17 @@ fn check(case: Case, sky: Vec3) {
     )
     .expect("a cloud with density");
 
+    // The CPU's orders closed with the GPU's coefficients: those are checked on their own
+    // below, and a difference within their tolerance would move the sum by up to the tail's
+    // share of it (0.2 % of its maximum seen on an NVIDIA H200).
+    let gpu_closure = SeriesClosure {
+        last: DVec3::new(gpu_ratio[0], gpu_ratio[1], gpu_ratio[2]),
+        before: DVec3::new(gpu_ratio[3], gpu_ratio[4], gpu_ratio[5]),
+    };
+    let cpu_total = cpu
+        .multiple
+        .total_closed_with(&gpu_closure)
+        .unwrap_or_else(|| cpu.multiple.total.clone());
     let n3 = (settings.volume_resolution as usize).pow(3);
     let m3 = (settings.light_resolution() as usize).pow(3);
     let cpu_depths: Vec<f64> = cpu
@@ -195,7 +206,7 @@ fn check(case: Case, sky: Vec3) {
         ),
         (
             "multiple",
-            max_relative_difference(&gpu_multiple[..3 * n3], &flat(&cpu.multiple.total)),
+            max_relative_difference(&gpu_multiple[..3 * n3], &flat(&cpu_total)),
         ),
     ];
     if settings.scatter_iterations > 0 {

@@ -60,7 +60,7 @@ fn a_computed_cloud_equals_the_cpu_billboard_reference() {
 /// At half size, with one object in front of the cloud and one behind: the computed target is
 /// the rasterised one, texel by texel (the depth test included), but for f16 rounding (the
 /// rasteriser blends in f16 after every particle, the splat sums in f32). A sorted cloud is
-/// rasterised either way: the same target exactly. The draw dispatches one splat (the cloud's
+/// rasterised either way: the same target, but for the density's last bits. The draw dispatches one splat (the cloud's
 /// batch) and one resolve.
 #[test]
 fn a_computed_cloud_target_is_the_rasterised_one() {
@@ -106,7 +106,10 @@ fn a_computed_cloud_target_is_the_rasterised_one() {
             covered > 100,
             "{compositing:?}: the cloud covers {covered} texels"
         );
-        let bound = if splatted { 2.0 * particles } else { 0.0 };
+        // Sorted, both rasterise; their density may still differ in its last bits where
+        // voxelize's float atomics sum in another order (a parallel GPU's: 1 f16 ulp seen on an
+        // NVIDIA H200, 0 on llvmpipe).
+        let bound = if splatted { 2.0 * particles } else { 2.0 };
         assert!(
             worst <= bound,
             "{compositing:?}: the computed target differs by {worst} f16 ulps ({particles} particles)"

@@ -473,6 +473,32 @@ impl MultipleScattering {
             quadrupole: self.quadrupole.clone(),
         }
     }
+
+    /// The means' sum with the series closed by `closure` instead of its own, clamped at 0 like
+    /// [`scatter_medium`]'s: the sum the GPU reaches from these orders with its own coefficients,
+    /// which f32 orders move a little (the two-mode fit takes differences of the orders' size
+    /// ratios). `None` below 2 orders, where `S_{M-1}` is not an order computed.
+    pub fn total_closed_with(&self, closure: &SeriesClosure) -> Option<Vec<DVec3>> {
+        let [.., before, last] = self.orders.as_slice() else {
+            return None;
+        };
+        let mut sum = vec![DVec3::ZERO; last.len()];
+        for order in &self.orders {
+            sum.iter_mut().zip(order).for_each(|(t, s)| *t += *s);
+        }
+        let (last, before) = (
+            Moments::isotropic(last.clone()),
+            Moments::isotropic(before.clone()),
+        );
+        let zero = last.plus(&last, DVec3::splat(-1.0));
+        let tail = closure.tail(&zero, &last, &before);
+        Some(
+            sum.iter()
+                .zip(&tail.mean)
+                .map(|(s, t)| (*s + *t).max(DVec3::ZERO))
+                .collect(),
+        )
+    }
 }
 
 /// Iterates the stencil `iterations` times from `s0` (one entry per voxel; units of `E` per
