@@ -191,11 +191,12 @@ fn lebedev_weight() -> f32 {
 // Voxel `voxel`'s share of the radiance arriving there travelling along w: 1/26 of it to the
 // next order's mean (and with moments its flux), and with moments its Lebedev weight to the
 // quadrupole (§4: gathering a P2 radiance's quadrupole integrates degree 4, which equal weights
-// miss); added, or written over what the volume held (`overwrite`, in an iteration's first
-// dispatch). `multiple` takes the order once the iteration's sweeps are done (`accumulate_order`).
-fn deposit(voxel: u32, radiance: vec3<f32>, w: vec3<f32>, overwrite: bool) {
+// miss); added to what the volume held (its mean `held`, read ahead by the march), or written
+// over it (`overwrite`, in an iteration's first dispatch). `multiple` takes the order once the
+// iteration's sweeps are done (`accumulate_order`).
+fn deposit(voxel: u32, radiance: vec3<f32>, w: vec3<f32>, overwrite: bool, held: vec4<f32>) {
     let share = vec4(radiance / 26.0, 0.0);
-    add_to(slot.volume + voxel, share, overwrite);
+    s_out[slot.volume + voxel] = held + share;
 #ifdef MOMENTS
     let n = cloud.n;
     for (var axis = 0u; axis < 3u; axis++) {
@@ -207,6 +208,14 @@ fn deposit(voxel: u32, radiance: vec3<f32>, w: vec3<f32>, overwrite: bool) {
         add_to(quadrupole_element(slot.volume, n, voxel, c), weighted * q[c], overwrite);
     }
 #endif
+}
+
+// The mean the next order holds at voxel i so far: 0 where this dispatch writes it over.
+fn held_mean(i: u32, overwrite: bool) -> vec4<f32> {
+    if overwrite {
+        return vec4(0.0);
+    }
+    return s_out[slot.volume + i];
 }
 
 // One invocation per lattice line of direction o: marches it against o (radiance arriving from
@@ -268,9 +277,11 @@ fn line_node(i: u32, w: vec3<f32>) -> LineNode {
 }
 
 // Marches `count` voxels of a line from position `first` by `dt`, the radiance travelling along
-// w, and deposits each voxel's share. It carries the last two voxels' sources and reads one
-// ahead: each segment's curvature is the mean of its ends' second differences, those whose
-// neighbours are both on the line.
+// w, and deposits each voxel's share. It carries the last two voxels' sources and the next one's;
+// each segment's curvature is the mean of its ends' second differences, those whose neighbours
+// are both on the line. The march is a chain of dependent steps, each waiting on memory on a GPU
+// (one lattice line per invocation): so each step loads the voxel two ahead and the next voxel's
+// sum so far, whose latency its own arithmetic and stores then hide.
 fn march(start: vec3<i32>, flip: vec3<bool>, first: i32, dt: i32, count: i32, w: vec3<f32>, half_step: f32, overwrite: bool) {
     var radiance = entering(line_position(start, first, flip), w, half_step);
     var up = LineNode(vec2(0.0), vec3(0.0));
@@ -278,25 +289,39 @@ fn march(start: vec3<i32>, flip: vec3<bool>, first: i32, dt: i32, count: i32, w:
     var has_d_up = false;
     var i = line_voxel(start, first, flip);
     var here = line_node(i, w);
+    var i_next = 0u;
+    var next = LineNode(vec2(0.0), vec3(0.0));
+    if count > 1 {
+        i_next = line_voxel(start, first + dt, flip);
+        next = line_node(i_next, w);
+    }
+    var held = held_mean(i, overwrite);
     for (var k = 0; k < count; k++) {
         let has_next = k + 1 < count;
-        var i_next = 0u;
-        var next = LineNode(vec2(0.0), vec3(0.0));
+        var i_after = 0u;
+        var after = LineNode(vec2(0.0), vec3(0.0));
+        if k + 2 < count {
+            i_after = line_voxel(start, first + (k + 2) * dt, flip);
+            after = line_node(i_after, w);
+        }
+        var held_next = vec4(0.0);
         if has_next {
-            i_next = line_voxel(start, first + (k + 1) * dt, flip);
-            next = line_node(i_next, w);
+            held_next = held_mean(i_next, overwrite);
         }
         let has_d = k > 0 && has_next;
         let d = up.j - 2.0 * here.j + next.j;
         let ends = vec2(f32(has_d), f32(has_d_up));
         let c = (d * ends.x + d_up * ends.y) / max(ends.x + ends.y, 1.0);
         radiance = transport(radiance, here.m, here.j, up.m, up.j, c, half_step);
-        deposit(i, radiance, w, overwrite);
+        deposit(i, radiance, w, overwrite, held);
         d_up = d;
         has_d_up = has_d;
         up = here;
         here = next;
+        next = after;
         i = i_next;
+        i_next = i_after;
+        held = held_next;
     }
 }
 
