@@ -67,7 +67,7 @@ impl CycleBatch {
             let moments = pool.shape().moments;
             let pair = |from: &Buffer, to: &Buffer| {
                 bind(
-                    pipelines.sweep.stage(moments),
+                    pipelines.sweep[0].stage(moments),
                     &BindGroupEntries::sequential((
                         coarse.slots.as_entire_binding(),
                         BufferBinding {

@@ -15,7 +15,7 @@ use bevy::{
             BindGroup, BindGroupEntries, BindGroupEntry, Buffer, BufferBinding, ComputePipeline,
             PipelineCache, ShaderType,
         },
-        renderer::{RenderContext, RenderDevice},
+        renderer::{RenderAdapterInfo, RenderContext, RenderDevice},
         storage::GpuShaderBuffer,
     },
 };
@@ -43,7 +43,7 @@ use super::{
 };
 use crate::{
     particle::DeltaM,
-    settings::{ScatterStencil, ShadingMethod},
+    settings::{ScatterStencil, ShadingMethod, SweepMarch},
     shadow_maps::{CloudShadowMaps, SKY_MAP_DIRECTIONS},
     stats::{CloudPass, CloudPassCounters},
 };
@@ -545,7 +545,7 @@ fn scatter_batch(
 ) -> ScatterBatch {
     let pair = |from: &Buffer, to: &Buffer| {
         bind(
-            pipelines.sweep.stage(pool.shape().moments),
+            pipelines.sweep[0].stage(pool.shape().moments),
             &BindGroupEntries::sequential((
                 pool.slots.as_entire_binding(),
                 BufferBinding {
@@ -723,7 +723,11 @@ pub(crate) fn illuminate_clouds(
     pipelines: Option<Res<IlluminationPipelines>>,
     pipeline_cache: Res<PipelineCache>,
     counters: Res<CloudPassCounters>,
-    shading: Option<Res<ShadingMethod>>,
+    (shading, march, adapter): (
+        Option<Res<ShadingMethod>>,
+        Option<Res<SweepMarch>>,
+        Res<RenderAdapterInfo>,
+    ),
     (mut map_keys, mut sky_key): (ResMut<ShadowMapKeys>, ResMut<SkyMapKey>),
 ) {
     let Some(pipelines) = pipelines else { return };
@@ -739,8 +743,10 @@ pub(crate) fn illuminate_clouds(
     } else {
         &pipelines.shade
     };
+    let cpu = adapter.device_type == wgpu::DeviceType::Cpu;
+    let read_ahead = march.map_or(SweepMarch::default(), |m| *m).reads_ahead(cpu);
     let (Some(ready), Some(shade), Some(batches)) = (
-        pipelines.ready(&pipeline_cache),
+        pipelines.ready(&pipeline_cache, read_ahead),
         shade_stage.get(&pipeline_cache),
         batches,
     ) else {

@@ -75,7 +75,7 @@ use bevy::{
 use self::{extract::ExtractedCloud, shaders::CloudShaders};
 use crate::{
     cloud::ParticleCloud,
-    settings::{CloudRelightBudget, ShadingMethod},
+    settings::{CloudRelightBudget, ShadingMethod, SweepMarch},
     shadow_maps::CloudShadowMaps,
     stats::CloudPassCounters,
 };
@@ -112,6 +112,13 @@ impl bevy::render::extract_resource::ExtractResource for CloudShadowMaps {
     }
 }
 
+impl bevy::render::extract_resource::ExtractResource for SweepMarch {
+    type Source = SweepMarch;
+    fn extract_resource(source: &Self::Source) -> Self {
+        *source
+    }
+}
+
 impl bevy::render::extract_resource::ExtractResource for ShadingMethod {
     type Source = ShadingMethod;
     fn extract_resource(source: &Self::Source) -> Self {
@@ -144,6 +151,8 @@ pub(crate) fn build(app: &mut App) {
     let shaders = CloudShaders::load(app);
     app.init_resource::<ShadingMethod>()
         .register_type::<ShadingMethod>()
+        .init_resource::<SweepMarch>()
+        .register_type::<SweepMarch>()
         .init_resource::<CloudRelightBudget>()
         .register_type::<CloudRelightBudget>();
     app.insert_resource(shaders.clone()).add_plugins((
@@ -151,6 +160,7 @@ pub(crate) fn build(app: &mut App) {
         RenderAssetPlugin::<particles::GpuParticles>::default(),
         ExtractResourcePlugin::<CloudPassCounters>::default(),
         ExtractResourcePlugin::<ShadingMethod>::default(),
+        ExtractResourcePlugin::<SweepMarch>::default(),
         ExtractResourcePlugin::<CloudRelightBudget>::default(),
         ExtractResourcePlugin::<CloudShadowMaps>::default(),
     ));

@@ -34,25 +34,32 @@ impl ComputeStage {
         entry_point: &'static str,
         layout: BindGroupLayoutDescriptor,
     ) -> Self {
-        Self::specialized(pipeline_cache, shader, entry_point, layout, false)
+        Self::specialized(pipeline_cache, shader, entry_point, layout, false, &[])
     }
 
     /// With `moments`, compiled with the shader def `MOMENTS`: for pools whose scattering
-    /// volumes hold angular moments beside their means (docs/illumination.md §4, §9).
+    /// volumes hold angular moments beside their means (docs/illumination.md §4, §9); and with
+    /// the shader defs `defs`.
     fn specialized(
         pipeline_cache: &PipelineCache,
         shader: Handle<Shader>,
         entry_point: &'static str,
         layout: BindGroupLayoutDescriptor,
         moments: bool,
+        defs: &[&'static str],
     ) -> Self {
         let mut shader_defs = super::workgroups::shader_defs();
         if moments {
             shader_defs.push("MOMENTS".into());
         }
+        shader_defs.extend(defs.iter().map(|&d| d.into()));
         let variant = if moments { "_moments" } else { "" };
+        let extra: String = defs
+            .iter()
+            .map(|d| format!("_{}", d.to_lowercase()))
+            .collect();
         let pipeline = pipeline_cache.queue_compute_pipeline(ComputePipelineDescriptor {
-            label: Some(format!("particle_clouds_{entry_point}{variant}").into()),
+            label: Some(format!("particle_clouds_{entry_point}{variant}{extra}").into()),
             layout: vec![layout.clone()],
             shader,
             shader_defs,
@@ -79,8 +86,20 @@ impl ByMoments {
         entry: &'static str,
         layout: &BindGroupLayoutDescriptor,
     ) -> Self {
+        Self::with_defs(cache, shader, entry, layout, &[])
+    }
+
+    /// Both variants compiled with the shader defs `defs` too.
+    fn with_defs(
+        cache: &PipelineCache,
+        shader: &Handle<Shader>,
+        entry: &'static str,
+        layout: &BindGroupLayoutDescriptor,
+        defs: &[&'static str],
+    ) -> Self {
         Self([false, true].map(|moments| {
-            ComputeStage::specialized(cache, shader.clone(), entry, layout.clone(), moments)
+            let layout = layout.clone();
+            ComputeStage::specialized(cache, shader.clone(), entry, layout, moments, defs)
         }))
     }
 
@@ -162,8 +181,9 @@ pub struct IlluminationPipelines {
     pub overlap: ComputeStage,
     /// `ground.wgsl`, `ground_radiance`: the radiance of the ground under each cloud.
     pub ground: ComputeStage,
-    /// `scatter.wgsl`, `sweep` (the discrete-ordinates stencil).
-    pub sweep: ByMoments,
+    /// `scatter.wgsl`, `sweep` (the discrete-ordinates stencil): its serial march (index 0) and
+    /// its march that reads ahead (1, shader def `SWEEP_READ_AHEAD`; [`SweepMarch`](crate::settings::SweepMarch)).
+    pub sweep: [ByMoments; 2],
     /// `scatter.wgsl`, `accumulate_order`: an iteration's order added to `multiple` after its
     /// sweeps (same layout).
     pub accumulate_order: ByMoments,
@@ -212,7 +232,7 @@ pub struct ReadyPipelines<'a> {
     pub overlap: &'a ComputePipeline,
     /// The ground's radiance.
     pub ground: &'a ComputePipeline,
-    /// Sweep.
+    /// Sweep, with the march in use.
     pub sweep: [&'a ComputePipeline; 2],
     /// The sweeps' accumulation into `multiple`.
     pub accumulate_order: [&'a ComputePipeline; 2],
@@ -235,8 +255,13 @@ pub struct ReadyPipelines<'a> {
 }
 
 impl IlluminationPipelines {
-    /// All compiled, or `None` while any still compiles (work waits for the next frame).
-    pub fn ready<'a>(&self, cache: &'a PipelineCache) -> Option<ReadyPipelines<'a>> {
+    /// All compiled, or `None` while any still compiles (work waits for the next frame); the
+    /// sweep's march that reads ahead, or its serial one.
+    pub fn ready<'a>(
+        &self,
+        cache: &'a PipelineCache,
+        read_ahead: bool,
+    ) -> Option<ReadyPipelines<'a>> {
         Some(ReadyPipelines {
             kernel_sums: self.kernel_sums.get(cache)?,
             voxelize: self.voxelize.get(cache)?,
@@ -247,7 +272,7 @@ impl IlluminationPipelines {
             gather: self.gather.get(cache)?,
             overlap: self.overlap.get(cache)?,
             ground: self.ground.get(cache)?,
-            sweep: self.sweep.get(cache)?,
+            sweep: self.sweep[read_ahead as usize].get(cache)?,
             accumulate_order: self.accumulate_order.get(cache)?,
             scatter_paper: self.scatter_paper.get(cache)?,
             warm_start: self.warm_start.get(cache)?,
@@ -436,7 +461,8 @@ pub(crate) fn init_illumination_pipelines(
         gather: ByMoments::new(cache, &shaders.gather, "gather", &gather),
         overlap: stage(&shaders.overlap, "overlap_media", &overlap),
         ground: stage(&shaders.ground, "ground_radiance", &ground),
-        sweep: ByMoments::new(cache, &shaders.scatter, "sweep", &scatter),
+        sweep: [&[][..], &["SWEEP_READ_AHEAD"]]
+            .map(|defs| ByMoments::with_defs(cache, &shaders.scatter, "sweep", &scatter, defs)),
         accumulate_order: ByMoments::new(cache, &shaders.scatter, "accumulate_order", &scatter),
         scatter_paper: stage(&shaders.scatter, "scatter_paper", &scatter),
         warm_start: ByMoments::new(cache, &shaders.scatter, "warm_start", &scatter),

@@ -279,9 +279,11 @@ fn line_node(i: u32, w: vec3<f32>) -> LineNode {
 // Marches `count` voxels of a line from position `first` by `dt`, the radiance travelling along
 // w, and deposits each voxel's share. It carries the last two voxels' sources and the next one's;
 // each segment's curvature is the mean of its ends' second differences, those whose neighbours
-// are both on the line. The march is a chain of dependent steps, each waiting on memory on a GPU
-// (one lattice line per invocation): so each step loads the voxel two ahead and the next voxel's
-// sum so far, whose latency its own arithmetic and stores then hide.
+// are both on the line. The march is a chain of dependent steps (one lattice line per
+// invocation), each waiting on memory on a GPU: with SWEEP_READ_AHEAD each step loads the voxel
+// two ahead and the next voxel's sum so far, whose latency its own arithmetic and stores then
+// hide; without, each step loads what it needs as it needs it (a CPU adapter's SIMD lanes do
+// better with less held). The same arithmetic in the same order either way.
 fn march(start: vec3<i32>, flip: vec3<bool>, first: i32, dt: i32, count: i32, w: vec3<f32>, half_step: f32, overwrite: bool) {
     var radiance = entering(line_position(start, first, flip), w, half_step);
     var up = LineNode(vec2(0.0), vec3(0.0));
@@ -289,6 +291,7 @@ fn march(start: vec3<i32>, flip: vec3<bool>, first: i32, dt: i32, count: i32, w:
     var has_d_up = false;
     var i = line_voxel(start, first, flip);
     var here = line_node(i, w);
+#ifdef SWEEP_READ_AHEAD
     var i_next = 0u;
     var next = LineNode(vec2(0.0), vec3(0.0));
     if count > 1 {
@@ -296,8 +299,10 @@ fn march(start: vec3<i32>, flip: vec3<bool>, first: i32, dt: i32, count: i32, w:
         next = line_node(i_next, w);
     }
     var held = held_mean(i, overwrite);
+#endif
     for (var k = 0; k < count; k++) {
         let has_next = k + 1 < count;
+#ifdef SWEEP_READ_AHEAD
         var i_after = 0u;
         var after = LineNode(vec2(0.0), vec3(0.0));
         if k + 2 < count {
@@ -308,6 +313,15 @@ fn march(start: vec3<i32>, flip: vec3<bool>, first: i32, dt: i32, count: i32, w:
         if has_next {
             held_next = held_mean(i_next, overwrite);
         }
+#else
+        var i_next = 0u;
+        var next = LineNode(vec2(0.0), vec3(0.0));
+        if has_next {
+            i_next = line_voxel(start, first + (k + 1) * dt, flip);
+            next = line_node(i_next, w);
+        }
+        let held = held_mean(i, overwrite);
+#endif
         let has_d = k > 0 && has_next;
         let d = up.j - 2.0 * here.j + next.j;
         let ends = vec2(f32(has_d), f32(has_d_up));
@@ -318,10 +332,12 @@ fn march(start: vec3<i32>, flip: vec3<bool>, first: i32, dt: i32, count: i32, w:
         has_d_up = has_d;
         up = here;
         here = next;
-        next = after;
         i = i_next;
+#ifdef SWEEP_READ_AHEAD
+        next = after;
         i_next = i_after;
         held = held_next;
+#endif
     }
 }
 

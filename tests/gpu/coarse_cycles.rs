@@ -81,7 +81,7 @@ fn check_cycles(side: u32, anisotropy: f32) {
         .clone();
     assert_eq!(
         frame.dispatches(CloudPass::Scatter),
-        scatter_dispatches(4, 2, side % 2 == 0)
+        scatter_dispatches(4, 2, side.is_multiple_of(2))
     );
     let gpu = gpu_multiple(&mut app);
 

@@ -21,4 +21,5 @@ mod shading_method;
 mod sky;
 mod splat;
 mod stress;
+mod sweep_march;
 mod warm_start;
