@@ -26,7 +26,7 @@ use std::fmt::Write as _;
 
 use bevy_particle_clouds::{
     CloudLod, CloudRelightBudget, LightSample, Medium, scene::ResolvedCloud, scene::SceneCamera,
-    scene::SceneObject,
+    scene::SceneObject, settings::COARSE_GRID_ORDERS,
 };
 
 use super::*;
@@ -226,14 +226,15 @@ fn cloud_shapes(bench: &mut Bench, settings: &CloudQualitySettings) -> Vec<Cloud
 }
 
 /// The bytes `pass` must at least read and write once in a re-lit frame (the draw: a static
-/// frame's), given every cloud's shape, `lights`, each cloud's scattering iterations and the
-/// cloud target's pixels:
+/// frame's), given every cloud's shape, `lights`, each cloud's scattering sweeps (its iterations,
+/// and its coarse-grid cycles' sweeps, a coarse one counted an eighth) and the cloud target's
+/// pixels:
 ///
 /// - voxelize: the particles read, the fine and the scattering grid's density written;
 /// - shade: the fine density read, one optical depth per light written (4 B a voxel each);
 /// - gather: each light's optical depth read at the scattering grid's voxels, its density
 ///   read, the source written;
-/// - scatter: per iteration the previous order and the density read, the next order written;
+/// - scatter: per sweep the previous order and the density read, the next order written;
 /// - sort: the particles read, their order written; view volume: the density read, the
 ///   optical depth from the camera written;
 /// - draw: the particles read, every target pixel read and written once.
@@ -241,7 +242,7 @@ fn floor_bytes(
     pass: CloudPass,
     clouds: &[CloudShape],
     lights: f64,
-    iterations: f64,
+    sweeps: f64,
     pixels: f64,
 ) -> f64 {
     let per_cloud = |c: &CloudShape| {
@@ -250,7 +251,7 @@ fn floor_bytes(
             CloudPass::Voxelize => c.particles * PARTICLE_BYTES + 4.0 * (m3 + n3),
             CloudPass::Shade => 4.0 * m3 * (1.0 + lights),
             CloudPass::Gather => n3 * (4.0 * lights + 4.0 + 16.0 * c.order_vec4),
-            CloudPass::Scatter => iterations * n3 * (32.0 * c.order_vec4 + 4.0),
+            CloudPass::Scatter => sweeps * n3 * (32.0 * c.order_vec4 + 4.0),
             CloudPass::Sort => c.particles * (PARTICLE_BYTES + 4.0),
             CloudPass::ViewVolume => n3 * 8.0,
             CloudPass::Draw => c.particles * PARTICLE_BYTES,
@@ -415,8 +416,11 @@ fn measure(b: &BudgetScene, frames: usize, bandwidth: f64, adapter: &mut String)
     let clouds = shapes.len().max(1) as f64;
     let lights = b.scene.lights.len() as f64;
     let iterations = settings.scatter_iterations as f64;
+    // A coarse-grid cycle moves the bytes of two orders, and of its coarse orders at an eighth.
+    let cycles = settings.coarse_cycles() as f64;
+    let sweeps = iterations + cycles * (2.0 + COARSE_GRID_ORDERS as f64 / 8.0);
     let floor_ms = CloudPass::ALL.map(|p| {
-        let bytes = floor_bytes(p, &shapes, lights, iterations, pixels);
+        let bytes = floor_bytes(p, &shapes, lights, sweeps, pixels);
         // The share of the clouds' work that ran: the clouds in view for the view passes,
         // those re-lit and their iterations for the others.
         let all_runs = match p {
