@@ -1,20 +1,19 @@
 //! The coarse-grid cycles of the multiple scattering (docs/illumination.md §4, "Coarse-grid
 //! cycles"), after a batch's full series. Each cycle sweeps the fine grids for their residual
 //! `r = K (S_0 + S) + b - S` (adding it to `S`), averages it onto each cloud's grid of half the
-//! side ([`CoarseGrids`]), sums the series of [`COARSE_GRID_ORDERS`] orders from it there and
-//! closes it, adds that correction back trilinearly, and sweeps the fine grids once more. A pool
-//! without coarse grids (an odd side) only sweeps. The CPU reference is
+//! side ([`CoarseGrids`](super::pools::CoarseGrids)), sums the series of
+//! [`COARSE_GRID_ORDERS`] orders from it there and closes it, adds that correction back
+//! trilinearly, and sweeps the fine grids once more. A pool without coarse grids (an odd side)
+//! only sweeps. The CPU reference is
 //! [`scatter_coarse_cycles`](crate::reference::illumination::scatter_coarse_cycles).
 
-use bevy::render::render_resource::{
-    BindGroup, BindGroupEntries, BindGroupEntry, Buffer, BufferBinding, ShaderType,
-};
+use bevy::render::render_resource::{BindGroup, BindGroupEntries, BindGroupEntry};
 
 use super::{
     gpu::{StagePass, WorkList},
-    illumination::SeriesPasses,
-    pipelines::{ComputeStage, IlluminationPipelines, SweepDirection},
-    pools::{CoarseGrids, VolumePool},
+    illumination::{SeriesPasses, SeriesVolumes, scatter_group},
+    pipelines::{ComputeStage, IlluminationPipelines},
+    pools::VolumePool,
     workgroups::dispatch_linear,
 };
 use crate::settings::COARSE_GRID_ORDERS;
@@ -36,24 +35,6 @@ struct CoarseBatch {
     transfer: BindGroup,
 }
 
-/// `start` for `k = 0`, else the coarse order written by iteration `k - 1`.
-fn coarse_order(coarse: &CoarseGrids, k: u32) -> &Buffer {
-    if k == 0 {
-        &coarse.source
-    } else {
-        &coarse.orders[(k as usize - 1) % 2]
-    }
-}
-
-/// Which of [`CoarseBatch::sweeps`] iteration `k` reads and writes with.
-fn coarse_group(k: u32) -> usize {
-    match k {
-        0 => 0,
-        k if k % 2 == 1 => 1,
-        _ => 2,
-    }
-}
-
 impl CycleBatch {
     /// `cycles` cycles for the slots of `work` in `pool`.
     pub(super) fn new(
@@ -65,41 +46,18 @@ impl CycleBatch {
     ) -> Self {
         let coarse = pool.coarse.as_ref().map(|coarse| {
             let moments = pool.shape().moments;
-            let pair = |from: &Buffer, to: &Buffer| {
-                bind(
-                    pipelines.sweep[0].stage(moments),
-                    &BindGroupEntries::sequential((
-                        coarse.slots.as_entire_binding(),
-                        BufferBinding {
-                            buffer: &pipelines.sweep_directions,
-                            offset: 0,
-                            size: Some(SweepDirection::min_size()),
-                        },
-                        coarse.densities.as_entire_binding(),
-                        from.as_entire_binding(),
-                        to.as_entire_binding(),
-                        coarse.multiple.as_entire_binding(),
-                        work.binding(),
-                        // Unread: a coarse grid holds its cloud's medium alone, and no light
-                        // enters it.
-                        pool.foreign.as_entire_binding(),
-                        pool.ground.as_entire_binding(),
-                    )),
-                )
+            let volumes = SeriesVolumes {
+                slots: &coarse.slots,
+                densities: &coarse.densities,
+                source: &coarse.source,
+                orders: &coarse.orders,
+                multiple: &coarse.multiple,
+                order_ratios: &coarse.order_ratios,
             };
-            let sweep = |k: u32| pair(coarse_order(coarse, k), coarse_order(coarse, k + 1));
-            let closure = bind(
-                &pipelines.order_ratio,
-                &BindGroupEntries::sequential((
-                    coarse.slots.as_entire_binding(),
-                    coarse.densities.as_entire_binding(),
-                    coarse_order(coarse, COARSE_GRID_ORDERS).as_entire_binding(),
-                    coarse_order(coarse, COARSE_GRID_ORDERS - 1).as_entire_binding(),
-                    coarse.multiple.as_entire_binding(),
-                    coarse.order_ratios.as_entire_binding(),
-                    work.binding(),
-                )),
-            );
+            // The sweep binds the pool's other clouds' media and ground maps, unread: a coarse
+            // grid holds its cloud's medium alone, and no light enters it.
+            let sweeps = volumes.iteration_groups(bind, pipelines, pool, work);
+            let closure = volumes.closure(bind, pipelines, COARSE_GRID_ORDERS, work);
             let transfer = bind(
                 pipelines.restrict_residual.stage(moments),
                 &BindGroupEntries::sequential((
@@ -116,7 +74,7 @@ impl CycleBatch {
                 )),
             );
             CoarseBatch {
-                sweeps: [sweep(0), sweep(1), sweep(2)],
+                sweeps,
                 closure,
                 transfer,
             }
@@ -148,7 +106,7 @@ impl CycleBatch {
                 dispatch_linear(pass, (n / 2).pow(3), items);
                 coarse_series.set_stencil(pass);
                 for k in 0..COARSE_GRID_ORDERS {
-                    let group = &coarse.sweeps[coarse_group(k)];
+                    let group = &coarse.sweeps[scatter_group(k)];
                     coarse_series.iterate(pass, group, (work, items), false);
                     if k + 3 == COARSE_GRID_ORDERS {
                         coarse_series.order_sizes(pass, &coarse.closure, work, items);

@@ -129,17 +129,110 @@ type ShadowMapInputs<'w> = (
     (ResMut<'w, ShadowMapKeys>, ResMut<'w, SkyMapKey>),
 );
 
-/// `S_0` for `k = 0`, else the order written by iteration `k - 1` (the two order volumes alternate).
-fn order(pool: &VolumePool, k: u32) -> &Buffer {
-    if k == 0 {
-        &pool.source
-    } else {
-        &pool.orders[(k as usize - 1) % 2]
+/// The volumes a scattering series reads and writes: a pool's own, or its coarse grids'
+/// ([`CoarseGrids`](super::pools::CoarseGrids)), laid out alike.
+pub(super) struct SeriesVolumes<'a> {
+    pub(super) slots: &'a Buffer,
+    pub(super) densities: &'a Buffer,
+    /// `S_0`, the series' start.
+    pub(super) source: &'a Buffer,
+    /// The two order volumes, alternating.
+    pub(super) orders: &'a [Buffer; 2],
+    pub(super) multiple: &'a Buffer,
+    pub(super) order_ratios: &'a Buffer,
+}
+
+impl<'a> SeriesVolumes<'a> {
+    fn of_pool(pool: &'a VolumePool) -> Self {
+        Self {
+            slots: &pool.slots,
+            densities: &pool.densities,
+            source: &pool.source,
+            orders: &pool.orders,
+            multiple: &pool.multiple,
+            order_ratios: &pool.order_ratios,
+        }
+    }
+
+    /// `S_0` for `k = 0`, else the order written by iteration `k - 1`.
+    fn order(&self, k: u32) -> &'a Buffer {
+        if k == 0 {
+            self.source
+        } else {
+            &self.orders[(k as usize - 1) % 2]
+        }
+    }
+
+    /// The sweep's bind group reading `from` and writing `to`, for the slots of `work` in
+    /// `pool` (whose other clouds' media and ground maps the sweep reads).
+    fn order_pair(
+        &self,
+        bind: &impl Fn(&ComputeStage, &[BindGroupEntry]) -> BindGroup,
+        pipelines: &IlluminationPipelines,
+        pool: &VolumePool,
+        (from, to): (&Buffer, &Buffer),
+        work: &WorkList,
+    ) -> BindGroup {
+        bind(
+            pipelines.sweep[0].stage(pool.shape().moments),
+            &BindGroupEntries::sequential((
+                self.slots.as_entire_binding(),
+                BufferBinding {
+                    buffer: &pipelines.sweep_directions,
+                    offset: 0,
+                    size: Some(SweepDirection::min_size()),
+                },
+                self.densities.as_entire_binding(),
+                from.as_entire_binding(),
+                to.as_entire_binding(),
+                self.multiple.as_entire_binding(),
+                work.binding(),
+                pool.foreign.as_entire_binding(),
+                pool.ground.as_entire_binding(),
+            )),
+        )
+    }
+
+    /// The order pairs of [`scatter_group`]'s iterations (`S_0 → a`, `a → b`, `b → a`).
+    pub(super) fn iteration_groups(
+        &self,
+        bind: &impl Fn(&ComputeStage, &[BindGroupEntry]) -> BindGroup,
+        pipelines: &IlluminationPipelines,
+        pool: &VolumePool,
+        work: &WorkList,
+    ) -> [BindGroup; 3] {
+        [0, 1, 2].map(|k| {
+            let pair = (self.order(k), self.order(k + 1));
+            self.order_pair(bind, pipelines, pool, pair, work)
+        })
+    }
+
+    /// The closure's bind group after `iterations` orders (it reads the last two).
+    pub(super) fn closure(
+        &self,
+        bind: &impl Fn(&ComputeStage, &[BindGroupEntry]) -> BindGroup,
+        pipelines: &IlluminationPipelines,
+        iterations: u32,
+        work: &WorkList,
+    ) -> BindGroup {
+        bind(
+            &pipelines.order_ratio,
+            &BindGroupEntries::sequential((
+                self.slots.as_entire_binding(),
+                self.densities.as_entire_binding(),
+                self.order(iterations).as_entire_binding(),
+                self.order(iterations - 1).as_entire_binding(),
+                self.multiple.as_entire_binding(),
+                self.order_ratios.as_entire_binding(),
+                work.binding(),
+            )),
+        )
     }
 }
 
-/// Which of [`ScatterBatch::groups`] iteration `k` reads and writes with.
-fn scatter_group(k: u32) -> usize {
+/// Which of a series' iteration groups ([`ScatterBatch::groups`]) iteration `k` reads and writes
+/// with.
+pub(super) fn scatter_group(k: u32) -> usize {
     match k {
         0 => 0,
         k if k % 2 == 1 => 1,
@@ -543,45 +636,12 @@ fn scatter_batch(
     iterations: u32,
     work: WorkList,
 ) -> ScatterBatch {
-    let pair = |from: &Buffer, to: &Buffer| {
-        bind(
-            pipelines.sweep[0].stage(pool.shape().moments),
-            &BindGroupEntries::sequential((
-                pool.slots.as_entire_binding(),
-                BufferBinding {
-                    buffer: &pipelines.sweep_directions,
-                    offset: 0,
-                    size: Some(SweepDirection::min_size()),
-                },
-                pool.densities.as_entire_binding(),
-                from.as_entire_binding(),
-                to.as_entire_binding(),
-                pool.multiple.as_entire_binding(),
-                work.binding(),
-                pool.foreign.as_entire_binding(),
-                pool.ground.as_entire_binding(),
-            )),
-        )
-    };
-    let sweep = |k: u32| pair(order(pool, k), order(pool, k + 1));
-    let groups = [
-        sweep(0),
-        sweep(1),
-        sweep(2),
-        pair(&pool.source, &pool.orders[1]),
-    ];
-    let closure = bind(
-        &pipelines.order_ratio,
-        &BindGroupEntries::sequential((
-            pool.slots.as_entire_binding(),
-            pool.densities.as_entire_binding(),
-            order(pool, iterations).as_entire_binding(),
-            order(pool, iterations - 1).as_entire_binding(),
-            pool.multiple.as_entire_binding(),
-            pool.order_ratios.as_entire_binding(),
-            work.binding(),
-        )),
-    );
+    let volumes = SeriesVolumes::of_pool(pool);
+    let [first, odd, even] = volumes.iteration_groups(bind, pipelines, pool, &work);
+    let restart = (&pool.source, &pool.orders[1]);
+    let restart = volumes.order_pair(bind, pipelines, pool, restart, &work);
+    let groups = [first, odd, even, restart];
+    let closure = volumes.closure(bind, pipelines, iterations, &work);
     ScatterBatch {
         iterations,
         sweep: true,
