@@ -6,7 +6,7 @@
 use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder};
 use bevy_particle_clouds::{
-    CloudPass, CloudQualitySettings, CloudSkyLight, Medium,
+    CloudPass, CloudQualitySettings, Medium,
     reference::{
         illumination::{LocalLight, illuminate_under_sky},
         metrics::max_relative_difference,
@@ -16,7 +16,7 @@ use bevy_particle_clouds::{
 use crate::{
     common,
     illumination::{TOLERANCE, flat, random_particles},
-    warm_start::{difference, gpu_multiple},
+    warm_start::{difference, gpu_multiple, lit_cloud_app},
 };
 
 /// Dispatches of the scattering: `fine` orders of the series (13 sweeps and an accumulation
@@ -58,19 +58,8 @@ fn check_cycles(side: u32, anisotropy: f32) {
     let direction = Vec3::new(0.2, -1.0, 0.1);
     let irradiance = Vec3::new(1.0, 0.9, 0.8);
 
-    let mut app = common::headless_app();
-    app.insert_resource(CloudSkyLight::from_radiance(sky));
-    let image = headless::float_target(&mut app, 16, 16);
-    let eye = Transform::from_xyz(0.0, 0.0, 6.0).looking_at(Vec3::ZERO, Vec3::Y);
-    headless::spawn_linear_camera(&mut app, image, eye, 60.0, Vec3::ZERO);
-    headless::spawn_light(&mut app, direction, irradiance);
-    headless::spawn_cloud(
-        &mut app,
-        particles.clone(),
-        medium,
-        settings,
-        Transform::IDENTITY,
-    );
+    let light = (direction, irradiance);
+    let (mut app, _) = lit_cloud_app(sky, light, (&particles, medium, settings));
     let mut recorder = FrameRecorder::default();
     headless::render_until_steady(&mut app, &mut recorder, 1, 20).unwrap();
     let frame = recorder

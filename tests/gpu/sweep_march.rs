@@ -6,24 +6,20 @@
 use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder};
 use bevy_particle_clouds::{
-    CloudQualitySettings, CloudSkyLight, Medium, reference::metrics::max_relative_difference,
-    settings::SweepMarch,
+    CloudQualitySettings, Medium, reference::metrics::max_relative_difference, settings::SweepMarch,
 };
 
-use crate::{common, illumination::random_particles, warm_start::gpu_multiple};
+use crate::{
+    common,
+    illumination::random_particles,
+    warm_start::{gpu_multiple, lit_cloud_app},
+};
 
 /// Largest allowed difference, relative to the volume's largest value: the density's last bits
 /// may differ between two renders where voxelize's float atomics sum in another order.
 const TOLERANCE: f64 = 1e-5;
 
 fn multiple(march: SweepMarch, anisotropy: f32) -> Vec<f64> {
-    let mut app = common::headless_app();
-    app.insert_resource(march);
-    app.insert_resource(CloudSkyLight::from_radiance(Vec3::new(0.1, 0.2, 0.4)));
-    let image = headless::float_target(&mut app, 16, 16);
-    let eye = Transform::from_xyz(0.0, 0.0, 6.0).looking_at(Vec3::ZERO, Vec3::Y);
-    headless::spawn_linear_camera(&mut app, image, eye, 60.0, Vec3::ZERO);
-    headless::spawn_light(&mut app, Vec3::new(0.2, -1.0, 0.1), Vec3::ONE);
     let settings = CloudQualitySettings {
         scatter_coarse_cycles: 1,
         ..common::quality(16, 6)
@@ -34,7 +30,10 @@ fn multiple(march: SweepMarch, anisotropy: f32) -> Vec<f64> {
         anisotropy,
     };
     let particles = random_particles(7, 60);
-    headless::spawn_cloud(&mut app, particles, medium, settings, Transform::IDENTITY);
+    let sky = Vec3::new(0.1, 0.2, 0.4);
+    let light = (Vec3::new(0.2, -1.0, 0.1), Vec3::ONE);
+    let (mut app, _) = lit_cloud_app(sky, light, (&particles, medium, settings));
+    app.insert_resource(march);
     headless::render_until_steady(&mut app, &mut FrameRecorder::default(), 1, 20).unwrap();
     gpu_multiple(&mut app)
 }

@@ -7,7 +7,7 @@
 use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder};
 use bevy_particle_clouds::{
-    CloudPass, CloudQualitySettings, CloudSkyLight, Medium, ScatterStencil,
+    CloudPass, CloudQualitySettings, CloudSkyLight, Medium, Particle, ScatterStencil,
     reference::{
         illumination::{LocalLight, MultipleScattering, illuminate_under_sky, scatter_warm_medium},
         metrics::max_relative_difference,
@@ -52,6 +52,24 @@ pub(crate) fn gpu_multiple(app: &mut App) -> Vec<f64> {
     rgb(&headless::read_buffer_range(app, &range).unwrap())
 }
 
+/// One cloud at the origin, lit by one light (its travel direction and irradiance) under the
+/// sky `sky`, seen by a 16×16 camera 6 m away: the app, and the light's entity.
+pub(crate) fn lit_cloud_app(
+    sky: Vec3,
+    (direction, irradiance): (Vec3, Vec3),
+    (particles, medium, settings): (&[Particle], Medium, CloudQualitySettings),
+) -> (App, Entity) {
+    let mut app = common::headless_app();
+    app.insert_resource(CloudSkyLight::from_radiance(sky));
+    let image = headless::float_target(&mut app, 16, 16);
+    let eye = Transform::from_xyz(0.0, 0.0, 6.0).looking_at(Vec3::ZERO, Vec3::Y);
+    headless::spawn_linear_camera(&mut app, image, eye, 60.0, Vec3::ZERO);
+    let light = headless::spawn_light(&mut app, direction, irradiance);
+    let cloud = particles.to_vec();
+    headless::spawn_cloud(&mut app, cloud, medium, settings, Transform::IDENTITY);
+    (app, light)
+}
+
 #[test]
 fn a_moving_light_restarts_warm_and_a_still_one_settles() {
     let turn = Vec3::new(0.5, -0.9, 0.1);
@@ -81,19 +99,7 @@ fn check_warm_restart(sky: Vec3, anisotropy: f32, turn: Vec3) {
     let (a, b) = (Vec3::new(0.2, -1.0, 0.1), turn);
     let irradiance = Vec3::new(1.0, 0.9, 0.8);
 
-    let mut app = common::headless_app();
-    app.insert_resource(CloudSkyLight::from_radiance(sky));
-    let image = headless::float_target(&mut app, 16, 16);
-    let eye = Transform::from_xyz(0.0, 0.0, 6.0).looking_at(Vec3::ZERO, Vec3::Y);
-    headless::spawn_linear_camera(&mut app, image, eye, 60.0, Vec3::ZERO);
-    let light = headless::spawn_light(&mut app, a, irradiance);
-    headless::spawn_cloud(
-        &mut app,
-        particles.clone(),
-        medium,
-        settings,
-        Transform::IDENTITY,
-    );
+    let (mut app, light) = lit_cloud_app(sky, (a, irradiance), (&particles, medium, settings));
     let mut recorder = FrameRecorder::default();
     headless::render_until_steady(&mut app, &mut recorder, 1, 20).unwrap();
 
