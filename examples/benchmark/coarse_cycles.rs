@@ -1,7 +1,7 @@
 //! `--coarse-cycles`: the scattering series against the same series accelerated by two-grid
 //! cycles (`reference::illumination::scatter_coarse_cycles`, docs/illumination.md §4,
 //! "Coarse-grid cycles"), at the same or fewer sweeps, against the path tracer. CPU references
-//! only: the GPU does not run the cycles yet.
+//! only; the GPU's cycles are measured by the sweep (`--settings '(scatter_coarse_cycles: 2)'`).
 
 use std::fmt::Write;
 

@@ -189,9 +189,9 @@ pub(crate) struct Args {
     /// for one cloud and a field of 100 (default scene `cloud_over_ground_sky`).
     #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "scale", "voxelize", "frame_budget", "warm_start", "grid_error"])]
     pub(crate) sky_map: bool,
-    /// The scattering series against two-grid cycles of as many sweeps or fewer (CPU only, the
-    /// GPU does not run the cycles yet; one cloud under a black sky, without a ground; default
-    /// scene `albedo_one`).
+    /// The scattering series against two-grid cycles of as many sweeps or fewer (CPU only; one
+    /// cloud under a black sky, without a ground; default scene `albedo_one`). The GPU's cycles:
+    /// the sweep with `--settings '(scatter_coarse_cycles: 2)'`.
     #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "scale", "voxelize", "frame_budget", "warm_start", "grid_error", "sky_map"])]
     pub(crate) coarse_cycles: bool,
     /// Clouds do not shadow each other (every cloud `NotShadowCaster`): what the cast of their
@@ -387,8 +387,8 @@ fn coarse_cycles_benchmark(args: &Args) -> Result<(), String> {
     let mut md = String::from(
         "# Coarse-grid cycles\n\nThe scattering series against two-grid cycles \
          (`cargo run --example benchmark -- --coarse-cycles`; docs/illumination.md §4, \
-         \"Coarse-grid cycles\"), computed with the f64 CPU references (the GPU does not run \
-         the cycles yet).\n",
+         \"Coarse-grid cycles\"), computed with the f64 CPU references (the GPU's cycles: \
+         the sweep with `--settings '(scatter_coarse_cycles: 2)'`).\n",
     );
     for (bench, scene) in named_scenes(args, "albedo_one")? {
         // The CPU image (`grid_error::image`) is the cloud's alone, over black.

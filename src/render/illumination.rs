@@ -140,6 +140,8 @@ pub(super) struct SeriesVolumes<'a> {
     pub(super) orders: &'a [Buffer; 2],
     pub(super) multiple: &'a Buffer,
     pub(super) order_ratios: &'a Buffer,
+    /// Other clouds' media, where each slot's `foreign` points.
+    pub(super) foreign: &'a Buffer,
 }
 
 impl<'a> SeriesVolumes<'a> {
@@ -151,6 +153,7 @@ impl<'a> SeriesVolumes<'a> {
             orders: &pool.orders,
             multiple: &pool.multiple,
             order_ratios: &pool.order_ratios,
+            foreign: &pool.foreign,
         }
     }
 
@@ -164,7 +167,7 @@ impl<'a> SeriesVolumes<'a> {
     }
 
     /// The sweep's bind group reading `from` and writing `to`, for the slots of `work` in
-    /// `pool` (whose other clouds' media and ground maps the sweep reads).
+    /// `pool` (whose ground maps the sweep reads).
     fn order_pair(
         &self,
         bind: &impl Fn(&ComputeStage, &[BindGroupEntry]) -> BindGroup,
@@ -187,7 +190,7 @@ impl<'a> SeriesVolumes<'a> {
                 to.as_entire_binding(),
                 self.multiple.as_entire_binding(),
                 work.binding(),
-                pool.foreign.as_entire_binding(),
+                self.foreign.as_entire_binding(),
                 pool.ground.as_entire_binding(),
             )),
         )

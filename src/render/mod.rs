@@ -185,6 +185,10 @@ pub enum Unsupported {
     StorageBuffers(u32),
 }
 
+/// Storage buffers per shader stage the plugin's passes bind at most (a test holds every
+/// illumination layout to it); an adapter with fewer cannot run it.
+pub(crate) const REQUIRED_STORAGE_BUFFERS: u32 = 8;
+
 /// Why this adapter cannot run the plugin, if it cannot.
 fn check_adapter(render_app: &SubApp) -> Result<(), Unsupported> {
     let adapter = render_app.world().resource::<RenderAdapter>();
@@ -196,7 +200,7 @@ fn check_adapter(render_app: &SubApp) -> Result<(), Unsupported> {
     if !flags.contains(DownlevelFlags::VERTEX_STORAGE) {
         return Err(Unsupported::VertexStorage);
     }
-    if limits.max_storage_buffers_per_shader_stage < 8 {
+    if limits.max_storage_buffers_per_shader_stage < REQUIRED_STORAGE_BUFFERS {
         return Err(Unsupported::StorageBuffers(
             limits.max_storage_buffers_per_shader_stage,
         ));

@@ -2,7 +2,9 @@
 
 use super::{
     extract::ExtractedCloudLights,
-    gpu::{DYNAMIC_UNIFORM_STRIDE, dynamic_uniform, sequential_layout, uniform_bytes},
+    gpu::{
+        DYNAMIC_UNIFORM_STRIDE, dynamic_uniform, indexed_layout, sequential_layout, uniform_bytes,
+    },
     shaders::CloudShaders,
     volumes::DensityLevels,
 };
@@ -199,9 +201,11 @@ pub struct IlluminationPipelines {
     pub order_ratio: ComputeStage,
     /// `closure.wgsl`, `extrapolate` (same layout as `order_ratio`).
     pub extrapolate: ByMoments,
+    /// `coarse_grid.wgsl`, `restrict_media`: the coarse grids' media, before the cycles.
+    pub restrict_media: ComputeStage,
     /// `coarse_grid.wgsl`, `restrict_residual`: a coarse-grid cycle's start.
     pub restrict_residual: ByMoments,
-    /// `coarse_grid.wgsl`, `prolong_correction` (same layout): its correction added.
+    /// `coarse_grid.wgsl`, `prolong_correction`: its correction added.
     pub prolong_correction: ByMoments,
     /// The 13 `SweepDirection`s in each of the four sets of [`sweep_direction_offset`]
     /// (accumulating or not, bringing the sky in or not), `DYNAMIC_UNIFORM_STRIDE` bytes apart (a
@@ -248,6 +252,8 @@ pub struct ReadyPipelines<'a> {
     pub order_ratio: &'a ComputePipeline,
     /// The closure's extrapolation.
     pub extrapolate: [&'a ComputePipeline; 2],
+    /// The coarse grids' media.
+    pub restrict_media: &'a ComputePipeline,
     /// The coarse-grid cycles' restriction.
     pub restrict_residual: [&'a ComputePipeline; 2],
     /// The coarse-grid cycles' prolongation.
@@ -280,6 +286,7 @@ impl IlluminationPipelines {
             order_sizes: self.order_sizes.get(cache)?,
             order_ratio: self.order_ratio.get(cache)?,
             extrapolate: self.extrapolate.get(cache)?,
+            restrict_media: self.restrict_media.get(cache)?,
             restrict_residual: self.restrict_residual.get(cache)?,
             prolong_correction: self.prolong_correction.get(cache)?,
         })
@@ -322,7 +329,8 @@ pub(crate) fn write_sweep_sky(
     }
 }
 
-/// The bind group layouts of the illumination passes, one per shader (its entry points share it).
+/// The bind group layouts of the illumination passes, one per shader (its entry points share it),
+/// but for the coarse grids', whose entry points bind a subset each.
 struct IlluminationLayouts {
     voxelize: BindGroupLayoutDescriptor,
     shade: BindGroupLayoutDescriptor,
@@ -333,7 +341,9 @@ struct IlluminationLayouts {
     ground: BindGroupLayoutDescriptor,
     overlap: BindGroupLayoutDescriptor,
     closure: BindGroupLayoutDescriptor,
-    coarse_grid: BindGroupLayoutDescriptor,
+    coarse_media: BindGroupLayoutDescriptor,
+    coarse_residual: BindGroupLayoutDescriptor,
+    coarse_prolongation: BindGroupLayoutDescriptor,
 }
 
 impl IlluminationLayouts {
@@ -405,19 +415,41 @@ impl IlluminationLayouts {
                 ShaderStages::COMPUTE,
                 (read(), read(), read(), read(), write(), write(), work()),
             ),
-            coarse_grid: sequential_layout(
-                "particle_clouds_coarse_grid_layout",
+            coarse_media: indexed_layout(
+                "particle_clouds_coarse_media_layout",
+                ShaderStages::COMPUTE,
+                (
+                    (0, read()),
+                    (1, read()),
+                    (2, read()),
+                    (3, read()),
+                    (7, work()),
+                    (8, write()),
+                ),
+            ),
+            coarse_residual: sequential_layout(
+                "particle_clouds_coarse_residual_layout",
                 ShaderStages::COMPUTE,
                 (
                     read(),
                     read(),
                     read(),
                     read(),
-                    write(),
-                    write(),
+                    read(),
                     write(),
                     write(),
                     work(),
+                ),
+            ),
+            coarse_prolongation: indexed_layout(
+                "particle_clouds_coarse_prolongation_layout",
+                ShaderStages::COMPUTE,
+                (
+                    (0, read()),
+                    (1, read()),
+                    (6, write()),
+                    (7, work()),
+                    (9, write()),
                 ),
             ),
         }
@@ -442,7 +474,9 @@ pub(crate) fn init_illumination_pipelines(
         ground,
         overlap,
         closure,
-        coarse_grid,
+        coarse_media,
+        coarse_residual,
+        coarse_prolongation,
     } = IlluminationLayouts::new();
     let cache = pipeline_cache.as_ref();
     let stage =
@@ -470,17 +504,18 @@ pub(crate) fn init_illumination_pipelines(
         order_sizes: stage(&shaders.closure, "order_sizes", &closure),
         order_ratio: stage(&shaders.closure, "order_ratio", &closure),
         extrapolate: ByMoments::new(cache, &shaders.closure, "extrapolate", &closure),
+        restrict_media: stage(&shaders.coarse_grid, "restrict_media", &coarse_media),
         restrict_residual: ByMoments::new(
             cache,
             &shaders.coarse_grid,
             "restrict_residual",
-            &coarse_grid,
+            &coarse_residual,
         ),
         prolong_correction: ByMoments::new(
             cache,
             &shaders.coarse_grid,
             "prolong_correction",
-            &coarse_grid,
+            &coarse_prolongation,
         ),
         sweep_directions: dynamic_uniform(
             &device,
@@ -494,6 +529,46 @@ pub(crate) fn init_illumination_pipelines(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use bevy::render::render_resource::{BindingType, BufferBindingType};
+
+    #[test]
+    fn every_illumination_layout_fits_the_storage_buffers_the_adapter_check_asks_for() {
+        let l = IlluminationLayouts::new();
+        let layouts = [
+            &l.voxelize,
+            &l.shade,
+            &l.cast,
+            &l.sky_map,
+            &l.gather,
+            &l.scatter,
+            &l.ground,
+            &l.overlap,
+            &l.closure,
+            &l.coarse_media,
+            &l.coarse_residual,
+            &l.coarse_prolongation,
+        ];
+        for layout in layouts {
+            let storage = layout
+                .entries
+                .iter()
+                .filter(|e| {
+                    matches!(
+                        e.ty,
+                        BindingType::Buffer {
+                            ty: BufferBindingType::Storage { .. },
+                            ..
+                        }
+                    )
+                })
+                .count() as u32;
+            assert!(
+                storage <= super::super::REQUIRED_STORAGE_BUFFERS,
+                "{}: {storage} storage buffers",
+                layout.label
+            );
+        }
+    }
 
     #[test]
     fn sweep_lines_cover_the_grid_once_per_direction() {

@@ -138,14 +138,17 @@ impl VolumeShape {
         }
     }
 
-    /// Bytes of one slot's coarse grid ([`CoarseGrids`]) in its density buffer and in each of
-    /// its volume buffers (half the side).
-    fn coarse_bytes(&self) -> (u64, u64) {
+    /// Bytes of one slot's coarse grid ([`CoarseGrids`]) in its media buffer (its density,
+    /// then other clouds' media from the second value on) and in each of its volume buffers
+    /// (half the side).
+    fn coarse_bytes(&self) -> CoarseBytes {
         let voxels = (self.n as u64 / 2).pow(3);
-        (
-            aligned(voxels * 4),
-            aligned(voxels * 16 * self.vec4_per_voxel().0),
-        )
+        let foreign_at = aligned(voxels * 4);
+        CoarseBytes {
+            media: foreign_at + aligned(voxels * 8),
+            foreign_at,
+            volume: aligned(voxels * 16 * self.vec4_per_voxel().0),
+        }
     }
 
     /// The largest `light_supersampling`, from `settings`' own in effect down to 1, at which one
@@ -293,6 +296,13 @@ pub struct VolumePool {
     pub coarse: Option<CoarseGrids>,
 }
 
+/// Bytes of one slot's coarse grid ([`VolumeShape::coarse_bytes`]).
+struct CoarseBytes {
+    media: u64,
+    foreign_at: u64,
+    volume: u64,
+}
+
 /// A pool's coarse grids (docs/illumination.md §4, "Coarse-grid cycles"): per slot, a grid of
 /// half the side on which the scattering's corrections are solved, its volumes laid out like
 /// those of a pool of that side, slot for slot. The sweep and the closure bind these in place of
@@ -300,7 +310,8 @@ pub struct VolumePool {
 pub struct CoarseGrids {
     /// The coarse grid's `Slot` per slot (its `cloud.n` half the pool's).
     pub slots: Buffer,
-    /// f32 density per slot: the mean of the 8 fine voxels each coarse one holds.
+    /// Per slot, f32 density then vec2 other clouds' media: the mean of the 8 fine voxels' each
+    /// coarse one holds (the sweep binds it as both).
     pub densities: Buffer,
     /// vec4 residual per slot, averaged from the fine grid by density: the coarse series' start.
     pub source: Buffer,
@@ -315,7 +326,7 @@ pub struct CoarseGrids {
 impl CoarseGrids {
     /// For `capacity` slots of a pool of `shape` (the fine grids').
     fn new(device: &RenderDevice, shape: VolumeShape, capacity: u32) -> Self {
-        let (density, volume) = shape.coarse_bytes();
+        let CoarseBytes { media, volume, .. } = shape.coarse_bytes();
         let c = capacity as u64;
         Self {
             slots: storage(
@@ -323,7 +334,7 @@ impl CoarseGrids {
                 "particle_clouds_coarse_slots",
                 Slot::min_size().get() * c,
             ),
-            densities: storage(device, "particle_clouds_coarse_densities", density * c),
+            densities: storage(device, "particle_clouds_coarse_media", media * c),
             source: storage(device, "particle_clouds_coarse_source", volume * c),
             orders: [
                 storage(device, "particle_clouds_coarse_order_a", volume * c),
@@ -479,27 +490,26 @@ impl VolumePool {
     }
 
     /// The `Slot` of slot `index`'s coarse grid ([`CoarseGrids`]), for a cloud whose scattering
-    /// grid has the uniform `cloud`: half the side, twice the voxel, and the cloud's own medium
-    /// only (the fine sweeps take other clouds' media).
+    /// grid has the uniform `cloud`: half the side, twice the voxel, and the same media,
+    /// restricted (`coarse_grid.wgsl`, `restrict_media`).
     pub fn coarse_slot(&self, index: u32, cloud: CloudParams) -> Slot {
-        let (density, volume) = self.shape.coarse_bytes();
+        let b = self.shape.coarse_bytes();
         let i = index as u64;
         let element = |bytes: u64, size: u64| (bytes / size) as u32;
         let cloud = CloudParams {
             n: cloud.n / 2,
             h: cloud.h * 2.0,
-            foreign: 0,
             ..cloud
         };
         Slot {
             cloud,
             fine: cloud,
             fine_density: 0,
-            density: element(i * density, 4),
+            density: element(i * b.media, 4),
             optical_depth: 0,
-            volume: element(i * volume, 16),
-            multiple: element(i * volume, 16),
-            foreign: 0,
+            volume: element(i * b.volume, 16),
+            multiple: element(i * b.volume, 16),
+            foreign: element(i * b.media + b.foreign_at, 8),
             lights: 0,
             ratio: index,
             coarse: 1,

@@ -308,10 +308,22 @@ fn interpenetrating_clouds_cast_on_each_other_point_by_point() {
 
 #[test]
 fn interpenetrating_clouds_scatter_through_each_others_media() {
+    check_scattering_through_each_other(0);
+}
+
+/// As above, with coarse-grid cycles: the receiver's coarse grid takes the other's medium,
+/// restricted like its own density (`coarse_grid.wgsl`, `restrict_media`).
+#[test]
+fn coarse_grid_cycles_scatter_through_each_others_media() {
+    check_scattering_through_each_other(2);
+}
+
+fn check_scattering_through_each_other(cycles: u32) {
     let (mut setup, casters) = stacked();
     setup.lights.clear();
     setup.sky = Vec3::new(0.4, 0.6, 1.0);
     setup.medium.albedo = 0.99;
+    setup.settings.scatter_coarse_cycles = cycles;
     let mut other = caster(&casters[0], Vec3::new(0.4, 0.3, -0.2), 12);
     other.medium.albedo = 0.5;
     let clouds = [setup.cloud(), other];

@@ -20,12 +20,13 @@ use crate::{
 };
 
 /// Dispatches of the scattering: `fine` orders of the series (13 sweeps and an accumulation
-/// each, the two-mode closure's three), then per cycle two restart sweeps (15 each) and, with a
-/// coarse grid, the restriction, 32 coarse orders closed alike and the prolongation.
+/// each, the two-mode closure's three), then with a coarse grid the media's restriction, and
+/// per cycle two restart sweeps (15 each) and, with a coarse grid, the residual's restriction,
+/// 32 coarse orders closed alike and the prolongation.
 fn scatter_dispatches(fine: u32, cycles: u32, coarse: bool) -> u32 {
     let series = |orders: u32| orders * 14 + 3;
     let transfer = if coarse { 2 + series(32) } else { 0 };
-    series(fine) + cycles * (2 * 15 + transfer)
+    series(fine) + coarse as u32 + cycles * (2 * 15 + transfer)
 }
 
 #[test]

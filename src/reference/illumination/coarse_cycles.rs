@@ -1,6 +1,5 @@
 //! Section 4, "Coarse-grid cycles": the scattering series accelerated by corrections solved on a
-//! grid of half the resolution (a two-grid cycle), the CPU reference of a scheme the GPU does not
-//! run yet.
+//! grid of half the resolution (a two-grid cycle); the CPU reference of `coarse_grid.wgsl`.
 //!
 //! In a thick, bright cloud the per-order ratio nears 1 (0.994 in `albedo_one`), so hundreds of
 //! orders carry its light, and the closure guesses most of it. What those deep orders carry is
@@ -57,8 +56,8 @@ pub fn scatter_coarse_cycles(
 }
 
 /// [`scatter_coarse_cycles`] through `medium`, the light `boundary` entering the grid. The
-/// coarse grid holds the cloud's own medium only: other clouds' media and the light entering
-/// slow its corrections down, but the fine sweeps, which take them, set the solution.
+/// coarse grid holds the medium restricted (the cloud's density and other clouds' media, each
+/// averaged), and no light enters it: the residual carries what the fine sweep brought in.
 pub(super) fn scatter_cycles_through(
     medium: SweptMedium,
     s0: &Moments,
@@ -71,16 +70,21 @@ pub(super) fn scatter_cycles_through(
     let mut series = scatter_through(medium, stencil, s0, boundary, schedule.fine_orders);
     let mut s = series.moments();
     let coarse_grid = (grid.n.is_multiple_of(2) && grid.n >= 4).then(|| grid.downsample(2));
+    let coarse_foreign = coarse_grid
+        .as_ref()
+        .zip(medium.foreign)
+        .map(|(coarse, foreign)| restrict_media(foreign, grid.n, coarse));
+    let scattering: Vec<f64> = (0..grid.len()).map(|i| medium.scattering(i)).collect();
     for _ in 0..schedule.cycles {
         let r = residual(medium, boundary, s0, &s);
         s = s.plus(&r, DVec3::ONE);
         if let Some(coarse_grid) = &coarse_grid {
             let coarse = SweptMedium {
                 grid: coarse_grid,
-                foreign: None,
+                foreign: coarse_foreign.as_deref(),
                 ..medium
             };
-            let r_coarse = restrict_by_density(&r, grid, coarse_grid);
+            let r_coarse = restrict_weighted(&r, &scattering, grid.n, coarse_grid);
             let e = scatter_series(
                 coarse,
                 stencil,
@@ -99,6 +103,7 @@ pub(super) fn scatter_cycles_through(
     series.total = s.mean;
     series.flux = s.flux;
     series.quadrupole = s.quadrupole;
+    series.cycles = schedule.cycles;
     series
 }
 
@@ -112,25 +117,52 @@ fn residual(medium: SweptMedium, boundary: Boundary, s0: &Moments, s: &Moments) 
 /// `fine`'s each, weighted by `fine`'s density: a coarse voxel scatters the fine ones' `rho S`.
 /// Where they hold no density nothing scatters, and the coarse voxel takes 0.
 pub fn restrict_by_density(values: &Moments, fine: &DensityGrid, coarse: &DensityGrid) -> Moments {
-    let f = fine.n / coarse.n;
+    restrict_weighted(values, &fine.rho, fine.n, coarse)
+}
+
+/// `values` on a grid of side `fine_n` averaged onto `coarse`, each fine voxel weighted by
+/// `weight` (its scattering coefficient: a coarse voxel scatters what its children do); 0
+/// where all its children weigh 0.
+fn restrict_weighted(
+    values: &Moments,
+    weight: &[f64],
+    fine_n: usize,
+    coarse: &DensityGrid,
+) -> Moments {
+    let f = fine_n / coarse.n;
     let parent = |idx: usize| {
-        let (i, j, k) = unravel(idx, fine.n);
+        let (i, j, k) = unravel(idx, fine_n);
         coarse.index(i / f, j / f, k / f)
     };
-    let mut mass = vec![0.0; coarse.len()];
-    fine.rho
+    let mut total = vec![0.0; coarse.len()];
+    weight
         .iter()
         .enumerate()
-        .for_each(|(idx, rho)| mass[parent(idx)] += rho);
+        .for_each(|(idx, w)| total[parent(idx)] += w);
     let weight = |idx: usize| {
-        let m = mass[parent(idx)];
-        if m > 0.0 { fine.rho[idx] / m } else { 0.0 }
+        let t = total[parent(idx)];
+        if t > 0.0 { weight[idx] / t } else { 0.0 }
     };
     Moments {
         mean: restrict_each(&values.mean, coarse.len(), parent, weight),
         flux: restrict_each(&values.flux, coarse.len(), parent, weight),
         quadrupole: restrict_each(&values.quadrupole, coarse.len(), parent, weight),
     }
+}
+
+/// Other clouds' media (extinction, scattering per voxel of a grid of side `fine_n`) averaged
+/// onto `coarse`, as [`DensityGrid::downsample`] averages the density.
+fn restrict_media(foreign: &[[f64; 2]], fine_n: usize, coarse: &DensityGrid) -> Vec<[f64; 2]> {
+    let f = fine_n / coarse.n;
+    let children = (f * f * f) as f64;
+    let mut out = vec![[0.0; 2]; coarse.len()];
+    for (idx, [t, s]) in foreign.iter().enumerate() {
+        let (i, j, k) = unravel(idx, fine_n);
+        let c = &mut out[coarse.index(i / f, j / f, k / f)];
+        c[0] += t / children;
+        c[1] += s / children;
+    }
+    out
 }
 
 fn restrict_each<T: Entry>(
@@ -283,6 +315,45 @@ mod tests {
         // Measured: 0.0054 against 0.043.
         assert!(cycled_error < 0.01, "cycles: {cycled_error}");
         assert!(plain_error > 5.0 * cycled_error, "series: {plain_error}");
+    }
+
+    /// Another cloud's medium filling the grid around the ball (optical depth 4.8 across,
+    /// albedo 0.95): the coarse grid takes it restricted, and the cycles still reach the fine
+    /// grid's converged series.
+    #[test]
+    fn cycles_converge_through_other_clouds_media() {
+        let (grid, s0) = ball();
+        let s0 = Moments::isotropic(s0);
+        let foreign = vec![[0.3, 0.3 * 0.95]; grid.len()];
+        let medium = SweptMedium {
+            foreign: Some(&foreign),
+            ..SweptMedium::alone(&grid, 2.0, 1.0, 0.0)
+        };
+        let boundary = Boundary::sky(DVec3::new(0.1, 0.2, 0.3));
+        let stencil = ScatterStencil::DiscreteOrdinates;
+        let truth = scatter_through(medium, stencil, &s0, boundary, 3000);
+        let schedule = CoarseCycles {
+            fine_orders: 4,
+            cycles: 8,
+            coarse_orders: 32,
+        };
+        let cycled = scatter_cycles_through(medium, &s0, boundary, schedule);
+        let plain = scatter_through(
+            medium,
+            stencil,
+            &s0,
+            boundary,
+            schedule.fine_sweeps() as u32,
+        );
+        let (cycled_error, plain_error) = (
+            relative(&grid, &cycled.total, &truth.total),
+            relative(&grid, &plain.total, &truth.total),
+        );
+        // Measured: 0.0111, the series of as many sweeps 0.0265; 0.0161 while the coarse grid
+        // held the ball's medium alone.
+        eprintln!("cycles through another medium: {cycled_error}, series {plain_error}");
+        assert!(cycled_error < 0.0125, "cycles: {cycled_error}");
+        assert!(plain_error > 2.0 * cycled_error, "series: {plain_error}");
     }
 
     /// The restriction keeps what the voxels scatter, `sum rho S`, of every moment; the

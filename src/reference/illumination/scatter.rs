@@ -112,6 +112,13 @@ impl<'a> SweptMedium<'a> {
         }
     }
 
+    /// Scattering coefficient of voxel `i`, in units of `K_local`: the cloud's own and other
+    /// clouds'.
+    pub(super) fn scattering(&self, i: usize) -> f64 {
+        let own = self.delta.albedo * self.delta.depth_scale * self.grid.rho[i];
+        own + self.foreign.map_or(0.0, |f| f[i][1])
+    }
+
     /// `J = albedo S(w)` at voxel `i` towards the unit direction `w`, with the P2 phase function
     /// of the cloud's transformed medium, whose moments are `g'` and `chi'_2`:
     /// `albedo (mean + 3 g' F . w + (15/2) chi'_2 w^T Q w)`.
@@ -462,6 +469,9 @@ pub struct MultipleScattering {
     pub flux: Vec<Flux>,
     /// The same sum of the orders' [`Quadrupole`]s, closed alike; empty for an isotropic medium.
     pub quadrupole: Vec<Quadrupole>,
+    /// Coarse-grid cycles run after the orders ([`scatter_coarse_cycles`](super::scatter_coarse_cycles)):
+    /// where any did, `total`, `flux` and `quadrupole` are their solution, not the closed sum.
+    pub cycles: u32,
 }
 
 impl MultipleScattering {
@@ -477,11 +487,15 @@ impl MultipleScattering {
     /// The means' sum with the series closed by `closure` instead of its own, clamped at 0 like
     /// [`scatter_medium`]'s: the sum the GPU reaches from these orders with its own coefficients,
     /// which f32 orders move a little (the two-mode fit takes differences of the orders' size
-    /// ratios). `None` below 2 orders, where `S_{M-1}` is not an order computed.
+    /// ratios). `None` below 2 orders, where `S_{M-1}` is not an order computed, and after
+    /// coarse-grid cycles, which replace the closed sum.
     pub fn total_closed_with(&self, closure: &SeriesClosure) -> Option<Vec<DVec3>> {
         let [.., before, last] = self.orders.as_slice() else {
             return None;
         };
+        if self.cycles > 0 {
+            return None;
+        }
         let mut sum = vec![DVec3::ZERO; last.len()];
         for order in &self.orders {
             sum.iter_mut().zip(order).for_each(|(t, s)| *t += *s);
@@ -629,6 +643,7 @@ pub(super) fn scatter_series(
         total: total.mean,
         flux: total.flux,
         quadrupole: total.quadrupole,
+        cycles: 0,
     }
 }
 
@@ -733,6 +748,7 @@ pub fn scatter_warm_medium(
         total,
         flux,
         quadrupole,
+        cycles: 0,
     }
 }
 
