@@ -34,7 +34,7 @@ const EXAMPLE: Example = Example {
 const DEFAULT_PARTICLES: usize = 1_200_000;
 /// Particle radius at the default count, metres.
 const RADIUS_AT_DEFAULT: f32 = 0.025;
-/// The paper's multiple-scattering steps.
+/// The paper's multiple-scattering steps, the series alone (no coarse-grid cycles).
 const SCATTER_STEPS: u32 = 5;
 
 /// The big bunny's particles, generated before the app starts.
@@ -106,6 +106,7 @@ fn setup(
         CloudQualitySettings {
             volume_resolution: 128,
             scatter_iterations: SCATTER_STEPS,
+            scatter_coarse_cycles: 0,
             ..default()
         },
         Transform::default(),
@@ -121,6 +122,7 @@ fn setup(
         CloudQualitySettings {
             volume_resolution: 48,
             scatter_iterations: SCATTER_STEPS,
+            scatter_coarse_cycles: 0,
             ..default()
         },
         Transform::from_xyz(1.5, 0.0, 1.0)

@@ -133,6 +133,7 @@ fn snow_bunny() -> BudgetScene {
             settings: CloudQualitySettings {
                 volume_resolution: 128,
                 scatter_iterations: 5,
+                scatter_coarse_cycles: 0,
                 ..default()
             },
         },
@@ -175,6 +176,7 @@ fn cloudscape() -> BudgetScene {
             settings: CloudQualitySettings {
                 volume_resolution: 32,
                 scatter_iterations: 8,
+                scatter_coarse_cycles: 0,
                 light_supersampling: 2,
                 cloud_target_scale: 0.5,
                 ..default()

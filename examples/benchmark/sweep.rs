@@ -19,6 +19,13 @@ pub(crate) const PREVIOUS_DEFAULT: CloudQualitySettings = CloudQualitySettings {
     draw_method: DrawMethod::Raster,
 };
 
+/// The scattering of the defaults before the coarse-grid cycles: the series of 32 orders.
+pub(crate) const SERIES_DEFAULT: CloudQualitySettings = CloudQualitySettings {
+    scatter_iterations: 32,
+    scatter_coarse_cycles: 0,
+    ..CloudQualitySettings::DEFAULT
+};
+
 /// The quality settings of a sweep: the defaults, then each knob varied on its own around them
 /// (so every knob's cost and error are measured), plus the paper's stencil.
 pub(crate) fn sweep(quick: bool) -> Vec<CloudQualitySettings> {
@@ -34,6 +41,7 @@ pub(crate) fn sweep(quick: bool) -> Vec<CloudQualitySettings> {
                 &[1, 2, 3],
             )
         };
+    let cycles: &[u32] = if quick { &[0] } else { &[0, 1, 2, 4] };
     let mut settings = vec![base];
     let mut add = |s: CloudQualitySettings| {
         if !settings.contains(&s) {
@@ -52,6 +60,14 @@ pub(crate) fn sweep(quick: bool) -> Vec<CloudQualitySettings> {
             ..base
         });
     }
+    for &scatter_coarse_cycles in cycles {
+        add(CloudQualitySettings {
+            scatter_coarse_cycles,
+            ..base
+        });
+    }
+    // The series alone, the default before the cycles.
+    add(SERIES_DEFAULT);
     for &chord_segments in segments {
         add(CloudQualitySettings {
             chord_segments,

@@ -318,7 +318,7 @@ mod tests {
                 stencil: settings.scatter_stencil,
                 unlit: false,
                 warm: false,
-                cycles: 0,
+                cycles: 2,
             }
         );
         // Nothing changed: nothing runs.
@@ -371,7 +371,7 @@ mod tests {
         let lit = |w: Vec3| keys(&[light(w, 1.0, 0)], 1, &settings);
         // The first solve is a full one.
         state.update(lit(Vec3::X), &settings);
-        assert_eq!((state.plan.scatter, state.plan.warm), (Some(32), false));
+        assert_eq!((state.plan.scatter, state.plan.warm), (Some(8), false));
         // The light moves: shade, gather, and a warm restart.
         state.update(lit(Vec3::new(1.0, 0.1, 0.0)), &settings);
         assert_eq!(state.plan.shade, [0]);
@@ -381,7 +381,7 @@ mod tests {
         // It stops: one full solve settles the series, then nothing runs.
         state.update(lit(Vec3::new(1.0, 0.2, 0.0)), &settings);
         assert_eq!(state.plan.shade, Vec::<usize>::new());
-        assert_eq!((state.plan.scatter, state.plan.warm), (Some(32), false));
+        assert_eq!((state.plan.scatter, state.plan.warm), (Some(8), false));
         state.update(lit(Vec3::new(1.0, 0.2, 0.0)), &settings);
         assert!(state.plan.is_empty());
         // A new medium (or density) restarts from zero, whatever the lights.
@@ -401,7 +401,7 @@ mod tests {
             )
         };
         state.update(thicker(Vec3::Y), &settings);
-        assert_eq!((state.plan.scatter, state.plan.warm), (Some(32), false));
+        assert_eq!((state.plan.scatter, state.plan.warm), (Some(8), false));
         // Off (0): always the full solve.
         let cold = CloudQualitySettings {
             warm_scatter_iterations: 0,
@@ -410,7 +410,7 @@ mod tests {
         let mut state = CloudIllumination::default();
         state.update(keys(&[light(Vec3::X, 1.0, 0)], 1, &cold), &cold);
         state.update(keys(&[light(Vec3::Y, 1.0, 0)], 1, &cold), &cold);
-        assert_eq!((state.plan.scatter, state.plan.warm), (Some(32), false));
+        assert_eq!((state.plan.scatter, state.plan.warm), (Some(8), false));
     }
 
     #[test]
@@ -422,7 +422,7 @@ mod tests {
         let mut state = CloudIllumination::default();
         let lit = |w: Vec3, s: &CloudQualitySettings| keys(&[light(w, 1.0, 0)], 1, s);
         state.update(lit(Vec3::X, &settings), &settings);
-        assert_eq!((state.plan.scatter, state.plan.cycles), (Some(32), 3));
+        assert_eq!((state.plan.scatter, state.plan.cycles), (Some(8), 3));
         // A warm restart runs none.
         state.update(lit(Vec3::new(1.0, 0.1, 0.0), &settings), &settings);
         assert_eq!((state.plan.warm, state.plan.cycles), (true, 0));
@@ -437,7 +437,7 @@ mod tests {
         let p = &state.plan;
         assert_eq!(
             (p.gather, p.shade.len(), p.scatter, p.cycles),
-            (false, 0, Some(32), 5)
+            (false, 0, Some(8), 5)
         );
         // The paper's stencil has none.
         let paper = CloudQualitySettings {
@@ -445,7 +445,7 @@ mod tests {
             ..more
         };
         state.update(lit(Vec3::new(1.0, 0.1, 0.0), &paper), &paper);
-        assert_eq!((state.plan.scatter, state.plan.cycles), (Some(32), 0));
+        assert_eq!((state.plan.scatter, state.plan.cycles), (Some(8), 0));
     }
 
     #[test]

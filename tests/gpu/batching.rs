@@ -82,9 +82,15 @@ fn the_dispatches_stay_flat_in_clouds_of_one_shape() {
     let (runs_one, dispatches_one) = illuminate(&mut one, &mut FrameRecorder::default(), 1);
     // Voxelize's kernel sums and deposit (its particles all on the fine grid); one light, 3
     // iterations of 13 sweep directions and the order's accumulation, then the closure's two
-    // dispatches; one view volume.
+    // dispatches, and the default 2 coarse-grid cycles (the media's restriction once, then each
+    // two restart sweeps of 15, the residual's restriction and prolongation, and 32 coarse
+    // orders closed with two modes); one view volume.
     assert_eq!(runs_one, [1, 1, 1, 3, 1]);
-    assert_eq!(dispatches_one, [2, 1, 1, 3 * (13 + 1) + 2, 1]);
+    let cycle = 2 * 15 + 2 + 32 * (13 + 1) + 3;
+    assert_eq!(
+        dispatches_one,
+        [2, 1, 1, 3 * (13 + 1) + 2 + 1 + 2 * cycle, 1]
+    );
 
     let mut six = scene();
     for i in 0..6 {

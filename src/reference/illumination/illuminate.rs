@@ -625,6 +625,7 @@ mod tests {
         let settings = CloudQualitySettings {
             volume_resolution: 8,
             scatter_iterations: 5,
+            scatter_coarse_cycles: 0,
             ..Default::default()
         };
         let light = LocalLight {
