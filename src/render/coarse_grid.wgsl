@@ -1,6 +1,6 @@
 // The coarse-grid cycles of the multiple scattering (docs/illumination.md §4, "Coarse-grid
-// cycles"): the fine grid's residual averaged onto the grid of half the side, and the correction
-// solved there added back. Every cloud of a volume pool in one dispatch: z workgroup i takes
+// cycles"): the fine grid's media and residual averaged onto the grid of half the side, and the
+// correction solved there added back. Every cloud of a volume pool in one dispatch: z workgroup i takes
 // slot `work[i]`, its fine grid in `slots` and its coarse grid in `coarse_slots`.
 // With angular moments (shader def MOMENTS) every entry of a voxel (mean, flux, quadrupole) alike.
 #import bevy_particle_clouds::types::{Slot, clamped_lookup, corner_weight, flat_invocation, flux_element, quadrupole_element, voxel_index}

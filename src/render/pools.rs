@@ -298,8 +298,11 @@ pub struct VolumePool {
 
 /// Bytes of one slot's coarse grid ([`VolumeShape::coarse_bytes`]).
 struct CoarseBytes {
+    /// In the media buffer: the density, then other clouds' media.
     media: u64,
+    /// Where other clouds' media start within it.
     foreign_at: u64,
+    /// In each volume buffer.
     volume: u64,
 }
 
