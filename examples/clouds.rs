@@ -205,8 +205,11 @@ fn describe(
     hud.lines
         .push(format!("{} clouds, {count} particles", clouds.iter().len()));
     hud.lines.push(format!(
-        "volume {}^3, {} scatter iterations, stencil {:?}",
-        quality.volume_resolution, quality.scatter_iterations, quality.scatter_stencil
+        "volume {}^3, {} scatter iterations + {} coarse-grid cycles, stencil {:?}",
+        quality.volume_resolution,
+        quality.scatter_iterations,
+        quality.coarse_cycles(),
+        quality.scatter_stencil
     ));
     for light in &sun {
         hud.lines
