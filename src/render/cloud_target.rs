@@ -52,7 +52,9 @@ use super::{
     key_of,
     particles::GpuParticles,
     shaders::CloudShaders,
-    splat::{SplatResources, ViewSplatPipelines, record_splats, splat_resources, sums_fit},
+    splat::{
+        SplatResources, ViewSplatPipelines, compute_draw_refusal, record_splats, splat_resources,
+    },
     splat_batch::ViewSplatBatches,
 };
 use crate::{
@@ -159,7 +161,8 @@ pub(crate) fn billboard_view_layout(multisampled: bool) -> BindGroupLayoutDescri
     )
 }
 
-fn composite_layout(multisampled: bool) -> BindGroupLayoutDescriptor {
+/// The composite's group: its parameters, the cloud target, the view's depth.
+pub(crate) fn composite_layout(multisampled: bool) -> BindGroupLayoutDescriptor {
     sequential_layout(
         "particle_clouds_cloud_target_composite_layout",
         ShaderStages::FRAGMENT,
@@ -320,18 +323,15 @@ fn choose_cloud_targets(
         let asked = seen
             .iter()
             .any(|c| c.settings.draw_method == DrawMethod::Compute);
-        let compute = asked && sums_fit(params.target_size, &limits);
-        if asked && !compute && !*warned {
+        let refusal = asked
+            .then(|| compute_draw_refusal(params.target_size, &limits))
+            .flatten();
+        let compute = asked && refusal.is_none();
+        if let Some(reason) = refusal
+            && !*warned
+        {
             *warned = true;
-            warn!(
-                "`draw_method` Compute: a cloud target of {}×{} texels needs more than the \
-                 adapter's largest storage buffer ({} bytes); its clouds are rasterised",
-                params.target_size.x,
-                params.target_size.y,
-                limits
-                    .max_storage_buffer_binding_size
-                    .min(limits.max_buffer_size)
-            );
+            warn!("`draw_method` Compute: {reason}; its clouds are rasterised");
         }
         // No cloud in view: no target (and no texture kept alive).
         if (scale >= 1.0 && !compute) || seen.is_empty() {

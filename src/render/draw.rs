@@ -128,53 +128,60 @@ impl BillboardPipeline {
 }
 
 pub(crate) fn init_billboard_pipeline(mut commands: Commands, shaders: Res<CloudShaders>) {
-    let view_layout = sequential_layout(
-        "particle_clouds_view_layout",
-        ShaderStages::VERTEX_FRAGMENT,
-        (
-            uniform_buffer::<ViewUniform>(true),
-            uniform_buffer::<CloudFogParams>(true),
-        ),
-    );
-    let read = || storage_buffer_read_only_sized(false, None);
-    let uniform = || uniform_buffer_sized(false, None);
-    let sorted_layout = sequential_layout(
-        "particle_clouds_billboard_sorted_layout",
-        ShaderStages::VERTEX_FRAGMENT,
-        (
-            uniform(),
-            uniform(),
-            read(),
-            read(),
-            read(),
-            read(),
-            read(),
-            read(),
-        ),
-    );
-    let view_transmittance_layout = sequential_layout(
-        "particle_clouds_billboard_view_transmittance_layout",
-        ShaderStages::VERTEX_FRAGMENT,
-        (
-            uniform(),
-            uniform(),
-            read(),
-            uniform(),
-            read(),
-            read(),
-            read(),
-            read(),
-            read(),
-            read(),
-            read(),
-        ),
-    );
-    commands.insert_resource(BillboardPipeline {
-        view_layout,
-        sorted_layout,
-        view_transmittance_layout,
-        shader: shaders.billboard.clone(),
-    });
+    commands.insert_resource(BillboardPipeline::new(shaders.billboard.clone()));
+}
+
+impl BillboardPipeline {
+    /// The layouts, drawing with `shader`.
+    pub(crate) fn new(shader: Handle<Shader>) -> Self {
+        let view_layout = sequential_layout(
+            "particle_clouds_view_layout",
+            ShaderStages::VERTEX_FRAGMENT,
+            (
+                uniform_buffer::<ViewUniform>(true),
+                uniform_buffer::<CloudFogParams>(true),
+            ),
+        );
+        let read = || storage_buffer_read_only_sized(false, None);
+        let uniform = || uniform_buffer_sized(false, None);
+        let sorted_layout = sequential_layout(
+            "particle_clouds_billboard_sorted_layout",
+            ShaderStages::VERTEX_FRAGMENT,
+            (
+                uniform(),
+                uniform(),
+                read(),
+                read(),
+                read(),
+                read(),
+                read(),
+                read(),
+            ),
+        );
+        let view_transmittance_layout = sequential_layout(
+            "particle_clouds_billboard_view_transmittance_layout",
+            ShaderStages::VERTEX_FRAGMENT,
+            (
+                uniform(),
+                uniform(),
+                read(),
+                uniform(),
+                read(),
+                read(),
+                read(),
+                read(),
+                read(),
+                read(),
+                read(),
+            ),
+        );
+        BillboardPipeline {
+            view_layout,
+            sorted_layout,
+            view_transmittance_layout,
+            shader,
+        }
+    }
 }
 
 /// What one billboard draw does to the colour target.

@@ -7,10 +7,11 @@ use bevy::{
     render::{
         diagnostic::{DiagnosticsRecorder, RecordDiagnostics},
         render_resource::{
-            BindGroup, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, BufferBinding,
-            BufferDescriptor, BufferInitDescriptor, BufferUsages, ComputePass,
-            ComputePassDescriptor, ComputePipeline, IntoBindGroupLayoutEntryBuilderArray,
-            IntoIndexedBindGroupLayoutEntryBuilderArray, ShaderStages, ShaderType, encase,
+            BindGroup, BindGroupLayoutDescriptor, BindGroupLayoutEntries, BindingType, Buffer,
+            BufferBinding, BufferBindingType, BufferDescriptor, BufferInitDescriptor, BufferUsages,
+            ComputePass, ComputePassDescriptor, ComputePipeline,
+            IntoBindGroupLayoutEntryBuilderArray, IntoIndexedBindGroupLayoutEntryBuilderArray,
+            ShaderStages, ShaderType, encase,
         },
         renderer::{RenderContext, RenderDevice},
     },
@@ -50,6 +51,28 @@ pub(crate) fn indexed_layout<const N: usize>(
         label,
         &BindGroupLayoutEntries::with_indices(visibility, entries),
     )
+}
+
+/// Storage buffers a pipeline whose groups are `groups` binds in `stage`: what an adapter's
+/// `max_storage_buffers_per_shader_stage` limits.
+pub(crate) fn storage_buffers_in(
+    groups: &[&BindGroupLayoutDescriptor],
+    stage: ShaderStages,
+) -> u32 {
+    groups
+        .iter()
+        .flat_map(|group| &group.entries)
+        .filter(|entry| {
+            entry.visibility.contains(stage)
+                && matches!(
+                    entry.ty,
+                    BindingType::Buffer {
+                        ty: BufferBindingType::Storage { .. },
+                        ..
+                    }
+                )
+        })
+        .count() as u32
 }
 
 /// Work items per dispatch of a batched pass: the most z workgroups (65535) rounded down so that

@@ -53,6 +53,8 @@ pub mod voxelize;
 pub mod workgroups;
 
 #[cfg(test)]
+mod binding_limits;
+#[cfg(test)]
 mod layout_tests;
 
 use bevy::{
@@ -185,8 +187,9 @@ pub enum Unsupported {
     StorageBuffers(u32),
 }
 
-/// Storage buffers per shader stage the plugin's passes bind at most (a test holds every
-/// illumination layout to it); an adapter with fewer cannot run it.
+/// Storage buffers per shader stage the plugin's pipelines bind at most (tests hold every
+/// pipeline to it), but the computed draw's, which falls back to the rasteriser on an adapter
+/// that allows fewer (`splat::compute_draw_refusal`); an adapter with fewer cannot run it.
 pub(crate) const REQUIRED_STORAGE_BUFFERS: u32 = 8;
 
 /// Why this adapter cannot run the plugin, if it cannot.

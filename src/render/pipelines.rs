@@ -529,7 +529,7 @@ pub(crate) fn init_illumination_pipelines(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use bevy::render::render_resource::{BindingType, BufferBindingType};
+    use crate::render::gpu::storage_buffers_in;
 
     #[test]
     fn every_illumination_layout_fits_the_storage_buffers_the_adapter_check_asks_for() {
@@ -549,19 +549,7 @@ mod tests {
             &l.coarse_prolongation,
         ];
         for layout in layouts {
-            let storage = layout
-                .entries
-                .iter()
-                .filter(|e| {
-                    matches!(
-                        e.ty,
-                        BindingType::Buffer {
-                            ty: BufferBindingType::Storage { .. },
-                            ..
-                        }
-                    )
-                })
-                .count() as u32;
+            let storage = storage_buffers_in(&[layout], ShaderStages::COMPUTE);
             assert!(
                 storage <= super::super::REQUIRED_STORAGE_BUFFERS,
                 "{}: {storage} storage buffers",

@@ -88,13 +88,11 @@ impl SortPipelines {
     }
 }
 
-pub(crate) fn init_sort_pipelines(
-    mut commands: Commands,
-    shaders: Res<CloudShaders>,
-    cache: Res<PipelineCache>,
-) {
+/// The sort passes' one layout: the digit pass's uniform, the particles, the keys and values in
+/// and out, the histogram.
+pub(crate) fn sort_layout() -> BindGroupLayoutDescriptor {
     let write = || storage_buffer_sized(false, None);
-    let layout = sequential_layout(
+    sequential_layout(
         "particle_clouds_sort_layout",
         ShaderStages::COMPUTE,
         (
@@ -106,7 +104,15 @@ pub(crate) fn init_sort_pipelines(
             write(),
             write(),
         ),
-    );
+    )
+}
+
+pub(crate) fn init_sort_pipelines(
+    mut commands: Commands,
+    shaders: Res<CloudShaders>,
+    cache: Res<PipelineCache>,
+) {
+    let layout = sort_layout();
     let queue = |entry_point: &'static str| {
         cache.queue_compute_pipeline(ComputePipelineDescriptor {
             label: Some(format!("particle_clouds_sort_{entry_point}").into()),

@@ -24,7 +24,7 @@ use super::{
     cloud_target::{CLOUD_TARGET_FORMAT, CloudTargetParams, ViewCloudTarget},
     draw::BillboardPipeline,
     fog::{CloudFogParams, ExtractedCloudFog, FogMode},
-    gpu::sequential_layout,
+    gpu::{sequential_layout, storage_buffers_in},
     splat_batch::{ViewSplatBatches, prepare_splat_batches, splat_batch_layout},
     workgroups::{LINEAR, SLICE, linear_groups},
 };
@@ -56,11 +56,38 @@ fn splat_slices(groups: u32) -> u32 {
 /// Bytes per cloud-target texel of the sums: light (r, g, b) and optical depth, f32 each.
 const SUM_BYTES: u64 = 16;
 
-/// Whether the sums of a cloud target of `size` texels fit in one storage buffer binding of an
-/// adapter with `limits` (128 MiB by default: a 4K target just fits).
-pub fn sums_fit(size: UVec2, limits: &WgpuLimits) -> bool {
+/// Why a view cannot splat its clouds into a cloud target of `size` texels on an adapter with
+/// `limits`, if it cannot: the sums must fit one storage buffer binding (128 MiB by default: a
+/// 4K target just fits), and the splat binds more storage buffers per shader stage than the rest
+/// of the plugin, which asks only for [`REQUIRED_STORAGE_BUFFERS`](super::REQUIRED_STORAGE_BUFFERS).
+pub fn compute_draw_refusal(size: UVec2, limits: &WgpuLimits) -> Option<String> {
     let bytes = size.x as u64 * size.y as u64 * SUM_BYTES;
-    bytes <= limits.max_storage_buffer_binding_size && bytes <= limits.max_buffer_size
+    let largest = limits
+        .max_storage_buffer_binding_size
+        .min(limits.max_buffer_size);
+    let needed = splat_storage_buffers();
+    if bytes > largest {
+        Some(format!(
+            "a cloud target of {}×{} texels needs {bytes} bytes of sums, more than the adapter's \
+             largest storage buffer ({largest} bytes)",
+            size.x, size.y
+        ))
+    } else if limits.max_storage_buffers_per_shader_stage < needed {
+        Some(format!(
+            "the splat binds {needed} storage buffers, and the adapter allows {} per shader stage",
+            limits.max_storage_buffers_per_shader_stage
+        ))
+    } else {
+        None
+    }
+}
+
+/// Storage buffers the splat and resolve pipelines bind in the compute stage (both groups).
+pub fn splat_storage_buffers() -> u32 {
+    storage_buffers_in(
+        &[&splat_view_layout(false), &splat_batch_layout()],
+        ShaderStages::COMPUTE,
+    )
 }
 
 /// Group 0 of the splat and resolve pipelines: the cloud target's billboard view group (view,
@@ -279,10 +306,27 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_4k_target_fits_the_default_limits_and_an_8k_one_does_not() {
-        let limits = WgpuLimits::default();
-        assert!(sums_fit(UVec2::new(3840, 2160), &limits));
-        assert!(!sums_fit(UVec2::new(7680, 4320), &limits));
+    fn an_adapter_splats_when_its_sums_and_storage_buffers_fit() {
+        let needed = splat_storage_buffers();
+        assert!(needed > super::super::REQUIRED_STORAGE_BUFFERS);
+        let limits = WgpuLimits {
+            max_storage_buffers_per_shader_stage: needed,
+            ..default()
+        };
+        let uhd = UVec2::new(3840, 2160);
+        assert_eq!(compute_draw_refusal(uhd, &limits), None);
+        let refusal = compute_draw_refusal(UVec2::new(7680, 4320), &limits).unwrap();
+        assert!(refusal.contains("7680×4320"), "{refusal}");
+        // WebGPU's default limits allow 8 storage buffers per stage: rasterise there.
+        let fewer = WgpuLimits {
+            max_storage_buffers_per_shader_stage: needed - 1,
+            ..default()
+        };
+        let refusal = compute_draw_refusal(uhd, &fewer).unwrap();
+        assert!(
+            refusal.contains(&format!("binds {needed} storage")),
+            "{refusal}"
+        );
     }
 
     #[test]

@@ -99,11 +99,8 @@ pub struct ViewVolumePipeline {
     pub see_multiple: CachedComputePipelineId,
 }
 
-pub(crate) fn init_view_volume_pipeline(
-    mut commands: Commands,
-    shaders: Res<CloudShaders>,
-    cache: Res<PipelineCache>,
-) {
+/// The march's, the front maps' and `see_multiple`'s layouts ([`ViewVolumePipeline`]).
+pub(crate) fn view_volume_layouts() -> [BindGroupLayoutDescriptor; 3] {
     let layout = sequential_layout(
         "particle_clouds_view_volume_layout",
         ShaderStages::COMPUTE,
@@ -136,6 +133,15 @@ pub(crate) fn init_view_volume_pipeline(
             (7, storage_buffer_sized(false, None)),
         ),
     );
+    [layout, front_layout, seen_layout]
+}
+
+pub(crate) fn init_view_volume_pipeline(
+    mut commands: Commands,
+    shaders: Res<CloudShaders>,
+    cache: Res<PipelineCache>,
+) {
+    let [layout, front_layout, seen_layout] = view_volume_layouts();
     let compute = |label: &'static str, layout: &BindGroupLayoutDescriptor, entry: &'static str| {
         cache.queue_compute_pipeline(ComputePipelineDescriptor {
             label: Some(label.into()),
