@@ -36,15 +36,19 @@ use bevy_particle_clouds::{
 
 use super::downsample;
 
-/// One scene's parts: real-time and path-traced images per order (index 0 unused: the
-/// background), the last entry every order from its own on.
-struct Parts {
-    real_time: Vec<LinearImage>,
+/// One setting's real-time images per order (index 0: order 1; see [`real_time_orders`]).
+pub struct RealTime {
+    orders: Vec<LinearImage>,
     /// Order 1 drawn by the billboards from the exact single scattering (the path tracer's
     /// transmittance at every shading point): what the billboards alone cost.
     exact_single: LinearImage,
-    truth: Vec<LinearImage>,
-    /// The path tracer's two independent halves, for the noise of each part.
+}
+
+/// The path tracer's images of one scene split by order (index 0: order 1), the last holding
+/// every order from its own on, and the two independent halves they average, for each part's
+/// noise. Rendered once per scene, for every setting decomposed against it.
+pub struct Truth {
+    orders: Vec<LinearImage>,
     halves: [Vec<LinearImage>; 2],
 }
 
@@ -150,10 +154,10 @@ fn real_time_orders(
     images
 }
 
-fn parts(scene: &Scene, settings: &CloudQualitySettings, factor: u32, spp: u32) -> Parts {
+/// The real-time images of `scene` at `settings`, per order, box-filtered by `factor`.
+pub fn real_time(scene: &Scene, settings: &CloudQualitySettings, factor: u32) -> RealTime {
     let cloud = &scene.clouds[0];
     let ill = illuminate_scene_cloud(scene, 0, settings).expect("a cloud with density");
-    let real_time = real_time_orders(scene, &ill, settings, factor);
     let media = ParticleMedia::from_scene(scene);
     let lighting = Lighting::from_scene(scene);
     let albedo = ill.albedo;
@@ -164,51 +168,70 @@ fn parts(scene: &Scene, settings: &CloudQualitySettings, factor: u32, spp: u32) 
         &ill.fine,
         factor,
     );
-    let mut small = scene.clone();
-    small.camera.width /= factor;
-    small.camera.height /= factor;
-    let orders = real_time.len() + 1; // index 0: the background
-    let half = |seed| -> Vec<LinearImage> {
-        let (bar, progress) =
-            crate::path_tracing_progress(&format!("orders, seed {seed}"), small.camera.height);
-        let images = render_orders(
-            &small,
-            &PathTracerSettings {
-                samples_per_pixel: spp,
-                seed,
-                progress: Some(progress),
-            },
-            orders,
-        );
-        bar.finish_and_clear();
-        images
-            .into_iter()
-            .skip(1)
-            .map(|pixels| LinearImage {
-                width: small.camera.width,
-                height: small.camera.height,
-                pixels,
-            })
-            .collect()
-    };
-    let halves = [half(1), half(2)];
-    let truth = halves[0]
-        .iter()
-        .zip(&halves[1])
-        .map(|(a, b)| {
-            let mut mean = a.clone();
-            for (m, p) in mean.pixels.iter_mut().zip(&b.pixels) {
-                (0..3).for_each(|c| m[c] = 0.5 * (m[c] + p[c]));
-            }
-            mean
-        })
-        .collect();
-    Parts {
-        real_time,
+    RealTime {
+        orders: real_time_orders(scene, &ill, settings, factor),
         exact_single,
-        truth,
-        halves,
     }
+}
+
+impl RealTime {
+    /// Order images this setting has (the last holding every order from its own on).
+    pub fn orders(&self) -> usize {
+        self.orders.len()
+    }
+}
+
+impl Truth {
+    /// Two independent path-traced renders of `scene` at `spp` each, at `1 / factor` of its
+    /// size, split into `orders` images.
+    pub fn render(scene: &Scene, factor: u32, spp: u32, orders: usize) -> Self {
+        let mut small = scene.clone();
+        small.camera.width /= factor;
+        small.camera.height /= factor;
+        let half = |seed| -> Vec<LinearImage> {
+            let (bar, progress) =
+                crate::path_tracing_progress(&format!("orders, seed {seed}"), small.camera.height);
+            let images = render_orders(
+                &small,
+                &PathTracerSettings {
+                    samples_per_pixel: spp,
+                    seed,
+                    progress: Some(progress),
+                },
+                orders + 1, // index 0: the background
+            );
+            bar.finish_and_clear();
+            images
+                .into_iter()
+                .skip(1)
+                .map(|pixels| LinearImage {
+                    width: small.camera.width,
+                    height: small.camera.height,
+                    pixels,
+                })
+                .collect()
+        };
+        let halves = [half(1), half(2)];
+        let orders = halves[0]
+            .iter()
+            .zip(&halves[1])
+            .map(|(a, b)| {
+                let mut mean = a.clone();
+                for (m, p) in mean.pixels.iter_mut().zip(&b.pixels) {
+                    (0..3).for_each(|c| m[c] = 0.5 * (m[c] + p[c]));
+                }
+                mean
+            })
+            .collect();
+        Truth { orders, halves }
+    }
+}
+
+/// `images` (per order) regrouped into `n`: the orders from the `n`-th on summed into the last.
+fn regrouped(images: &[LinearImage], n: usize) -> Vec<LinearImage> {
+    let mut out = images[..n - 1].to_vec();
+    out.push(sum(&images[n - 1..]));
+    out
 }
 
 /// Relative RMSE of `x` against the mean of the two halves, and the mean's noise.
@@ -217,15 +240,30 @@ fn error(x: &LinearImage, truth: &LinearImage, halves: [&LinearImage; 2]) -> (f6
     (relative_rmse(&x.pixels, &truth.pixels), noise)
 }
 
-/// The markdown section of one scene.
+/// One setting's images against the truth regrouped to its orders.
+struct Parts<'a> {
+    real_time: &'a [LinearImage],
+    exact_single: &'a LinearImage,
+    truth: Vec<LinearImage>,
+    halves: [Vec<LinearImage>; 2],
+}
+
+/// The markdown section of one scene at one setting.
 pub fn decompose(
     name: &str,
     scene: &Scene,
     settings: &CloudQualitySettings,
     factor: u32,
     spp: u32,
+    (real_time, truth): (&RealTime, &Truth),
 ) -> String {
-    let p = parts(scene, settings, factor, spp);
+    let n = real_time.orders.len();
+    let p = Parts {
+        real_time: &real_time.orders,
+        exact_single: &real_time.exact_single,
+        truth: regrouped(&truth.orders, n),
+        halves: [0, 1].map(|h| regrouped(&truth.halves[h], n)),
+    };
     let mut s = format!(
         "\n### {name}\n\nReference: 2 × {spp} spp at {}×{}. Settings: `{settings:?}`.\n\n",
         scene.camera.width / factor,
@@ -242,26 +280,26 @@ pub fn decompose(
         }),
         ("order 1, billboards shading the exact S_1", {
             error(
-                &p.exact_single,
+                p.exact_single,
                 &p.truth[0],
                 [&p.halves[0][0], &p.halves[1][0]],
             )
         }),
         ("multiple scattering (orders ≥ 2)", {
             let (a, b) = (multiple(&p.halves[0]), multiple(&p.halves[1]));
-            error(&multiple(&p.real_time), &multiple(&p.truth), [&a, &b])
+            error(&multiple(p.real_time), &multiple(&p.truth), [&a, &b])
         }),
         ("everything", {
             let (a, b) = (sum(&p.halves[0]), sum(&p.halves[1]));
-            error(&sum(&p.real_time), &sum(&p.truth), [&a, &b])
+            error(&sum(p.real_time), &sum(&p.truth), [&a, &b])
         }),
     ];
     s.push_str("| part | relative RMSE | reference noise | denoised | energy real-time / truth |\n|---|---:|---:|---:|---:|\n");
     let energies = [
         energy(&p.real_time[0]) / energy(&p.truth[0]),
-        energy(&p.exact_single) / energy(&p.truth[0]),
-        energy(&multiple(&p.real_time)) / energy(&multiple(&p.truth)),
-        energy(&sum(&p.real_time)) / energy(&sum(&p.truth)),
+        energy(p.exact_single) / energy(&p.truth[0]),
+        energy(&multiple(p.real_time)) / energy(&multiple(&p.truth)),
+        energy(&sum(p.real_time)) / energy(&sum(&p.truth)),
     ];
     for ((label, (e, noise)), ratio) in rows.iter().zip(energies) {
         let _ = writeln!(
@@ -290,7 +328,7 @@ pub fn decompose(
             s,
             "| {label} | {e_rt:.4e} | {e_tr:.4e} | {:.3} | {} | {} |",
             e_rt / e_tr,
-            fmt(lambda(&p.real_time)),
+            fmt(lambda(p.real_time)),
             fmt(lambda(&p.truth)),
         );
     }

@@ -11,7 +11,7 @@
 //! cargo run --example benchmark -- --scale [--out DIR]
 //! cargo run --example benchmark -- --frame-budget [--view 1920x1080] [--bandwidth 4.8] [--draw-methods raster,compute] [--out DIR]
 //! cargo run --example benchmark -- --warm-start [--scenes a,b] [--out DIR]
-//! cargo run --example benchmark -- --decompose [--scenes a,b] [--spp N] [--out DIR]
+//! cargo run --example benchmark -- --decompose [--scenes a,b] [--spp N] [--settings RON]... [--out DIR]
 //! cargo run --example benchmark -- --grid-error [--scenes albedo_one] [--out DIR]
 //! cargo run --example benchmark -- --sky-map [--scenes cloud_over_ground_sky] [--out DIR]
 //! cargo run --example benchmark -- --coarse-cycles [--scenes albedo_one] [--settings '(volume_resolution: 64)'] [--out DIR]
@@ -223,8 +223,9 @@ pub(crate) struct Args {
     /// With --line-sweep: segments per line.
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub(crate) segments: u32,
-    /// Measure only these settings (RON, as a scene file's `settings`) instead of the sweep.
-    /// Repeatable.
+    /// Measure only these settings (RON, as a scene file's `settings`) instead of the sweep; with
+    /// --decompose, decompose each (against one path-traced reference per scene) instead of the
+    /// defaults. Repeatable.
     #[arg(long = "settings", value_name = "RON", value_parser = parse_settings)]
     pub(crate) settings: Vec<CloudQualitySettings>,
 }
@@ -434,26 +435,39 @@ fn sky_map_benchmark(args: &Args) -> Result<(), String> {
     write_report(args, "sky_map.md", &md)
 }
 
-/// `--decompose`: every chosen scene's error at the default settings, part by part.
+/// `--decompose`: every chosen scene's error at the default settings (or at each `--settings`,
+/// against one path-traced reference per scene), part by part.
 fn decomposition(args: &Args, chosen: &[&BenchScene]) -> Result<(), String> {
-    let settings = args.settings.first().copied().unwrap_or_default();
+    let settings = if args.settings.is_empty() {
+        vec![CloudQualitySettings::default()]
+    } else {
+        args.settings.clone()
+    };
     let mut md = String::from(
-        "The default settings' error split by scattering order (`cargo run --example benchmark -- \
-         --decompose`), computed with the f64 CPU references of the real-time passes (which the GPU \
-         matches within 2e-4 of the maximum) against the path tracer split by order. Energies are \
-         sums over the image; λ is an order's energy over the previous one's.\n",
+        "The error split by scattering order (`cargo run --example benchmark -- --decompose`), \
+         computed with the f64 CPU references of the real-time passes (which the GPU matches \
+         within 2e-4 of the maximum) against the path tracer split by order. Energies are sums \
+         over the image; λ is an order's energy over the previous one's.\n",
     );
     for bench in chosen {
         let scene = load_scene(bench)?;
         let spp = args.spp.unwrap_or(bench.spp);
+        let factor = bench.error_downsample;
+        let real_time: Vec<decompose::RealTime> = settings
+            .iter()
+            .map(|s| decompose::real_time(&scene, s, factor))
+            .collect();
+        let orders = real_time.iter().map(|r| r.orders()).max().unwrap_or(1);
         eprintln!(
-            "benchmark: {}: decomposing at {spp} spp per half",
+            "benchmark: {}: path tracing {orders} orders at {spp} spp per half",
             bench.name
         );
-        let section =
-            decompose::decompose(bench.name, &scene, &settings, bench.error_downsample, spp);
-        eprintln!("{section}");
-        md.push_str(&section);
+        let truth = decompose::Truth::render(&scene, factor, spp, orders);
+        for (s, r) in settings.iter().zip(&real_time) {
+            let section = decompose::decompose(bench.name, &scene, s, factor, spp, (r, &truth));
+            eprintln!("{section}");
+            md.push_str(&section);
+        }
     }
     write_report(args, "decomposition.md", &md)
 }
