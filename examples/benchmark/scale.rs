@@ -20,8 +20,8 @@ use bevy_particle_clouds::{LightSample, Medium, scene::ResolvedCloud};
 
 use super::*;
 
-/// The cloud sweep's knobs, the defaults but 16³ × 8 iterations: 100 clouds at the default
-/// 48³ × 32 iterations would take minutes a frame on lavapipe.
+/// The cloud sweep's knobs, the defaults but 16³ × 8 iterations (then the default coarse-grid
+/// cycles): 100 clouds at the default 48³ would take minutes a frame on lavapipe.
 fn cloud_sweep_settings() -> CloudQualitySettings {
     CloudQualitySettings {
         volume_resolution: 16,
