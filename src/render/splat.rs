@@ -82,12 +82,16 @@ pub fn compute_draw_refusal(size: UVec2, limits: &WgpuLimits) -> Option<String> 
     }
 }
 
-/// Storage buffers the splat and resolve pipelines bind in the compute stage (both groups).
+/// Storage buffers the splat and resolve pipelines bind in the compute stage (both groups),
+/// counted once from their layouts.
 pub fn splat_storage_buffers() -> u32 {
-    storage_buffers_in(
-        &[&splat_view_layout(false), &splat_batch_layout()],
-        ShaderStages::COMPUTE,
-    )
+    static COUNT: std::sync::OnceLock<u32> = std::sync::OnceLock::new();
+    *COUNT.get_or_init(|| {
+        storage_buffers_in(
+            &[&splat_view_layout(false), &splat_batch_layout()],
+            ShaderStages::COMPUTE,
+        )
+    })
 }
 
 /// Group 0 of the splat and resolve pipelines: the cloud target's billboard view group (view,
