@@ -85,11 +85,13 @@ impl Regions {
     /// Places the `wanted` regions `(cloud, length)` in a buffer of `capacity` elements: a
     /// region keeps its offset while its length holds, and new regions go after the last one
     /// kept; when they do not fit, every region is packed anew, the buffer growing by doubling
-    /// if needed. Returns each cloud's offset, and the capacity the buffer must grow to, if any.
+    /// if needed, but past `max` elements (the storage binding) only as far as they need.
+    /// Returns each cloud's offset, and the capacity the buffer must grow to, if any.
     fn place(
         &mut self,
         wanted: &[(Entity, u64)],
         capacity: u64,
+        max: u64,
     ) -> (HashMap<Entity, u64>, Option<u64>) {
         let previous: HashMap<Entity, (u64, u64)> =
             self.0.iter().map(|&(e, len, o)| (e, (len, o))).collect();
@@ -112,7 +114,13 @@ impl Regions {
             end = 0;
             let total: u64 = placed.iter().map(|&(_, len)| len).sum();
             if total > capacity {
-                grown = Some(total.next_power_of_two().max(capacity * 2));
+                grown = Some(
+                    total
+                        .next_power_of_two()
+                        .max(capacity * 2)
+                        .min(max)
+                        .max(total),
+                );
             }
         }
         for (entity, len) in placed {
@@ -122,6 +130,37 @@ impl Regions {
         self.0 = kept;
         (self.0.iter().map(|&(e, _, o)| (e, o)).collect(), grown)
     }
+}
+
+/// Lowers the resolution of every occupying volume by one factor until together they hold at
+/// most `max_elements` (one storage binding of f32): a view of many clouds with fine grids would
+/// pass it (8 clouds at 48³ × 4: 8 × 192³ floats, 226 MB). The march samples the fine density
+/// by position, so any resolution of at least 2 works; a coarser one blurs the shadows that
+/// particles cast towards the camera. Returns whether any was lowered.
+fn fit_view_volumes(entries: &mut [AtlasEntry], max_elements: u64) -> bool {
+    let total = |entries: &[AtlasEntry], scale: f64| -> u64 {
+        entries
+            .iter()
+            .filter(|e| e.occupies())
+            .map(|e| view_volume_len(scaled(e.params.n, scale)))
+            .sum()
+    };
+    if total(entries, 1.0) <= max_elements {
+        return false;
+    }
+    let mut scale = (max_elements as f64 / total(entries, 1.0) as f64).cbrt();
+    while scale > 0.0 && total(entries, scale) > max_elements {
+        scale *= 0.99;
+    }
+    for entry in entries.iter_mut().filter(|e| e.occupies()) {
+        entry.params.n = scaled(entry.params.n, scale);
+    }
+    true
+}
+
+/// `n` scaled by `scale`, rounded down, at least 2 (a volume's nodes per side).
+fn scaled(n: u32, scale: f64) -> u32 {
+    ((n as f64 * scale) as u32).max(2)
 }
 
 /// Whether the tangent rectangles `(u0, u1, v0, v1)` of two volumes overlap.
@@ -210,6 +249,14 @@ impl ViewVolumeAtlas {
     /// or buffer changed is marched (or seen) again, since its key holds both: so a cloud entering
     /// the view costs one march of its own, not of every cloud.
     pub(crate) fn lay_out(&mut self, device: &RenderDevice, entries: &mut [AtlasEntry]) {
+        let max_bytes = device.limits().max_storage_buffer_binding_size;
+        if fit_view_volumes(entries, max_bytes / 4) {
+            info_once!(
+                "particle clouds: one view's transmittance volumes exceed the adapter's storage \
+                 buffer limit of {max_bytes} bytes; they are marched at a lower resolution in \
+                 such views (docs/illumination.md §5)"
+            );
+        }
         let occupying = || entries.iter().filter(|e| e.occupies());
         let depths: Vec<_> = occupying()
             .map(|e| (e.entity, view_volume_len(e.params.n)))
@@ -218,23 +265,24 @@ impl ViewVolumeAtlas {
             .filter(|e| e.params.seen_n > 0)
             .map(|e| (e.entity, (e.params.seen_n as u64).pow(3)))
             .collect();
-        let (depth_offsets, grown) = self
-            .depth_regions
-            .place(&depths, self.optical_depth.size() / 4);
+        let (depth_offsets, grown) =
+            self.depth_regions
+                .place(&depths, self.optical_depth.size() / 4, max_bytes / 4);
         if let Some(elements) = grown {
             self.optical_depth =
                 storage(device, "particle_clouds_view_optical_depth", elements * 4);
         }
-        let (seen_offsets, grown) = self
-            .seen_regions
-            .place(&seen, self.seen_multiple.size() / 16);
+        let (seen_offsets, grown) =
+            self.seen_regions
+                .place(&seen, self.seen_multiple.size() / 16, max_bytes / 16);
         if let Some(elements) = grown {
             self.seen_multiple =
                 storage(device, "particle_clouds_view_seen_multiple", elements * 16);
         }
         for entry in entries.iter_mut().filter(|e| e.occupies()) {
             entry.params.offset = depth_offsets[&entry.entity] as u32;
-            entry.key = key_of((entry.key, entry.params.offset, self.optical_depth.id()));
+            let buffer = self.optical_depth.id();
+            entry.key = key_of((entry.key, entry.params.offset, entry.params.n, buffer));
             if let Some(&offset) = seen_offsets.get(&entry.entity) {
                 entry.params.seen_offset = offset as u32;
                 let buffer = self.seen_multiple.id();
@@ -342,28 +390,69 @@ mod tests {
     fn a_region_keeps_its_place_while_it_fits_and_all_are_packed_when_not() {
         let cloud = |i| Entity::from_raw_u32(i).unwrap();
         let mut regions = Regions::default();
-        let (offsets, grown) = regions.place(&[(cloud(0), 4), (cloud(1), 8)], 16);
+        let (offsets, grown) = regions.place(&[(cloud(0), 4), (cloud(1), 8)], 16, 1 << 20);
         assert_eq!(
             (offsets[&cloud(0)], offsets[&cloud(1)], grown),
             (0, 4, None)
         );
         // 0 leaves, 2 comes after the last one kept, 1 stays where it was.
-        let (offsets, grown) = regions.place(&[(cloud(1), 8), (cloud(2), 4)], 16);
+        let (offsets, grown) = regions.place(&[(cloud(1), 8), (cloud(2), 4)], 16, 1 << 20);
         assert_eq!(
             (offsets[&cloud(1)], offsets[&cloud(2)], grown),
             (4, 12, None)
         );
         // 1 changes size: it no longer fits after 2, so both are packed anew from 0.
-        let (offsets, grown) = regions.place(&[(cloud(1), 6), (cloud(2), 4)], 16);
+        let (offsets, grown) = regions.place(&[(cloud(1), 6), (cloud(2), 4)], 16, 1 << 20);
         assert_eq!(
             (offsets[&cloud(2)], offsets[&cloud(1)], grown),
             (0, 4, None)
         );
         // More than the buffer holds: packed, and the buffer doubles (at least).
-        let (offsets, grown) = regions.place(&[(cloud(1), 6), (cloud(3), 20)], 16);
+        let (offsets, grown) = regions.place(&[(cloud(1), 6), (cloud(3), 20)], 16, 1 << 20);
         assert_eq!(
             (offsets[&cloud(1)], offsets[&cloud(3)], grown),
             (0, 6, Some(32))
         );
+        // Never past the binding's `max`, unless the regions themselves need more.
+        let (_, grown) = regions.place(&[(cloud(1), 6), (cloud(3), 30)], 32, 40);
+        assert_eq!(grown, Some(40));
+        let (_, grown) = regions.place(&[(cloud(1), 26), (cloud(3), 30)], 40, 40);
+        assert_eq!(grown, Some(56));
+    }
+
+    /// Eight clouds at 48³ × 4 (fine grids of 192) pass lavapipe's 128 MiB binding in one view:
+    /// their volumes are marched at one lower resolution that fits; under the limit, untouched.
+    #[test]
+    fn a_view_whose_volumes_pass_the_binding_marches_them_coarser() {
+        let max_elements = (128 << 20) / 4;
+        let mut entries: Vec<AtlasEntry> = (0..8)
+            .map(|i| {
+                let mut e = entry(i, Vec4::ZERO, Vec2::ZERO, true);
+                e.params.n = 192;
+                e
+            })
+            .collect();
+        // Not marched yet: takes no room.
+        entries[7].key = UNLIT;
+        let fits = |entries: &[AtlasEntry]| -> u64 {
+            entries
+                .iter()
+                .filter(|e| e.occupies())
+                .map(|e| view_volume_len(e.params.n))
+                .sum()
+        };
+        assert!(fits(&entries) > max_elements);
+        assert!(fit_view_volumes(&mut entries, max_elements));
+        assert!(fits(&entries) <= max_elements);
+        let n = entries[0].params.n;
+        // 7 × (n³ + n²) floats within 33.5 M: n = 168 at most; the steps of 1 % stay close.
+        assert!((160..=168).contains(&n), "{n}");
+        assert!(entries[..7].iter().all(|e| e.params.n == n));
+        assert_eq!(entries[7].params.n, 192);
+        // Four fit as they are.
+        let mut four: Vec<AtlasEntry> = entries.drain(..4).collect();
+        four.iter_mut().for_each(|e| e.params.n = 192);
+        assert!(!fit_view_volumes(&mut four, max_elements));
+        assert!(four.iter().all(|e| e.params.n == 192));
     }
 }
