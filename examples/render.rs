@@ -280,6 +280,8 @@ fn real_time(
 /// Refuses a `volume_resolution` whose volumes the adapter cannot bind, naming the largest that
 /// fits and the `light_supersampling` that would fit at this resolution. The renderer itself
 /// would lower the supersampling with a warning; a scene file renders what it says, or nothing.
+/// The default supersampling is "4, or the most the adapter's binding holds" (scene-format.md):
+/// at it, the factor is lowered as in a game, and said on stderr.
 fn check_volume_fits(app: &mut bevy::app::App, scene: &Scene, adapter: &str) -> Result<(), String> {
     let limit = app
         .sub_app(RenderApp)
@@ -305,8 +307,17 @@ fn check_volume_fits(app: &mut bevy::app::App, scene: &Scene, adapter: &str) -> 
     if fits(resolution) {
         return Ok(());
     }
-    let largest = (1..=resolution).rev().find(|&n| fits(n));
     let lower = fitting(&scene.settings);
+    let default = CloudQualitySettings::DEFAULT.light_supersampling;
+    if let Some(f) = lower.filter(|_| scene.settings.light_supersampling == default) {
+        eprintln!(
+            "render: light volumes of {}³ for {lights} lights exceed this adapter's storage \
+             buffers ({limit} bytes); the default light_supersampling is lowered to {f}",
+            scene.settings.light_resolution()
+        );
+        return Ok(());
+    }
+    let largest = (1..=resolution).rev().find(|&n| fits(n));
     let or_lower = lower.map_or(String::new(), |f| {
         format!(", or settings.light_supersampling {f} at this resolution")
     });

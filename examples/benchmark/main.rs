@@ -541,6 +541,7 @@ fn run() -> Result<(), String> {
     };
     let mut rows = Vec::new();
     let mut adapter = String::new();
+    let csv = args.out.join("results.csv");
     for bench in &chosen {
         let scene = load_scene(bench)?;
         let spp = args
@@ -725,11 +726,11 @@ fn run() -> Result<(), String> {
         mark_pareto(&mut scene_rows);
         rows.extend(scene_rows);
         drop(b);
+        // After every scene, so that a sweep stopped part way keeps the scenes it finished.
+        write_csv_results(&csv, &adapter, &rows)
+            .map_err(|e| format!("cannot write {}: {e}", csv.display()))?;
     }
     let order: Vec<&'static str> = chosen.iter().map(|s| s.name).collect();
-    let csv = args.out.join("results.csv");
-    write_csv_results(&csv, &adapter, &rows)
-        .map_err(|e| format!("cannot write {}: {e}", csv.display()))?;
     let md = markdown(&adapter, &rows, &order);
     let md_path = args.out.join("results.md");
     std::fs::write(&md_path, &md)

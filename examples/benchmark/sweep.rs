@@ -38,7 +38,7 @@ pub(crate) fn sweep(quick: bool) -> Vec<CloudQualitySettings> {
                 &[16, 24, 32, 48, 64, 96, 128],
                 &[0, 1, 2, 4, 8, 16, 32, 64],
                 &[1, 2, 4, 8],
-                &[1, 2, 3],
+                &[1, 2, 3, 4],
             )
         };
     let cycles: &[u32] = if quick { &[0] } else { &[0, 1, 2, 4] };

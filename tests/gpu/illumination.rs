@@ -547,6 +547,32 @@ fn one_particle_filling_a_fine_grid_of_256_cubed() {
     );
 }
 
+/// A fine grid past the former cap of 256: 72³ × 4 = 288³ fine voxels (one light's volume,
+/// 96 MB, fits a 128 MiB binding), so that raising `volume_resolution` never shrinks it.
+#[test]
+fn a_fine_grid_of_288_cubed() {
+    check(
+        Case {
+            particles: random_particles(23, 40),
+            medium: Medium {
+                extinction: 5.0,
+                albedo: 0.9,
+                ..Default::default()
+            },
+            lights: vec![LightSample {
+                direction: Vec3::new(-0.4, -1.0, 0.3),
+                irradiance: Vec3::new(1.0, 0.9, 0.8),
+            }],
+            transform: Transform::IDENTITY,
+            settings: CloudQualitySettings {
+                light_supersampling: 4,
+                ..common::quality(72, 2)
+            },
+        },
+        Vec3::ZERO,
+    );
+}
+
 #[test]
 fn large_particles_on_coarse_density_levels_of_odd_sizes() {
     // A fine grid of 135³: its density levels are 135, 68, 34, 17, 9, 5 voxels per side, so the
