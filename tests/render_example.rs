@@ -35,6 +35,25 @@ fn example_scene(name: &str) -> (PathBuf, PathBuf) {
     (dir, scene)
 }
 
+/// Like [`example_scene`], with the example's lights replaced by `count` grey lights of
+/// `irradiance` from one direction.
+fn example_with_lights(name: &str, count: usize, irradiance: f32) -> (PathBuf, PathBuf) {
+    let dir = scratch_dir(name);
+    let scene = dir.join("scene.ron");
+    let example = scene_format_example();
+    let start = example.find("    lights: [").expect("the example's lights");
+    let end = start + example[start..].find("    ],\n").expect("their end") + "    ],\n".len();
+    let e = irradiance;
+    let light = format!("        (direction: (-0.5, -0.8, -0.35), irradiance: ({e}, {e}, {e})),\n");
+    let lights = format!("    lights: [\n{}    ],\n", light.repeat(count));
+    std::fs::write(
+        &scene,
+        format!("{}{lights}{}", &example[..start], &example[end..]),
+    )
+    .unwrap();
+    (dir, scene)
+}
+
 fn scratch_dir(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!(
         "bevy_particle_clouds_{name}_{}",
@@ -287,18 +306,7 @@ fn the_command_line_is_checked_and_documented() {
 /// refused before anything renders, naming the field, its value and the largest that fits.
 #[test]
 fn volumes_past_the_adapters_storage_binding_are_refused_with_what_fits() {
-    let dir = scratch_dir("too_many_lights");
-    let scene = dir.join("scene.ron");
-    let example = scene_format_example();
-    let start = example.find("    lights: [").expect("the example's lights");
-    let end = start + example[start..].find("    ],\n").expect("their end") + "    ],\n".len();
-    let light = "        (direction: (-0.5, -0.8, -0.35), irradiance: (0.01, 0.01, 0.01)),\n";
-    let lights = format!("    lights: [\n{}    ],\n", light.repeat(200));
-    std::fs::write(
-        &scene,
-        format!("{}{lights}{}", &example[..start], &example[end..]),
-    )
-    .unwrap();
+    let (dir, scene) = example_with_lights("too_many_lights", 200, 0.01);
     let out = run(&[
         scene.to_str().unwrap(),
         "--out",
@@ -328,18 +336,7 @@ fn volumes_past_the_adapters_storage_binding_are_refused_with_what_fits() {
 /// (60 MB), and stderr says so; an adapter with a larger binding renders it at 4.
 #[test]
 fn the_default_supersampling_is_lowered_to_what_the_adapter_binds() {
-    let dir = scratch_dir("five_lights");
-    let scene = dir.join("scene.ron");
-    let example = scene_format_example();
-    let start = example.find("    lights: [").expect("the example's lights");
-    let end = start + example[start..].find("    ],\n").expect("their end") + "    ],\n".len();
-    let light = "        (direction: (-0.5, -0.8, -0.35), irradiance: (0.2, 0.2, 0.2)),\n";
-    let lights = format!("    lights: [\n{}    ],\n", light.repeat(5));
-    std::fs::write(
-        &scene,
-        format!("{}{lights}{}", &example[..start], &example[end..]),
-    )
-    .unwrap();
+    let (dir, scene) = example_with_lights("five_lights", 5, 0.2);
     let exr = dir.join("x.exr");
     let out = run(&[
         scene.to_str().unwrap(),
