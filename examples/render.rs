@@ -279,9 +279,9 @@ fn real_time(
 
 /// Refuses a `volume_resolution` whose volumes the adapter cannot bind, naming the largest that
 /// fits and the `light_supersampling` that would fit at this resolution. The renderer itself
-/// would lower the supersampling with a warning; a scene file renders what it says, or nothing.
-/// The default supersampling is "4, or the most the adapter's binding holds" (scene-format.md):
-/// at it, the factor is lowered as in a game, and said on stderr.
+/// would lower the fine grid with a warning; a scene file renders what it says, or nothing.
+/// The default supersampling is "4, or the largest fine grid the adapter's binding holds"
+/// (scene-format.md): at it, the fine grid is lowered as in a game, and said on stderr.
 fn check_volume_fits(app: &mut bevy::app::App, scene: &Scene, adapter: &str) -> Result<(), String> {
     let limit = app
         .sub_app(RenderApp)
@@ -294,38 +294,39 @@ fn check_volume_fits(app: &mut bevy::app::App, scene: &Scene, adapter: &str) -> 
     // An anisotropic medium's scattering volumes also hold the radiance's angular moments.
     let moments = scene.clouds.iter().any(|c| c.medium.anisotropy != 0.0);
     let fitting = |settings: &CloudQualitySettings| {
-        VolumeShape::fitting_supersampling(settings, lights, moments, limit)
+        VolumeShape::fitting_light_resolution(settings, lights, moments, limit)
     };
-    // The scene's settings at resolution `n` fit without lowering their supersampling.
+    // The scene's settings at resolution `n` fit without lowering their fine grid.
     let fits = |n: u32| {
         let settings = CloudQualitySettings {
             volume_resolution: n,
             ..scene.settings
         };
-        fitting(&settings) == Some(settings.supersampling())
+        fitting(&settings) == Some(settings.light_resolution())
     };
     if fits(resolution) {
         return Ok(());
     }
+    let wanted = scene.settings.light_resolution();
     let lower = fitting(&scene.settings);
-    let default = CloudQualitySettings::DEFAULT.light_supersampling;
-    if let Some(f) = lower.filter(|_| scene.settings.light_supersampling == default) {
+    if let Some(m) = lower.filter(|_| scene.settings.light_supersampling_is_default()) {
         eprintln!(
-            "render: light volumes of {}³ for {lights} lights exceed this adapter's storage \
-             buffers ({limit} bytes); the default light_supersampling is lowered to {f}",
-            scene.settings.light_resolution()
+            "render: light volumes of {wanted}³ for {lights} lights exceed this adapter's \
+             storage buffers ({limit} bytes); the default light_supersampling's fine grid is \
+             lowered to {m}³"
         );
         return Ok(());
     }
     let largest = (1..=resolution).rev().find(|&n| fits(n));
-    let or_lower = lower.map_or(String::new(), |f| {
+    // The fine grid that fits holds a whole factor of at least 1.
+    let or_lower = lower.map_or(String::new(), |m| {
+        let f = m / resolution;
         format!(", or settings.light_supersampling {f} at this resolution")
     });
     Err(format!(
-        "settings.volume_resolution is {resolution} (light volumes of {}³ for {lights} lights); \
-         this adapter ({adapter}) allows at most {}{or_lower} (its storage buffers hold {limit} \
-         bytes)",
-        scene.settings.light_resolution(),
+        "settings.volume_resolution is {resolution} (light volumes of {wanted}³ for {lights} \
+         lights); this adapter ({adapter}) allows at most {}{or_lower} (its storage buffers hold \
+         {limit} bytes)",
         largest.unwrap_or(0)
     ))
 }

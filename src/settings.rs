@@ -138,16 +138,17 @@ pub struct CloudQualitySettings {
     /// The multiple-scattering stencil. Default [`ScatterStencil::DiscreteOrdinates`].
     pub scatter_stencil: ScatterStencil,
     /// The density the lights shine through and each light's optical-depth volume have
-    /// `volume_resolution * light_supersampling` voxels per side (the factor lowered until that is
-    /// at most [`MAX_LIGHT_RESOLUTION`]; see [`Self::light_resolution`]). Single scattering, which
-    /// the billboards evaluate straight from these volumes, is then sharper than the
-    /// multiple-scattering grid. Allowed: `1..=MAX_LIGHT_SUPERSAMPLING`. Default 4: the fine grid
-    /// sets the error more than the scattering grid does, and 48³ at 4 beats 48³ at 3 on 19 of
-    /// the 20 benchmark scenes, for 0.99–1.50× a re-lit frame's wall time on lavapipe
-    /// (docs/performance.md, "Supersampling 4, the default"). Where one cloud's light volumes
-    /// (4 bytes a voxel, per light) would not fit the adapter's storage binding (128 MiB on
-    /// lavapipe and WebGPU's default: 5 lights at the default 48³ need 142 MB), the renderer
-    /// lowers the factor for that cloud until they do, and says so once.
+    /// `volume_resolution * light_supersampling` voxels per side, at most
+    /// [`MAX_LIGHT_RESOLUTION`] (see [`Self::light_resolution`]); this fine grid need not be a
+    /// whole multiple of the scattering grid. Single scattering, which the billboards evaluate
+    /// straight from these volumes, is then sharper than the multiple-scattering grid. Allowed:
+    /// `1..=MAX_LIGHT_SUPERSAMPLING`. Default 4: the fine grid sets the error more than the
+    /// scattering grid does, and 48³ at 4 beats 48³ at 3 on 19 of the 20 benchmark scenes, for
+    /// 0.99–1.50× a re-lit frame's wall time on lavapipe (docs/performance.md, "Supersampling 4,
+    /// the default"). Where one cloud's light volumes (4 bytes a voxel, per light) would not fit
+    /// the adapter's storage binding (128 MiB on lavapipe and WebGPU's default: 5 lights at the
+    /// default 48³ need 142 MB), the renderer shades that cloud on the largest fine grid that
+    /// fits (5 lights: 188³), at least `volume_resolution`, and says so once.
     pub light_supersampling: u32,
     /// Segments `K` of each pixel's chord through a particle at which the billboard evaluates the
     /// illumination (a big particle shows its lit and its dark side). Alpha is exact whatever
@@ -184,9 +185,10 @@ pub const COARSE_GRID_ORDERS: u32 = 32;
 /// Largest allowed `light_supersampling`.
 pub const MAX_LIGHT_SUPERSAMPLING: u32 = 4;
 /// Largest side of the fine density grid and of a light's optical-depth volume (`512³` f32 is
-/// 512 MiB): `light_supersampling` is lowered until `volume_resolution` times it fits. Twice
-/// `MAX_VOLUME_RESOLUTION`, so that the fine grid never shrinks as `volume_resolution` rises to
-/// 128 at any `light_supersampling` (an adapter's storage binding may still lower it sooner).
+/// 512 MiB): [`CloudQualitySettings::light_resolution`] is `volume_resolution` times
+/// `light_supersampling`, at most this. Twice `MAX_VOLUME_RESOLUTION`, so that the fine grid
+/// rises with `volume_resolution` to 128 at any `light_supersampling`, and never falls after (an
+/// adapter's storage binding may still lower it sooner).
 pub const MAX_LIGHT_RESOLUTION: u32 = 512;
 /// Largest allowed `chord_segments`.
 pub const MAX_CHORD_SEGMENTS: u32 = 16;
@@ -216,17 +218,21 @@ impl CloudQualitySettings {
         draw_method: DrawMethod::Raster,
     };
 
-    /// The supersampling factor in effect: `light_supersampling`, lowered (to 1 at least) until
-    /// `volume_resolution` times it is at most [`MAX_LIGHT_RESOLUTION`].
-    pub fn supersampling(&self) -> u32 {
-        let fits = (MAX_LIGHT_RESOLUTION / self.volume_resolution.max(1)).max(1);
-        self.light_supersampling.clamp(1, fits)
+    /// Voxels per side of the fine density grid and of each light's optical-depth volume:
+    /// `volume_resolution * light_supersampling`, at most [`MAX_LIGHT_RESOLUTION`] (and at least
+    /// `volume_resolution`). It never falls as either knob rises.
+    pub fn light_resolution(&self) -> u32 {
+        let wanted = self
+            .volume_resolution
+            .saturating_mul(self.light_supersampling.max(1));
+        wanted.min(MAX_LIGHT_RESOLUTION).max(self.volume_resolution)
     }
 
-    /// Voxels per side of the fine density grid and of each light's optical-depth volume:
-    /// `volume_resolution * supersampling()`.
-    pub fn light_resolution(&self) -> u32 {
-        self.volume_resolution * self.supersampling()
+    /// Whether `light_supersampling` is the default's. The renderer and the `render` tool lower
+    /// the default's fine grid to what the adapter binds as documented behaviour (info), and
+    /// any other's with a warning or a refusal.
+    pub fn light_supersampling_is_default(&self) -> bool {
+        self.light_supersampling == Self::DEFAULT.light_supersampling
     }
 
     /// The coarse-grid cycles the full series is followed by: `scatter_coarse_cycles` with the
@@ -449,31 +455,34 @@ pub enum ShadingMethod {
 mod tests {
     use super::*;
 
-    /// Raising `volume_resolution` never shrinks the fine grid, which sets the error, up to 128
-    /// at every `light_supersampling` (at 96³ × 4 the former cap of 256 gave 192, 64³'s 256
-    /// lowered), and the grid never passes `MAX_LIGHT_RESOLUTION`.
+    /// Raising `volume_resolution` or `light_supersampling` never shrinks the fine grid, which
+    /// sets the error: it rises with `volume_resolution` until it reaches `MAX_LIGHT_RESOLUTION`,
+    /// which it never passes (at 96³ × 4 the former cap of 256 gave 192, 64³'s 256; a factor
+    /// lowered to a whole number gave 160³ × 4 a grid of 480).
     #[test]
     fn the_fine_grid_grows_with_volume_resolution() {
-        for light_supersampling in 1..=MAX_LIGHT_SUPERSAMPLING {
-            let fine = |volume_resolution| {
-                CloudQualitySettings {
-                    volume_resolution,
-                    light_supersampling,
-                    ..CloudQualitySettings::DEFAULT
-                }
-                .light_resolution()
-            };
-            for n in MIN_VOLUME_RESOLUTION..128 {
-                assert!(
-                    fine(n + 1) > fine(n),
-                    "L{light_supersampling}: {n} -> {}",
-                    n + 1
-                );
+        let fine = |volume_resolution, light_supersampling| {
+            CloudQualitySettings {
+                volume_resolution,
+                light_supersampling,
+                ..CloudQualitySettings::DEFAULT
             }
-            for n in MIN_VOLUME_RESOLUTION..=MAX_VOLUME_RESOLUTION {
-                assert!(fine(n) <= MAX_LIGHT_RESOLUTION);
+            .light_resolution()
+        };
+        for l in 1..=MAX_LIGHT_SUPERSAMPLING {
+            for n in MIN_VOLUME_RESOLUTION..MAX_VOLUME_RESOLUTION {
+                let (here, next) = (fine(n, l), fine(n + 1, l));
+                assert!(next >= here, "L{l}: {n} -> {}", n + 1);
+                assert!(next > here || here == MAX_LIGHT_RESOLUTION, "L{l}: {n}");
+                assert!(next <= MAX_LIGHT_RESOLUTION && here >= n);
+                if l < MAX_LIGHT_SUPERSAMPLING {
+                    assert!(fine(n, l + 1) >= here, "L{l} -> L{}: {n}", l + 1);
+                }
             }
         }
+        assert_eq!(fine(128, 4), 512);
+        assert_eq!(fine(160, 4), 512);
+        assert_eq!(fine(256, 1), 256);
         assert_eq!(CloudQualitySettings::DEFAULT.light_resolution(), 192);
     }
 }

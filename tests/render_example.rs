@@ -331,9 +331,10 @@ fn volumes_past_the_adapters_storage_binding_are_refused_with_what_fits() {
     assert!(!dir.join("x.png").exists(), "nothing is written");
 }
 
-/// The default `light_supersampling` is "4, or the most the adapter binds": five lights at 48³ × 4
-/// (5 × 192³ floats, 142 MB) pass lavapipe's 128 MiB storage binding, so the scene renders at 3
-/// (60 MB), and stderr says so; an adapter with a larger binding renders it at 4.
+/// The default `light_supersampling` is "4, or the largest fine grid the adapter binds": five
+/// lights at 48³ × 4 (5 × 192³ floats, 142 MB) pass lavapipe's 128 MiB storage binding, so the
+/// scene renders on a fine grid of 188³ (5 × 188³ floats, 132.9 MB), and stderr says so; an
+/// adapter with a larger binding renders it at 192³.
 #[test]
 fn the_default_supersampling_is_lowered_to_what_the_adapter_binds() {
     let (dir, scene) = example_with_lights("five_lights", 5, 0.2);
@@ -358,7 +359,8 @@ fn the_default_supersampling_is_lowered_to_what_the_adapter_binds() {
         assert!(
             stderr.contains(
                 "light volumes of 192³ for 5 lights exceed this adapter's storage buffers \
-                 (134217728 bytes); the default light_supersampling is lowered to 3"
+                 (134217728 bytes); the default light_supersampling's fine grid is lowered to \
+                 188³"
             ),
             "{stderr}"
         );

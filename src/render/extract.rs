@@ -38,6 +38,11 @@ pub struct ExtractedCloud {
     /// The volume resolution its level of detail asks for (`settings.volume_resolution` when
     /// level of detail is off); the renderer moves to it when the cloud is next re-lit.
     pub lod_resolution: u32,
+    /// Voxels per side of its fine density grid and light volumes: `settings`' own
+    /// ([`CloudQualitySettings::light_resolution`]) until the cloud is prepared at the resolution
+    /// it is illuminated at this frame, where it is lowered, if need be, to fit the adapter's
+    /// storage binding.
+    pub light_resolution: u32,
     /// Whether `lod_resolution` comes from the level of detail (the `CloudLevelOfDetail`
     /// resource is enabled and the cloud has a `CloudLod`): only its changes wait for a re-light.
     pub lod_enabled: bool,
@@ -80,6 +85,7 @@ impl ExtractedCloud {
             anisotropy: 0.0,
             world_from_local: default(),
             lod_resolution: settings.volume_resolution,
+            light_resolution: settings.light_resolution(),
             settings,
             lod_enabled: false,
             visible: true,
@@ -195,6 +201,7 @@ pub(crate) fn extract_clouds(
                     world_from_local: transform.affine(),
                     settings,
                     lod_resolution,
+                    light_resolution: settings.light_resolution(),
                     lod_enabled: lod.is_some() && level_of_detail.enabled(),
                     visible: visibility.get(),
                     casts_shadows: !not_caster,

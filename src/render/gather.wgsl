@@ -1,7 +1,7 @@
-// Gather: for every voxel of the scattering grid, its density (the mean of its f^3 children in
-// the fine grid, docs/illumination.md §1) and its multiple-scattering source S_0, the
-// density-weighted mean over those children of the beams' radiance
-// (1 / 4 pi) sum_l E_l exp(-c tau_l), c the delta-M depth scale (1 for an isotropic
+// Gather: for every voxel of the scattering grid, its density (the mean of the fine grid over its
+// cube, each fine voxel weighed by its overlap with it, docs/illumination.md §1) and its
+// multiple-scattering source S_0, the density-weighted mean over those fine voxels of the beams'
+// radiance (1 / 4 pi) sum_l E_l exp(-c tau_l), c the delta-M depth scale (1 for an isotropic
 // medium), and for an anisotropic medium (shader def MOMENTS) of their flux
 // (1 / 4 pi) sum_l E_l exp(-c tau_l) d_l and quadrupole (1 / 4 pi) sum_l E_l exp(-c tau_l) (d_l d_l^T - I/3);
 // all lights in one dispatch (§3). Every cloud of a volume pool in that dispatch: z workgroup i
@@ -53,6 +53,26 @@ fn beams_at(p: vec3<f32>) -> Beams {
     return beams;
 }
 
+// The fine voxels of a grid of m per side that overlap scattering voxel `voxel` of a grid of N
+// over the same cube: per axis the first, and one past the last. In units of 1 / N of a fine
+// voxel the scattering voxel v spans [v m, (v + 1) m) and fine voxel j spans [j N, (j + 1) N),
+// so integers decide every overlap exactly (with m = f N, the f^3 children, each whole).
+fn fine_first(voxel: vec3<u32>, n: u32, m: u32) -> vec3<u32> {
+    return voxel * m / n;
+}
+
+fn fine_end(voxel: vec3<u32>, n: u32, m: u32) -> vec3<u32> {
+    return ((voxel + 1u) * m + n - 1u) / n;
+}
+
+// The part of fine voxel `child` inside scattering voxel `voxel`, in fine voxels (1 when whole).
+fn overlap(child: vec3<u32>, voxel: vec3<u32>, n: u32, m: u32) -> f32 {
+    let lo = max(child * n, voxel * m);
+    let hi = min((child + 1u) * n, (voxel + 1u) * m);
+    let w = vec3<f32>(hi - lo) / f32(n);
+    return w.x * w.y * w.z;
+}
+
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn gather(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     slot = slots[work[id.z]];
@@ -63,31 +83,36 @@ fn gather(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups)
         return;
     }
     let voxel = vec3(i % n, (i / n) % n, i / (n * n));
-    let f = cloud.supersampling;
-    let fine_h = cloud.h / f32(f);
+    let m = cloud.light_n;
+    let fine_h = cloud.h * f32(n) / f32(m);
+    let first = fine_first(voxel, n, m);
+    let span = fine_end(voxel, n, m) - first;
     var weighted: Beams;
     var mass = 0.0;
     var plain: Beams;
-    for (var s = 0u; s < f * f * f; s++) {
-        let child = voxel * f + vec3(s % f, (s / f) % f, s / (f * f));
+    for (var s = 0u; s < span.x * span.y * span.z; s++) {
+        let child = first + vec3(s % span.x, (s / span.x) % span.y, s / (span.x * span.y));
+        let w = overlap(child, voxel, n, m);
         let p = cloud.grid_origin + (vec3<f32>(child) + 0.5) * fine_h;
         let beams = beams_at(p);
-        let rho = densities[slot.fine_density + voxel_index(child, cloud.light_n)];
+        let rho = w * densities[slot.fine_density + voxel_index(child, m)];
         weighted.mean += rho * beams.mean;
-        plain.mean += beams.mean;
+        plain.mean += w * beams.mean;
 #ifdef MOMENTS
         for (var axis = 0u; axis < 3u; axis++) {
             weighted.flux[axis] += rho * beams.flux[axis];
-            plain.flux[axis] += beams.flux[axis];
+            plain.flux[axis] += w * beams.flux[axis];
         }
         for (var c = 0u; c < 5u; c++) {
             weighted.quadrupole[c] += rho * beams.quadrupole[c];
-            plain.quadrupole[c] += beams.quadrupole[c];
+            plain.quadrupole[c] += w * beams.quadrupole[c];
         }
 #endif
         mass += rho;
     }
-    let children = f32(f * f * f);
+    // The overlaps sum to (m / N)^3 fine voxels: the voxel's volume.
+    let ratio = f32(m) / f32(n);
+    let children = ratio * ratio * ratio;
     densities[slot.density + i] = mass / children;
     let filled = mass > 0.0;
     let count = select(children, mass, filled);

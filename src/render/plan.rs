@@ -87,15 +87,9 @@ impl StageKeys {
             .map(|(key, light)| (*key, bits(light.irradiance)))
             .collect();
         // The beams are seen through the δ-M depth scale (docs/illumination.md §3).
-        let gather = key_of((
-            &gather_inputs,
-            density,
-            params.supersampling,
-            params.depth_scale.to_bits(),
-        ));
+        let gather = key_of((&gather_inputs, density, params.depth_scale.to_bits()));
         let medium = key_of((
             density,
-            params.supersampling,
             params.k_local.to_bits(),
             params.albedo.to_bits(),
             [
@@ -272,7 +266,6 @@ mod tests {
         CloudParams {
             n: 16,
             light_n: 32,
-            supersampling: 2,
             k_local: 10.0,
             albedo: 0.9,
             ..default()

@@ -151,23 +151,42 @@ impl VolumeShape {
         }
     }
 
-    /// The largest `light_supersampling`, from `settings`' own in effect down to 1, at which one
-    /// such cloud's volumes fit a storage binding of `max_binding` bytes; `None` when none does.
-    pub fn fitting_supersampling(
+    /// This shape with a fine grid of `m` voxels per side.
+    pub fn with_light_resolution(self, m: u32) -> Self {
+        Self { m, ..self }
+    }
+
+    /// The largest fine grid, from `settings`' own ([`CloudQualitySettings::light_resolution`])
+    /// down to `volume_resolution`, at which one such cloud's volumes fit a storage binding of
+    /// `max_binding` bytes; `None` when none does. Any side will do: the gather averages the fine
+    /// voxels by their overlap with each scattering voxel (docs/illumination.md §1), so a
+    /// binding trims the grid by a few voxels rather than dividing it.
+    pub fn fitting_light_resolution(
         settings: &CloudQualitySettings,
         lights: u32,
         moments: bool,
         max_binding: u64,
     ) -> Option<u32> {
-        (1..=settings.supersampling())
-            .rev()
-            .find(|&light_supersampling| {
-                let at = CloudQualitySettings {
-                    light_supersampling,
-                    ..*settings
-                };
-                Self::new(&at, lights, moments).max_slots(max_binding) > 0
-            })
+        let shape = Self::new(settings, lights, moments);
+        let fits = |m: u32| shape.with_light_resolution(m).max_slots(max_binding) > 0;
+        let (mut fitting, wanted) = (settings.volume_resolution, settings.light_resolution());
+        if fits(wanted) {
+            return Some(wanted);
+        }
+        if !fits(fitting) {
+            return None;
+        }
+        // The slots' bytes grow with m: bisect between a side that fits and one that does not.
+        let mut too_large = wanted;
+        while too_large - fitting > 1 {
+            let m = (fitting + too_large) / 2;
+            *if fits(m) {
+                &mut fitting
+            } else {
+                &mut too_large
+            } = m;
+        }
+        Some(fitting)
     }
 
     fn bytes(&self) -> SlotBytes {

@@ -18,7 +18,8 @@ struct CloudParams {
     // Voxels per side N of the density and scattering volumes.
     n: u32,
     particle_count: u32,
-    // Voxels per side m of each light's optical-depth volume.
+    // Voxels per side m of the fine density grid and of each light's optical-depth volume, over
+    // the same cube as the scattering grid; any m >= N (the gather weighs overlaps).
     light_n: u32,
     // Lights in the `lights` array (and volumes in the optical-depth buffer).
     light_count: u32,
@@ -31,8 +32,6 @@ struct CloudParams {
     k_local: f32,
     albedo: f32,
     forward_scattering: f32,
-    // Fine voxels per scattering voxel and axis, f (light_supersampling in effect).
-    supersampling: u32,
     // Rows per axis of the largest particle's support in the fine grid (the voxelize dispatch).
     rows: u32,
     // Henyey-Greenstein g of the scattering towards the camera.

@@ -29,7 +29,7 @@ use crate::math::{
     density_level_sizes, light_basis,
 };
 use crate::particle::DeltaM;
-use crate::settings::{CloudQualitySettings, CloudRelightBudget};
+use crate::settings::CloudRelightBudget;
 use crate::shadow_maps::CloudShadowMaps;
 
 /// Mirror of `CloudParams` in `types.wgsl`.
@@ -39,7 +39,9 @@ pub struct CloudParams {
     pub n: u32,
     /// Particles in the cloud.
     pub particle_count: u32,
-    /// Voxels per side `m` of each light's optical-depth volume.
+    /// Voxels per side `m` of the fine density grid and of each light's optical-depth volume,
+    /// over the same cube as the scattering grid: any `m >= n` (the gather weighs the fine
+    /// voxels by their overlap with each scattering voxel).
     pub light_n: u32,
     /// Lights in the cloud's light array.
     pub light_count: u32,
@@ -55,8 +57,6 @@ pub struct CloudParams {
     pub albedo: f32,
     /// Forward-scattering fraction of the shading pass.
     pub forward_scattering: f32,
-    /// Fine voxels per scattering voxel and axis, `f` (`light_supersampling` in effect).
-    pub supersampling: u32,
     /// Rows per axis of the largest particle's support on its density level (at most 33): the voxelize dispatch is particles × rows × rows.
     pub rows: u32,
     /// Henyey–Greenstein anisotropy `g` of the scattering towards the camera.
@@ -687,8 +687,8 @@ fn frame_keys(
     )
 }
 
-/// `cloud` illuminated at `n` voxels per side, its light supersampling lowered where one such
-/// cloud's volumes would not fit the adapter's storage binding (`max_binding` bytes).
+/// `cloud` illuminated at `n` voxels per side, its fine grid lowered where one such cloud's
+/// volumes would not fit the adapter's storage binding (`max_binding` bytes).
 fn at_resolution(
     cloud: &ExtractedCloud,
     n: u32,
@@ -698,21 +698,21 @@ fn at_resolution(
     let mut cloud = cloud.clone();
     cloud.settings.volume_resolution = n;
     let (count, moments) = (lights.lights.len() as u32, cloud.has_moments());
-    let wanted = cloud.settings.supersampling();
-    // None fits: 1, and the allocation refuses the cloud with its own warning.
-    let fitting = VolumeShape::fitting_supersampling(&cloud.settings, count, moments, max_binding)
-        .unwrap_or(1);
-    cloud.settings.light_supersampling = fitting;
+    let wanted = cloud.settings.light_resolution();
+    // None fits: n, and the allocation refuses the cloud with its own warning.
+    let fitting =
+        VolumeShape::fitting_light_resolution(&cloud.settings, count, moments, max_binding)
+            .unwrap_or(n);
+    cloud.light_resolution = fitting;
     if fitting < wanted {
         let message = format!(
-            "particle cloud: light volumes of {}³ voxels for {count} lights exceed this adapter's \
-             storage buffer limit of {max_binding} bytes; `light_supersampling` is lowered from \
-             {wanted} to {fitting} for such clouds",
-            n * wanted,
+            "particle cloud: light volumes of {wanted}³ voxels for {count} lights exceed this \
+             adapter's storage buffer limit of {max_binding} bytes; such clouds are shaded on a \
+             fine grid of {fitting}³ (a scattering grid of {n}³)",
         );
         // The default's lowering is documented (5 lights at 48³ on a 128 MiB binding): not a
         // warning, which would fire for every user of such an adapter.
-        if wanted == CloudQualitySettings::DEFAULT.light_supersampling {
+        if cloud.settings.light_supersampling_is_default() {
             info_once!("{message}");
         } else {
             warn_once!("{message}");
@@ -723,19 +723,16 @@ fn at_resolution(
 
 /// The shape of the volumes `cloud` is illuminated in under `lights`.
 fn volume_shape(cloud: &ExtractedCloud, lights: &ExtractedCloudLights) -> VolumeShape {
-    VolumeShape::new(
-        &cloud.settings,
-        lights.lights.len() as u32,
-        cloud.has_moments(),
-    )
+    let count = lights.lights.len() as u32;
+    VolumeShape::new(&cloud.settings, count, cloud.has_moments())
+        .with_light_resolution(cloud.light_resolution)
 }
 
 /// The uniform of the fine grid (voxelize and shade): the same cube at `m` voxels per side.
 fn fine_params(params: &CloudParams) -> CloudParams {
     CloudParams {
         n: params.light_n,
-        h: params.h / params.supersampling as f32,
-        supersampling: 1,
+        h: params.h * params.n as f32 / params.light_n as f32,
         ..*params
     }
 }
@@ -786,7 +783,7 @@ fn cloud_params(
     CloudParams {
         n,
         particle_count: gpu.count,
-        light_n: cloud.settings.light_resolution(),
+        light_n: cloud.light_resolution,
         light_count: lights.lights.len() as u32,
         grid_origin: bounds.centre - bounds.side * 0.5,
         h: bounds.side / n as f32,
@@ -794,8 +791,7 @@ fn cloud_params(
         k_local: cloud.extinction * cloud.scale(),
         albedo: cloud.albedo,
         forward_scattering: cloud.settings.forward_scattering,
-        supersampling: cloud.settings.supersampling(),
-        rows: support_rows(bounds, cloud.settings.light_resolution()),
+        rows: support_rows(bounds, cloud.light_resolution),
         anisotropy: cloud.anisotropy,
         depth_scale: delta.depth_scale as f32,
         lit: lights.any() as u32,
@@ -810,7 +806,7 @@ fn cloud_params(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::settings::{MAX_VOLUME_RESOLUTION, MIN_VOLUME_RESOLUTION};
+    use crate::settings::{CloudQualitySettings, MAX_VOLUME_RESOLUTION, MIN_VOLUME_RESOLUTION};
 
     fn bounds(max_radius: f32) -> CloudBounds {
         CloudBounds {
@@ -885,12 +881,13 @@ mod tests {
         assert_eq!(e.size_offset[6], UVec4::ZERO);
     }
 
-    /// Five lights' volumes at 64³ × 4 or × 3 (5 × 192³ floats, 141 MB) pass a 128 MiB binding
-    /// (lavapipe's, and WebGPU's default): the supersampling drops to 2 (5 × 128³, 42 MB); one
-    /// light keeps 4 (256³, 67 MB), and so do five under a larger binding. At the default 48³,
-    /// five lights get 3.
+    /// Five lights' volumes at 64³ × 4 (5 × 256³ floats, 336 MB) pass a 128 MiB binding
+    /// (lavapipe's, and WebGPU's default): the fine grid drops to the largest whose five volumes
+    /// fit, 188³ (5 × 188³ × 4 bytes = 132.9 MB; 189³ would be 135.0 MB), not to a whole
+    /// multiple of 64 (128³). One light keeps 256³ (67 MB), and so do five under a larger
+    /// binding. At the default 48³ (192³), five lights get 188³ too, four keep 192³.
     #[test]
-    fn light_supersampling_is_lowered_until_the_volumes_fit_the_binding() {
+    fn the_fine_grid_is_lowered_until_the_volumes_fit_the_binding() {
         let lights = |count| ExtractedCloudLights {
             lights: vec![
                 CloudLight {
@@ -904,25 +901,34 @@ mod tests {
         };
         let cloud = ExtractedCloud::for_test(default());
         let fitted = |lights: &ExtractedCloudLights, n, max_binding| {
-            at_resolution(&cloud, n, lights, max_binding)
-                .settings
-                .supersampling()
+            at_resolution(&cloud, n, lights, max_binding).light_resolution
         };
         let mib_128 = 128 << 20;
         assert_eq!(cloud.settings.light_supersampling, 4);
-        assert_eq!(fitted(&lights(5), 64, mib_128), 2);
-        assert_eq!(fitted(&lights(1), 64, mib_128), 4);
-        assert_eq!(fitted(&lights(5), 64, 1 << 30), 4);
-        assert_eq!(fitted(&lights(5), 48, mib_128), 3);
-        assert_eq!(fitted(&lights(4), 48, mib_128), 4);
-        // At 128³ one light's 512³ (537 MB) and 384³ (226 MB) pass the binding: 2, then 1.
-        assert_eq!(fitted(&lights(1), 128, mib_128), 2);
-        assert_eq!(fitted(&lights(3), 128, mib_128), 1);
-        // Nothing fits: 1, and the allocation refuses the cloud with its own warning.
-        assert_eq!(fitted(&lights(1), 64, 1 << 20), 1);
+        assert_eq!(fitted(&lights(5), 64, mib_128), 188);
+        assert_eq!(fitted(&lights(1), 64, mib_128), 256);
+        assert_eq!(fitted(&lights(5), 64, 1 << 30), 256);
+        assert_eq!(fitted(&lights(5), 48, mib_128), 188);
+        assert_eq!(fitted(&lights(4), 48, mib_128), 192);
+        // At 128³ three lights' volumes bound the grid: 3 × 223³ × 4 = 133.1 MB.
+        assert_eq!(fitted(&lights(3), 128, mib_128), 223);
+        // One light's fine density (its levels, about 8/7 of m³ floats, and the 128³ scattering
+        // grid's) bounds it: about 300³, more than 64³ × 4 (the factor 2 it got before).
+        let one = fitted(&lights(1), 128, mib_128);
+        assert!((290..=310).contains(&one), "{one}");
+        let at_128 = ExtractedCloud::for_test(CloudQualitySettings {
+            volume_resolution: 128,
+            ..default()
+        });
+        let shape_128 = |m| volume_shape(&at_128, &lights(1)).with_light_resolution(m);
+        assert!(shape_128(one).max_slots(mib_128) >= 1);
+        assert_eq!(shape_128(one + 1).max_slots(mib_128), 0);
+        // Nothing fits: the scattering grid's side, and the allocation refuses the cloud with its
+        // own warning.
+        assert_eq!(fitted(&lights(1), 64, 1 << 20), 64);
         let lowered = at_resolution(&cloud, 64, &lights(5), mib_128);
-        let shape = volume_shape(&lowered, &lights(5));
-        assert_eq!((shape.n, shape.m), (64, 128));
-        assert!(shape.max_slots(mib_128) >= 1);
+        let lowered_shape = volume_shape(&lowered, &lights(5));
+        assert_eq!((lowered_shape.n, lowered_shape.m), (64, 188));
+        assert!(lowered_shape.max_slots(mib_128) >= 1);
     }
 }

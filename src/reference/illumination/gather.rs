@@ -6,7 +6,7 @@ use std::f64::consts::PI;
 use bevy::math::DVec3;
 use rayon::prelude::*;
 
-use super::interpolation::unravel;
+use super::interpolation::{overlaps, unravel};
 use super::shade::LightVolume;
 use super::voxelize::DensityGrid;
 use crate::beam_phase::BeamPhase;
@@ -123,9 +123,10 @@ pub(super) fn zip_with<T, U>(a: &[T], b: &[T], f: impl Fn(&T, &T) -> U) -> Vec<U
 }
 
 /// The multiple-scattering source `S_0` of every voxel of `grid` (contract section 3): the
-/// density-weighted mean of [`single_scattering_at`] over the centres of its `f³` children in
-/// `fine` (`f = fine.n / grid.n`), weighted by their density, or their plain mean where all of
-/// them are empty. Lights with zero irradiance may be left out.
+/// mean of [`single_scattering_at`] over the centres of the voxels of `fine` that overlap it
+/// (its `f³` children when `fine.n = f grid.n`), weighted by their density and their overlap
+/// with it, or by their overlap alone where all of them are empty. Lights with zero irradiance
+/// may be left out.
 pub fn gather(
     grid: &DensityGrid,
     fine: &DensityGrid,
@@ -145,7 +146,6 @@ pub fn gather_source(
     lights: &[(LightVolume, DVec3)],
     delta: DeltaM,
 ) -> Moments {
-    let f = fine.n / grid.n;
     let beams = |p: DVec3| {
         lights.iter().fold(BeamMoments::default(), |sum, (vol, e)| {
             let t = *e * (-vol.optical_depth_at(p) * delta.depth_scale).exp() / (4.0 * PI);
@@ -155,22 +155,19 @@ pub fn gather_source(
     let voxels: Vec<BeamMoments> = (0..grid.len())
         .into_par_iter()
         .map(|idx| {
-            let (i, j, k) = unravel(idx, grid.n);
             let (mut weighted, mut mass, mut plain) =
                 (BeamMoments::default(), 0.0, BeamMoments::default());
-            for child in 0..f * f * f {
-                let (a, b, c) = unravel(child, f);
-                let (fi, fj, fk) = (i * f + a, j * f + b, k * f + c);
+            for ((fi, fj, fk), w) in overlaps(unravel(idx, grid.n), grid.n, fine.n) {
                 let beams = beams(fine.voxel_centre(fi, fj, fk));
-                let rho = fine.rho[fine.index(fi, fj, fk)];
+                let rho = w * fine.rho[fine.index(fi, fj, fk)];
                 weighted = weighted.plus(&beams, rho);
-                plain = plain.plus(&beams, 1.0);
+                plain = plain.plus(&beams, w);
                 mass += rho;
             }
             if mass > 0.0 {
                 weighted.scaled(1.0 / mass)
             } else {
-                plain.scaled(1.0 / (f * f * f) as f64)
+                plain.scaled(1.0 / (fine.n as f64 / grid.n as f64).powi(3))
             }
         })
         .collect();

@@ -45,7 +45,7 @@ pub struct CloudIllumination {
     /// The scattering grid's density (section 1), `volume_resolution` voxels per side.
     pub grid: DensityGrid,
     /// The fine density grid the lights are shaded through (section 1), `light_resolution()`
-    /// voxels per side.
+    /// voxels per side (or the side [`illuminate_at_light_resolution`] was given).
     pub fine: DensityGrid,
     /// Local extinction `K_local = K s` used, 1/local metre.
     pub k_local: f64,
@@ -103,7 +103,24 @@ pub fn illuminate_under_sky(
     sky: DVec3,
     settings: &CloudQualitySettings,
 ) -> Option<CloudIllumination> {
-    shade_cloud(particles, medium, scale, lights_local, settings)
+    let m = settings.light_resolution();
+    illuminate_at_light_resolution(particles, medium, scale, lights_local, sky, settings, m)
+}
+
+/// [`illuminate_under_sky`] on a fine grid of `light_resolution` voxels per side (at least
+/// `settings.volume_resolution`) instead of the settings' own: what the renderer shades a cloud
+/// on where the adapter's storage binding lowers its fine grid.
+pub fn illuminate_at_light_resolution(
+    particles: &[Particle],
+    medium: &Medium,
+    scale: f64,
+    lights_local: &[LocalLight],
+    sky: DVec3,
+    settings: &CloudQualitySettings,
+    light_resolution: u32,
+) -> Option<CloudIllumination> {
+    let m = light_resolution.max(settings.volume_resolution);
+    shade_cloud(particles, medium, scale, lights_local, (settings, m))
         .map(|shaded| shaded.finish((sky, None), settings, None))
 }
 
@@ -153,12 +170,13 @@ pub fn illuminate_clouds_over_ground(
                 .map(|l| LocalLight::from_world(l, rotation))
                 .collect();
             let scale = cloud.placement.scale;
+            let m = cloud.settings.light_resolution();
             shade_cloud(
                 cloud.particles,
                 &cloud.medium,
                 scale,
                 &local,
-                &cloud.settings,
+                (&cloud.settings, m),
             )
         })
         .collect();
@@ -277,21 +295,22 @@ struct ShadedCloud {
     own: Vec<LightVolume>,
 }
 
-/// Sections 1 and 2 for one cloud (see [`illuminate_under_sky`] for the arguments).
+/// Sections 1 and 2 for one cloud (see [`illuminate_under_sky`] for the arguments) on a fine
+/// grid of `m` voxels per side.
 fn shade_cloud(
     particles: &[Particle],
     medium: &Medium,
     scale: f64,
     lights_local: &[LocalLight],
-    settings: &CloudQualitySettings,
+    (settings, m): (&CloudQualitySettings, u32),
 ) -> Option<ShadedCloud> {
-    let fine = voxelize(particles, settings.light_resolution() as usize)?;
-    let grid = fine.downsample(settings.supersampling() as usize);
+    let fine = voxelize(particles, m as usize)?;
+    let grid = fine.averaged_onto(settings.volume_resolution as usize);
     let inputs = ShadeInputs {
         k_local: medium.extinction as f64 * scale,
         albedo: medium.albedo as f64,
         forward_scattering: settings.forward_scattering as f64,
-        resolution: settings.light_resolution() as usize,
+        resolution: m as usize,
     };
     let lights: Vec<(LightVolume, DVec3)> = lights_local
         .iter()

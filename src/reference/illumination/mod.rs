@@ -32,8 +32,8 @@ pub use gather::{
 };
 pub use illuminate::{
     CloudIllumination, LocalLight, PlacedCloud, SeenIllumination, illuminate,
-    illuminate_clouds_over_ground, illuminate_clouds_under_sky, illuminate_scene,
-    illuminate_scene_cloud, illuminate_under_sky,
+    illuminate_at_light_resolution, illuminate_clouds_over_ground, illuminate_clouds_under_sky,
+    illuminate_scene, illuminate_scene_cloud, illuminate_under_sky,
 };
 pub use scatter::{
     MAX_ORDER_RATIO, MODE_SEPARATION, MultipleScattering, SERIES_BELOW, SeriesClosure,

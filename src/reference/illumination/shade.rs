@@ -10,7 +10,7 @@ use crate::math::light_basis;
 /// One light's optical depth sampled on its light-aligned box (contract section 2).
 #[derive(Clone, Debug, PartialEq)]
 pub struct LightVolume {
-    /// Voxels per axis, `m = volume_resolution * light_supersampling` (at most `MAX_LIGHT_RESOLUTION`, 512).
+    /// Voxels per axis, `m`: the fine grid's ([`CloudQualitySettings::light_resolution`](crate::settings::CloudQualitySettings::light_resolution)).
     pub n: usize,
     /// Centre of the box: the density cube's centre `C`, local metres.
     pub centre: DVec3,

@@ -6,7 +6,7 @@ use std::ops::{Add, Mul};
 use bevy::math::DVec3;
 
 use super::interpolation::{
-    Entries, axis_clamped, axis_zero_border, trilinear, trilinear_of, unravel,
+    Entries, axis_clamped, axis_zero_border, overlaps, trilinear, trilinear_of, unravel,
 };
 use crate::math::{density_level, density_level_sizes, kernel_u2, level_kernel_radius};
 use crate::particle::Particle;
@@ -120,19 +120,28 @@ impl DensityGrid {
             "{f} must divide {}",
             self.n
         );
-        let n = self.n / f;
-        let mut rho = vec![0.0; n * n * n];
-        for (idx, value) in self.rho.iter().enumerate() {
-            let (i, j, k) = unravel(idx, self.n);
-            rho[i / f + n * (j / f + n * (k / f))] += value;
-        }
-        let children = (f * f * f) as f64;
-        rho.iter_mut().for_each(|r| *r /= children);
+        self.averaged_onto(self.n / f)
+    }
+
+    /// The same cube at `n <= self.n` voxels per side, each the mean of this grid over its
+    /// cube: every voxel of this grid weighed by its overlap with it (mass-exact; contract
+    /// section 1). With `self.n = f n`, the mean of its `f³` children.
+    pub fn averaged_onto(&self, n: usize) -> DensityGrid {
+        assert!((1..=self.n).contains(&n), "{n} must be in 1..={}", self.n);
+        let volume = (self.n as f64 / n as f64).powi(3);
+        let rho = (0..n * n * n)
+            .map(|idx| {
+                overlaps(unravel(idx, n), n, self.n)
+                    .map(|((i, j, k), w)| w * self.rho[self.index(i, j, k)])
+                    .sum::<f64>()
+                    / volume
+            })
+            .collect();
         DensityGrid {
             n,
             centre: self.centre,
             side: self.side,
-            h: self.h * f as f64,
+            h: self.side / n as f64,
             rho,
         }
     }
@@ -565,5 +574,20 @@ mod tests {
             .sum();
         assert!((coarse.rho[coarse.index(1, 2, 3)] - children / 64.0).abs() < 1e-12);
         assert_eq!(fine.downsample(1), fine);
+        // Onto a side that does not divide it: still mass-exact, each voxel the fine grid's
+        // mean over its cube.
+        let odd = fine.averaged_onto(5);
+        assert!((odd.h - fine.side / 5.0).abs() < 1e-15);
+        assert!((odd.mass() - fine.mass()).abs() < 1e-12 * fine.mass());
+        let share = 16.0 / 5.0 - 3.0;
+        let first: f64 = (0..4)
+            .flat_map(|k| (0..4).flat_map(move |j| (0..4).map(move |i| (i, j, k))))
+            .map(|(i, j, k)| {
+                let w = |a: usize| if a == 3 { share } else { 1.0 };
+                w(i) * w(j) * w(k) * fine.rho[fine.index(i, j, k)]
+            })
+            .sum();
+        let cube = (16.0f64 / 5.0).powi(3);
+        assert!((odd.rho[0] - first / cube).abs() < 1e-12 * first.max(1e-300));
     }
 }
