@@ -57,7 +57,7 @@ pub struct CloudParams {
     pub albedo: f32,
     /// Forward-scattering fraction of the shading pass.
     pub forward_scattering: f32,
-    /// Rows per axis of the largest particle's support on its density level (at most 33): the voxelize dispatch is particles × rows × rows.
+    /// Rows per axis of the largest particle's support on its density level (at most 65): the voxelize dispatch is particles × rows × rows.
     pub rows: u32,
     /// Henyey–Greenstein anisotropy `g` of the scattering towards the camera.
     pub anisotropy: f32,
@@ -757,7 +757,7 @@ fn levels_in_use(bounds: CloudBounds, m: u32) -> usize {
 /// side over `bounds`: the largest particle's on its level (at most `2 r / h_l + 1` voxel
 /// centres, and no more than the level holds), and, when that level is coarse, those of the
 /// particles on finer levels, which span up to `MAX_RADIUS_IN_LEVEL_VOXELS` of their own voxels
-/// (no more than the fine grid holds). So at most 33: the voxelize dispatch takes rows² along y,
+/// (no more than the fine grid holds). So at most 65: the voxelize dispatch takes rows² along y,
 /// at most 65535.
 fn support_rows(bounds: CloudBounds, m: u32) -> u32 {
     let (r_over_h, level) = largest_particle(bounds, m);
@@ -817,7 +817,7 @@ mod tests {
     }
 
     /// The voxelize dispatch no longer grows with the particles' size: a particle as wide as
-    /// the grid takes no more rows than one 16 voxels wide.
+    /// the grid takes no more rows than one 32 voxels wide.
     #[test]
     fn voxelize_rows_are_bounded_whatever_the_particles_size() {
         let m = 144;
@@ -825,10 +825,11 @@ mod tests {
         assert_eq!(support_rows(bounds(0.5 * h), m), 3);
         assert_eq!(support_rows(bounds(3.5 * h), m), 9);
         assert_eq!(support_rows(bounds(16.0 * h), m), 33);
-        for r_over_h in [16.5, 32.0, 33.0, 40.0, 72.0] {
+        assert_eq!(support_rows(bounds(32.0 * h), m), 65);
+        for r_over_h in [32.5, 64.0, 65.0, 80.0, 144.0] {
             assert_eq!(
                 support_rows(bounds(r_over_h * h), m),
-                33,
+                65,
                 "r/h = {r_over_h}"
             );
         }
@@ -847,7 +848,7 @@ mod tests {
         ] {
             for r in [0.01, 0.5, 1.0, 2.0, 100.0] {
                 let rows = support_rows(bounds(r), m);
-                assert!((1..=33).contains(&rows), "m {m}, r {r}: {rows} rows");
+                assert!((1..=65).contains(&rows), "m {m}, r {r}: {rows} rows");
             }
         }
     }
@@ -856,11 +857,12 @@ mod tests {
     fn only_levels_holding_particles_are_upsampled() {
         let m = 144;
         let h = 2.0 / m as f32;
-        assert_eq!(levels_in_use(bounds(15.9 * h), m), 1);
+        assert_eq!(levels_in_use(bounds(31.9 * h), m), 1);
         // At the boundary the GPU may round either way: the next level is upsampled too.
-        assert_eq!(levels_in_use(bounds(16.0 * h), m), 2);
-        assert_eq!(levels_in_use(bounds(16.5 * h), m), 2);
-        assert_eq!(levels_in_use(bounds(72.0 * h), m), 4);
+        assert_eq!(levels_in_use(bounds(32.0 * h), m), 2);
+        assert_eq!(levels_in_use(bounds(32.5 * h), m), 2);
+        assert_eq!(levels_in_use(bounds(72.0 * h), m), 3);
+        assert_eq!(levels_in_use(bounds(144.0 * h), m), 4);
     }
 
     #[test]

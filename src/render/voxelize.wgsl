@@ -1,6 +1,6 @@
 // Voxelize: every particle deposits its mass into its cloud's (fine) density grid
-// (docs/illumination.md §1). A particle wider than 16 voxels deposits on a coarser density level
-// instead, so that none visits more than 33³ voxels; the levels are then enlarged into the fine
+// (docs/illumination.md §1). A particle wider than 32 voxels deposits on a coarser density level
+// instead, so that none visits more than 65³ voxels; the levels are then enlarged into the fine
 // grid, coarsest first. One invocation per row of voxels of a particle's support, in two passes
 // (the kernel's sum over the support, then the deposit); float atomics by compare-exchange.
 // Every cloud of a volume pool in one dispatch: z workgroup i voxelizes `work[i]`, whose particles

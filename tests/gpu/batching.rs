@@ -187,18 +187,20 @@ fn a_growing_pool_keeps_what_its_clouds_hold() {
 #[test]
 fn clouds_on_different_density_levels_are_voxelized_together() {
     let mut app = scene();
-    // A fine grid of 72³ (24³ at supersampling 3): levels of 72, 36, 18, 9 and 5 voxels per side.
+    // A fine grid of 144³ (36³ at supersampling 4): levels of 144, 72, 36, 18, 9 and 5 voxels
+    // per side.
     let settings = CloudQualitySettings {
-        light_supersampling: 3,
-        ..common::quality(24, 2)
+        light_supersampling: 4,
+        ..common::quality(36, 2)
     };
     let medium = Medium {
         extinction: 2.0,
         albedo: 0.9,
         ..default()
     };
-    // Small particles in a ball, and at its centre one of radius `largest`: about 8, 20 and 36
-    // fine voxels (its cube is at least 1.3 and 2.2 m wide), on levels 0, 1 and 2.
+    // Small particles in a ball, and at its centre one of radius `largest`: about 5, 44 and 72
+    // fine voxels (its cube is at least 1.3 and 2.2 m wide), on levels 0, 1 and 2 (a level
+    // takes radii up to 32 of its voxels).
     let mut rng = SplitMix64::new(5);
     let mut particles = |largest: f32| -> Vec<Particle> {
         (0..40)
@@ -210,8 +212,8 @@ fn clouds_on_different_density_levels_are_voxelized_together() {
                 },
                 radius: match i {
                     0 => largest,
-                    // Beside a particle on level 2 (18 voxels per side), one on the fine grid
-                    // whose support spans about 29 rows of it.
+                    // Beside a particle on level 2 (36 rows, its level's whole side), one on
+                    // the fine grid, 29.5 of its voxels in radius, whose support spans 61 rows.
                     1 if largest > 1.0 => 0.45,
                     _ => 0.06 + 0.1 * rng.next_f32(),
                 },
