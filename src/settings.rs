@@ -95,8 +95,8 @@ pub struct CloudQualitySettings {
     /// benchmark scene is within its accuracy goal. The image's error follows the fine grid
     /// (`volume_resolution * light_supersampling`) more than this: raise `light_supersampling`
     /// first (docs/performance.md, "The fine grid, not the scattering grid, sets the error").
-    /// Past 64 the error does not fall on every scene, least where the adapter's storage
-    /// binding lowers the supersampling (README, "Limitations").
+    /// Past 96 the error does not fall on every benchmark scene (on the cumulus scenes 128 reads
+    /// up to 0.0005 above 96; docs/performance.md, "Results").
     pub volume_resolution: u32,
     /// Multiple-scattering iterations `M` (scattering orders computed beyond the first); the
     /// orders past `M` are estimated from the last four (two geometric modes), then
@@ -143,8 +143,8 @@ pub struct CloudQualitySettings {
     /// whole multiple of the scattering grid. Single scattering, which the billboards evaluate
     /// straight from these volumes, is then sharper than the multiple-scattering grid. Allowed:
     /// `1..=MAX_LIGHT_SUPERSAMPLING`. Default 4: the fine grid sets the error more than the
-    /// scattering grid does, and 48³ at 4 beats 48³ at 3 on 19 of the 20 benchmark scenes, for
-    /// 0.99–1.50× a re-lit frame's wall time on lavapipe (docs/performance.md, "Supersampling 4,
+    /// scattering grid does, and 48³ at 4 beats 48³ at 3 on 18 of the 20 benchmark scenes, for
+    /// 0.89–1.61× a re-lit frame's wall time on lavapipe (docs/performance.md, "Supersampling 4,
     /// the default"). Where one cloud's light volumes (4 bytes a voxel, per light) would not fit
     /// the adapter's storage binding (128 MiB on lavapipe and WebGPU's default: 5 lights at the
     /// default 48³ need 142 MB), the renderer shades that cloud on the largest fine grid that

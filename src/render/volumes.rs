@@ -912,6 +912,9 @@ mod tests {
         assert_eq!(fitted(&lights(5), 64, 1 << 30), 256);
         assert_eq!(fitted(&lights(5), 48, mib_128), 188);
         assert_eq!(fitted(&lights(4), 48, mib_128), 192);
+        // More lights share the binding: ten get 149³ (132.3 MB), twenty 118³ (131.4 MB).
+        assert_eq!(fitted(&lights(10), 48, mib_128), 149);
+        assert_eq!(fitted(&lights(20), 48, mib_128), 118);
         // At 128³ three lights' volumes bound the grid: 3 × 223³ × 4 = 133.1 MB.
         assert_eq!(fitted(&lights(3), 128, mib_128), 223);
         // One light's fine density (its levels, about 8/7 of m³ floats, and the 128³ scattering
