@@ -408,10 +408,11 @@ fn size_and_settings_overrides_reach_the_image_and_its_metadata() {
     assert!(metadata.get("render_time_s").is_some());
 }
 
-/// `--set draw_method=Compute` (a scene file's `settings.draw_method`) renders the rasterised
-/// image: the clouds' pixels summed by a compute shader, composited over the same objects.
+/// `--set draw_method=Raster` (a scene file's `settings.draw_method`) renders the default's
+/// image: the clouds' billboards rasterised in the `Transparent3d` phase instead of their pixels
+/// summed by a compute shader, over the same objects.
 #[test]
-fn a_scene_drawn_by_compute_renders_the_rasterised_image() {
+fn a_rasterised_scene_renders_the_computed_image() {
     let (dir, scene) = example_scene("compute");
     let render = |name: &str, extra: &[&str]| {
         let exr = dir.join(name);
@@ -433,10 +434,12 @@ fn a_scene_drawn_by_compute_renders_the_rasterised_image() {
         );
         read_exr_with_metadata(&exr).unwrap()
     };
-    let (raster, _) = render("raster.exr", &[]);
-    let (computed, metadata) = render("computed.exr", &["--set", "draw_method=Compute"]);
+    let (computed, metadata) = render("computed.exr", &[]);
     let settings = metadata.get("settings").expect("settings in the metadata");
     assert!(settings.contains("Compute"), "{settings}");
+    let (raster, metadata) = render("raster.exr", &["--set", "draw_method=Raster"]);
+    let settings = metadata.get("settings").expect("settings in the metadata");
+    assert!(settings.contains("Raster"), "{settings}");
     let peak = raster
         .pixels
         .iter()

@@ -850,6 +850,8 @@ fn replot(args: &Args) -> Result<(), String> {
     let shading = table.column("billboard_shading").ok();
     // Written before the coarse-grid cycles existed: none.
     let cycles = table.column("scatter_coarse_cycles").ok();
+    // Written before the draw method was recorded: rasterised (the default then).
+    let draw_method = table.column("draw_method").ok();
     let (gpu, wall, rmse, noise, spp, pareto, axis) =
         (gpu?, wall?, rmse?, noise?, spp?, pareto?, axis?);
     let mut rows = Vec::new();
@@ -889,8 +891,10 @@ fn replot(args: &Args) -> Result<(), String> {
             },
             // The sweep draws at full size; `--cloud-target` measures the scales.
             cloud_target_scale: 1.0,
-            // The sweep rasterises; `--frame-budget --settings` measures the compute draw.
-            draw_method: DrawMethod::Raster,
+            draw_method: match draw_method.map(f) {
+                Some("Compute") => DrawMethod::Compute,
+                _ => DrawMethod::Raster,
+            },
             // The sweep's frames are still; `--warm-start` measures the warm restart.
             warm_scatter_iterations: 0,
             scatter_coarse_cycles: cycles.map_or(0, |c| num(c) as u32),

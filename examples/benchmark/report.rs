@@ -56,8 +56,8 @@ pub(crate) fn setting_label(s: &CloudQualitySettings) -> String {
         String::new()
     };
     let method = match s.draw_method {
-        DrawMethod::Raster => "",
-        DrawMethod::Compute => " compute",
+        DrawMethod::Raster => " raster",
+        DrawMethod::Compute => "",
     };
     let cycles = match s.scatter_coarse_cycles {
         0 => String::new(),
@@ -136,6 +136,7 @@ struct CsvRow<'a> {
     light_supersampling: u32,
     compositing: String,
     billboard_shading: String,
+    draw_method: String,
     scatter_coarse_cycles: u32,
     is_default: bool,
     gpu_ms_total: f64,
@@ -181,6 +182,7 @@ impl<'a> CsvRow<'a> {
             light_supersampling: s.light_supersampling,
             compositing: format!("{:?}", s.compositing),
             billboard_shading: format!("{:?}", s.billboard_shading),
+            draw_method: format!("{:?}", s.draw_method),
             scatter_coarse_cycles: s.scatter_coarse_cycles,
             is_default: *s == CloudQualitySettings::default(),
             gpu_ms_total: t.gpu_ms_total,

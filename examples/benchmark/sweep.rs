@@ -103,6 +103,11 @@ pub(crate) fn sweep(quick: bool) -> Vec<CloudQualitySettings> {
         });
     }
     add(PREVIOUS_DEFAULT);
+    // The rasterised draw, the default before 2026-11-28: its blend rounds after every particle.
+    add(CloudQualitySettings {
+        draw_method: DrawMethod::Raster,
+        ..base
+    });
     let paper: &[u32] = if quick { &[48] } else { &[32, 48, 128] };
     for &volume_resolution in paper {
         add(CloudQualitySettings {

@@ -345,8 +345,10 @@ fn multiple_towards(p: vec3<f32>, w: vec3<f32>) -> vec3<f32> {
     for (var corner = 0u; corner < 8u; corner++) {
         s_m += corner_weight(t, corner) * multiple[first + clamped_corner(t, corner, n)].xyz;
     }
+    // The cycles' last sweep may leave S_m a relative 1e-4 below 0 beside a sharp edge of the
+    // light; summed in f32 over thousands of particles that would show as a negative pixel.
     if cloud.moments == 0u || seen_from_camera() {
-        return s_m;
+        return max(s_m, vec3(0.0));
     }
     var flux = array<vec3<f32>, 3>();
     var quadrupole = array<vec3<f32>, 5>();

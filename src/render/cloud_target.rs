@@ -331,7 +331,10 @@ fn choose_cloud_targets(
             && !*warned
         {
             *warned = true;
-            warn!("`draw_method` Compute: {reason}; its clouds are rasterised");
+            warn!(
+                "the clouds' draw cannot be computed on this adapter ({reason}): they are \
+                 rasterised (`draw_method: Raster` asks for that and silences this)"
+            );
         }
         // No cloud in view: no target (and no texture kept alive).
         if (scale >= 1.0 && !compute) || seen.is_empty() {

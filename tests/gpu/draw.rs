@@ -16,7 +16,7 @@ use bevy_particle_clouds::fog::{Falloff, Fog};
 use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
     BillboardShading, CloudGround, CloudPass, CloudQualitySettings, CloudSkyLight, Compositing,
-    LightSample, Medium, Particle, ParticleCloud,
+    DrawMethod, LightSample, Medium, Particle, ParticleCloud,
     generators::SplitMix64,
     image_io::LinearImage,
     reference::{
@@ -444,16 +444,22 @@ pub(crate) fn assert_images_match_except(
 
 const COMPOSITINGS: [Compositing; 2] = [Compositing::ViewTransmittance, Compositing::Sorted];
 
+/// Both compositings, each drawn both ways: rasterised in the `Transparent3d` phase, and computed
+/// (the default) into a full-size cloud target, where a sorted cloud is rasterised.
 #[test]
 fn a_cloud_image_equals_the_cpu_billboard_reference() {
-    for compositing in COMPOSITINGS {
-        let mut setup = cloud_setup(
-            21,
-            Transform::from_xyz(0.3, 0.4, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
-        );
-        setup.settings.compositing = compositing;
-        let (_, _, gpu) = render(&setup);
-        assert_images_match(&gpu.image, &reference(&setup), &format!("{compositing:?}"));
+    for method in [DrawMethod::Raster, DrawMethod::Compute] {
+        for compositing in COMPOSITINGS {
+            let mut setup = cloud_setup(
+                21,
+                Transform::from_xyz(0.3, 0.4, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
+            );
+            setup.settings.compositing = compositing;
+            setup.settings.draw_method = method;
+            let (_, _, gpu) = render(&setup);
+            let what = format!("{method:?}, {compositing:?}");
+            assert_images_match(&gpu.image, &reference(&setup), &what);
+        }
     }
 }
 

@@ -166,3 +166,50 @@ fn the_splat_dispatches_once_per_batch_and_draws_every_cloud_of_it() {
     assert_eq!(last.runs(CloudPass::Draw), 5);
     assert_images_match(&image, &reference_of_clouds(&setup, &clouds), "five clouds");
 }
+
+/// A thin plume of 600 particles, over 200 of them over the centre pixel: the default draw sums
+/// them in f32 and keeps the image's energy, where a blend that rounds after every particle
+/// loses it (llvmpipe's conversion to f16 rounds towards zero: the rasterised thin_smoke
+/// benchmark scene reads 1.2 % dark, docs/performance.md, "The draw's rounding"). Both are
+/// compared with the CPU billboard reference; only the default is held to the f32 bound.
+#[test]
+fn many_thin_layers_keep_their_energy_in_the_default_draw() {
+    let camera = Transform::from_xyz(0.0, 0.0, 3.2).looking_at(Vec3::ZERO, Vec3::Y);
+    let mut setup = cloud_setup(21, camera);
+    let mut rng = bevy_particle_clouds::generators::SplitMix64::new(5);
+    setup.particles = (0..600)
+        .map(|_| Particle {
+            position: rng.in_unit_ball() * 0.7,
+            radius: 0.3 + 0.2 * rng.next_f32(),
+            density: 0.5 + rng.next_f32(),
+        })
+        .collect();
+    setup.medium.extinction = 0.2;
+    assert_eq!(setup.settings.draw_method, DrawMethod::Compute);
+    let cpu = reference(&setup);
+    let energy = |pixels: &[[f32; 4]]| {
+        pixels
+            .iter()
+            .map(|p| (p[0] + p[1] + p[2]) as f64)
+            .sum::<f64>()
+    };
+    let layers = setup
+        .particles
+        .iter()
+        .filter(|p| p.position.truncate().length() < p.radius)
+        .count();
+    assert!(layers > 100, "{layers} particles cover the centre");
+    for method in [DrawMethod::Raster, DrawMethod::Compute] {
+        setup.settings.draw_method = method;
+        let (_, _, gpu) = render(&setup);
+        let ratio = energy(&gpu.image.pixels) / energy(&cpu);
+        eprintln!("{method:?}: energy against the CPU reference {ratio:.5} ({layers} layers)");
+        if method == DrawMethod::Compute {
+            assert!(
+                (ratio - 1.0).abs() < 1e-3,
+                "the computed draw's energy is {ratio} of the CPU reference's"
+            );
+            assert_images_match(&gpu.image, &cpu, "computed, thin layers");
+        }
+    }
+}

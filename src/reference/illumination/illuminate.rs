@@ -429,14 +429,16 @@ impl CloudIllumination {
     }
 
     /// The multiple scattering at local point `p` scattered towards the unit direction `w`
-    /// (section 5): `S_m(p)`, and for an anisotropic medium the Henyey–Greenstein phase function
-    /// applied to its first three angular moments,
+    /// (section 5): `max(S_m(p), 0)`, and for an anisotropic medium the Henyey–Greenstein phase
+    /// function applied to its first three angular moments,
     /// `max(mean + 3 g F . w + (15/2) g² w^T Q w, 0)`; all trilinear and clamped to the edge.
+    /// The cycles' last sweep may leave `S_m` a relative 1e-4 below 0 beside a sharp edge of the
+    /// light; radiance is not negative.
     pub fn multiple_towards(&self, p: DVec3, w: DVec3) -> DVec3 {
         let m = &self.multiple;
         let mean = self.grid.sample_clamped(&m.total, p);
         if m.flux.is_empty() {
-            return mean;
+            return mean.max(DVec3::ZERO);
         }
         let g = self.anisotropy;
         let flux = self.grid.sample_clamped_array(&m.flux, p);
