@@ -76,16 +76,16 @@ pub enum DrawMethod {
     /// fragment shader shades each pixel of it, blended into the view's target after every
     /// particle. For views that interleave clouds with transparent meshes. The blend rounds
     /// after each particle into the target's f16: on llvmpipe, whose conversion to f16 rounds
-    /// towards zero, that darkens the image by 0.1-1.3 % of its energy (relative RMSE +0.0054 on
-    /// the `cumulus` benchmark scene, +0.015 on `thin_smoke`; docs/performance.md, "The draw's
-    /// rounding").
+    /// towards zero, that darkens the image by 0.1-1.3 % of its energy (its relative RMSE
+    /// against the path tracer +0.0027 on the `cumulus` benchmark scene, +0.0149 on
+    /// `thin_smoke`; docs/performance.md, "The draw's rounding").
     Raster,
     /// A compute shader evaluates the same pixels of every view-transmittance cloud and sums
     /// their light and optical depth per pixel of a cloud target (at `cloud_target_scale`, full
     /// size included) in f32, which is then composited onto the view, between the opaque and the
-    /// transparent passes. The default: exact, and faster on every adapter measured (on an
-    /// NVIDIA H200 the computed draw takes 0.032× the rasterised one's time, on llvmpipe 0.57×;
-    /// docs/performance.md, "On a real GPU"). `Sorted` clouds are still rasterised, into the
+    /// transparent passes. The default: exact, and the faster draw of the paper's scene on both
+    /// adapters measured (0.032× the rasterised draw's time on an NVIDIA H200, 0.57× on
+    /// llvmpipe; docs/performance.md, "On a real GPU"). `Sorted` clouds are still rasterised, into the
     /// same target, over the computed ones; where the adapter cannot compute the draw (a target
     /// above its storage binding, fewer than 10 storage buffers per stage), the view is
     /// rasterised.
@@ -104,8 +104,8 @@ pub struct CloudQualitySettings {
     /// benchmark scene is within its accuracy goal. The image's error follows the fine grid
     /// (`volume_resolution * light_supersampling`) more than this: raise `light_supersampling`
     /// first (docs/performance.md, "The fine grid, not the scattering grid, sets the error").
-    /// Past 96 the error does not fall on every benchmark scene (on the cumulus scenes 128 reads
-    /// up to 0.0005 above 96; docs/performance.md, "Results").
+    /// Past 96 the error does not fall on every benchmark scene (on the cumulus scenes and
+    /// `albedo_one` 128 reads up to 0.0005 above 96; docs/performance.md, "Results").
     pub volume_resolution: u32,
     /// Multiple-scattering iterations `M` (scattering orders computed beyond the first); the
     /// orders past `M` are estimated from the last four (two geometric modes), then

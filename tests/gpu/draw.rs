@@ -748,3 +748,62 @@ fn the_camera_inside_a_cloud_sees_finite_partial_chords() {
         );
     }
 }
+
+/// A cloud re-lit because its particles changed (the same particles) draws the image it drew
+/// first: nothing of the previous solve leaks into the next. An albedo-1 medium, whose
+/// scattering amplifies any leak the most. (On llvmpipe the three re-lit images are the first,
+/// bit for bit; the benchmark's `albedo_one` varies by 0.001 from run to run for another reason:
+/// docs/performance.md, "The draw's rounding".)
+#[test]
+fn a_cloud_relit_with_the_same_particles_draws_the_same_image() {
+    let mut setup = cloud_setup(
+        21,
+        Transform::from_xyz(0.3, 0.4, 4.0).looking_at(Vec3::ZERO, Vec3::Y),
+    );
+    setup.medium.albedo = 1.0;
+    setup.medium.extinction = 20.0;
+    setup.settings = CloudQualitySettings::default();
+    let (mut app, target, first) = render(&setup);
+    let energy = |pixels: &[[f32; 4]]| {
+        pixels
+            .iter()
+            .map(|p| (p[0] + p[1] + p[2]) as f64)
+            .sum::<f64>()
+    };
+    for round in 1..=3 {
+        let handles: Vec<_> = app
+            .world_mut()
+            .query::<&ParticleCloud>()
+            .iter(app.world())
+            .map(|c| c.particles.clone())
+            .collect();
+        for handle in handles {
+            let mut assets = app
+                .world_mut()
+                .resource_mut::<Assets<bevy_particle_clouds::Particles>>();
+            let _ = assets.get_mut(&handle).expect("particles");
+        }
+        let mut frames = FrameRecorder::default();
+        headless::render_until_steady(&mut app, &mut frames, target.drawable_clouds, 20).unwrap();
+        let image = headless::capture(&mut app, &mut frames, &target.image).unwrap();
+        let ratio = energy(&image.pixels) / energy(&first.image.pixels);
+        let worst = image
+            .pixels
+            .iter()
+            .zip(&first.image.pixels)
+            .flat_map(|(a, b)| (0..3).map(move |i| (a[i] - b[i]).abs()))
+            .fold(0f32, f32::max);
+        let peak = first
+            .image
+            .pixels
+            .iter()
+            .flat_map(|p| &p[..3])
+            .fold(0f32, |m, v| m.max(*v));
+        eprintln!("re-lit {round}: energy {ratio:.6} of the first image's, worst pixel {worst:e}");
+        assert!((ratio - 1.0).abs() < 1e-4, "re-lit {round}: energy {ratio}");
+        assert!(
+            worst <= 1e-3 * peak,
+            "re-lit {round}: a pixel moved by {worst}"
+        );
+    }
+}
