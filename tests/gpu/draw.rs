@@ -786,6 +786,11 @@ fn a_cloud_relit_with_the_same_particles_draws_the_same_image() {
         let mut frames = FrameRecorder::default();
         headless::render_until_steady(&mut app, &mut frames, target.drawable_clouds, 20).unwrap();
         let image = headless::capture(&mut app, &mut frames, &target.image).unwrap();
+        let relit = |pass| frames.frames.iter().map(|f| f.runs(pass)).sum::<u32>();
+        assert!(
+            relit(CloudPass::Voxelize) > 0 && relit(CloudPass::Scatter) > 0,
+            "re-lit {round}: the touched particles reran no voxelize or scatter"
+        );
         let ratio = energy(&image.pixels) / energy(&first.image.pixels);
         let worst = image
             .pixels
