@@ -390,6 +390,11 @@ pub(crate) fn object_edges(setup: &mut Setup) -> Vec<bool> {
         .collect()
 }
 
+/// The sum of an image's RGB radiance over its pixels.
+pub(crate) fn energy(pixels: &[[f32; 4]]) -> f64 {
+    pixels.iter().map(|p| (p[0] + p[1] + p[2]) as f64).sum()
+}
+
 pub(crate) fn assert_images_match(gpu: &LinearImage, cpu: &[[f32; 4]], what: &str) {
     assert_images_match_except(gpu, cpu, what, &vec![false; cpu.len()]);
 }
@@ -764,12 +769,6 @@ fn a_cloud_relit_with_the_same_particles_draws_the_same_image() {
     setup.medium.extinction = 20.0;
     setup.settings = CloudQualitySettings::default();
     let (mut app, target, first) = render(&setup);
-    let energy = |pixels: &[[f32; 4]]| {
-        pixels
-            .iter()
-            .map(|p| (p[0] + p[1] + p[2]) as f64)
-            .sum::<f64>()
-    };
     for round in 1..=3 {
         let handles: Vec<_> = app
             .world_mut()

@@ -11,8 +11,8 @@ use bevy_particle_clouds::{
 use crate::{
     cloud_target::{occluded_setup, rgba16f, view_textures},
     draw::{
-        SetupCloud, assert_images_match, cloud_setup, reference, reference_of_clouds, render,
-        spawn_clouds,
+        SetupCloud, assert_images_match, cloud_setup, energy, reference, reference_of_clouds,
+        render, spawn_clouds,
     },
 };
 
@@ -187,12 +187,6 @@ fn many_thin_layers_keep_their_energy_in_the_default_draw() {
     setup.medium.extinction = 0.2;
     assert_eq!(setup.settings.draw_method, DrawMethod::Compute);
     let cpu = reference(&setup);
-    let energy = |pixels: &[[f32; 4]]| {
-        pixels
-            .iter()
-            .map(|p| (p[0] + p[1] + p[2]) as f64)
-            .sum::<f64>()
-    };
     let layers = setup
         .particles
         .iter()
