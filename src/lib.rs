@@ -92,8 +92,8 @@ pub use ground::CloudGround;
 pub use lod::{CloudLevelOfDetail, CloudLod};
 pub use particle::{LightSample, Medium, Particle};
 pub use settings::{
-    BillboardShading, CloudQualitySettings, CloudRelightBudget, CloudTargetScale, Compositing,
-    DefaultCloudQuality, DrawMethod, ScatterStencil,
+    BillboardShading, CloudQualitySettings, CloudRedraw, CloudRelightBudget, CloudTargetScale,
+    Compositing, DefaultCloudQuality, DrawMethod, ScatterStencil,
 };
 pub use shadow_maps::{CloudLight, CloudLights, CloudShadowMaps};
 pub use stats::{CloudPass, CloudPassCounters, PASSES};
@@ -102,9 +102,9 @@ pub use stats::{CloudPass, CloudPassCounters, PASSES};
 pub mod prelude {
     pub use crate::{
         BillboardShading, CloudGround, CloudLevelOfDetail, CloudLod, CloudQualitySettings,
-        CloudRelightBudget, CloudShadowMaps, CloudSkyLight, CloudSystems, CloudTargetScale,
-        Compositing, DefaultCloudQuality, DrawMethod, Medium, NotCloudLight, Particle,
-        ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil, generators,
+        CloudRedraw, CloudRelightBudget, CloudShadowMaps, CloudSkyLight, CloudSystems,
+        CloudTargetScale, Compositing, DefaultCloudQuality, DrawMethod, Medium, NotCloudLight,
+        Particle, ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil, generators,
     };
 }
 

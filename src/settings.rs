@@ -87,7 +87,7 @@ pub enum DrawMethod {
     /// adapters measured (0.032× the rasterised draw's time on an NVIDIA H200, 0.57× on
     /// llvmpipe; docs/performance.md, "On a real GPU"). `Sorted` clouds are still rasterised, into the
     /// same target, over the computed ones; where the adapter cannot compute the draw (a target
-    /// above its storage binding, fewer than 10 storage buffers per stage), the view is
+    /// above its storage binding, fewer than 11 storage buffers per stage), the view is
     /// rasterised.
     #[default]
     Compute,
@@ -413,6 +413,27 @@ pub struct DefaultCloudQuality(pub CloudQualitySettings);
 #[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
 #[reflect(Resource, Default, Debug, PartialEq)]
 pub struct CloudRelightBudget(pub u32);
+
+/// When a computing view draws its clouds again (a resource; docs/illumination.md §6, "A still
+/// view keeps its image").
+///
+/// The computed draw (`DrawMethod::Compute`) leaves a view's clouds in its cloud target, which
+/// is composited onto the view every frame. Where nothing the target shows can have changed
+/// since the view last drew it, drawing it again gives the same texels, so by default the view
+/// keeps it.
+#[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
+#[reflect(Resource, Default, Debug, PartialEq)]
+pub enum CloudRedraw {
+    /// Draw only when something the target shows may have changed: the camera (its transform,
+    /// projection, viewport, exposure) or its fog, which clouds it splats and their uniforms, any
+    /// illumination or view-volume pass having run since, the texture handed to the target, or
+    /// (checked on the GPU, per target texel) the opaque depth its particles are tested against.
+    /// A view that also rasterises `Sorted` clouds into its target draws every frame.
+    #[default]
+    WhenChanged,
+    /// Draw every frame. For measuring the draw itself (the benchmark's static frames).
+    EveryFrame,
+}
 
 /// How the scattering sweep marches each lattice line (docs/illumination.md §4, "The march").
 ///

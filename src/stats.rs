@@ -110,6 +110,8 @@ pub struct CloudPassCounters(Arc<PassCounts>);
 struct PassCounts {
     runs: [AtomicU32; PASSES],
     dispatches: [AtomicU32; PASSES],
+    /// Writes of what the billboards read made outside a counted dispatch (queue writes, clears).
+    writes: AtomicU32,
 }
 
 /// The growth of `counts` since `snapshot`, which is then moved to now.
@@ -140,6 +142,27 @@ impl CloudPassCounters {
     /// from `[0; PASSES]` to count from the app's start.
     pub fn since(&self, snapshot: &mut [u32; PASSES]) -> [(CloudPass, u32); PASSES] {
         counted_since(&self.0.runs, snapshot)
+    }
+
+    /// Notes a write of what the billboards read that no counted dispatch makes (a uniform or a
+    /// volume written from the CPU, a volume cleared).
+    pub(crate) fn note_write(&self) {
+        self.0.writes.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// A number that changes whenever any pass but the draw records work or something the
+    /// billboards read is written ([`CloudPassCounters::note_write`]): while it holds, a view's
+    /// clouds read what they read when it last drew them (`CloudRedraw`).
+    pub(crate) fn illumination_epoch(&self) -> u64 {
+        let before_draw = |counts: &[AtomicU32; PASSES]| {
+            (CloudPass::ALL.iter())
+                .filter(|&&p| p != CloudPass::Draw)
+                .map(|&p| counts[p as usize].load(Ordering::Relaxed) as u64)
+                .sum::<u64>()
+        };
+        before_draw(&self.0.runs)
+            + before_draw(&self.0.dispatches)
+            + self.0.writes.load(Ordering::Relaxed) as u64
     }
 
     /// The compute dispatches of each pass since the reader's `snapshot` (a snapshot of its

@@ -25,8 +25,8 @@
 use std::fmt::Write as _;
 
 use bevy_particle_clouds::{
-    CloudLod, CloudRelightBudget, LightSample, Medium, scene::ResolvedCloud, scene::SceneCamera,
-    scene::SceneObject, settings::COARSE_GRID_ORDERS,
+    CloudLod, CloudRedraw, CloudRelightBudget, LightSample, Medium, scene::ResolvedCloud,
+    scene::SceneCamera, scene::SceneObject, settings::COARSE_GRID_ORDERS,
 };
 
 use super::*;
@@ -361,6 +361,9 @@ struct BudgetRow {
     /// Per pass, GPU ms of a frame where every light turned (median), and that frame's total.
     moving_ms: [f64; PASSES],
     moving_total_ms: f64,
+    /// GPU ms of the draw in a static frame when the view keeps its clouds
+    /// (`CloudRedraw::WhenChanged`, the default; `timing`'s static frame draws them again).
+    kept_ms: f64,
     runs: [u32; PASSES],
     dispatches: [u32; PASSES],
     floor_ms: [f64; PASSES],
@@ -408,6 +411,9 @@ fn measure(b: &BudgetScene, frames: usize, bandwidth: f64, adapter: &mut String)
         bench.set_level_of_detail(pixels_per_voxel, 12);
     }
     let (_, timing) = bench.measure(frames);
+    bench.app.insert_resource(CloudRedraw::WhenChanged);
+    let (kept, _) = bench.static_frames(frames);
+    bench.app.insert_resource(CloudRedraw::EveryFrame);
     let (runs, dispatches) = bench.relit_counts();
     // A game's moving sun: the clouds take turns within the re-light budget.
     if let Some(clouds) = b.relight_budget {
@@ -447,6 +453,7 @@ fn measure(b: &BudgetScene, frames: usize, bandwidth: f64, adapter: &mut String)
         timing,
         moving_ms,
         moving_total_ms,
+        kept_ms: median(kept),
         runs,
         dispatches,
         floor_ms,
@@ -523,7 +530,7 @@ pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
 
 fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<(), String> {
     let mut csv = String::from(
-        "adapter,scene,particles,resolutions,pass,gpu_ms,floor_ms,runs,dispatches,gpu_ms_relit,gpu_ms_static,gpu_ms_moving,gpu_ms_moving_frame\n",
+        "adapter,scene,particles,resolutions,pass,gpu_ms,floor_ms,runs,dispatches,gpu_ms_relit,gpu_ms_static,gpu_ms_moving,gpu_ms_moving_frame,gpu_ms_static_kept\n",
     );
     let mut md = format!(
         "Adapter: `{adapter}`, {}×{}. GPU ms: median of {} frames that rerun every pass (the \
@@ -541,7 +548,7 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
             let (ms, floor) = (r.timing.pass_ms[i], r.floor_ms[i]);
             let _ = writeln!(
                 csv,
-                "\"{adapter}\",\"{}\",{},\"{}\",{},{ms:.4},{floor:.4},{},{},{:.4},{:.4},{:.4},{:.4}",
+                "\"{adapter}\",\"{}\",{},\"{}\",{},{ms:.4},{floor:.4},{},{},{:.4},{:.4},{:.4},{:.4},{:.4}",
                 r.name,
                 r.particles,
                 r.resolutions,
@@ -551,7 +558,8 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
                 r.timing.gpu_ms_total,
                 r.timing.gpu_ms_static,
                 r.moving_ms[i],
-                r.moving_total_ms
+                r.moving_total_ms,
+                r.kept_ms
             );
             if r.runs[i] == 0 && *pass != CloudPass::Draw {
                 continue;
@@ -587,6 +595,11 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
             "| **{}** | **static frame** | **{:.3}** | {:.3} | | | | |",
             r.name, r.timing.gpu_ms_static, r.floor_ms[6]
         );
+        let _ = writeln!(
+            md,
+            "| **{}** | **static frame, view kept** | **{:.3}** | | | | | |",
+            r.name, r.kept_ms
+        );
     }
     // The draw per fragment: a rate to hold against the adapter's fill rate.
     let _ = writeln!(
@@ -615,10 +628,13 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
         let _ = writeln!(
             md,
             "\nThe paper's scene against issue #11's goals: its 5 lights moving {:.3} ms and everything \
-             re-lit {:.3} ms (goal ≤ {GOAL_RELIT_MS}) {}, static {:.3} ms (goal ≤ {GOAL_STATIC_MS}) {}.",
+             re-lit {:.3} ms (goal ≤ {GOAL_RELIT_MS}) {}, static {:.3} ms with the view kept (the \
+             default; goal ≤ {GOAL_STATIC_MS}) {}, {:.3} ms drawn again {}.",
             paper.moving_total_ms,
             paper.timing.gpu_ms_total,
             mark(paper.timing.gpu_ms_total.max(paper.moving_total_ms) <= GOAL_RELIT_MS),
+            paper.kept_ms,
+            mark(paper.kept_ms <= GOAL_STATIC_MS),
             paper.timing.gpu_ms_static,
             mark(paper.timing.gpu_ms_static <= GOAL_STATIC_MS)
         );

@@ -17,6 +17,7 @@
 //! cargo run --example benchmark -- --coarse-cycles [--scenes albedo_one] [--settings '(volume_resolution: 64)'] [--out DIR]
 //! cargo run --example benchmark -- --raster-vs-compute [--view 1920x1080] [--layers 13] [--out DIR]
 //! cargo run --example benchmark -- --line-sweep [--grid 128] [--segments 8] [--out DIR]
+//! cargo run --example benchmark -- --still-view [--scenes a,b] [--out DIR]
 //! ```
 //!
 //! Writes `DIR/results.csv`, `DIR/results.md` and `DIR/pareto.png` (default `DIR` is
@@ -40,6 +41,9 @@
 //! voxelize, shade (every light), gather, scatter and sort; the draw (the `Transparent3d` pass,
 //! `main_transparent_pass_3d`) runs every frame anyway. The static cost is that of a frame where
 //! nothing changed: the draw only. Both are medians over `--frames` frames, wall time beside them.
+//! Every mode draws a still view again each frame (`CloudRedraw::EveryFrame`), so that its static
+//! frame measures the draw; `--still-view` measures what the default, which keeps a still view's
+//! clouds, saves.
 
 mod cloud_target_scale;
 mod coarse_cycles;
@@ -56,6 +60,7 @@ mod report;
 mod scale;
 mod scenes;
 mod sky_map;
+mod still_view;
 mod sweep;
 mod voxelize;
 mod warm_start;
@@ -100,6 +105,7 @@ use reference_cache::*;
 use report::*;
 use scale::*;
 use scenes::*;
+use still_view::still_view_benchmark;
 use sweep::*;
 use voxelize::*;
 use warm_start::*;
@@ -217,6 +223,10 @@ pub(crate) struct Args {
     /// lines cut into `--segments`, instead of the sweep.
     #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "scale", "voxelize", "frame_budget", "raster_vs_compute"])]
     pub(crate) line_sweep: bool,
+    /// A still frame's cost when the view keeps its clouds (`CloudRedraw::WhenChanged`, the
+    /// default) against drawing them again, instead of the sweep.
+    #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "scale", "voxelize", "frame_budget", "raster_vs_compute", "line_sweep"])]
+    pub(crate) still_view: bool,
     /// With --line-sweep: voxels per side of the grid.
     #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u32).range(2..=512))]
     pub(crate) grid: u32,
@@ -490,6 +500,9 @@ fn run() -> Result<(), String> {
     }
     if args.line_sweep {
         return line_sweep_benchmark(&args);
+    }
+    if args.still_view {
+        return still_view_benchmark(&args);
     }
     if args.voxelize {
         return voxelize_benchmark(&args);

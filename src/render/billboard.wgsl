@@ -49,6 +49,10 @@ struct DrawParams {
 // Per target texel: the light (r, g, b) and the particles' own optical depth, f32 bits.
 @group(0) @binding(4) var<storage, read_write> sums: array<atomic<u32>>;
 @group(0) @binding(5) var target_texels: texture_storage_2d<rgba16float, write>;
+// What decides whether this frame draws (`CloudRedraw`): [0] is non-zero when it does (1 when
+// the CPU cannot rule out a change, else set by `compare_depth`); [1 + i] is the depth that
+// target texel i's particles were last tested against, f32 bits.
+@group(0) @binding(6) var<storage, read_write> still: array<atomic<u32>>;
 #endif
 #else
 @group(0) @binding(1) var<uniform> fog: CloudFog;
@@ -742,6 +746,9 @@ fn texel_slope(t: vec2<i32>) -> vec2<f32> {
 // Particles per splat workgroup, one per invocation (`workgroups::LINEAR` in Rust).
 const SPLAT_PARTICLES: u32 = #{LINEAR_WORKGROUP}u;
 
+// `still[0]` as the splat's workgroup reads it once.
+var<workgroup> redraw: u32;
+
 // Per particle of the workgroup: the texels it covers, and after the scan the running count of
 // texels up to and including it; its light with centre shading.
 var<workgroup> covered: array<vec4<i32>, SPLAT_PARTICLES>;
@@ -795,6 +802,13 @@ fn splat(
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lane: u32,
 ) {
+    if lane == 0u {
+        redraw = atomicLoad(&still[0]);
+    }
+    // A still view keeps its target: every workgroup leaves at once.
+    if workgroupUniformLoad(&redraw) == 0u {
+        return;
+    }
     let g = group.x + group.y * groups.x;
     let end = load_splat_cloud(g);
     let first = g * SPLAT_PARTICLES;
@@ -846,19 +860,33 @@ fn splat(
     }
 }
 
-// The sums into the cloud target: the light, and 1 - the product of the transmittances.
+// Before the splat: the depth each target texel's particles are tested against (`occluded`),
+// kept for the next frame; where it differs from the last frame's, this frame draws.
 @compute @workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)
-fn resolve_splats(@builtin(global_invocation_id) id: vec3<u32>) {
+fn compare_depth(@builtin(global_invocation_id) id: vec3<u32>) {
     if any(id.xy >= cloud_target.target_size) {
         return;
     }
+    let depth = textureLoad(scene_depth, cloud_target_depth_pixel(cloud_target, id.xy), 0);
+    let i = 1u + id.y * cloud_target.target_size.x + id.x;
+    if atomicExchange(&still[i], bitcast<u32>(depth)) != bitcast<u32>(depth) {
+        atomicStore(&still[0], 1u);
+    }
+}
+
+// The sums into the cloud target: the light, and 1 - the product of the transmittances. The
+// sums are left at zero for the next frame's splat.
+@compute @workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)
+fn resolve_splats(@builtin(global_invocation_id) id: vec3<u32>) {
+    if any(id.xy >= cloud_target.target_size) || atomicLoad(&still[0]) == 0u {
+        return;
+    }
     let i = 4u * (id.y * cloud_target.target_size.x + id.x);
-    let light = vec3(
-        bitcast<f32>(atomicLoad(&sums[i])),
-        bitcast<f32>(atomicLoad(&sums[i + 1u])),
-        bitcast<f32>(atomicLoad(&sums[i + 2u])),
-    );
-    let tau = bitcast<f32>(atomicLoad(&sums[i + 3u]));
-    textureStore(target_texels, id.xy, vec4(light, opacity(tau)));
+    var sum: array<f32, 4>;
+    for (var k = 0u; k < 4u; k++) {
+        sum[k] = bitcast<f32>(atomicExchange(&sums[i + k], 0u));
+    }
+    let light = vec3(sum[0], sum[1], sum[2]);
+    textureStore(target_texels, id.xy, vec4(light, opacity(sum[3])));
 }
 #endif

@@ -18,7 +18,7 @@ use bevy::{
     prelude::*,
     render::{
         Render, RenderSystems,
-        camera::ExtractedCamera,
+        camera::{ExtractedCamera, TemporalJitter},
         diagnostic::RecordDiagnostics,
         extract_component::ExtractComponentPlugin,
         render_asset::RenderAssets,
@@ -36,7 +36,7 @@ use bevy::{
             },
         },
         renderer::{RenderContext, RenderDevice, ViewQuery},
-        texture::{CachedTexture, TextureCache},
+        texture::CachedTexture,
         view::{
             ExtractedView, Msaa, RenderVisibleEntities, ViewDepthTexture, ViewTarget, ViewUniform,
             ViewUniformOffset, ViewUniforms,
@@ -46,11 +46,12 @@ use bevy::{
 
 use super::{
     draw::{CloudDrawBindGroups, draw_billboards},
-    extract::ExtractedCloud,
-    fog::{CloudFogParams, CloudFogUniforms, ViewCloudFogOffset},
+    extract::{ExtractedCloud, ExtractedCloudLights},
+    fog::{CloudFogParams, CloudFogUniforms, ExtractedCloudFog, ViewCloudFogOffset},
     gpu::{sequential_layout, uniform_bytes},
     key_of,
     particles::GpuParticles,
+    redraw::{DrawInputs, must_redraw},
     shaders::CloudShaders,
     splat::{
         SplatResources, ViewSplatPipelines, compute_draw_refusal, record_splats, splat_resources,
@@ -59,7 +60,7 @@ use super::{
 };
 use crate::{
     cloud::ParticleCloud,
-    settings::{CloudTargetScale, DrawMethod},
+    settings::{CloudRedraw, CloudTargetScale, DrawMethod},
     stats::{CloudPass, CloudPassCounters},
 };
 
@@ -137,7 +138,9 @@ pub struct ViewCloudSplats(pub Vec<Entity>);
 pub struct ViewCloudTargetResources {
     /// The key of what the bind groups bind.
     key: u64,
-    /// The target: `CLOUD_TARGET_FORMAT`, the target's size.
+    /// Texels per side of the texture.
+    size: UVec2,
+    /// The target: `CLOUD_TARGET_FORMAT`, the target's size; the view's own.
     pub texture: CachedTexture,
     /// Group 0 of the billboards drawn into the target: view, target parameters, depth.
     pub billboard_view: BindGroup,
@@ -373,44 +376,42 @@ fn queue_composites(
     }
 }
 
-/// The cloud target of `size` texels, from the texture cache.
-fn cloud_target_texture(
-    textures: &mut TextureCache,
-    device: &RenderDevice,
-    size: UVec2,
-) -> CachedTexture {
-    textures.get(
-        device,
-        TextureDescriptor {
-            label: Some("particle_clouds_cloud_target"),
-            size: bevy::render::render_resource::Extent3d {
-                width: size.x,
-                height: size.y,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: TextureDimension::D2,
-            format: CLOUD_TARGET_FORMAT,
-            // Copied out by the tests that check the upsample against its CPU reference; written
-            // as storage by the splats' resolve.
-            usage: TextureUsages::RENDER_ATTACHMENT
-                | TextureUsages::TEXTURE_BINDING
-                | TextureUsages::STORAGE_BINDING
-                | TextureUsages::COPY_SRC,
-            view_formats: &[],
+/// A new cloud target of `size` texels. Each view owns its own: a computing view keeps its
+/// texels from frame to frame ([`CloudRedraw`]), which a texture shared through Bevy's texture
+/// cache would not guarantee.
+fn cloud_target_texture(device: &RenderDevice, size: UVec2) -> CachedTexture {
+    let texture = device.create_texture(&TextureDescriptor {
+        label: Some("particle_clouds_cloud_target"),
+        size: bevy::render::render_resource::Extent3d {
+            width: size.x,
+            height: size.y,
+            depth_or_array_layers: 1,
         },
-    )
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: TextureDimension::D2,
+        format: CLOUD_TARGET_FORMAT,
+        // Copied out by the tests that check the upsample against its CPU reference; written
+        // as storage by the splats' resolve.
+        usage: TextureUsages::RENDER_ATTACHMENT
+            | TextureUsages::TEXTURE_BINDING
+            | TextureUsages::STORAGE_BINDING
+            | TextureUsages::COPY_SRC,
+        view_formats: &[],
+    });
+    let default_view = texture.create_view(&default());
+    CachedTexture {
+        texture,
+        default_view,
+    }
 }
 
-/// Takes each cloud target's texture from the texture cache (every frame, which keeps it alive;
-/// the same texture while its size holds) and makes its bind groups when what they bind changed.
-#[allow(clippy::too_many_arguments)] // a render system's resources
+/// Gives each cloud target its texture (a new one when its size changes) and makes its bind
+/// groups when what they bind changed.
 fn prepare_cloud_targets(
     mut commands: Commands,
     device: Res<RenderDevice>,
     cache: Res<PipelineCache>,
-    mut textures: ResMut<TextureCache>,
     view_uniforms: Res<ViewUniforms>,
     fog_uniforms: Res<CloudFogUniforms>,
     views: Query<(
@@ -429,7 +430,6 @@ fn prepare_cloud_targets(
         return;
     };
     for (entity, target, depth, existing) in &views {
-        let texture = cloud_target_texture(&mut textures, &device, target.params.target_size);
         // The bind groups are remade only when what they bind changes.
         let p = &target.params;
         let key = key_of((
@@ -437,7 +437,6 @@ fn prepare_cloud_targets(
             [p.scale, p.depth_tolerance].map(f32::to_bits),
             target.multisampled,
             target.compute,
-            texture.default_view.id(),
             depth.view().id(),
             view_buffer.id(),
             fog_buffer.id(),
@@ -445,6 +444,10 @@ fn prepare_cloud_targets(
         if existing.is_some_and(|e| e.key == key) {
             continue;
         }
+        let texture = match existing {
+            Some(e) if e.size == p.target_size => e.texture.clone(),
+            _ => cloud_target_texture(&device, p.target_size),
+        };
         let params = device.create_buffer_with_data(&BufferInitDescriptor {
             label: Some("particle_clouds_cloud_target_params"),
             contents: &uniform_bytes(&target.params),
@@ -483,6 +486,7 @@ fn prepare_cloud_targets(
         });
         commands.entity(entity).insert(ViewCloudTargetResources {
             key,
+            size: p.target_size,
             texture,
             billboard_view,
             composite,
@@ -496,16 +500,20 @@ type CloudTargetView = (
     &'static ExtractedCamera,
     &'static ExtractedView,
     &'static ViewTarget,
-    &'static ViewUniformOffset,
-    &'static ViewCloudFogOffset,
+    (&'static ViewUniformOffset, &'static ViewCloudFogOffset),
     &'static ViewCloudDraws,
     &'static ViewCloudTargetResources,
     &'static ViewCompositePipeline,
     Option<(&'static ViewSplatBatches, &'static ViewSplatPipelines)>,
+    (
+        Option<&'static ExtractedCloudFog>,
+        Option<&'static TemporalJitter>,
+    ),
 );
 
 /// Draws the view's clouds into its cloud target (cleared to no cloud), then composites the
-/// target over the view.
+/// target over the view. A computing view whose target cannot have changed keeps it
+/// ([`CloudRedraw`]).
 #[allow(clippy::too_many_arguments)] // a render pass's inputs
 fn draw_cloud_target(
     view: ViewQuery<CloudTargetView>,
@@ -514,10 +522,12 @@ fn draw_cloud_target(
     emit: Res<super::draw::BillboardEmitPipelines>,
     cache: Res<PipelineCache>,
     counters: Res<CloudPassCounters>,
+    (lights, redraw): (Res<ExtractedCloudLights>, Option<Res<CloudRedraw>>),
     mut ctx: RenderContext,
 ) {
-    let (camera, extracted, target, offset, fog, draws, resources, composite, splats) =
+    let (camera, extracted, target, offsets, draws, resources, composite, splats, view_fog) =
         view.into_inner();
+    let (offset, fog) = offsets;
     let Some(composite) = cache.get_render_pipeline(composite.0) else {
         return;
     };
@@ -531,16 +541,32 @@ fn draw_cloud_target(
     let span = recorder.time_span(ctx.command_encoder(), CloudPass::Draw.span_name());
     let splatted = match (splatting, &resources.splat) {
         (Some((batches, pipelines)), Some(splat)) => {
-            let offsets = [offset.offset, fog.0];
+            let inputs = DrawInputs {
+                view: extracted,
+                exposure: camera.exposure,
+                jitter: view_fog.1.map(|j| j.offset),
+                fog: view_fog.0.map(|f| CloudFogParams::new(&f.0, &lights)),
+                batches: batches.0.values().map(|b| b.key()).collect(),
+                target: resources.key,
+                epoch: counters.illumination_epoch(),
+            };
+            let mode = redraw.map_or(CloudRedraw::default(), |r| *r);
+            let forced = must_redraw(mode, !draws.0.is_empty(), &splat.drawn, inputs.key());
             let encoder = ctx.command_encoder();
+            let offsets = ([offset.offset, fog.0], forced);
             let recorded = record_splats(encoder, &cache, pipelines, splat, offsets, batches);
             let Some(dispatches) = recorded else {
-                // Still compiling: nothing is drawn this frame.
+                // Still compiling: nothing is drawn this frame (nor counted as shown).
+                splat.drawn.store(0, std::sync::atomic::Ordering::Relaxed);
                 span.end(ctx.command_encoder());
                 return;
             };
             counters.add_dispatches(CloudPass::Draw, dispatches);
-            counters.add(CloudPass::Draw, batches.0.values().map(|b| b.clouds).sum());
+            // A kept target is no run; one the depth comparison redraws is not counted either
+            // (the CPU cannot know it).
+            if forced {
+                counters.add(CloudPass::Draw, batches.0.values().map(|b| b.clouds).sum());
+            }
             true
         }
         _ => false,

@@ -40,6 +40,7 @@ pub mod particles;
 pub mod pipelines;
 pub mod plan;
 pub mod pools;
+pub(crate) mod redraw;
 pub mod shaders;
 pub mod shadow_maps;
 pub mod sky_map;
@@ -77,7 +78,7 @@ use bevy::{
 use self::{extract::ExtractedCloud, shaders::CloudShaders};
 use crate::{
     cloud::ParticleCloud,
-    settings::{CloudRelightBudget, ShadingMethod, SweepMarch},
+    settings::{CloudRedraw, CloudRelightBudget, ShadingMethod, SweepMarch},
     shadow_maps::CloudShadowMaps,
     stats::CloudPassCounters,
 };
@@ -111,6 +112,13 @@ impl bevy::render::extract_resource::ExtractResource for CloudShadowMaps {
     type Source = CloudShadowMaps;
     fn extract_resource(source: &Self::Source) -> Self {
         source.clone()
+    }
+}
+
+impl bevy::render::extract_resource::ExtractResource for CloudRedraw {
+    type Source = CloudRedraw;
+    fn extract_resource(source: &Self::Source) -> Self {
+        *source
     }
 }
 
@@ -156,7 +164,9 @@ pub(crate) fn build(app: &mut App) {
         .init_resource::<SweepMarch>()
         .register_type::<SweepMarch>()
         .init_resource::<CloudRelightBudget>()
-        .register_type::<CloudRelightBudget>();
+        .register_type::<CloudRelightBudget>()
+        .init_resource::<CloudRedraw>()
+        .register_type::<CloudRedraw>();
     app.insert_resource(shaders.clone()).add_plugins((
         SyncComponentPlugin::<ParticleCloud>::default(),
         RenderAssetPlugin::<particles::GpuParticles>::default(),
@@ -164,6 +174,7 @@ pub(crate) fn build(app: &mut App) {
         ExtractResourcePlugin::<ShadingMethod>::default(),
         ExtractResourcePlugin::<SweepMarch>::default(),
         ExtractResourcePlugin::<CloudRelightBudget>::default(),
+        ExtractResourcePlugin::<CloudRedraw>::default(),
         ExtractResourcePlugin::<CloudShadowMaps>::default(),
     ));
     cloud_target::build(app);

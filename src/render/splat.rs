@@ -5,14 +5,17 @@
 //! writes the sums into the target as `accumulate`'s blending would have left it. The image is
 //! the rasterised one; the work runs where some GPUs run it many times faster.
 
+use std::sync::atomic::AtomicU64;
+
 use bevy::{
     prelude::*,
     render::{
         render_resource::{
             BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, Buffer, BufferDescriptor,
-            BufferUsages, CachedComputePipelineId, CommandEncoder, ComputePassDescriptor,
-            ComputePipelineDescriptor, PipelineCache, ShaderStages, SpecializedComputePipeline,
-            SpecializedComputePipelines, StorageTextureAccess, TextureView, WgpuLimits,
+            BufferInitDescriptor, BufferUsages, CachedComputePipelineId, CommandEncoder,
+            ComputePassDescriptor, ComputePipelineDescriptor, PipelineCache, ShaderStages,
+            SpecializedComputePipeline, SpecializedComputePipelines, StorageTextureAccess,
+            TextureView, WgpuLimits,
             binding_types::{storage_buffer_sized, texture_storage_2d, uniform_buffer},
         },
         renderer::RenderDevice,
@@ -94,8 +97,9 @@ pub fn splat_storage_buffers() -> u32 {
     })
 }
 
-/// Group 0 of the splat and resolve pipelines: the cloud target's billboard view group (view,
-/// target parameters, depth, fog), then the sums and the target as storage.
+/// Group 0 of the splat pipelines: the cloud target's billboard view group (view, target
+/// parameters, depth, fog), then the sums and the target as storage, and what decides whether the
+/// view draws (`still` in `billboard.wgsl`).
 pub(crate) fn splat_view_layout(multisampled: bool) -> BindGroupLayoutDescriptor {
     sequential_layout(
         "particle_clouds_splat_view_layout",
@@ -107,6 +111,7 @@ pub(crate) fn splat_view_layout(multisampled: bool) -> BindGroupLayoutDescriptor
             uniform_buffer::<CloudFogParams>(true),
             storage_buffer_sized(false, None),
             texture_storage_2d(CLOUD_TARGET_FORMAT, StorageTextureAccess::WriteOnly),
+            storage_buffer_sized(false, None),
         ),
     )
 }
@@ -117,6 +122,27 @@ pub struct SplatPipeline {
     shader: Handle<Shader>,
 }
 
+/// The entry points of `billboard.wgsl` that a computing view dispatches, in their order.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+pub enum SplatEntry {
+    /// `compare_depth`: whether the opaque depth under the target changed.
+    CompareDepth,
+    /// `splat`: the particles' light and optical depth into the sums.
+    Splat,
+    /// `resolve_splats`: the sums into the target.
+    Resolve,
+}
+
+impl SplatEntry {
+    fn name(self) -> &'static str {
+        match self {
+            Self::CompareDepth => "compare_depth",
+            Self::Splat => "splat",
+            Self::Resolve => "resolve_splats",
+        }
+    }
+}
+
 /// What a splat pipeline depends on.
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
 pub struct SplatPipelineKey {
@@ -124,8 +150,8 @@ pub struct SplatPipelineKey {
     pub multisampled_depth: bool,
     /// The view's distance fog, if any.
     pub fog: Option<FogMode>,
-    /// `resolve_splats` instead of `splat`.
-    pub resolve: bool,
+    /// The entry point.
+    pub entry: SplatEntry,
 }
 
 impl SpecializedComputePipeline for SplatPipeline {
@@ -140,17 +166,15 @@ impl SpecializedComputePipeline for SplatPipeline {
         if let Some(fog) = key.fog {
             shader_defs.extend(fog.shader_defs().map(Into::into));
         }
-        let entry_point = if key.resolve {
-            "resolve_splats"
-        } else {
-            "splat"
-        };
+        let entry_point = key.entry.name();
+        let view_layout = splat_view_layout(key.multisampled_depth);
         ComputePipelineDescriptor {
             label: Some(format!("particle_clouds_{entry_point}").into()),
-            layout: vec![
-                splat_view_layout(key.multisampled_depth),
-                splat_batch_layout(),
-            ],
+            // The depth comparison reads no batch.
+            layout: match key.entry {
+                SplatEntry::CompareDepth => vec![view_layout],
+                _ => vec![view_layout, splat_batch_layout()],
+            },
             shader: self.shader.clone(),
             shader_defs,
             entry_point: Some(entry_point.into()),
@@ -165,9 +189,11 @@ pub(crate) fn init_splat_pipeline(mut commands: Commands, billboards: Res<Billbo
     });
 }
 
-/// A computing view's splat and resolve pipelines, specialized in `Queue`.
+/// A computing view's splat pipelines, specialized in `Queue`.
 #[derive(Component, Clone, Copy)]
 pub struct ViewSplatPipelines {
+    /// `compare_depth`.
+    pub compare_depth: CachedComputePipelineId,
     /// `splat`.
     pub splat: CachedComputePipelineId,
     /// `resolve_splats`.
@@ -187,17 +213,18 @@ pub(crate) fn queue_splat_pipelines(
             commands.entity(entity).remove::<ViewSplatPipelines>();
             continue;
         }
-        let mut specialize = |resolve| {
+        let mut specialize = |entry| {
             let key = SplatPipelineKey {
                 multisampled_depth: target.multisampled,
                 fog: fog.map(|f| FogMode::of(&f.0.falloff)),
-                resolve,
+                entry,
             };
             pipelines.specialize(&cache, &pipeline, key)
         };
         let pipelines = ViewSplatPipelines {
-            splat: specialize(false),
-            resolve: specialize(true),
+            compare_depth: specialize(SplatEntry::CompareDepth),
+            splat: specialize(SplatEntry::Splat),
+            resolve: specialize(SplatEntry::Resolve),
         };
         commands.entity(entity).insert(pipelines);
     }
@@ -205,11 +232,18 @@ pub(crate) fn queue_splat_pipelines(
 
 /// A computing view's sums and the splat pipelines' group 0.
 pub struct SplatResources {
-    /// Per target texel, `SUM_BYTES` (light and optical depth); cleared before each frame's splats.
+    /// Per target texel, `SUM_BYTES` (light and optical depth); zero before each splat (the
+    /// resolve leaves them so).
     pub sums: Buffer,
+    /// Whether this frame draws, then the depth per target texel (`still` in `billboard.wgsl`).
+    pub still: Buffer,
+    /// One u32 of 1: copied into `still` when the view must draw.
+    redraw: Buffer,
+    /// The key of what the target last showed (0: nothing yet), written by the draw.
+    pub drawn: AtomicU64,
     /// Texels per side of the target the sums stand for.
     pub target_size: UVec2,
-    /// Group 0 of the splat and resolve pipelines.
+    /// Group 0 of the splat pipelines.
     pub group: BindGroup,
 }
 
@@ -227,11 +261,21 @@ pub(crate) fn splat_resources(
     texture: &TextureView,
 ) -> SplatResources {
     let size = target.params.target_size;
-    let sums = device.create_buffer(&BufferDescriptor {
-        label: Some("particle_clouds_splat_sums"),
-        size: size.x as u64 * size.y as u64 * SUM_BYTES,
-        usage: BufferUsages::STORAGE | BufferUsages::COPY_DST,
-        mapped_at_creation: false,
+    let texels = size.x as u64 * size.y as u64;
+    let storage = |label, size| {
+        device.create_buffer(&BufferDescriptor {
+            label: Some(label),
+            size,
+            usage: BufferUsages::STORAGE | BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })
+    };
+    let sums = storage("particle_clouds_splat_sums", texels * SUM_BYTES);
+    let still = storage("particle_clouds_splat_still", (1 + texels) * 4);
+    let redraw = device.create_buffer_with_data(&BufferInitDescriptor {
+        label: Some("particle_clouds_splat_redraw"),
+        contents: &1u32.to_le_bytes(),
+        usage: BufferUsages::COPY_SRC,
     });
     let group = device.create_bind_group(
         "particle_clouds_splat_view_bind_group",
@@ -243,36 +287,52 @@ pub(crate) fn splat_resources(
             fog,
             sums.as_entire_binding(),
             texture,
+            still.as_entire_binding(),
         )),
     );
     SplatResources {
         sums,
+        still,
+        redraw,
+        drawn: AtomicU64::new(0),
         target_size: size,
         group,
     }
 }
 
-/// Records a computing view's splats into its sums (cleared first), one dispatch per batch, then
-/// their resolve into its cloud target; `offsets` are the view's and the fog's dynamic offsets.
-/// Returns the dispatches recorded, or `None` (nothing recorded) while the pipelines compile.
+/// Records a computing view's draw: the depth comparison, its splats into its sums, one dispatch
+/// per batch, then their resolve into its cloud target. Where `redraw` is false (nothing the CPU
+/// knows of changed), the splats and the resolve do their work only if the depth under the
+/// target changed; else the target keeps its texels. `offsets` are the view's and the fog's
+/// dynamic offsets. Returns the dispatches recorded, or `None` (nothing recorded) while the
+/// pipelines compile.
 pub(crate) fn record_splats(
     encoder: &mut CommandEncoder,
     cache: &PipelineCache,
     pipelines: &ViewSplatPipelines,
     splat: &SplatResources,
-    offsets: [u32; 2],
+    (offsets, redraw): ([u32; 2], bool),
     batches: &ViewSplatBatches,
 ) -> Option<u32> {
+    let compare_depth = cache.get_compute_pipeline(pipelines.compare_depth)?;
     let splat_pipeline = cache.get_compute_pipeline(pipelines.splat)?;
     let resolve = cache.get_compute_pipeline(pipelines.resolve)?;
-    encoder.clear_buffer(&splat.sums, 0, None);
+    if redraw {
+        encoder.copy_buffer_to_buffer(&splat.redraw, 0, &splat.still, 0, 4);
+    } else {
+        encoder.clear_buffer(&splat.still, 0, Some(4));
+    }
     let mut pass = encoder.begin_compute_pass(&ComputePassDescriptor {
         label: Some("particle_clouds_splat"),
         ..default()
     });
-    pass.set_pipeline(splat_pipeline);
+    let size = splat.target_size;
+    let texel_groups = [size.x.div_ceil(SLICE), size.y.div_ceil(SLICE), 1];
     pass.set_bind_group(0, &splat.group, &offsets);
-    let mut dispatches = 0;
+    pass.set_pipeline(compare_depth);
+    pass.dispatch_workgroups(texel_groups[0], texel_groups[1], 1);
+    pass.set_pipeline(splat_pipeline);
+    let mut dispatches = 1;
     for batch in batches.0.values() {
         pass.set_bind_group(1, &batch.group, &[]);
         // A workgroup per `LINEAR` particles of a cloud and slice.
@@ -281,8 +341,7 @@ pub(crate) fn record_splats(
         dispatches += 1;
     }
     pass.set_pipeline(resolve);
-    let size = splat.target_size;
-    pass.dispatch_workgroups(size.x.div_ceil(SLICE), size.y.div_ceil(SLICE), 1);
+    pass.dispatch_workgroups(texel_groups[0], texel_groups[1], 1);
     Some(dispatches + 1)
 }
 

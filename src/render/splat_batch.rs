@@ -143,6 +143,14 @@ pub struct SplatBatch {
     pub clouds: u32,
 }
 
+impl SplatBatch {
+    /// The key of everything its group binds: its clouds' uniforms, its particles and the
+    /// buffers it reads.
+    pub(crate) fn key(&self) -> u64 {
+        self.key
+    }
+}
+
 /// A computing view's batches, dispatched in the order of their keys.
 #[derive(Component, Default)]
 pub struct ViewSplatBatches(pub BTreeMap<BatchKey, SplatBatch>);

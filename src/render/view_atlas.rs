@@ -292,20 +292,20 @@ impl ViewVolumeAtlas {
     }
 
     /// Writes every volume's params and the neighbour lists when they changed, growing their
-    /// buffers as needed.
+    /// buffers as needed. Returns whether it wrote.
     pub(crate) fn write(
         &mut self,
         device: &RenderDevice,
         queue: &RenderQueue,
         entries: &[AtlasEntry],
         lists: &[u32],
-    ) {
+    ) -> bool {
         let params: Vec<ViewVolumeParams> = entries.iter().map(|e| e.params).collect();
         let (params, lists) = (storage_bytes(&params), storage_bytes(lists));
         let key = key_of((&params, &lists));
         if key == self.written {
             // Same params: the same volumes have fronts.
-            return;
+            return false;
         }
         self.written = key;
         self.fronts = entries
@@ -329,6 +329,7 @@ impl ViewVolumeAtlas {
             "particle_clouds_view_volume_neighbours",
             &lists,
         );
+        true
     }
 }
 

@@ -296,6 +296,7 @@ pub(crate) fn prepare_view_volumes(
     mut atlases: ResMut<ViewVolumeAtlases>,
     device: Res<RenderDevice>,
     queue: Res<RenderQueue>,
+    counters: Res<CloudPassCounters>,
 ) {
     let mut fresh: HashMap<Entity, CloudViewVolumes> = HashMap::default();
     let mut seen: HashMap<Entity, Vec<RetainedViewEntity>> = HashMap::default();
@@ -318,7 +319,9 @@ pub(crate) fn prepare_view_volumes(
             .or_insert_with(|| ViewVolumeAtlas::new(&device));
         atlas.lay_out(&device, &mut entries);
         let (lists, groups) = link_neighbours(&mut entries);
-        atlas.write(&device, &queue, &entries, &lists);
+        if atlas.write(&device, &queue, &entries, &lists) {
+            counters.note_write();
+        }
         atlas.groups = entries
             .iter()
             .zip(groups)
@@ -334,7 +337,9 @@ pub(crate) fn prepare_view_volumes(
                 None => fresh.entry(entry.entity).or_default(),
             };
             let volume = all.0.entry(here).or_insert_with(|| new_volume(&device));
-            update_volume(volume, index as u32, entry, &queue);
+            if update_volume(volume, index as u32, entry, &queue) {
+                counters.note_write();
+            }
         }
     }
     atlases.0.retain(|view, _| live.contains(view));
@@ -384,10 +389,16 @@ fn atlas_entry(
 
 /// Writes a volume's uniform when it changed, and marks it pending when what its march reads or
 /// where it writes changed. An unlit volume is never marched: it is seen through by no one and
-/// lights nothing.
-fn update_volume(volume: &mut ViewVolume, index: u32, entry: &AtlasEntry, queue: &RenderQueue) {
+/// lights nothing. Returns whether it wrote the uniform.
+fn update_volume(
+    volume: &mut ViewVolume,
+    index: u32,
+    entry: &AtlasEntry,
+    queue: &RenderQueue,
+) -> bool {
     volume.entry = index;
-    if volume.written != Some(entry.params) {
+    let written = volume.written != Some(entry.params);
+    if written {
         volume.written = Some(entry.params);
         queue.write_buffer(&volume.params, 0, &uniform_bytes(&entry.params));
     }
@@ -403,6 +414,7 @@ fn update_volume(volume: &mut ViewVolume, index: u32, entry: &AtlasEntry, queue:
         volume.seen_key = entry.seen_key;
         volume.seen_pending = true;
     }
+    written
 }
 
 /// The uniform of one view's volume of `cloud` and the key of its inputs, or `None` when the cloud

@@ -31,6 +31,7 @@ use crate::math::{
 use crate::particle::DeltaM;
 use crate::settings::CloudRelightBudget;
 use crate::shadow_maps::CloudShadowMaps;
+use crate::stats::CloudPassCounters;
 
 /// Mirror of `CloudParams` in `types.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
@@ -267,6 +268,7 @@ pub(crate) fn prepare_cloud_volumes(
     mut pools: ResMut<VolumePools>,
     device: Res<RenderDevice>,
     queue: Res<RenderQueue>,
+    counters: Res<CloudPassCounters>,
 ) {
     let budget = budget.map_or(0, |b| b.0);
     let mapped = maps.is_some_and(|m| m.resolution > 0);
@@ -316,6 +318,9 @@ pub(crate) fn prepare_cloud_volumes(
                 let pool = pools.pool(&v.slot);
                 plan_cloud(&mut v, &mut state, planned, pool, &queue);
                 state.waited = 0;
+                if !state.plan.is_empty() {
+                    counters.note_write();
+                }
             }
             _ => {
                 let new = (gpu.count as u64 * 32 <= max_binding)
@@ -339,6 +344,7 @@ pub(crate) fn prepare_cloud_volumes(
                 let mut state = CloudIllumination::default();
                 let pool = pools.pool(&v.slot);
                 plan_cloud(&mut v, &mut state, planned, pool, &queue);
+                counters.note_write();
                 commands.entity(entity).insert((v, state));
             }
         }

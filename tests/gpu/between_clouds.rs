@@ -152,6 +152,7 @@ fn a_cloud_in_the_shadow_of_two_others_equals_the_cpu_reference() {
     let (setup, casters) = stacked();
     let clouds = clouds(&setup, &casters);
     let (mut app, target) = spawn_clouds(&setup, &clouds);
+    common::draw_every_frame(&mut app);
     let mut recorder = FrameRecorder::default();
     render(&mut app, &mut recorder, 1);
     // The casters are out of view, yet illuminated for their shadow; only the receiver is drawn.

@@ -50,6 +50,12 @@ pub fn headless_app() -> App {
     app
 }
 
+/// Makes every view draw its clouds every frame (`CloudRedraw::EveryFrame`), for tests that count
+/// the clouds a view draws in a frame: a still view keeps its image and draws none.
+pub fn draw_every_frame(app: &mut App) {
+    app.insert_resource(bevy_particle_clouds::CloudRedraw::EveryFrame);
+}
+
 /// Quality settings with the given resolution and iterations, defaults otherwise.
 pub fn quality(volume_resolution: u32, scatter_iterations: u32) -> CloudQualitySettings {
     CloudQualitySettings {

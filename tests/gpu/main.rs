@@ -16,6 +16,7 @@ mod loader;
 mod lod;
 mod overlap;
 mod plugin;
+mod redraw;
 mod seen_multiple;
 mod shading_method;
 mod sky;

@@ -10,6 +10,7 @@ use bevy_particle_clouds::{
 
 use crate::{
     cloud_target::{occluded_setup, rgba16f, view_textures},
+    common,
     draw::{
         SetupCloud, assert_images_match, cloud_setup, energy, reference, reference_of_clouds,
         render, spawn_clouds,
@@ -60,8 +61,8 @@ fn a_computed_cloud_equals_the_cpu_billboard_reference() {
 /// At half size, with one object in front of the cloud and one behind: the computed target is
 /// the rasterised one, texel by texel (the depth test included), but for f16 rounding (the
 /// rasteriser blends in f16 after every particle, the splat sums in f32). A sorted cloud is
-/// rasterised either way: the same target, but for the density's last bits. The draw dispatches one splat (the cloud's
-/// batch) and one resolve.
+/// rasterised either way: the same target, but for the density's last bits. The draw dispatches the
+/// depth comparison, one splat (the cloud's batch) and one resolve.
 #[test]
 fn a_computed_cloud_target_is_the_rasterised_one() {
     for compositing in [Compositing::ViewTransmittance, Compositing::Sorted] {
@@ -80,7 +81,7 @@ fn a_computed_cloud_target_is_the_rasterised_one() {
             (&targets[0], &targets[1]);
         let splatted = compositing == Compositing::ViewTransmittance;
         assert_eq!(*raster_dispatches, 0);
-        assert_eq!(*computed_dispatches, if splatted { 2 } else { 0 });
+        assert_eq!(*computed_dispatches, if splatted { 3 } else { 0 });
         let peak = raster
             .iter()
             .flat_map(|t| &t[..3])
@@ -157,12 +158,13 @@ fn the_splat_dispatches_once_per_batch_and_draws_every_cloud_of_it() {
         })
         .collect();
     let (mut app, target) = spawn_clouds(&setup, &clouds);
+    common::draw_every_frame(&mut app);
     let mut frames = FrameRecorder::default();
     headless::render_until_steady(&mut app, &mut frames, target.drawable_clouds, 20).unwrap();
     let image = headless::capture(&mut app, &mut frames, &target.image).unwrap();
     let last = frames.frames.last().expect("a frame");
-    // Two splats and the resolve; every cloud drawn.
-    assert_eq!(last.dispatches(CloudPass::Draw), 3);
+    // The depth comparison, two splats and the resolve; every cloud drawn.
+    assert_eq!(last.dispatches(CloudPass::Draw), 4);
     assert_eq!(last.runs(CloudPass::Draw), 5);
     assert_images_match(&image, &reference_of_clouds(&setup, &clouds), "five clouds");
 }

@@ -53,6 +53,7 @@ fn ball() -> Vec<Particle> {
 /// Renders the case; returns the image and whether the cloud was drawn in the final frame.
 fn render(case: &Case) -> (LinearImage, u32) {
     let mut app = common::headless_app();
+    common::draw_every_frame(&mut app);
     let image = headless::float_target(&mut app, 32, 24);
     let camera = headless::spawn_linear_camera(
         &mut app,
@@ -298,6 +299,7 @@ fn camera_inside_the_cloud() {
 #[test]
 fn invalid_values_through_the_api_are_refused_and_others_render() {
     let mut app = common::headless_app();
+    common::draw_every_frame(&mut app);
     let image = headless::float_target(&mut app, 16, 16);
     headless::spawn_linear_camera(
         &mut app,
