@@ -48,7 +48,11 @@ struct DrawParams {
 #ifdef COMPUTE_DRAW
 // Per target texel: the light (r, g, b) and the particles' own optical depth, f32 bits.
 @group(0) @binding(4) var<storage, read_write> sums: array<atomic<u32>>;
+#ifdef BLENDED_CLOUD_TARGET
+@group(0) @binding(5) var target_texels: texture_storage_2d<rgba32float, write>;
+#else
 @group(0) @binding(5) var target_texels: texture_storage_2d<rgba16float, write>;
+#endif
 // What decides whether this frame draws (`CloudRedraw`): [0] is non-zero when it does (1 when
 // the CPU cannot rule out a change, else set by `compare_depth`); [1 + i] is the depth that
 // target texel i's particles were last tested against, f32 bits.

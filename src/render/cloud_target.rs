@@ -29,7 +29,7 @@ use bevy::{
             RenderPassColorAttachment, RenderPassDescriptor, RenderPipelineDescriptor,
             ShaderStages, ShaderType, SpecializedRenderPipeline, SpecializedRenderPipelines,
             StoreOp, TextureDescriptor, TextureDimension, TextureFormat, TextureSampleType,
-            TextureUsages,
+            TextureUsages, WgpuFeatures,
             binding_types::{
                 texture_2d, texture_depth_2d, texture_depth_2d_multisampled, uniform_buffer,
                 uniform_buffer_sized,
@@ -60,12 +60,29 @@ use super::{
 };
 use crate::{
     cloud::ParticleCloud,
-    settings::{CloudRedraw, CloudTargetScale, DrawMethod},
+    settings::{CloudRedraw, CloudTargetScale, Compositing, DrawMethod},
     stats::{CloudPass, CloudPassCounters},
 };
 
-/// The format of the cloud target: premultiplied linear radiance and opacity, in HDR.
+/// The format of a cloud target that only the computed draw writes: premultiplied linear
+/// radiance and opacity, in HDR. The splat rounds each texel to it once.
 pub const CLOUD_TARGET_FORMAT: TextureFormat = TextureFormat::Rgba16Float;
+
+/// The format of a cloud target that the rasteriser blends into (`Sorted` clouds, or the
+/// rasterised draw below full size), where the adapter can blend it: the blend rounds after every
+/// particle, and in f16 that darkened images (on llvmpipe, which rounds towards zero; see
+/// docs/performance.md, "The draw's rounding").
+pub const BLENDED_CLOUD_TARGET_FORMAT: TextureFormat = TextureFormat::Rgba32Float;
+
+/// The format of a view's cloud target: [`BLENDED_CLOUD_TARGET_FORMAT`] where the rasteriser
+/// blends into it and the adapter can blend that format, else [`CLOUD_TARGET_FORMAT`].
+pub fn cloud_target_format(rasterised_into: bool, features: WgpuFeatures) -> TextureFormat {
+    if rasterised_into && features.contains(WgpuFeatures::FLOAT32_BLENDABLE) {
+        BLENDED_CLOUD_TARGET_FORMAT
+    } else {
+        CLOUD_TARGET_FORMAT
+    }
+}
 
 /// The relative depth difference (see `relative_depth_difference` in `types.wgsl`) at which a
 /// texel's upsampling weight falls to `1/e`. Neighbouring pixels of one surface differ by far
@@ -122,6 +139,8 @@ pub struct ViewCloudTarget {
     /// Whether its view-transmittance clouds are splatted by compute (splat.rs) instead of
     /// rasterised.
     pub compute: bool,
+    /// The target's format ([`cloud_target_format`]).
+    pub format: TextureFormat,
 }
 
 /// The clouds a view with a cloud target rasterises into it, back to front, with their
@@ -140,7 +159,7 @@ pub struct ViewCloudTargetResources {
     key: u64,
     /// Texels per side of the texture.
     size: UVec2,
-    /// The target: `CLOUD_TARGET_FORMAT`, the target's size; the view's own.
+    /// The target: `ViewCloudTarget::format`, the target's size; the view's own.
     pub texture: CachedTexture,
     /// Group 0 of the billboards drawn into the target: view, target parameters, depth.
     pub billboard_view: BindGroup,
@@ -350,10 +369,15 @@ fn choose_cloud_targets(
             continue;
         }
         camera.depth_texture_usages.0 |= TextureUsages::TEXTURE_BINDING.bits();
+        let rasterised_into = !compute
+            || seen
+                .iter()
+                .any(|c| c.settings.compositing == Compositing::Sorted);
         commands.entity(entity).insert(ViewCloudTarget {
             params,
             multisampled: msaa.samples() > 1,
             compute,
+            format: cloud_target_format(rasterised_into, device.features()),
         });
     }
 }
@@ -376,10 +400,14 @@ fn queue_composites(
     }
 }
 
-/// A new cloud target of `size` texels. Each view owns its own: a computing view keeps its
-/// texels from frame to frame ([`CloudRedraw`]), which a texture shared through Bevy's texture
-/// cache would not guarantee.
-fn cloud_target_texture(device: &RenderDevice, size: UVec2) -> CachedTexture {
+/// A new cloud target of `size` texels in `format`. Each view owns its own: a computing view
+/// keeps its texels from frame to frame ([`CloudRedraw`]), which a texture shared through Bevy's
+/// texture cache would not guarantee.
+fn cloud_target_texture(
+    device: &RenderDevice,
+    size: UVec2,
+    format: TextureFormat,
+) -> CachedTexture {
     let texture = device.create_texture(&TextureDescriptor {
         label: Some("particle_clouds_cloud_target"),
         size: bevy::render::render_resource::Extent3d {
@@ -390,7 +418,7 @@ fn cloud_target_texture(device: &RenderDevice, size: UVec2) -> CachedTexture {
         mip_level_count: 1,
         sample_count: 1,
         dimension: TextureDimension::D2,
-        format: CLOUD_TARGET_FORMAT,
+        format,
         // Copied out by the tests that check the upsample against its CPU reference; written
         // as storage by the splats' resolve.
         usage: TextureUsages::RENDER_ATTACHMENT
@@ -437,6 +465,7 @@ fn prepare_cloud_targets(
             [p.scale, p.depth_tolerance].map(f32::to_bits),
             target.multisampled,
             target.compute,
+            target.format,
             depth.view().id(),
             view_buffer.id(),
             fog_buffer.id(),
@@ -445,8 +474,10 @@ fn prepare_cloud_targets(
             continue;
         }
         let texture = match existing {
-            Some(e) if e.size == p.target_size => e.texture.clone(),
-            _ => cloud_target_texture(&device, p.target_size),
+            Some(e) if e.size == p.target_size && e.texture.texture.format() == target.format => {
+                e.texture.clone()
+            }
+            _ => cloud_target_texture(&device, p.target_size, target.format),
         };
         let params = device.create_buffer_with_data(&BufferInitDescriptor {
             label: Some("particle_clouds_cloud_target_params"),
@@ -645,6 +676,21 @@ mod tests {
         assert_eq!(view_scale(Some(&CloudTargetScale(0.01)), &clouds), 0.125);
         assert_eq!(view_scale(Some(&CloudTargetScale(f32::NAN)), &clouds), 1.0);
         assert_eq!(view_scale(None, &[]), 1.0);
+    }
+
+    #[test]
+    fn a_target_the_rasteriser_blends_into_is_f32_where_the_adapter_blends_it() {
+        let blendable = WgpuFeatures::FLOAT32_BLENDABLE;
+        assert_eq!(
+            cloud_target_format(true, blendable),
+            BLENDED_CLOUD_TARGET_FORMAT
+        );
+        assert_eq!(
+            cloud_target_format(true, WgpuFeatures::empty()),
+            CLOUD_TARGET_FORMAT
+        );
+        assert_eq!(cloud_target_format(false, blendable), CLOUD_TARGET_FORMAT);
+        assert_eq!(CLOUD_TARGET_FORMAT, TextureFormat::Rgba16Float);
     }
 
     #[test]

@@ -255,6 +255,8 @@ pub enum BillboardTarget {
     CloudTarget {
         /// Whether the view's depth is multisampled.
         multisampled_depth: bool,
+        /// The target's format (`ViewCloudTarget::format`).
+        format: TextureFormat,
     },
 }
 
@@ -300,14 +302,17 @@ impl SpecializedRenderPipeline for BillboardPipeline {
                     bias: DepthBiasState::default(),
                 }),
             ),
-            BillboardTarget::CloudTarget { multisampled_depth } => {
+            BillboardTarget::CloudTarget {
+                multisampled_depth,
+                format,
+            } => {
                 shader_defs.push("CLOUD_TARGET".into());
                 if multisampled_depth {
                     shader_defs.push("MULTISAMPLED".into());
                 }
                 (
                     super::cloud_target::billboard_view_layout(multisampled_depth),
-                    super::cloud_target::CLOUD_TARGET_FORMAT,
+                    format,
                     1,
                     None,
                 )
@@ -656,6 +661,7 @@ pub(crate) fn queue_cloud_billboards(
         let target = match cloud_target {
             Some(t) => BillboardTarget::CloudTarget {
                 multisampled_depth: t.multisampled,
+                format: t.format,
             },
             None => BillboardTarget::View {
                 format: view.target_format,

@@ -15,7 +15,7 @@ use bevy::{
             BufferInitDescriptor, BufferUsages, CachedComputePipelineId, CommandEncoder,
             ComputePassDescriptor, ComputePipelineDescriptor, PipelineCache, ShaderStages,
             SpecializedComputePipeline, SpecializedComputePipelines, StorageTextureAccess,
-            TextureView, WgpuLimits,
+            TextureFormat, TextureView, WgpuLimits,
             binding_types::{storage_buffer_sized, texture_storage_2d, uniform_buffer},
         },
         renderer::RenderDevice,
@@ -24,7 +24,9 @@ use bevy::{
 };
 
 use super::{
-    cloud_target::{CLOUD_TARGET_FORMAT, CloudTargetParams, ViewCloudTarget},
+    cloud_target::{
+        BLENDED_CLOUD_TARGET_FORMAT, CLOUD_TARGET_FORMAT, CloudTargetParams, ViewCloudTarget,
+    },
     draw::BillboardPipeline,
     fog::{CloudFogParams, ExtractedCloudFog, FogMode},
     gpu::{sequential_layout, storage_buffers_in},
@@ -91,7 +93,10 @@ pub fn splat_storage_buffers() -> u32 {
     static COUNT: std::sync::OnceLock<u32> = std::sync::OnceLock::new();
     *COUNT.get_or_init(|| {
         storage_buffers_in(
-            &[&splat_view_layout(false), &splat_batch_layout()],
+            &[
+                &splat_view_layout(false, CLOUD_TARGET_FORMAT),
+                &splat_batch_layout(),
+            ],
             ShaderStages::COMPUTE,
         )
     })
@@ -100,7 +105,10 @@ pub fn splat_storage_buffers() -> u32 {
 /// Group 0 of the splat pipelines: the cloud target's billboard view group (view, target
 /// parameters, depth, fog), then the sums and the target as storage, and what decides whether the
 /// view draws (`still` in `billboard.wgsl`).
-pub(crate) fn splat_view_layout(multisampled: bool) -> BindGroupLayoutDescriptor {
+pub(crate) fn splat_view_layout(
+    multisampled: bool,
+    format: TextureFormat,
+) -> BindGroupLayoutDescriptor {
     sequential_layout(
         "particle_clouds_splat_view_layout",
         ShaderStages::COMPUTE,
@@ -110,7 +118,7 @@ pub(crate) fn splat_view_layout(multisampled: bool) -> BindGroupLayoutDescriptor
             super::cloud_target::depth_binding(multisampled),
             uniform_buffer::<CloudFogParams>(true),
             storage_buffer_sized(false, None),
-            texture_storage_2d(CLOUD_TARGET_FORMAT, StorageTextureAccess::WriteOnly),
+            texture_storage_2d(format, StorageTextureAccess::WriteOnly),
             storage_buffer_sized(false, None),
         ),
     )
@@ -152,6 +160,8 @@ pub struct SplatPipelineKey {
     pub fog: Option<FogMode>,
     /// The entry point.
     pub entry: SplatEntry,
+    /// The cloud target's format (`ViewCloudTarget::format`).
+    pub target_format: TextureFormat,
 }
 
 impl SpecializedComputePipeline for SplatPipeline {
@@ -163,11 +173,14 @@ impl SpecializedComputePipeline for SplatPipeline {
         if key.multisampled_depth {
             shader_defs.push("MULTISAMPLED".into());
         }
+        if key.target_format == BLENDED_CLOUD_TARGET_FORMAT {
+            shader_defs.push("BLENDED_CLOUD_TARGET".into());
+        }
         if let Some(fog) = key.fog {
             shader_defs.extend(fog.shader_defs().map(Into::into));
         }
         let entry_point = key.entry.name();
-        let view_layout = splat_view_layout(key.multisampled_depth);
+        let view_layout = splat_view_layout(key.multisampled_depth, key.target_format);
         ComputePipelineDescriptor {
             label: Some(format!("particle_clouds_{entry_point}").into()),
             // The depth comparison reads no batch.
@@ -218,6 +231,7 @@ pub(crate) fn queue_splat_pipelines(
                 multisampled_depth: target.multisampled,
                 fog: fog.map(|f| FogMode::of(&f.0.falloff)),
                 entry,
+                target_format: target.format,
             };
             pipelines.specialize(&cache, &pipeline, key)
         };
@@ -279,7 +293,7 @@ pub(crate) fn splat_resources(
     });
     let group = device.create_bind_group(
         "particle_clouds_splat_view_bind_group",
-        &cache.get_bind_group_layout(&splat_view_layout(target.multisampled)),
+        &cache.get_bind_group_layout(&splat_view_layout(target.multisampled, target.format)),
         &BindGroupEntries::sequential((
             view,
             params.as_entire_binding(),

@@ -5,7 +5,7 @@
 use bevy::{
     prelude::*,
     render::{
-        render_resource::{Texture, TextureUsages},
+        render_resource::{Texture, TextureFormat, TextureUsages},
         view::{Msaa, ViewDepthTexture},
     },
 };
@@ -73,11 +73,21 @@ pub(crate) fn view_textures(app: &mut App) -> (ViewCloudTarget, Texture, Texture
     })
 }
 
-pub(crate) fn rgba16f(bytes: &[u8]) -> Vec<[f32; 4]> {
-    bytes
-        .chunks_exact(8)
-        .map(|t| std::array::from_fn(|c| f16_to_f32(u16::from_le_bytes([t[2 * c], t[2 * c + 1]]))))
-        .collect()
+/// The texels of a cloud target read back in `format` (f16 or f32 RGBA).
+pub(crate) fn target_texels(bytes: &[u8], format: TextureFormat) -> Vec<[f32; 4]> {
+    match format {
+        TextureFormat::Rgba16Float => bytes
+            .chunks_exact(8)
+            .map(|t| {
+                std::array::from_fn(|c| f16_to_f32(u16::from_le_bytes([t[2 * c], t[2 * c + 1]])))
+            })
+            .collect(),
+        TextureFormat::Rgba32Float => floats(bytes)
+            .chunks_exact(4)
+            .map(|t| [t[0], t[1], t[2], t[3]])
+            .collect(),
+        other => panic!("a cloud target in {other:?}"),
+    }
 }
 
 #[test]
@@ -92,10 +102,13 @@ fn the_composite_equals_the_cpu_upsample_of_the_target_it_drew() {
         let mut frames = FrameRecorder::default();
         headless::render_until_steady(&mut app, &mut frames, 1, 20).unwrap();
         let shown = headless::capture(&mut app, &mut frames, &target.image).unwrap();
-        let (params, texture, depth) = view_textures(&mut app);
-        let params = params.params;
+        let (target_view, texture, depth) = view_textures(&mut app);
+        let params = target_view.params;
+        // Sorted clouds are rasterised into the target: in f32 where the adapter blends it.
+        let format = texture.format();
+        assert_eq!(format, target_view.format);
         assert_eq!(params.target_size, UVec2::new(W / 2, H / 2));
-        let texels = rgba16f(&headless::read_texture(&mut app, &texture).unwrap());
+        let texels = target_texels(&headless::read_texture(&mut app, &texture).unwrap(), format);
         let depth = floats(&headless::read_texture(&mut app, &depth).unwrap());
         // What is behind the cloud: the same view with the cloud hidden.
         let cloud = app
