@@ -31,4 +31,29 @@ impl LinearImage {
     pub fn pixel_mut(&mut self, x: u32, y: u32) -> &mut [f32; 4] {
         &mut self.pixels[y as usize * self.width as usize + x as usize]
     }
+
+    /// The largest difference of any channel (alpha included) between this image and
+    /// `reference`, over the reference's brightest RGB value.
+    pub fn worst_difference(&self, reference: &LinearImage) -> f32 {
+        let peak = (reference.pixels.iter().flat_map(|p| &p[..3])).fold(0f32, |m, v| m.max(*v));
+        let worst = (self.pixels.iter().zip(&reference.pixels))
+            .flat_map(|(p, q)| (0..4).map(move |c| (p[c] - q[c]).abs()))
+            .fold(0f32, f32::max);
+        worst / peak.max(1e-6)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_worst_difference_is_over_the_reference_peak() {
+        let mut reference = LinearImage::new(2, 1);
+        reference.pixels = vec![[2.0, 0.5, 0.0, 1.0], [0.0, 0.0, 0.0, 0.0]];
+        let mut image = reference.clone();
+        assert_eq!(image.worst_difference(&reference), 0.0);
+        image.pixels[1] = [0.0, 0.0, 0.0, 0.5];
+        assert_eq!(image.worst_difference(&reference), 0.25);
+    }
 }

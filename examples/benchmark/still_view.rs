@@ -52,7 +52,7 @@ pub(crate) fn still_view_benchmark(args: &Args) -> Result<(), String> {
             scene: bench.name,
             draw_ms: [median(d0), median(d1)],
             wall_ms: [median(w0), median(w1)],
-            worst: worst_difference(&kept, &drawn),
+            worst: kept.worst_difference(&drawn),
         };
         eprintln!(
             "benchmark: {}: still frame drawn {:.2} ms GPU ({:.0} ms wall), kept {:.2} ms ({:.0} ms); kept image within {:.1e} of the peak",
@@ -65,15 +65,6 @@ pub(crate) fn still_view_benchmark(args: &Args) -> Result<(), String> {
         "still_view.md",
         &table(&adapter, &rows, args.frames()),
     )
-}
-
-/// The largest difference of a channel between `a` and `b`, over `b`'s peak.
-fn worst_difference(a: &LinearImage, b: &LinearImage) -> f32 {
-    let peak = (b.pixels.iter().flat_map(|p| &p[..3])).fold(0f32, |m, v| m.max(*v));
-    let worst = (a.pixels.iter().zip(&b.pixels))
-        .flat_map(|(p, q)| (0..4).map(move |c| (p[c] - q[c]).abs()))
-        .fold(0f32, f32::max);
-    worst / peak.max(1e-6)
 }
 
 fn table(adapter: &str, rows: &[StillRow], frames: usize) -> String {

@@ -12,15 +12,6 @@ use bevy_particle_clouds::{
 
 use crate::{cloud_target::occluded_setup, draw::spawn};
 
-/// The largest difference of any channel between `a` and `b`, over the peak of `b`.
-fn worst_difference(a: &LinearImage, b: &LinearImage) -> f32 {
-    let peak = (b.pixels.iter().flat_map(|p| &p[..3])).fold(0f32, |m, v| m.max(*v));
-    let worst = (a.pixels.iter().zip(&b.pixels))
-        .flat_map(|(p, q)| (0..4).map(move |c| (p[c] - q[c]).abs()))
-        .fold(0f32, f32::max);
-    worst / peak.max(1e-6)
-}
-
 /// The image the view shows now with `CloudRedraw::WhenChanged`, then the one it draws with
 /// `EveryFrame`, and the draw runs of the frames that captured the first.
 fn kept_and_drawn(
@@ -64,7 +55,7 @@ fn a_still_view_keeps_its_clouds_until_an_object_moves_in_front_of_them() {
     }
     let (kept, drawn, runs) = kept_and_drawn(&mut app, &mut frames, &target.image);
     assert_eq!(runs, 0, "the capture's frames drew no cloud");
-    let still = worst_difference(&kept, &drawn);
+    let still = kept.worst_difference(&drawn);
     eprintln!("kept against drawn: worst difference {still:e} of the peak");
     assert!(
         still <= SAME,
@@ -84,8 +75,8 @@ fn a_still_view_keeps_its_clouds_until_an_object_moves_in_front_of_them() {
     transform.translation.x += 0.6;
     let (moved, moved_drawn, runs) = kept_and_drawn(&mut app, &mut frames, &target.image);
     assert_eq!(runs, 0, "the CPU saw no change of the clouds");
-    let changed = worst_difference(&moved, &kept);
-    let agree = worst_difference(&moved, &moved_drawn);
+    let changed = moved.worst_difference(&kept);
+    let agree = moved.worst_difference(&moved_drawn);
     eprintln!("the box moved: {changed:e} from before, {agree:e} from the drawn image");
     assert!(changed > 0.1, "the image hardly changed ({changed})");
     assert!(
@@ -131,8 +122,8 @@ fn a_still_view_draws_again_when_its_fog_exposure_or_camera_changes() {
     for (what, change) in changes {
         change(&mut app.world_mut().entity_mut(camera));
         let (kept, drawn, runs) = kept_and_drawn(&mut app, &mut frames, &target.image);
-        let changed = worst_difference(&kept, &previous);
-        let agree = worst_difference(&kept, &drawn);
+        let changed = kept.worst_difference(&previous);
+        let agree = kept.worst_difference(&drawn);
         eprintln!("{what}: {changed:e} from before, {agree:e} from the drawn image, {runs} runs");
         assert!(runs > 0, "{what}: the change drew no cloud");
         assert!(
