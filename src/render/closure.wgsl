@@ -2,10 +2,12 @@
 // a S_M + b S_{M-1}, per channel, added to the multiple-scattering volume (with moments, their
 // flux and quadrupole alike). The orders' sizes N_k = sum rho |S_k| (the absolute values matter
 // for a warm restart's correction, whose orders may be negative) fit two geometric modes to the
-// last four orders where that gives two valid modes: N_{k+2} = p N_{k+1} - q N_k, and
-// a = (p - q) / (1 - p + q), b = -q / (1 - p + q). Else, and always in a warm restart, one mode
-// with the ratio lambda = N_M / N_{M-1}: a = lambda / (1 - lambda), b = 0. Every cloud of a volume
-// pool in one dispatch: z workgroup i closes slot `work[i]`.
+// last four orders: N_{k+2} = p N_{k+1} - q N_k, and a = (p - q) / (1 - p + q),
+// b = -q / (1 - p + q), blended with one mode's by a weight that falls continuously to 0 where the
+// fit stops being two valid, well-conditioned modes (a switch would let the rounding of the sizes
+// move the tail). One mode: the ratio lambda = N_M / N_{M-1}, a = lambda / (1 - lambda), b = 0;
+// always so in a warm restart. Every cloud of a volume pool in one dispatch: z workgroup i closes
+// slot `work[i]`. The constants are `reference::illumination`'s (a unit test keeps them equal).
 #import bevy_particle_clouds::types::{Slot, flat_invocation, flux_element, quadrupole_element}
 
 @group(0) @binding(0) var<storage, read> slots: array<Slot>;
@@ -20,9 +22,18 @@
 @group(0) @binding(6) var<storage, read> work: array<u32>;
 
 const MAX_ORDER_RATIO: f32 = 0.995;
-// The slower mode's distance to 1 at least this many times the faster one's (else the tail
-// follows the orders' differences, and one mode closes the series).
+// The two-mode tail's weight: 0 at the first value of each pair, 1 from the second on
+// (`two_mode_weight` in src/reference/illumination/scatter.rs). The modes' separation
+// (1 - r2) / (1 - r1): nearer, the tail follows the orders' differences.
 const MODE_SEPARATION: f32 = 1.5;
+const MODE_SEPARATION_FULL: f32 = 2.0;
+// y = |det| / N_{M-2}^2 (1 - r1), log-linear: the fit moves the tail by about e / y for a
+// relative change e of the sizes.
+const CONDITIONING: f32 = 1e-6;
+const CONDITIONING_FULL: f32 = 1e-5;
+// The slower ratio (down to full weight), and the faster (up).
+const ORDER_RATIO_FULL: f32 = 0.99;
+const FAST_RATIO_FULL: f32 = 0.02;
 const THREADS: u32 = 256u;
 
 var<workgroup> numerators: array<vec3<f32>, THREADS>;
@@ -80,21 +91,35 @@ fn order_sizes(@builtin(local_invocation_index) i: u32, @builtin(workgroup_id) g
     }
 }
 
-// The tail's coefficients (a, b) of one channel from the sizes N_{M-3}..N_M.
-fn two_modes(n: vec4<f32>) -> vec2<f32> {
+fn ramp(x: f32, zero: f32, one: f32) -> f32 {
+    return clamp((x - zero) / (one - zero), 0.0, 1.0);
+}
+
+// The tail's coefficients (a, b) of one channel from the sizes N_{M-3}..N_M, blended by the
+// two-mode weight with one mode's `a_one`.
+fn two_modes(n: vec4<f32>, a_one: f32) -> vec2<f32> {
     let det = n.y * n.y - n.z * n.x;
     let p = (n.y * n.z - n.w * n.x) / det;
     let q = (n.z * n.z - n.y * n.w) / det;
     let disc = p * p - 4.0 * q;
-    let r1 = 0.5 * (p + sqrt(max(disc, 0.0)));
-    let r2 = 0.5 * (p - sqrt(max(disc, 0.0)));
-    let valid = abs(det) > 1e-6 * n.y * n.y && disc >= 0.0 && r2 >= 0.0 && r1 <= MAX_ORDER_RATIO
-        && 1.0 - r2 >= MODE_SEPARATION * (1.0 - r1);
-    if !valid {
-        return vec2(-1.0);
+    if !(disc >= 0.0) {
+        return vec2(a_one, 0.0);
+    }
+    let r1 = 0.5 * (p + sqrt(disc));
+    let r2 = 0.5 * (p - sqrt(disc));
+    let conditioning = abs(det) / (n.y * n.y) * (1.0 - r1);
+    if !(conditioning > CONDITIONING) || !(r1 < 1.0) {
+        return vec2(a_one, 0.0);
+    }
+    let weight = ramp(log(conditioning), log(CONDITIONING), log(CONDITIONING_FULL))
+        * ramp((1.0 - r2) / (1.0 - r1), MODE_SEPARATION, MODE_SEPARATION_FULL)
+        * ramp(r1, MAX_ORDER_RATIO, ORDER_RATIO_FULL)
+        * ramp(r2, 0.0, FAST_RATIO_FULL);
+    if weight <= 0.0 {
+        return vec2(a_one, 0.0);
     }
     let d = 1.0 - p + q;
-    return vec2((p - q) / d, -q / d);
+    return vec2(weight * (p - q) / d + (1.0 - weight) * a_one, weight * -q / d);
 }
 
 // One workgroup: the last two orders' sizes, then the tail's coefficients.
@@ -115,11 +140,9 @@ fn order_ratio(@builtin(local_invocation_index) i: u32, @builtin(workgroup_id) g
         let early = closure[at].xyz;
         let middle = closure[at + 1u].xyz;
         for (var c = 0u; c < 3u; c++) {
-            let fit = two_modes(vec4(early[c], middle[c], den[c], num[c]));
-            if fit.x >= 0.0 {
-                a[c] = fit.x;
-                b[c] = fit.y;
-            }
+            let fit = two_modes(vec4(early[c], middle[c], den[c], num[c]), a[c]);
+            a[c] = fit.x;
+            b[c] = fit.y;
         }
     }
     // The stored sizes belong to this series only: a warm restart closes with one mode.
@@ -141,10 +164,11 @@ fn extrapolate(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgr
     // Never negative: the full series' orders are not; a warm restart's truncated correction may
     // overshoot where the light fell.
     // Where a channel has two modes, its tail lies between those of one mode with ratio 0 and
-    // MAX_ORDER_RATIO (the energy bound holds whatever the fit).
+    // MAX_ORDER_RATIO (the energy bound holds whatever the fit), where one mode's lies already.
     let s_m = last[slot.volume + v];
     var tail = s_m * a + before[slot.volume + v] * b;
-    let bounded = max(min(tail, s_m * (MAX_ORDER_RATIO / (1.0 - MAX_ORDER_RATIO))), vec4(0.0));
+    let bound = s_m * (MAX_ORDER_RATIO / (1.0 - MAX_ORDER_RATIO));
+    let bounded = clamp(tail, min(bound, vec4(0.0)), max(bound, vec4(0.0)));
     tail = select(tail, bounded, b != vec4(0.0));
     // A coarse grid's sum is a correction, of either sign.
     let sum = multiple[m] + tail;

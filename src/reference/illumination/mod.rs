@@ -36,9 +36,11 @@ pub use illuminate::{
     illuminate_scene, illuminate_scene_cloud, illuminate_under_sky,
 };
 pub use scatter::{
-    MAX_ORDER_RATIO, MODE_SEPARATION, MultipleScattering, SERIES_BELOW, SeriesClosure,
-    curvature_weight, energy_bound, lattice_directions, lebedev_weight, order_ratio, order_size,
-    scatter, scatter_medium, scatter_under_sky, scatter_warm, scatter_warm_medium, segment_weights,
+    CONDITIONING, CONDITIONING_FULL, FAST_RATIO_FULL, MAX_ORDER_RATIO, MODE_SEPARATION,
+    MODE_SEPARATION_FULL, MultipleScattering, ORDER_RATIO_FULL, SERIES_BELOW, SeriesClosure,
+    TwoModes, curvature_weight, energy_bound, lattice_directions, lebedev_weight, order_ratio,
+    order_size, scatter, scatter_medium, scatter_under_sky, scatter_warm, scatter_warm_medium,
+    segment_weights, two_mode_weight,
 };
 pub use shade::{LightVolume, ShadeInputs, shade, shade_brute_force};
 pub use shadow_maps::{

@@ -341,8 +341,32 @@ pub const MAX_ORDER_RATIO: f64 = 0.995;
 
 /// The two-mode closure's slower ratio must leave at least this many times the faster one's
 /// distance to 1: nearer, its coefficients cancel so strongly that the tail follows the last two
-/// orders' differences rather than their sum, and the geometric closure is taken instead.
+/// orders' differences rather than their sum, and the geometric closure is taken instead. The
+/// two-mode tail takes its full weight from [`MODE_SEPARATION_FULL`] on.
 pub const MODE_SEPARATION: f64 = 1.5;
+
+/// The modes' separation from which the two-mode tail takes its full weight.
+pub const MODE_SEPARATION_FULL: f64 = 2.0;
+
+/// The two-mode fit divides by `det = N_{M-2}^2 - N_{M-1} N_{M-3}`, which vanishes as the faster
+/// mode dies out, and its tail grows as `1 / (1 - r1)`: a relative change `e` of the sizes (their
+/// f32 rounding, the order of a GPU's atomic adds, a particle that moved) moves the tail by
+/// about `e / y`, `y = |det| / N_{M-2}^2 (1 - r1)` (measured on thick, bright clouds). Below
+/// this `y` the geometric closure is taken, which the two-mode tail has come close to by then
+/// (within 3 % at `y` = 6e-6 on such clouds). The two-mode tail takes its full weight from
+/// [`CONDITIONING_FULL`] on, log-linearly between.
+pub const CONDITIONING: f64 = 1e-6;
+
+/// The conditioning `y` from which the two-mode tail takes its full weight.
+pub const CONDITIONING_FULL: f64 = 1e-5;
+
+/// The ratio of the slower mode from which (down) the two-mode tail takes its full weight; it
+/// takes none at [`MAX_ORDER_RATIO`].
+pub const ORDER_RATIO_FULL: f64 = 0.99;
+
+/// The ratio of the faster mode from which (up) the two-mode tail takes its full weight; it
+/// takes none at 0 (an alternating mode).
+pub const FAST_RATIO_FULL: f64 = 0.02;
 
 /// An order's size for the closure, per channel: `sum rho |S_k|` over the voxels. The orders of
 /// the full series are never negative; those of a warm restart's correction may be, and their
@@ -400,35 +424,40 @@ impl SeriesClosure {
     /// (`p = r1 + r2`, `q = r1 r2`), so the tail is `((p - q) S_M - q S_{M-1}) / (1 - p + q)`.
     /// The per-order ratio still rises after the first orders (light reaching the cloud's
     /// inside); one geometric mode holds it at its last value, and shapes the tail like the
-    /// last order. A channel whose fit is not two real modes with
-    /// `0 <= r2 < r1 <= MAX_ORDER_RATIO`, separated by [`MODE_SEPARATION`], is closed
-    /// geometrically; so is every channel where `sizes` holds fewer than four.
+    /// last order. Per channel, the two-mode tail is blended with the geometric one by
+    /// [`two_mode_weight`], which falls continuously to 0 where the fit stops being two
+    /// well-conditioned modes with `0 <= r2 < r1 <= MAX_ORDER_RATIO`, so that the tail never
+    /// jumps as the sizes change a little; every channel is closed geometrically where `sizes`
+    /// holds fewer than four.
     pub fn two_mode(sizes: &[DVec3]) -> Self {
         let mut closure = Self::geometric(sizes);
         let [.., n0, n1, n2, n3] = sizes else {
             return closure;
         };
         for c in 0..3 {
-            if let Some((last, before)) = two_mode_coefficients([n0[c], n1[c], n2[c], n3[c]]) {
-                closure.last[c] = last;
-                closure.before[c] = before;
+            if let Some(fit) = TwoModes::fit([n0[c], n1[c], n2[c], n3[c]]) {
+                let w = fit.weight;
+                closure.last[c] = w * fit.last + (1.0 - w) * closure.last[c];
+                closure.before[c] = w * fit.before;
             }
         }
         closure
     }
 
     /// The orders past `last` (`S_M`; `before`: `S_{M-1}`): `last S_M + before S_{M-1}`, every
-    /// moment alike. Where a channel has two modes, its mean is kept within
-    /// `[0, MAX_ORDER_RATIO / (1 - MAX_ORDER_RATIO) S_M]`, the tails of one geometric mode from
+    /// moment alike. Where a channel has two modes, its mean is kept between 0 and
+    /// `MAX_ORDER_RATIO / (1 - MAX_ORDER_RATIO) S_M`, the tails of one geometric mode from
     /// ratio 0 to the largest, so that no fit can take the solution past the energy bound
-    /// ([`energy_bound`]). `zero`: moments of zeros shaped like the orders.
+    /// ([`energy_bound`]); a geometric tail lies there already, so the bound does not jump as a
+    /// channel's two-mode weight reaches 0. `zero`: moments of zeros shaped like the orders.
     pub(super) fn tail(&self, zero: &Moments, last: &Moments, before: &Moments) -> Moments {
         let mut tail = zero.plus(last, self.last).plus(before, self.before);
         let most = MAX_ORDER_RATIO / (1.0 - MAX_ORDER_RATIO);
         for (t, s) in tail.mean.iter_mut().zip(&last.mean) {
             for c in 0..3 {
                 if self.before[c] != 0.0 {
-                    t[c] = t[c].min(most * s[c]).max(0.0);
+                    let bound = most * s[c];
+                    t[c] = t[c].clamp(bound.min(0.0), bound.max(0.0));
                 }
             }
         }
@@ -436,24 +465,61 @@ impl SeriesClosure {
     }
 }
 
-/// The two-mode tail's coefficients of `S_M` and `S_{M-1}` from the sizes
-/// `[N_{M-3}, N_{M-2}, N_{M-1}, N_M]`, or `None` where the fit is not two valid modes.
-fn two_mode_coefficients([n0, n1, n2, n3]: [f64; 4]) -> Option<(f64, f64)> {
-    // N_M = p N_{M-1} - q N_{M-2} and N_{M-1} = p N_{M-2} - q N_{M-3}.
-    let det = n1 * n1 - n2 * n0;
-    if !det.is_finite() || det.abs() <= 1e-12 * n1 * n1 {
-        return None;
+/// A two-mode fit of one channel's last four order sizes: the tail's coefficients of `S_M` and
+/// `S_{M-1}`, and the weight in `(0, 1]` the closure gives them (the geometric tail the rest).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TwoModes {
+    /// The coefficient of `S_M`: `(p - q) / (1 - p + q)`.
+    pub last: f64,
+    /// The coefficient of `S_{M-1}`: `-q / (1 - p + q)`.
+    pub before: f64,
+    /// [`two_mode_weight`] of the fit.
+    pub weight: f64,
+}
+
+impl TwoModes {
+    /// The fit of the sizes `[N_{M-3}, N_{M-2}, N_{M-1}, N_M]`, or `None` where its weight is 0.
+    pub fn fit([n0, n1, n2, n3]: [f64; 4]) -> Option<Self> {
+        // N_M = p N_{M-1} - q N_{M-2} and N_{M-1} = p N_{M-2} - q N_{M-3}.
+        let det = n1 * n1 - n2 * n0;
+        let p = (n1 * n2 - n3 * n0) / det;
+        let q = (n2 * n2 - n1 * n3) / det;
+        let disc = p * p - 4.0 * q;
+        if !(disc >= 0.0) {
+            return None;
+        }
+        let (r1, r2) = ((p + disc.sqrt()) / 2.0, (p - disc.sqrt()) / 2.0);
+        let weight = two_mode_weight(det.abs() / (n1 * n1), r1, r2);
+        let d = 1.0 - p + q;
+        (weight > 0.0).then(|| Self {
+            last: (p - q) / d,
+            before: -q / d,
+            weight,
+        })
     }
-    let p = (n1 * n2 - n3 * n0) / det;
-    let q = (n2 * n2 - n1 * n3) / det;
-    let disc = p * p - 4.0 * q;
-    if !disc.is_finite() || disc < 0.0 {
-        return None;
+}
+
+/// How much the closure trusts a two-mode fit with `x = |det| / N_{M-2}^2` and ratios
+/// `r1 >= r2`: 1 for two well-separated, well-conditioned modes with
+/// `FAST_RATIO_FULL <= r2`, `r1 <= ORDER_RATIO_FULL`, `1 - r2 >= MODE_SEPARATION_FULL (1 - r1)`
+/// and `x (1 - r1) >= CONDITIONING_FULL`; 0 past `MAX_ORDER_RATIO`, `MODE_SEPARATION` or
+/// `CONDITIONING`; a product of ramps between. A switch between the two tails would let a tiny
+/// change of the orders (f32 rounding, the order of a GPU's atomic adds) move a bright, thick
+/// cloud's light by a few per cent (docs/illumination.md §4).
+pub fn two_mode_weight(x: f64, r1: f64, r2: f64) -> f64 {
+    let ramp = |v: f64, zero: f64, one: f64| ((v - zero) / (one - zero)).clamp(0.0, 1.0);
+    let conditioning = x * (1.0 - r1);
+    if !(r1 < 1.0 && conditioning > CONDITIONING) {
+        return 0.0;
     }
-    let (r1, r2) = ((p + disc.sqrt()) / 2.0, (p - disc.sqrt()) / 2.0);
-    let valid = r2 >= 0.0 && r1 <= MAX_ORDER_RATIO && 1.0 - r2 >= MODE_SEPARATION * (1.0 - r1);
-    let d = 1.0 - p + q;
-    valid.then(|| ((p - q) / d, -q / d))
+    ramp(conditioning.ln(), CONDITIONING.ln(), CONDITIONING_FULL.ln())
+        * ramp(
+            (1.0 - r2) / (1.0 - r1),
+            MODE_SEPARATION,
+            MODE_SEPARATION_FULL,
+        )
+        * ramp(r1, MAX_ORDER_RATIO, ORDER_RATIO_FULL)
+        * ramp(r2, 0.0, FAST_RATIO_FULL)
 }
 
 /// Multiple scattering, every order past the first (contract section 4).
@@ -1092,6 +1158,86 @@ mod tests {
         assert!(closure.before.y < 0.0);
         let most = MAX_ORDER_RATIO / (1.0 - MAX_ORDER_RATIO);
         assert_eq!((closure.last.z, closure.before.z), (most, 0.0));
+    }
+
+    /// The tail's multiplier of `S_M` for sizes `n` (`S_{M-1}` taken as `S_M N_{M-1} / N_M`).
+    fn tail_multiplier(n: [f64; 4]) -> f64 {
+        let sizes: Vec<DVec3> = n.iter().map(|n| DVec3::splat(*n)).collect();
+        let c = SeriesClosure::two_mode(&sizes);
+        c.last.x + c.before.x * n[2] / n[3]
+    }
+
+    #[test]
+    fn the_two_mode_tail_does_not_jump_as_the_sizes_cross_a_limit_of_the_fit() {
+        // Sizes of two modes r1^k + B r2^k whose faster mode dies out (B falling to 0), whose
+        // modes draw together (r2 rising to r1) and whose slower ratio passes MAX_ORDER_RATIO:
+        // each walk crosses a limit of the fit, from full weight to none. In steps of 1e-4 of
+        // the walk, the tail's multiplier of S_M moves at most 0.2 % between neighbours (the
+        // steepest: 1 / (1 - r1) near MAX_ORDER_RATIO); the switch between the tails that this
+        // weight replaced jumped by 4 % on the second walk and 82 % on the third.
+        let sizes = |r1: f64, r2: f64, b: f64| -> [f64; 4] {
+            std::array::from_fn(|k| r1.powi(k as i32 + 5) + b * r2.powi(k as i32 + 5))
+        };
+        let weight = |n: [f64; 4]| TwoModes::fit(n).map_or(0.0, |fit| fit.weight);
+        let walks: [(&str, &dyn Fn(f64) -> [f64; 4]); 3] = [
+            ("faster mode dying out", &|t| {
+                sizes(0.95, 0.7, 0.05 * (1.0 - t))
+            }),
+            ("modes drawing together", &|t| {
+                sizes(0.95, 0.88 + 0.07 * t, 1.0)
+            }),
+            ("slower ratio past the largest", &|t| {
+                sizes(0.985 + 0.012 * t, 0.7, 1.0)
+            }),
+        ];
+        for (name, walk) in walks {
+            assert_eq!((weight(walk(0.0)), weight(walk(1.0))), (1.0, 0.0), "{name}");
+            let mut previous = tail_multiplier(walk(0.0));
+            for i in 1..=10_000 {
+                let m = tail_multiplier(walk(i as f64 * 1e-4));
+                assert!(m.is_finite() && m >= 0.0, "{name}: multiplier {m}");
+                let step = (m - previous).abs() / previous.max(m);
+                assert!(
+                    step < 2e-3,
+                    "{name}: the tail jumps by {step:e} at step {i}"
+                );
+                previous = m;
+            }
+        }
+    }
+
+    #[test]
+    fn the_two_mode_weight_is_one_inside_its_limits_and_zero_past_them() {
+        assert_eq!(two_mode_weight(1e-3, 0.95, 0.7), 1.0);
+        assert_eq!(two_mode_weight(CONDITIONING, 0.95, 0.7), 0.0);
+        assert_eq!(two_mode_weight(1e-3, MAX_ORDER_RATIO, 0.7), 0.0);
+        assert_eq!(two_mode_weight(1e-3, 0.95, 0.0), 0.0);
+        // Separation exactly MODE_SEPARATION: 1 - r2 = 1.5 (1 - r1).
+        assert!(two_mode_weight(1e-3, 0.9, 0.85) < 1e-9);
+        assert_eq!(two_mode_weight(1e-3, 1.0, 0.7), 0.0);
+        // x (1 - r1) halfway between the limits, log-linearly.
+        let half = two_mode_weight((CONDITIONING * CONDITIONING_FULL).sqrt() / 0.05, 0.95, 0.7);
+        assert!((half - 0.5).abs() < 1e-9, "{half}");
+    }
+
+    #[test]
+    fn the_gpu_closure_has_the_same_limits() {
+        // closure.wgsl writes the constants again (WGSL takes no float shader defs).
+        let wgsl = include_str!("../../render/closure.wgsl");
+        for (name, value) in [
+            ("MAX_ORDER_RATIO", MAX_ORDER_RATIO),
+            ("MODE_SEPARATION", MODE_SEPARATION),
+            ("MODE_SEPARATION_FULL", MODE_SEPARATION_FULL),
+            ("CONDITIONING", CONDITIONING),
+            ("CONDITIONING_FULL", CONDITIONING_FULL),
+            ("ORDER_RATIO_FULL", ORDER_RATIO_FULL),
+            ("FAST_RATIO_FULL", FAST_RATIO_FULL),
+        ] {
+            let head = format!("const {name}: f32 = ");
+            let at = wgsl.find(&head).unwrap_or_else(|| panic!("no `{head}`")) + head.len();
+            let text = &wgsl[at..at + wgsl[at..].find(';').unwrap()];
+            assert_eq!(text.parse::<f64>().unwrap(), value, "{name}");
+        }
     }
 
     #[test]
