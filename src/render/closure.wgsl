@@ -29,8 +29,8 @@ const MODE_SEPARATION: f32 = 1.5;
 const MODE_SEPARATION_FULL: f32 = 2.0;
 // y = |det| / N_{M-2}^2 (1 - r1), log-linear: the fit moves the tail by about e / y for a
 // relative change e of the sizes.
-const CONDITIONING: f32 = 1e-6;
-const CONDITIONING_FULL: f32 = 1e-5;
+const CONDITIONING: f32 = 1e-5;
+const CONDITIONING_FULL: f32 = 1e-4;
 // The slower ratio (down to full weight), and the faster (up).
 const ORDER_RATIO_FULL: f32 = 0.99;
 const FAST_RATIO_FULL: f32 = 0.02;
