@@ -486,7 +486,8 @@ impl TwoModes {
         let p = (n1 * n2 - n3 * n0) / det;
         let q = (n2 * n2 - n1 * n3) / det;
         let disc = p * p - 4.0 * q;
-        if !(disc >= 0.0) {
+        // No real modes (or no fit: NaN).
+        if disc.is_nan() || disc < 0.0 {
             return None;
         }
         let (r1, r2) = ((p + disc.sqrt()) / 2.0, (p - disc.sqrt()) / 2.0);
@@ -1180,7 +1181,8 @@ mod tests {
             std::array::from_fn(|k| r1.powi(k as i32 + 5) + b * r2.powi(k as i32 + 5))
         };
         let weight = |n: [f64; 4]| TwoModes::fit(n).map_or(0.0, |fit| fit.weight);
-        let walks: [(&str, &dyn Fn(f64) -> [f64; 4]); 3] = [
+        type Walk<'a> = (&'a str, &'a dyn Fn(f64) -> [f64; 4]);
+        let walks: [Walk; 3] = [
             ("faster mode dying out", &|t| {
                 sizes(0.95, 0.7, 0.5 * (1.0 - t))
             }),
