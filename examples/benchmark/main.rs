@@ -18,6 +18,7 @@
 //! cargo run --example benchmark -- --raster-vs-compute [--view 1920x1080] [--layers 13] [--out DIR]
 //! cargo run --example benchmark -- --line-sweep [--grid 128] [--segments 8] [--out DIR]
 //! cargo run --example benchmark -- --still-view [--scenes a,b] [--out DIR]
+//! cargo run --example benchmark -- --sweep-response [--out DIR]
 //! ```
 //!
 //! Writes `DIR/results.csv`, `DIR/results.md` and `DIR/pareto.png` (default `DIR` is
@@ -34,6 +35,8 @@
 //! against its direction count and size (CPU references) and its cost (see `sky_map.rs`).
 //! `--coarse-cycles` writes `DIR/coarse_cycles.md`: the scattering series against two-grid
 //! cycles of as many sweeps or fewer (CPU references; see `coarse_cycles.rs`).
+//! `--sweep-response` writes `DIR/sweep_response.md`: how one scattering sweep carries a source's
+//! spatial detail against the exact transport (CPU reference; see `sweep_response.rs`).
 //!
 //! Timing. The GPU time of a setting is the sum of the per-pass GPU times (Bevy's render
 //! diagnostics; `FrameStats::gpu_ms` of the headless harness) of a frame in which every pass runs:
@@ -62,6 +65,7 @@ mod scenes;
 mod sky_map;
 mod still_view;
 mod sweep;
+mod sweep_response;
 mod voxelize;
 mod warm_start;
 
@@ -200,6 +204,10 @@ pub(crate) struct Args {
     /// the sweep with `--settings '(scatter_coarse_cycles: 2)'`.
     #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "scale", "voxelize", "frame_budget", "warm_start", "grid_error", "sky_map"])]
     pub(crate) coarse_cycles: bool,
+    /// How one scattering sweep carries a source's spatial detail (a Fourier mode) against the
+    /// exact transport, per voxel optical depth (CPU only, no scene).
+    #[arg(long, conflicts_with_all = ["decompose", "replot", "illumination", "cloud_target", "scale", "voxelize", "frame_budget", "warm_start", "grid_error", "sky_map", "coarse_cycles"])]
+    pub(crate) sweep_response: bool,
     /// Clouds do not shadow each other (every cloud `NotShadowCaster`): what the cast of their
     /// shadows costs and what its absence does to the error.
     #[arg(long)]
@@ -518,6 +526,9 @@ fn run() -> Result<(), String> {
     }
     if args.sky_map {
         return sky_map_benchmark(&args);
+    }
+    if args.sweep_response {
+        return write_report(&args, "sweep_response.md", &sweep_response::table());
     }
     if args.scale {
         return if args.replot {
