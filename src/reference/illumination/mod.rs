@@ -40,7 +40,7 @@ pub use scatter::{
     MODE_SEPARATION_FULL, MultipleScattering, ORDER_RATIO_FULL, SERIES_BELOW, SeriesClosure,
     TwoModes, curvature_weight, energy_bound, lattice_directions, lebedev_weight, order_ratio,
     order_size, scatter, scatter_medium, scatter_under_sky, scatter_warm, scatter_warm_medium,
-    segment_weights, two_mode_weight,
+    segment_weights, sweep_mode_gain, two_mode_weight,
 };
 pub use shade::{LightVolume, ShadeInputs, shade, shade_brute_force};
 pub use shadow_maps::{
