@@ -44,8 +44,9 @@ pub enum Compositing {
     /// transmittance, so no order is needed: interpenetrating particles, and interpenetrating
     /// clouds, hide each other's light only where they overlap. The volume blurs the other particles' shadows by about a fine
     /// voxel, so it wants a fine grid (`light_supersampling` 3 or more) and 8 chord segments. The
-    /// default: with those it is within the accuracy goals on every benchmark scene, where
-    /// `Sorted` is not (README, "Accuracy").
+    /// default: with those it is within the accuracy goals on every benchmark scene, and
+    /// `Sorted` reads worse on five of seven (twice the error where optically thick particles
+    /// interpenetrate; README, "Compositing").
     #[default]
     ViewTransmittance,
 }
@@ -113,8 +114,9 @@ pub struct CloudQualitySettings {
     /// `0..=MAX_SCATTER_ITERATIONS`. Default 8, with 2 coarse-grid cycles: the deep orders of
     /// thick clouds of albedo near 1 (20 % of their light lies past order 16) are the cycles'
     /// work. Without cycles, 32 or more: more iterations converge to the grid's own solution,
-    /// whose error is set by `volume_resolution`, but the series' closure is ill-conditioned
-    /// on thick albedo-1 clouds, where 32 iterations can read worse than 16 (README,
+    /// whose error is set by `volume_resolution`; the series' closure is ill-conditioned on
+    /// thick albedo-1 clouds, where it falls back to one mode and converges slowly (16, 32 and
+    /// 64 orders: 0.056, 0.047, 0.036 on the benchmark's `albedo_one`; README,
     /// "Limitations").
     pub scatter_iterations: u32,
     /// Multiple-scattering iterations when only the lights changed since the last solve (a
