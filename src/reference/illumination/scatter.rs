@@ -341,7 +341,7 @@ fn paper_stencil(grid: &DensityGrid, k_local: f64, albedo: f64, s: &[DVec3]) -> 
 /// `sigma_h` each and albedo 1, the source `1 + cos(k . v)`, `k = 2 pi / period direction` per
 /// voxel (`period` in voxels along an axis), swept once; returns the mode's amplitude over the
 /// mean's in the central 8³ voxels (far from the edges for `side >= 32`, `sigma_h >= 0.5`, or
-/// larger grids at thinner voxels). The exact transport of an infinite medium gives
+/// larger grids at thinner voxels; all of a grid smaller than 8). The exact transport of an infinite medium gives
 /// `atan(x) / x`, `x = |k| / sigma`.
 pub fn sweep_mode_gain(side: usize, sigma_h: f64, direction: [f64; 3], period: f64) -> f64 {
     let grid = DensityGrid {
@@ -369,7 +369,9 @@ pub fn sweep_mode_gain(side: usize, sigma_h: f64, direction: [f64; 3], period: f
         1,
     )
     .orders[0];
-    let centre = side / 2 - 4..side / 2 + 4;
+    // The central 8³ voxels, or the whole of a smaller grid.
+    let width = side.min(8);
+    let centre = side / 2 - width / 2..side / 2 - width / 2 + width;
     let (mut projected, mut norm, mut mean) = (0.0, 0.0, 0.0);
     for l in centre.clone() {
         for j in centre.clone() {
@@ -382,7 +384,7 @@ pub fn sweep_mode_gain(side: usize, sigma_h: f64, direction: [f64; 3], period: f
             }
         }
     }
-    projected / norm / (mean / 512.0)
+    projected / norm / (mean / width.pow(3) as f64)
 }
 
 /// Largest per-order ratio `lambda` the series closure assumes.
@@ -1497,5 +1499,9 @@ mod tests {
                 "sigma h {sigma_h}, {direction:?}, period {period}: {gain} against {exact}"
             );
         }
+        // A grid smaller than the central 8³ window is measured whole (it panicked before): a
+        // sweep damps a mode, it does not amplify or flip it.
+        let small = sweep_mode_gain(4, 1.0, [1.0, 0.0, 0.0], 4.0);
+        assert!(small > 0.0 && small < 1.0, "4³ grid: {small}");
     }
 }
