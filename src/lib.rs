@@ -65,6 +65,7 @@ pub mod ground;
 pub mod headless;
 #[cfg(feature = "image")]
 pub mod image_io;
+pub mod lattice;
 pub mod linear_image;
 #[cfg(feature = "lit_object")]
 pub mod lit_object;
@@ -93,7 +94,7 @@ pub use lod::{CloudLevelOfDetail, CloudLod};
 pub use particle::{LightSample, Medium, Particle};
 pub use settings::{
     BillboardShading, CloudQualitySettings, CloudRedraw, CloudRelightBudget, CloudTargetScale,
-    Compositing, DefaultCloudQuality, DrawMethod, ScatterStencil,
+    Compositing, DefaultCloudQuality, DrawMethod, ScatterStencil, SweepDirections,
 };
 pub use shadow_maps::{CloudLight, CloudLights, CloudShadowMaps};
 pub use stats::{CloudPass, CloudPassCounters, PASSES};
@@ -104,7 +105,8 @@ pub mod prelude {
         BillboardShading, CloudGround, CloudLevelOfDetail, CloudLod, CloudQualitySettings,
         CloudRedraw, CloudRelightBudget, CloudShadowMaps, CloudSkyLight, CloudSystems,
         CloudTargetScale, Compositing, DefaultCloudQuality, DrawMethod, Medium, NotCloudLight,
-        Particle, ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil, generators,
+        Particle, ParticleCloud, ParticleCloudsPlugin, Particles, ScatterStencil, SweepDirections,
+        generators,
     };
 }
 

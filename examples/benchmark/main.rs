@@ -85,7 +85,7 @@ use bevy_particle_clouds::headless::{self, FrameRecorder, FrameStats};
 use bevy_particle_clouds::reference::path_tracer::Progress;
 use bevy_particle_clouds::{
     BillboardShading, CloudLevelOfDetail, CloudPass, CloudQualitySettings, Compositing, DrawMethod,
-    PASSES, Particle, ParticleCloud, Particles, ScatterStencil,
+    PASSES, Particle, ParticleCloud, Particles, ScatterStencil, SweepDirections,
     fog::Fog,
     generators,
     image_io::{ImageMetadata, LinearImage, read_exr, write_exr_with_metadata, write_png},
@@ -876,6 +876,8 @@ fn replot(args: &Args) -> Result<(), String> {
     let cycles = table.column("scatter_coarse_cycles").ok();
     // Written before the draw method was recorded: rasterised (the default then).
     let draw_method = table.column("draw_method").ok();
+    // Written before the sweep's directions were a knob: the 26.
+    let directions = table.column("scatter_directions").ok();
     let (gpu, wall, rmse, noise, spp, pareto, axis) =
         (gpu?, wall?, rmse?, noise?, spp?, pareto?, axis?);
     let mut rows = Vec::new();
@@ -922,6 +924,10 @@ fn replot(args: &Args) -> Result<(), String> {
             // The sweep's frames are still; `--warm-start` measures the warm restart.
             warm_scatter_iterations: 0,
             scatter_coarse_cycles: cycles.map_or(0, |c| num(c) as u32),
+            scatter_directions: match directions.map(f) {
+                Some("Lattice98") => SweepDirections::Lattice98,
+                _ => SweepDirections::Lattice26,
+            },
         };
         let timing = Timing {
             gpu_ms_total: num(gpu),

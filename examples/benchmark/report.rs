@@ -63,8 +63,12 @@ pub(crate) fn setting_label(s: &CloudQualitySettings) -> String {
         0 => String::new(),
         c => format!(" +{c} cycles"),
     };
+    let directions = match s.scatter_directions {
+        SweepDirections::Lattice26 => "",
+        SweepDirections::Lattice98 => " 98 dirs",
+    };
     format!(
-        "{}³ ×{}{cycles} {stencil} K{} L{}{compositing}{shading}{target}{method}",
+        "{}³ ×{}{cycles} {stencil}{directions} K{} L{}{compositing}{shading}{target}{method}",
         s.volume_resolution, s.scatter_iterations, s.chord_segments, s.light_supersampling
     )
 }
@@ -160,6 +164,7 @@ struct CsvRow<'a> {
     rel_rmse_box4: f64,
     reference_noise_box4: f64,
     rel_rmse_box4_denoised: f64,
+    scatter_directions: String,
 }
 
 impl<'a> CsvRow<'a> {
@@ -210,6 +215,7 @@ impl<'a> CsvRow<'a> {
             rel_rmse_box4: r.rel_rmse_box4,
             reference_noise_box4: r.reference_noise_box4,
             rel_rmse_box4_denoised: denoised(r.rel_rmse_box4, r.reference_noise_box4),
+            scatter_directions: format!("{:?}", s.scatter_directions),
         }
     }
 }

@@ -11,6 +11,7 @@ pub(crate) const PREVIOUS_DEFAULT: CloudQualitySettings = CloudQualitySettings {
     scatter_coarse_cycles: 0,
     forward_scattering: 0.0,
     scatter_stencil: ScatterStencil::DiscreteOrdinates,
+    scatter_directions: SweepDirections::Lattice26,
     light_supersampling: 2,
     chord_segments: 4,
     compositing: Compositing::Sorted,

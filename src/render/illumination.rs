@@ -29,7 +29,7 @@ use super::{
     particles::GpuParticles,
     pipelines::{
         ComputeStage, IlluminationPipelines, ReadyPipelines, SweepDirection,
-        sweep_direction_offset, sweep_directions, sweep_lines,
+        sweep_direction_offset, sweep_lines,
     },
     plan::CloudIllumination,
     pools::{PoolId, VolumePool, VolumePools},
@@ -43,7 +43,7 @@ use super::{
 };
 use crate::{
     particle::DeltaM,
-    settings::{ScatterStencil, ShadingMethod, SweepMarch},
+    settings::{ScatterStencil, ShadingMethod, SweepDirections, SweepMarch},
     shadow_maps::{CloudShadowMaps, SKY_MAP_DIRECTIONS},
     stats::{CloudPass, CloudPassCounters},
 };
@@ -73,11 +73,12 @@ impl Batch {
     }
 }
 
-/// The scattering of a pool's clouds that share an iteration count, a stencil and whether they
-/// restart warm.
+/// The scattering of a pool's clouds that share an iteration count, a stencil (with its sweep
+/// directions) and whether they restart warm.
 struct ScatterBatch {
     iterations: u32,
-    sweep: bool,
+    /// The discrete-ordinates sweep's directions, or `None` for the paper's stencil.
+    sweep: Option<SweepDirections>,
     /// A warm restart from the solution `multiple` holds (docs/illumination.md §4).
     warm: bool,
     /// The iterations' three order pairs: `S_0 → a`, `a → b`, `b → a`; and `S_0 → b`, a warm
@@ -254,7 +255,7 @@ struct PoolWork {
     gather: Vec<u32>,
     /// The clouds a ground lights whose scattering runs (their ground maps are filled first).
     ground: Vec<u32>,
-    scatter: HashMap<(u32, ScatterStencil, bool, u32), Vec<u32>>,
+    scatter: HashMap<(u32, ScatterStencil, SweepDirections, bool, u32), Vec<u32>>,
 }
 
 /// What each pool's passes do this frame, from its clouds' plans, and the clouds each pool
@@ -292,7 +293,13 @@ fn pool_work(
             w.gather.push(slot);
         }
         if let Some(iterations) = plan.scatter.filter(|&i| i > 0) {
-            let key = (iterations, plan.stencil, plan.warm, plan.cycles);
+            let key = (
+                iterations,
+                plan.stencil,
+                plan.directions,
+                plan.warm,
+                plan.cycles,
+            );
             w.scatter.entry(key).or_default().push(slot);
             if lights.ground.is_some() && plan.stencil == ScatterStencil::DiscreteOrdinates {
                 w.ground.push(slot);
@@ -490,10 +497,10 @@ fn pool_batches(
     let scatter = w
         .scatter
         .into_iter()
-        .map(|((iterations, stencil, warm, cycles), slots)| {
+        .map(|((iterations, stencil, directions, warm, cycles), slots)| {
             let work = WorkList::new(device, &slots);
             let mut batch = scatter_batch(bind, pipelines, pool, iterations, work);
-            batch.sweep = stencil == ScatterStencil::DiscreteOrdinates;
+            batch.sweep = (stencil == ScatterStencil::DiscreteOrdinates).then_some(directions);
             batch.warm = warm;
             batch.cycles =
                 (cycles > 0).then(|| CycleBatch::new(bind, pipelines, pool, &batch.work, cycles));
@@ -631,7 +638,8 @@ fn add_overlaps(
 }
 
 /// The bind groups of `iterations` of scattering for the slots of `work`, in `pool` (the
-/// discrete-ordinates stencil, full series: set `sweep` and `warm` for the others).
+/// discrete-ordinates stencil along the 26 directions, full series: set `sweep` and `warm` for
+/// the others).
 fn scatter_batch(
     bind: &impl Fn(&ComputeStage, &[BindGroupEntry]) -> BindGroup,
     pipelines: &IlluminationPipelines,
@@ -647,7 +655,7 @@ fn scatter_batch(
     let closure = volumes.closure(bind, pipelines, iterations, &work);
     ScatterBatch {
         iterations,
-        sweep: true,
+        sweep: Some(SweepDirections::Lattice26),
         warm: false,
         groups,
         closure,
@@ -948,8 +956,8 @@ fn scatter_batch_passes(
 /// Records the passes of a scattering series on a pool's `n³` grids (or on its coarse grids).
 pub(super) struct SeriesPasses<'a> {
     pub(super) ready: &'a ReadyPipelines<'a>,
-    /// The discrete-ordinates sweep, else the paper's stencil.
-    pub(super) sweep: bool,
+    /// The discrete-ordinates sweep's directions, else (`None`) the paper's stencil.
+    pub(super) sweep: Option<SweepDirections>,
     /// Voxels per side of the grids.
     pub(super) n: u32,
     /// 1 for the pipelines with angular moments, else 0.
@@ -958,7 +966,7 @@ pub(super) struct SeriesPasses<'a> {
 
 impl SeriesPasses<'_> {
     fn stencil(&self) -> &ComputePipeline {
-        if self.sweep {
+        if self.sweep.is_some() {
             self.ready.sweep[self.variant]
         } else {
             self.ready.scatter_paper
@@ -980,17 +988,19 @@ impl SeriesPasses<'_> {
         boundary: bool,
     ) {
         let n = self.n;
-        if !self.sweep {
-            let direction = sweep_direction_offset(0, accumulate, boundary);
+        let Some(directions) = self.sweep else {
+            // The paper's stencil reads only the pair's `accumulate`.
+            let direction =
+                sweep_direction_offset(SweepDirections::Lattice26, 0, accumulate, boundary);
             pass.set_bind_group(0, group, &[direction, work]);
             dispatch_linear(pass, n.pow(3), items);
             return;
-        }
+        };
         // One dispatch per direction pair: the lines of one direction partition the grid.
-        for (i, o) in sweep_directions().enumerate() {
-            let direction = sweep_direction_offset(i, accumulate, boundary);
+        for (i, d) in directions.pairs().into_iter().enumerate() {
+            let direction = sweep_direction_offset(directions, i, accumulate, boundary);
             pass.set_bind_group(0, group, &[direction, work]);
-            dispatch_linear(pass, sweep_lines(o, n), items);
+            dispatch_linear(pass, sweep_lines(IVec3::from_array(d.o), n), items);
         }
         // The order into `multiple` once, not in each direction's dispatch.
         if accumulate {

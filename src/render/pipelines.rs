@@ -8,6 +8,7 @@ use super::{
     shaders::CloudShaders,
     volumes::DensityLevels,
 };
+use crate::settings::SweepDirections;
 use bevy::{
     prelude::*,
     render::{
@@ -132,30 +133,54 @@ pub struct SweepDirection {
     /// 1 for the sweeps of an iteration that brings the light entering the grid in (the sky's,
     /// and the ground's on lines that climb), else 0.
     pub boundary: u32,
+    /// Each direction's weight in the order's mean and flux
+    /// ([`crate::lattice::LatticeDirection::mean`]).
+    pub mean_weight: f32,
+    /// Each direction's weight in the order's quadrupole
+    /// ([`crate::lattice::LatticeDirection::quadrupole`]).
+    pub quadrupole_weight: f32,
 }
+
+/// The direction sets in the order the uniform buffer holds them, in each of its four sets.
+const DIRECTION_SETS: [SweepDirections; 2] =
+    [SweepDirections::Lattice26, SweepDirections::Lattice98];
+
+/// Direction pairs of every direction set (13 + 49): the entries of each of the four sets of
+/// [`sweep_direction_offset`].
+const PAIRS_PER_SET: usize = 62;
 
 /// The dynamic offset of the `SweepDirection` of direction pair `index` (of
-/// [`sweep_directions`]), accumulating or not, bringing the sky in or not.
-pub fn sweep_direction_offset(index: usize, accumulate: bool, sky: bool) -> u32 {
+/// `directions.pairs()`), accumulating or not, bringing the sky in or not.
+pub fn sweep_direction_offset(
+    directions: SweepDirections,
+    index: usize,
+    accumulate: bool,
+    sky: bool,
+) -> u32 {
     let set = 2 * (!accumulate as usize) + (!sky as usize);
-    (set * 13 + index) as u32 * DYNAMIC_UNIFORM_STRIDE
+    let before: usize = DIRECTION_SETS
+        .iter()
+        .take_while(|&&d| d != directions)
+        .map(|d| d.pairs().len())
+        .sum();
+    (set * PAIRS_PER_SET + before + index) as u32 * DYNAMIC_UNIFORM_STRIDE
 }
 
-/// The 13 direction pairs of the sweep, each with its number of lattice lines in an `n³` grid:
-/// `n^(3-k) (2n-1)^(k-1)` for `k` non-zero components.
-pub fn sweep_directions() -> impl Iterator<Item = IVec3> {
-    (-1..=1)
-        .flat_map(|z| (-1..=1).flat_map(move |y| (-1..=1).map(move |x| IVec3::new(x, y, z))))
-        .filter(|o| {
-            let first = [o.x, o.y, o.z].into_iter().find(|&c| c != 0);
-            first == Some(1)
-        })
-}
-
-/// Lattice lines of direction `o` in an `n³` grid (one sweep invocation each).
+/// Lattice lines of direction `o` in an `n³` grid, as `scatter.wgsl`'s `sweep` decodes them
+/// (one invocation each, some of them empty): the first axis of largest `|o_a| = f` starts at
+/// `0..f`, each other moving axis at `-(ceil(n / f) - 1) |o_a|..n`, each still axis at `0..n`.
 pub fn sweep_lines(o: IVec3, n: u32) -> u32 {
-    let moving = (o.abs().element_sum()) as u32;
-    n.pow(3 - moving) * (2 * n - 1).pow(moving - 1)
+    let steps = o.abs().to_array().map(|c| c as u32);
+    let f = steps.into_iter().max().unwrap_or(1).max(1);
+    let first = steps.iter().position(|&c| c == f).unwrap_or(0);
+    let reach = n.div_ceil(f) - 1;
+    (0..3)
+        .map(|a| match steps[a] {
+            0 => n,
+            _ if a == first => f,
+            s => n + reach * s,
+        })
+        .product()
 }
 
 /// The pipelines of the illumination passes.
@@ -207,7 +232,7 @@ pub struct IlluminationPipelines {
     pub restrict_residual: ByMoments,
     /// `coarse_grid.wgsl`, `prolong_correction`: its correction added.
     pub prolong_correction: ByMoments,
-    /// The 13 `SweepDirection`s in each of the four sets of [`sweep_direction_offset`]
+    /// The 62 `SweepDirection`s (13 and 49) in each of the four sets of [`sweep_direction_offset`]
     /// (accumulating or not, bringing the sky in or not), `DYNAMIC_UNIFORM_STRIDE` bytes apart (a
     /// dynamic uniform; `write_sweep_sky` writes the sky into them).
     pub sweep_directions: Buffer,
@@ -293,20 +318,26 @@ impl IlluminationPipelines {
     }
 }
 
-/// The 13 directions in each of the four sets of [`sweep_direction_offset`], with the sky
-/// radiance `sky` in the sets that bring it in.
+/// The direction pairs of every direction set in each of the four sets of
+/// [`sweep_direction_offset`], with the sky radiance `sky` in the sets that bring it in.
 fn sweep_direction_entries(sky: Vec3) -> impl Iterator<Item = SweepDirection> {
     (0..4).flat_map(move |set| {
-        sweep_directions()
-            .enumerate()
-            .map(move |(i, o)| SweepDirection {
-                o,
-                first: (i == 0) as u32,
-                // The inverse of `sweep_direction_offset`'s set.
-                accumulate: (set < 2) as u32,
-                sky: if set % 2 == 0 { sky } else { Vec3::ZERO },
-                boundary: (set % 2 == 0) as u32,
-            })
+        DIRECTION_SETS.into_iter().flat_map(move |directions| {
+            directions
+                .pairs()
+                .into_iter()
+                .enumerate()
+                .map(move |(i, d)| SweepDirection {
+                    o: IVec3::from_array(d.o),
+                    first: (i == 0) as u32,
+                    // The inverse of `sweep_direction_offset`'s set.
+                    accumulate: (set < 2) as u32,
+                    sky: if set % 2 == 0 { sky } else { Vec3::ZERO },
+                    boundary: (set % 2 == 0) as u32,
+                    mean_weight: d.mean as f32,
+                    quadrupole_weight: d.quadrupole as f32,
+                })
+        })
     })
 }
 
@@ -558,20 +589,56 @@ mod tests {
         }
     }
 
+    /// Decoded as `scatter.wgsl` does, the invocations of each direction pair hold every voxel
+    /// of the grid on exactly one line (empty lines aside), for both direction sets.
     #[test]
     fn sweep_lines_cover_the_grid_once_per_direction() {
-        let directions: Vec<IVec3> = sweep_directions().collect();
-        assert_eq!(directions.len(), 13);
-        for o in &directions {
-            assert!(!directions.contains(&-*o), "{o} and its opposite");
-        }
-        // Axis lines are n long; diagonal lines shorter, but each direction's lines hold n³ voxels.
         let n = 5;
-        for o in directions {
-            let lines = sweep_lines(o, n);
-            let moving = o.abs().element_sum();
-            assert_eq!(lines, [25, 45, 81][moving as usize - 1], "{o}");
+        for set in DIRECTION_SETS {
+            let pairs = set.pairs();
+            for d in &pairs {
+                let o = IVec3::from_array(d.o);
+                assert!(!pairs.iter().any(|e| IVec3::from_array(e.o) == -o), "{o}");
+                let mut hits = vec![0u32; (n * n * n) as usize];
+                for line in 0..sweep_lines(o, n) {
+                    for v in decoded_line(o, n, line) {
+                        hits[(v.x + n as i32 * (v.y + n as i32 * v.z)) as usize] += 1;
+                    }
+                }
+                assert!(hits.iter().all(|&h| h == 1), "{o}: {hits:?}");
+            }
         }
+        // The 26 directions' count: n^(3-k) (2n-1)^(k-1) for k moving axes.
+        let lines = |o| sweep_lines(o, n);
+        assert_eq!([lines(IVec3::X), lines(IVec3::ONE)], [25, 81]);
+    }
+
+    /// The voxels of invocation `line` of direction `o`'s sweep, decoded as `scatter.wgsl`'s
+    /// `sweep` does (in the frame where `o` has no negative component).
+    fn decoded_line(o: IVec3, n: u32, mut line: u32) -> Vec<IVec3> {
+        let step = o.abs();
+        let f = step.max_element();
+        let first = (0..3).find(|&a| step[a] == f).unwrap();
+        let reach = n.div_ceil(f as u32) as i32 - 1;
+        let mut start = IVec3::ZERO;
+        for a in 0..3 {
+            let span = match step[a] {
+                0 => n,
+                _ if a == first => f as u32,
+                s => n + (reach * s) as u32,
+            };
+            let offset = if step[a] == 0 || a == first {
+                0
+            } else {
+                reach * step[a]
+            };
+            start[a] = (line % span) as i32 - offset;
+            line /= span;
+        }
+        (0..n as i32)
+            .map(|t| start + t * step)
+            .filter(|v| v.cmpge(IVec3::ZERO).all() && v.cmplt(IVec3::splat(n as i32)).all())
+            .collect()
     }
 
     /// Every offset the passes ask for finds the entry it means: its direction, whether it
@@ -580,12 +647,20 @@ mod tests {
     fn every_sweep_direction_offset_finds_its_entry() {
         let sky = Vec3::new(0.1, 0.2, 0.3);
         let entries: Vec<SweepDirection> = sweep_direction_entries(sky).collect();
-        for (i, o) in sweep_directions().enumerate() {
+        assert_eq!(entries.len(), 4 * PAIRS_PER_SET);
+        for (i, d) in DIRECTION_SETS.iter().flat_map(|s| {
+            s.pairs()
+                .into_iter()
+                .enumerate()
+                .map(move |(i, d)| (i, (*s, d)))
+        }) {
+            let (set, d) = d;
             for accumulate in [true, false] {
                 for brings_sky in [true, false] {
-                    let offset = sweep_direction_offset(i, accumulate, brings_sky);
+                    let offset = sweep_direction_offset(set, i, accumulate, brings_sky);
                     let entry = entries[(offset / DYNAMIC_UNIFORM_STRIDE) as usize];
-                    assert_eq!(entry.o, o);
+                    assert_eq!(entry.o, IVec3::from_array(d.o));
+                    assert_eq!(entry.mean_weight, d.mean as f32);
                     assert_eq!(entry.first, (i == 0) as u32);
                     assert_eq!(entry.accumulate, accumulate as u32);
                     assert_eq!(entry.sky, if brings_sky { sky } else { Vec3::ZERO });

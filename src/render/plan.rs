@@ -9,7 +9,7 @@ use super::{
     key_of,
     volumes::{CloudParams, LightParams},
 };
-use crate::settings::{CloudQualitySettings, ScatterStencil};
+use crate::settings::{CloudQualitySettings, ScatterStencil, SweepDirections};
 
 /// The key of every stage's inputs. A stage's key includes the keys of the stages it reads, so a
 /// change flows downstream: new particles re-voxelize, which re-shades every light, which
@@ -99,6 +99,7 @@ impl StageKeys {
             ]
             .map(f32::to_bits),
             settings.scatter_stencil,
+            settings.scatter_directions,
             settings.scatter_iterations,
             settings.warm_scatter_iterations,
             settings.coarse_cycles(),
@@ -131,6 +132,8 @@ pub struct WorkPlan {
     pub scatter: Option<u32>,
     /// The stencil of those iterations.
     pub stencil: ScatterStencil,
+    /// The sweep's directions (the discrete-ordinates stencil's).
+    pub directions: SweepDirections,
     /// No light reaches the cloud: its multiple scattering is zeroed instead of computed.
     pub unlit: bool,
     /// The scattering restarts from the solution the volumes hold (only the source changed):
@@ -189,6 +192,11 @@ pub fn plan(cached: &StageKeys, now: &StageKeys, settings: &CloudQualitySettings
         scatter: changed,
         stencil: if changed.is_some() {
             settings.scatter_stencil
+        } else {
+            default()
+        },
+        directions: if changed.is_some() {
+            settings.scatter_directions
         } else {
             default()
         },
@@ -309,6 +317,7 @@ mod tests {
                 gather: true,
                 scatter: Some(settings.scatter_iterations),
                 stencil: settings.scatter_stencil,
+                directions: settings.scatter_directions,
                 unlit: false,
                 warm: false,
                 cycles: 2,
@@ -439,6 +448,17 @@ mod tests {
         };
         state.update(lit(Vec3::new(1.0, 0.1, 0.0), &paper), &paper);
         assert_eq!((state.plan.scatter, state.plan.cycles), (Some(8), 0));
+        // Other sweep directions: the full series again, along them.
+        let finer = CloudQualitySettings {
+            scatter_directions: SweepDirections::Lattice98,
+            ..more
+        };
+        state.update(lit(Vec3::new(1.0, 0.1, 0.0), &finer), &finer);
+        let p = &state.plan;
+        assert_eq!(
+            (p.gather, p.scatter, p.directions),
+            (false, Some(8), SweepDirections::Lattice98)
+        );
     }
 
     #[test]

@@ -8,7 +8,9 @@
 #import bevy_particle_clouds::types::{CloudParams, Slot, GroundMap, GROUND_MAP_SIDE, voxel_index, flat_invocation, flux_element, quadrupole_element, quadrupole_basis, quadrupole_weights, affine_point, affine_vector}
 
 // One direction pair (o, -o) of the discrete-ordinates sweep, o's first non-zero component
-// positive; `first` is 1 for the first of an iteration's 13 dispatches (it overwrites S_{n+1});
+// positive, with each direction's quadrature weights in the order's mean (and flux) and in its
+// quadrupole (src/lattice.rs); `first` is 1 for the first of an iteration's dispatches (13 or
+// 49, one per pair; it overwrites S_{n+1});
 // `accumulate` is 0 for the first sweep of a warm restart (the paper's stencil then leaves
 // `multiple` alone; the sweep never writes it: `accumulate_order` adds each order); `sky`
 // is the sky's radiance and `boundary` 1 in the first iteration of a series, where the light
@@ -20,6 +22,8 @@ struct SweepDirection {
     accumulate: u32,
     sky: vec3<f32>,
     boundary: u32,
+    mean_weight: f32,
+    quadrupole_weight: f32,
 }
 
 @group(0) @binding(0) var<storage, read> slots: array<Slot>;
@@ -179,23 +183,14 @@ fn add_to(element: u32, share: vec4<f32>, overwrite: bool) {
     }
 }
 
-#ifdef MOMENTS
-// The 26-point Lebedev rule's weight of this dispatch's lattice directions (exact to degree 7):
-// 1/21 along an axis, 4/105 along a face diagonal, 9/280 along a body diagonal.
-fn lebedev_weight() -> f32 {
-    let moving = dot(abs(vec3<f32>(direction.o)), vec3(1.0));
-    return select(select(9.0 / 280.0, 4.0 / 105.0, moving == 2.0), 1.0 / 21.0, moving == 1.0);
-}
-#endif
-
-// Voxel `voxel`'s share of the radiance arriving there travelling along w: 1/26 of it to the
-// next order's mean (and with moments its flux), and with moments its Lebedev weight to the
-// quadrupole (§4: gathering a P2 radiance's quadrupole integrates degree 4, which equal weights
-// miss); added to what the volume held (its mean `held`, read ahead by the march), or written
-// over it (`overwrite`, in an iteration's first dispatch). `multiple` takes the order once the
-// iteration's sweeps are done (`accumulate_order`).
+// Voxel `voxel`'s share of the radiance arriving there travelling along w: its mean weight to
+// the next order's mean (and with moments its flux), and with moments its quadrupole weight to
+// the quadrupole (§4: gathering a P2 radiance's quadrupole integrates degree 4, which the mean's
+// weights miss); added to what the volume held (its mean `held`, read ahead by the march), or
+// written over it (`overwrite`, in an iteration's first dispatch). `multiple` takes the order
+// once the iteration's sweeps are done (`accumulate_order`).
 fn deposit(voxel: u32, radiance: vec3<f32>, w: vec3<f32>, overwrite: bool, held: vec4<f32>) {
-    let share = vec4(radiance / 26.0, 0.0);
+    let share = vec4(radiance * direction.mean_weight, 0.0);
     s_out[slot.volume + voxel] = held + share;
 #ifdef MOMENTS
     let n = cloud.n;
@@ -203,7 +198,7 @@ fn deposit(voxel: u32, radiance: vec3<f32>, w: vec3<f32>, overwrite: bool, held:
         add_to(flux_element(slot.volume, n, voxel, axis), share * w[axis], overwrite);
     }
     let q = quadrupole_basis(w);
-    let weighted = vec4(radiance * lebedev_weight(), 0.0);
+    let weighted = vec4(radiance * direction.quadrupole_weight, 0.0);
     for (var c = 0u; c < 5u; c++) {
         add_to(quadrupole_element(slot.volume, n, voxel, c), weighted * q[c], overwrite);
     }
@@ -226,30 +221,37 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
     begin(id.z);
     let n = i32(cloud.n);
     let o = direction.o;
-    let first_axis = select(select(2, 1, o.y != 0), 0, o.x != 0);
-    // Decode the line: free axes take any coordinate, the other moving axes an offset from the
-    // first moving axis in -(n - 1)..=(n - 1).
+    let step = abs(o);
+    let f = max(step.x, max(step.y, step.z));
+    let first_axis = select(select(2, 1, step.y == f), 0, step.x == f);
+    // Decode the line (pipelines.rs, `sweep_lines`), where o has no negative component: the
+    // first axis of largest step f starts at 0..f, the other moving axes at an offset in
+    // -(ceil(n / f) - 1) |o_a|..n, the still axes anywhere.
+    let reach = (n + f - 1) / f - 1;
     var rest = flat_invocation(id, groups);
     var start = vec3(0);
     for (var a = 0; a < 3; a++) {
-        if o[a] == 0 {
-            start[a] = i32(rest % cloud.n);
-            rest /= cloud.n;
-        } else if a != first_axis {
-            let span = 2u * cloud.n - 1u;
-            start[a] = i32(rest % span) - (n - 1);
-            rest /= span;
+        var span = cloud.n;
+        var offset = 0;
+        if a == first_axis {
+            span = u32(f);
+        } else if step[a] != 0 {
+            offset = reach * step[a];
+            span = cloud.n + u32(offset);
         }
+        start[a] = i32(rest % span) - offset;
+        rest /= span;
     }
     if rest != 0u {
         return;
     }
+    // The positions t along the line inside the grid: 0 <= start + t step < n on every moving axis.
     var t0 = 0;
     var t1 = n;
     for (var a = 0; a < 3; a++) {
-        if o[a] != 0 {
-            t0 = max(t0, -start[a]);
-            t1 = min(t1, n - start[a]);
+        if step[a] != 0 {
+            t0 = max(t0, (max(-start[a], 0) + step[a] - 1) / step[a]);
+            t1 = min(t1, (n - start[a] + step[a] - 1) / step[a]);
         }
     }
     if t0 >= t1 {

@@ -1,12 +1,13 @@
 //! The coarse-grid cycles of the scattering (`scatter_coarse_cycles`) on the GPU against the f64
 //! CPU reference: a few orders of the series, then cycles that solve for the residual's smooth
 //! part on a grid of half the side. Under a sky, for an isotropic medium and for an anisotropic
-//! one (whose volumes hold angular moments), and at an odd side, where the cycles only sweep.
+//! one (whose volumes hold angular moments), and at an odd side, where the cycles only sweep;
+//! along the 26 lattice directions and along the 98.
 
 use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder};
 use bevy_particle_clouds::{
-    CloudPass, CloudQualitySettings, Medium,
+    CloudPass, CloudQualitySettings, Medium, SweepDirections,
     reference::{
         illumination::{LocalLight, illuminate_under_sky},
         metrics::max_relative_difference,
@@ -19,32 +20,49 @@ use crate::{
     warm_start::{difference, gpu_multiple, lit_cloud_app},
 };
 
-/// Dispatches of the scattering: `fine` orders of the series (13 sweeps and an accumulation
-/// each, the two-mode closure's three), then with a coarse grid the media's restriction, and
-/// per cycle two restart sweeps (15 each) and, with a coarse grid, the residual's restriction,
-/// 32 coarse orders closed alike and the prolongation.
-fn scatter_dispatches(fine: u32, cycles: u32, coarse: bool) -> u32 {
-    let series = |orders: u32| orders * 14 + 3;
+/// Dispatches of the scattering with `pairs` direction pairs: `fine` orders of the series (a
+/// sweep per pair and an accumulation each, the two-mode closure's three), then with a coarse
+/// grid the media's restriction, and per cycle two restart sweeps (a sweep per pair and 2 each)
+/// and, with a coarse grid, the residual's restriction, 32 coarse orders closed alike and the
+/// prolongation.
+fn scatter_dispatches(pairs: u32, fine: u32, cycles: u32, coarse: bool) -> u32 {
+    let series = |orders: u32| orders * (pairs + 1) + 3;
     let transfer = if coarse { 2 + series(32) } else { 0 };
-    series(fine) + coarse as u32 + cycles * (2 * 15 + transfer)
+    series(fine) + coarse as u32 + cycles * (2 * (pairs + 2) + transfer)
 }
+
+const LATTICE_26: SweepDirections = SweepDirections::Lattice26;
+const LATTICE_98: SweepDirections = SweepDirections::Lattice98;
 
 #[test]
 fn cycles_match_the_cpu_reference() {
-    check_cycles(16, 0.0);
+    check_cycles(16, 0.0, LATTICE_26);
 }
 
 #[test]
 fn cycles_carry_the_moments_of_an_anisotropic_medium() {
-    check_cycles(16, 0.6);
+    check_cycles(16, 0.6, LATTICE_26);
 }
 
 #[test]
 fn an_odd_side_has_no_coarse_grid_and_only_sweeps() {
-    check_cycles(15, 0.0);
+    check_cycles(15, 0.0, LATTICE_26);
 }
 
-fn check_cycles(side: u32, anisotropy: f32) {
+/// The 98 directions' sweep (steps of up to 2 voxels per axis, their own weights), on both
+/// grids of the cycles, with moments.
+#[test]
+fn the_98_directions_sweep_matches_the_cpu_reference() {
+    check_cycles(16, 0.6, LATTICE_98);
+}
+
+/// At an odd side, whose lines of step 2 start at either parity.
+#[test]
+fn the_98_directions_sweep_an_odd_side() {
+    check_cycles(15, 0.0, LATTICE_98);
+}
+
+fn check_cycles(side: u32, anisotropy: f32, directions: SweepDirections) {
     let particles = random_particles(5, 60);
     let medium = Medium {
         extinction: 12.0,
@@ -53,6 +71,7 @@ fn check_cycles(side: u32, anisotropy: f32) {
     };
     let settings = CloudQualitySettings {
         scatter_coarse_cycles: 2,
+        scatter_directions: directions,
         ..common::quality(side, 4)
     };
     let sky = Vec3::new(0.1, 0.2, 0.4);
@@ -71,7 +90,12 @@ fn check_cycles(side: u32, anisotropy: f32) {
         .clone();
     assert_eq!(
         frame.dispatches(CloudPass::Scatter),
-        scatter_dispatches(4, 2, side.is_multiple_of(2))
+        scatter_dispatches(
+            directions.pairs().len() as u32,
+            4,
+            2,
+            side.is_multiple_of(2)
+        )
     );
     let gpu = gpu_multiple(&mut app);
 
@@ -96,5 +120,18 @@ fn check_cycles(side: u32, anisotropy: f32) {
     assert!(
         apart > 20.0 * TOLERANCE,
         "cycles moved it by {apart:e} only"
+    );
+    // The other direction set's solution is another: the GPU followed the one asked for.
+    let other = cpu(&CloudQualitySettings {
+        scatter_directions: match directions {
+            SweepDirections::Lattice26 => LATTICE_98,
+            SweepDirections::Lattice98 => LATTICE_26,
+        },
+        ..settings
+    });
+    let apart = max_relative_difference(&flat(&other.total), &flat(&cycled.total));
+    assert!(
+        apart > 20.0 * TOLERANCE,
+        "the other directions moved it by {apart:e} only"
     );
 }

@@ -356,6 +356,7 @@ impl ShadedCloud {
             albedo: self.inputs.albedo,
             delta,
             foreign,
+            directions: settings.scatter_directions,
         };
         let stencil = settings.scatter_stencil;
         let iterations = settings.scatter_iterations;
