@@ -202,7 +202,7 @@ pub struct CloudQualitySettings {
     pub cloud_target_scale: f32,
     /// How the billboards become pixels. A view computes its clouds' pixels when any cloud it
     /// sees asks for [`DrawMethod::Compute`], so a view is rasterised when every cloud it sees
-    /// asks for [`DrawMethod::Raster`] (set it in [`DefaultCloudQuality`](crate::DefaultCloudQuality)).
+    /// asks for [`DrawMethod::Raster`] (set it in [`DefaultCloudQuality`]).
     /// Default [`DrawMethod::Compute`].
     pub draw_method: DrawMethod,
 }
