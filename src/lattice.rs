@@ -6,6 +6,8 @@
 //! octahedral group, so odd moments vanish, and the weights depend only on the orbit of
 //! `(|o_x|, |o_y|, |o_z|)` sorted.
 
+use std::sync::OnceLock;
+
 use crate::settings::SweepDirections;
 
 /// One direction of a sweep set with its two quadrature weights (each set's sum to 1).
@@ -96,12 +98,21 @@ impl SweepDirections {
     }
 
     /// The set's direction pairs `(o, -o)`, each by its `o` whose first non-zero component is
-    /// positive: one sweep dispatch each (13 or 49).
-    pub fn pairs(self) -> Vec<LatticeDirection> {
-        self.directions()
-            .into_iter()
-            .filter(|d| d.o.into_iter().find(|&c| c != 0) > Some(0))
-            .collect()
+    /// positive: one sweep dispatch each (13 or 49). Built once per set, since every recorded
+    /// sweep dispatch asks for them.
+    pub fn pairs(self) -> &'static [LatticeDirection] {
+        static PAIRS_26: OnceLock<Vec<LatticeDirection>> = OnceLock::new();
+        static PAIRS_98: OnceLock<Vec<LatticeDirection>> = OnceLock::new();
+        let pairs = match self {
+            Self::Lattice26 => &PAIRS_26,
+            Self::Lattice98 => &PAIRS_98,
+        };
+        pairs.get_or_init(|| {
+            self.directions()
+                .into_iter()
+                .filter(|d| d.o.into_iter().find(|&c| c != 0) > Some(0))
+                .collect()
+        })
     }
 }
 

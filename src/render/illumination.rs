@@ -997,7 +997,7 @@ impl SeriesPasses<'_> {
             return;
         };
         // One dispatch per direction pair: the lines of one direction partition the grid.
-        for (i, d) in directions.pairs().into_iter().enumerate() {
+        for (i, d) in directions.pairs().iter().enumerate() {
             let direction = sweep_direction_offset(directions, i, accumulate, boundary);
             pass.set_bind_group(0, group, &[direction, work]);
             dispatch_linear(pass, sweep_lines(IVec3::from_array(d.o), n), items);

@@ -325,7 +325,7 @@ fn sweep_direction_entries(sky: Vec3) -> impl Iterator<Item = SweepDirection> {
         DIRECTION_SETS.into_iter().flat_map(move |directions| {
             directions
                 .pairs()
-                .into_iter()
+                .iter()
                 .enumerate()
                 .map(move |(i, d)| SweepDirection {
                     o: IVec3::from_array(d.o),
@@ -596,7 +596,7 @@ mod tests {
         let n = 5;
         for set in DIRECTION_SETS {
             let pairs = set.pairs();
-            for d in &pairs {
+            for d in pairs {
                 let o = IVec3::from_array(d.o);
                 assert!(!pairs.iter().any(|e| IVec3::from_array(e.o) == -o), "{o}");
                 let mut hits = vec![0u32; (n * n * n) as usize];
@@ -648,12 +648,10 @@ mod tests {
         let sky = Vec3::new(0.1, 0.2, 0.3);
         let entries: Vec<SweepDirection> = sweep_direction_entries(sky).collect();
         assert_eq!(entries.len(), 4 * PAIRS_PER_SET);
-        for (i, d) in DIRECTION_SETS.iter().flat_map(|s| {
-            s.pairs()
-                .into_iter()
-                .enumerate()
-                .map(move |(i, d)| (i, (*s, d)))
-        }) {
+        for (i, d) in DIRECTION_SETS
+            .iter()
+            .flat_map(|s| s.pairs().iter().enumerate().map(move |(i, d)| (i, (*s, d))))
+        {
             let (set, d) = d;
             for accumulate in [true, false] {
                 for brings_sky in [true, false] {

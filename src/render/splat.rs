@@ -64,7 +64,7 @@ const SUM_BYTES: u64 = 16;
 /// Why a view cannot splat its clouds into a cloud target of `size` texels on an adapter with
 /// `limits`, if it cannot: the sums must fit one storage buffer binding (128 MiB by default: a
 /// 4K target just fits), and the splat binds more storage buffers per shader stage than the rest
-/// of the plugin, which asks only for [`REQUIRED_STORAGE_BUFFERS`](super::REQUIRED_STORAGE_BUFFERS).
+/// of the plugin, which asks only for eight (WebGPU's default).
 pub fn compute_draw_refusal(size: UVec2, limits: &WgpuLimits) -> Option<String> {
     let bytes = size.x as u64 * size.y as u64 * SUM_BYTES;
     let largest = limits
