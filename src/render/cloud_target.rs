@@ -546,7 +546,7 @@ type CloudTargetView = (
 /// target over the view. A computing view whose target cannot have changed keeps it
 /// ([`CloudRedraw`]).
 #[allow(clippy::too_many_arguments)] // a render pass's inputs
-fn draw_cloud_target(
+pub fn draw_cloud_target(
     view: ViewQuery<CloudTargetView>,
     clouds: Query<(&ExtractedCloud, &CloudDrawBindGroups)>,
     particles: Res<RenderAssets<GpuParticles>>,

@@ -20,11 +20,13 @@
 //! | `draw.rs` | the billboard draw in `Transparent3d` |
 //! | `fog.rs` | each view's distance fog, applied to every piece of every chord |
 //! | `cloud_target.rs` | the paper's §4: billboards into a reduced-resolution target, upsampled by depth |
+//! | `after_sky.rs` | the clouds composited after Bevy's sky (`Atmosphere`), not in the schedule's arbitrary order |
 //! | `splat.rs` | the draw by compute instead of the rasteriser, into the cloud target |
 //! | `workgroups.rs` | workgroup sizes and dispatches, shared with the WGSL as shader defs |
 //! | `gpu.rs` | buffers, their encodings, and a recorded stage (compute pass, GPU time span, counter) |
 //! | `shaders.rs` | the WGSL beside each stage (`*.wgsl`), embedded |
 
+pub(crate) mod after_sky;
 pub mod budget;
 pub mod cast;
 pub mod cloud_target;
@@ -59,7 +61,10 @@ mod binding_limits;
 mod layout_tests;
 
 use bevy::{
-    core_pipeline::{core_3d::Transparent3d, schedule::camera_driver},
+    core_pipeline::{
+        core_3d::Transparent3d,
+        schedule::{Core3d, camera_driver},
+    },
     platform::collections::HashMap,
     prelude::*,
     render::{
@@ -290,5 +295,8 @@ pub(crate) fn finish(app: &mut App) {
     #[cfg(feature = "distance_fog")]
     render_app.add_systems(ExtractSchedule, fog::extract_cloud_fog);
     cloud_target::finish(render_app);
+    render_app.edit_schedule(Core3d, |schedule| {
+        schedule.add_build_pass(after_sky::LastBetween::cloud_composite());
+    });
     splat::finish(render_app);
 }

@@ -4,15 +4,23 @@
 //! CPU billboard reference of that.
 
 use bevy::{
+    core_pipeline::{
+        core_3d::{main_opaque_pass_3d, main_transparent_pass_3d},
+        schedule::Core3d,
+    },
     light::{Atmosphere, SunDisk, atmosphere::ScatteringMedium},
+    pbr::main_transmissive_pass_3d,
     prelude::*,
+    render::RenderApp,
 };
+use bevy_particle_clouds::render::cloud_target::draw_cloud_target;
 use bevy_particle_clouds::{
     atmosphere::AtmosphereTransmittance,
     headless::{self, FrameRecorder},
     image_io::LinearImage,
     reference::metrics::max_relative_difference,
 };
+use std::any::TypeId;
 
 use crate::draw::{Setup, assert_images_match, cloud_setup, reference, spawn};
 
@@ -76,4 +84,72 @@ fn a_cloud_under_an_atmosphere_takes_the_sun_through_it() {
         "under the atmosphere and with tinted lights: {difference} of the brightest channel apart"
     );
     assert_images_match(&under_air, &reference(&setup), "under the atmosphere");
+}
+
+/// `Core3d`'s systems in the order its built schedule runs them (its executor is single-threaded),
+/// by type.
+fn core_3d_order(app: &App) -> Vec<TypeId> {
+    let schedules = app.sub_app(RenderApp).world().resource::<Schedules>();
+    let core_3d = schedules.get(Core3d).expect("the Core3d schedule");
+    core_3d
+        .systems()
+        .expect("Core3d has run")
+        .map(|(_, system)| system.system_type())
+        .collect()
+}
+
+/// Bevy draws its sky (`render_sky`, for a camera with `AtmosphereSettings`) between the opaque
+/// and the transparent passes, where the computed draw composites the clouds too: the sky adds
+/// its light over the background and multiplies what is there by the atmosphere's
+/// transmittance, so clouds composited before it would be covered by the sky. Nothing but the
+/// schedule's unspecified order separated the two (and the plugin's systems, added after Bevy's,
+/// tend to run first); the plugin's build pass runs the composite after every system placed
+/// between the two passes but the transmissive pass, which it precedes (`render/after_sky.rs`).
+/// `render_sky` is private and systems are unnamed without Bevy's `debug` feature, so this
+/// checks the composite against every system the schedule runs between the two passes, of which
+/// the sky is one. (Rendering Bevy's atmosphere itself crashes Debian 12's lavapipe, Mesa
+/// 22.3.6, inside the driver, with or without clouds, so the order is checked in the schedule,
+/// not in an image.)
+#[test]
+fn the_clouds_are_composited_after_bevys_sky() {
+    let camera = Transform::from_xyz(0.0, 0.3, 4.0).looking_at(Vec3::ZERO, Vec3::Y);
+    let setup = cloud_setup(21, camera);
+    let (mut app, target) = spawn(&setup);
+    let mut frames = FrameRecorder::default();
+    headless::render_until_steady(&mut app, &mut frames, target.drawable_clouds, 20).unwrap();
+    let order = core_3d_order(&app);
+    let at = |ty: TypeId, name: &str| {
+        order
+            .iter()
+            .position(|&t| t == ty)
+            .unwrap_or_else(|| panic!("no {name} in Core3d"))
+    };
+    let opaque = at(main_opaque_pass_3d.system_type_id(), "opaque pass");
+    let transparent = at(
+        main_transparent_pass_3d.system_type_id(),
+        "transparent pass",
+    );
+    let composite = at(draw_cloud_target.system_type_id(), "cloud composite");
+    let transmissive = at(
+        main_transmissive_pass_3d.system_type_id(),
+        "transmissive pass",
+    );
+    let others: Vec<usize> = (opaque + 1..transparent)
+        .filter(|&i| i != composite && i != transmissive)
+        .collect();
+    eprintln!(
+        "Core3d: opaque {opaque}, others {others:?}, composite {composite}, transmissive \
+         {transmissive}, transparent {transparent}"
+    );
+    assert!(
+        !others.is_empty(),
+        "no system between the opaque and transparent passes but ours and the transmissive one: \
+         where is Bevy's sky?"
+    );
+    assert!(
+        others.iter().all(|&i| i < composite) && composite < transmissive,
+        "Core3d runs the cloud composite (system {composite}) before systems {others:?} between \
+         the opaque ({opaque}) and the transparent ({transparent}) passes, or after the \
+         transmissive pass ({transmissive})"
+    );
 }
