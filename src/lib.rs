@@ -154,15 +154,24 @@ impl Plugin for ParticleCloudsPlugin {
                             .after(
                                 bevy::camera::visibility::VisibilitySystems::VisibilityPropagate,
                             ),
-                        shadow_maps::place_cloud_shadow_maps.after(CloudSystems::CalculateBounds),
+                        // After every bounds system, not only the clouds': the rest write
+                        // other entities' `Aabb`, but unordered they read as ambiguities.
+                        shadow_maps::place_cloud_shadow_maps
+                            .after(bevy::camera::visibility::VisibilitySystems::CalculateBounds),
                     )
                         .chain(),
+                    // The last word on the clouds' visibility: after the lights, which may
+                    // mark entities visible, and after Bevy hides what no view saw.
                     views::hide_clouds_from_other_projections
-                        .after(bevy::camera::visibility::VisibilitySystems::CheckVisibility),
+                        .after(bevy::camera::visibility::VisibilitySystems::CheckVisibility)
+                        .after(bevy::light::SimulationLightSystems::CheckLightVisibility)
+                        .after(
+                            bevy::camera::visibility::VisibilitySystems::MarkNewlyHiddenEntitiesInvisible,
+                        ),
                     views::warn_of_clamped_target_scales,
                     lod::update_cloud_lod
                         .in_set(CloudSystems::LevelOfDetail)
-                        .after(CloudSystems::CalculateBounds)
+                        .after(bevy::camera::visibility::VisibilitySystems::CalculateBounds)
                         .after(bevy::transform::TransformSystems::Propagate)
                         .after(bevy::camera::CameraUpdateSystems),
                 ),

@@ -274,8 +274,12 @@ pub(crate) fn finish(app: &mut App) {
                 fog::prepare_cloud_fog.in_set(RenderSystems::PrepareResources),
                 (
                     illumination::prepare_illumination_bind_groups,
-                    sort::prepare_sort_bind_groups,
-                    draw::prepare_billboard_bind_groups,
+                    // Disjoint fields of `CloudSorts`, but unordered they read as ambiguous.
+                    (
+                        sort::prepare_sort_bind_groups,
+                        draw::prepare_billboard_bind_groups,
+                    )
+                        .chain(),
                 )
                     .in_set(RenderSystems::PrepareBindGroups),
                 draw::queue_cloud_billboards.in_set(RenderSystems::Queue),
