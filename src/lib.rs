@@ -161,9 +161,9 @@ impl Plugin for ParticleCloudsPlugin {
                     )
                         .chain(),
                     // The last word on the clouds' visibility: after the lights, which may
-                    // mark entities visible, and after Bevy hides what no view saw.
+                    // mark entities visible, and after Bevy hides what no view saw (both
+                    // after Bevy's visibility check).
                     views::hide_clouds_from_other_projections
-                        .after(bevy::camera::visibility::VisibilitySystems::CheckVisibility)
                         .after(bevy::light::SimulationLightSystems::CheckLightVisibility)
                         .after(
                             bevy::camera::visibility::VisibilitySystems::MarkNewlyHiddenEntitiesInvisible,

@@ -147,27 +147,15 @@ mod tests {
     #[derive(Resource, Default)]
     struct Ran(Mutex<Vec<&'static str>>);
 
-    fn opaque(ran: Res<Ran>) {
-        ran.0.lock().unwrap().push("opaque");
+    /// One system per name, each of its own type, recording that it ran.
+    macro_rules! recording_systems {
+        ($($name:ident),*) => {$(
+            fn $name(ran: Res<Ran>) {
+                ran.0.lock().unwrap().push(stringify!($name));
+            }
+        )*};
     }
-    fn sky(ran: Res<Ran>) {
-        ran.0.lock().unwrap().push("sky");
-    }
-    fn other(ran: Res<Ran>) {
-        ran.0.lock().unwrap().push("other");
-    }
-    fn composite(ran: Res<Ran>) {
-        ran.0.lock().unwrap().push("composite");
-    }
-    fn later(ran: Res<Ran>) {
-        ran.0.lock().unwrap().push("later");
-    }
-    fn glass(ran: Res<Ran>) {
-        ran.0.lock().unwrap().push("glass");
-    }
-    fn transparent(ran: Res<Ran>) {
-        ran.0.lock().unwrap().push("transparent");
-    }
+    recording_systems!(opaque, sky, other, composite, later, glass, transparent);
 
     /// Runs the passes, with or without the build pass. `composite` is added after `sky`, as the
     /// plugin's systems after Bevy's (an unordered schedule then runs it first), `later` is
