@@ -80,10 +80,6 @@ pub(crate) fn coarse_cycles(
     let Some(mut ill) = illuminate_scene_cloud(scene, 0, &settings) else {
         return md;
     };
-    let converged = rows
-        .last()
-        .map(|r| r.2.clone())
-        .expect("SERIES is not empty");
     for (fine_orders, cycles, coarse_orders) in SCHEDULES {
         let schedule = CoarseCycles {
             fine_orders,
@@ -105,8 +101,9 @@ pub(crate) fn coarse_cycles(
         rows.push((label, schedule.fine_sweeps(), image));
     }
     let sky = scene.background;
-    for (label, sweeps, image) in rows {
-        let e = grid_error::errors(&image, reference, sky);
+    let converged = &rows[SERIES.len() - 1].2;
+    for (label, sweeps, image) in &rows {
+        let e = grid_error::errors(image, reference, sky);
         let from_converged = relative_rmse(
             &cloud_pixels(&image.pixels, &converged.pixels, sky),
             &cloud_pixels(&converged.pixels, &converged.pixels, sky),

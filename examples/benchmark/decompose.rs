@@ -37,7 +37,7 @@ use bevy_particle_clouds::{
     scene::Scene,
 };
 
-use super::downsample;
+use super::{downsample, grid_error};
 
 /// One setting's real-time images per order (index 0: order 1; see [`real_time_orders`]).
 pub struct RealTime {
@@ -175,19 +175,10 @@ pub fn real_time(scene: &Scene, settings: &CloudQualitySettings, factor: u32) ->
         &ill.fine,
         factor,
     );
-    let camera = (scene.camera.position - cloud.translation).as_dvec3();
-    let seen = ill.seen_from(camera, settings.compositing);
-    let image = billboards(
-        scene,
-        &|x, ray| seen.scattered_at(x, ray),
-        settings,
-        &ill.fine,
-        factor,
-    );
     RealTime {
         orders: real_time_orders(scene, &ill, settings, factor),
         exact_single,
-        image,
+        image: grid_error::image(scene, &ill, settings, factor),
     }
 }
 
@@ -287,6 +278,8 @@ pub fn decompose(
         scene.camera.height / factor
     );
     let multiple = |images: &[LinearImage]| sum(&images[1..]);
+    let (parts, whole) = (sum(p.real_time), sum(&p.truth));
+    let whole_halves = [sum(&p.halves[0]), sum(&p.halves[1])];
     let rows = [
         ("single scattering (order 1)", {
             error(
@@ -307,12 +300,14 @@ pub fn decompose(
             error(&multiple(p.real_time), &multiple(&p.truth), [&a, &b])
         }),
         ("everything (the parts' sum)", {
-            let (a, b) = (sum(&p.halves[0]), sum(&p.halves[1]));
-            error(&sum(p.real_time), &sum(&p.truth), [&a, &b])
+            error(&parts, &whole, [&whole_halves[0], &whole_halves[1]])
         }),
         ("the image itself", {
-            let (a, b) = (sum(&p.halves[0]), sum(&p.halves[1]));
-            error(&real_time.image, &sum(&p.truth), [&a, &b])
+            error(
+                &real_time.image,
+                &whole,
+                [&whole_halves[0], &whole_halves[1]],
+            )
         }),
     ];
     s.push_str("| part | relative RMSE | reference noise | denoised | energy real-time / truth |\n|---|---:|---:|---:|---:|\n");
@@ -320,8 +315,8 @@ pub fn decompose(
         energy(&p.real_time[0]) / energy(&p.truth[0]),
         energy(p.exact_single) / energy(&p.truth[0]),
         energy(&multiple(p.real_time)) / energy(&multiple(&p.truth)),
-        energy(&sum(p.real_time)) / energy(&sum(&p.truth)),
-        energy(&real_time.image) / energy(&sum(&p.truth)),
+        energy(&parts) / energy(&whole),
+        energy(&real_time.image) / energy(&whole),
     ];
     for ((label, (e, noise)), ratio) in rows.iter().zip(energies) {
         let _ = writeln!(
@@ -334,7 +329,7 @@ pub fn decompose(
         s,
         "\nThe parts sum to {:.4} of the image's light: each part is drawn on its own, and the \
          billboards take `S` log-linear along each chord piece, which does not add over parts.",
-        energy(&sum(p.real_time)) / energy(&real_time.image)
+        energy(&parts) / energy(&real_time.image)
     );
     s.push_str("\n| order | energy real-time | energy truth | real-time / truth | λ real-time | λ truth |\n|---|---:|---:|---:|---:|---:|\n");
     let last = p.real_time.len() - 1;

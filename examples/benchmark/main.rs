@@ -27,7 +27,8 @@
 //! trace them again. `--illumination` instead writes `DIR/illumination.csv` and `.md`: every
 //! pass's GPU time at 32³ and 64³ (light volumes of 64³ and 128³) with 1 and 5 lights,
 //! incremental shading against the brute force march (`ShadingMethod::BruteForce`). `--decompose` writes `DIR/decomposition.md`: the
-//! default settings' error split into single scattering, each scattering order and the closure,
+//! default settings' error split into single scattering, each scattering order and the closure
+//! (beside the image itself, which the parts, drawn alone, need not sum to),
 //! against the path tracer split by order (CPU references, no adapter; see `decompose.rs`).
 //! `--grid-error` writes `DIR/grid_error.md`: the error against volume resolution and scattering
 //! iterations up to the converged series, and where the scattering grid's error lies (CPU
