@@ -493,6 +493,29 @@ impl SweepMarch {
     }
 }
 
+/// How the scattering sweep dispatches an order's direction pairs (docs/illumination.md §4,
+/// "One dispatch per order").
+///
+/// A resource of the main world, extracted to the render world. The pairs of an order are
+/// independent: each reads the order `S_n` and adds its share to `S_{n+1}`. One dispatch per pair
+/// adds into `S_{n+1}` in place, so the pairs run one after another; one dispatch per order runs
+/// them side by side, each into a volume of its own, then sums those in the pairs' order. Both
+/// give the same volumes up to f32 rounding. On a GPU whose sweeps are too few lattice lines to
+/// fill it (a sweep's time follows its lines' length, not its voxels: docs/performance.md, "On a
+/// real GPU"), one dispatch per order gives it 13 (or 49) times the lines at once; it has not
+/// been measured on one yet.
+#[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
+#[reflect(Resource, Default, Debug, PartialEq)]
+pub enum SweepDispatch {
+    /// One dispatch per direction pair, each adding its share into the next order in place.
+    #[default]
+    PerPair,
+    /// One dispatch per order for every pair, each into a volume of its own (13 or 49 times a
+    /// pool's order volume of GPU memory, kept while the pool lives), then one that sums them.
+    /// A pool whose pair volumes would not fit one storage binding sweeps per pair.
+    PerOrder,
+}
+
 /// How the shade pass computes each light's transmittance volume (docs/illumination.md §2).
 ///
 /// A resource of the main world, extracted to the render world. Both methods give the same

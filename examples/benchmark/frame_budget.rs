@@ -404,8 +404,14 @@ fn moving_lights(bench: &mut Bench, frames: usize) -> ([f64; PASSES], f64) {
     (per_pass, median(totals))
 }
 
-fn measure(b: &BudgetScene, frames: usize, bandwidth: f64, adapter: &mut String) -> BudgetRow {
+fn measure(
+    (b, dispatch): (&BudgetScene, SweepDispatch),
+    frames: usize,
+    bandwidth: f64,
+    adapter: &mut String,
+) -> BudgetRow {
     let mut bench = Bench::new(&b.scene);
+    bench.app.insert_resource(dispatch);
     *adapter = bench.adapter.clone();
     if let Some(pixels_per_voxel) = b.lod {
         bench.set_level_of_detail(pixels_per_voxel, 12);
@@ -499,9 +505,11 @@ pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
             args.settings.iter().copied().map(Some).collect()
         };
         let methods = args.draw_methods.iter().copied();
-        for (settings, method) in variants
+        let dispatches = &args.sweep_dispatches;
+        for ((settings, method), dispatch) in variants
             .into_iter()
             .flat_map(|s| methods.clone().map(move |m| (s, m)))
+            .flat_map(|v| dispatches.iter().map(move |&d| (v, d)))
         {
             // `--draw-methods`: each scene (each variant) drawn each way, labelled when
             // computed.
@@ -515,8 +523,11 @@ pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
             } else if method == DrawMethod::Compute {
                 label = format!("{label}, compute");
             }
+            if dispatch == SweepDispatch::PerOrder {
+                label = format!("{label}, per order");
+            }
             eprintln!("benchmark: frame budget, {label}");
-            let mut row = measure(&scene, args.frames(), bandwidth, &mut adapter);
+            let mut row = measure((&scene, dispatch), args.frames(), bandwidth, &mut adapter);
             row.name = label;
             eprintln!(
                 "benchmark: frame budget, {}: re-lit {:.2} ms, static {:.2} ms (GPU)",

@@ -9,7 +9,7 @@
 //! cargo run --example benchmark -- --illumination [--view 640x480] [--out DIR]
 //! cargo run --example benchmark -- --voxelize [--out DIR]
 //! cargo run --example benchmark -- --scale [--out DIR]
-//! cargo run --example benchmark -- --frame-budget [--view 1920x1080] [--bandwidth 4.8] [--draw-methods raster,compute] [--out DIR]
+//! cargo run --example benchmark -- --frame-budget [--view 1920x1080] [--bandwidth 4.8] [--draw-methods raster,compute] [--sweep-dispatches per-pair,per-order] [--out DIR]
 //! cargo run --example benchmark -- --warm-start [--scenes a,b] [--out DIR]
 //! cargo run --example benchmark -- --decompose [--scenes a,b] [--spp N] [--settings RON]... [--out DIR]
 //! cargo run --example benchmark -- --grid-error [--scenes albedo_one] [--out DIR]
@@ -97,7 +97,7 @@ use bevy_particle_clouds::{
         path_tracer::{self, PathTracerSettings, noise_level},
     },
     scene::Scene,
-    settings::ShadingMethod,
+    settings::{ShadingMethod, SweepDispatch},
 };
 use clap::Parser;
 use cloud_target_scale::*;
@@ -171,6 +171,10 @@ pub(crate) struct Args {
     /// `raster`, `compute`); with --scale, the last of them.
     #[arg(long, value_delimiter = ',', default_value = "raster", value_parser = parse_draw_method)]
     pub(crate) draw_methods: Vec<DrawMethod>,
+    /// With --frame-budget: how the scattering sweep dispatches an order's direction pairs,
+    /// each in turn (comma-separated: `per-pair`, the default, and `per-order`; `SweepDispatch`).
+    #[arg(long, value_delimiter = ',', default_value = "per-pair", value_parser = parse_sweep_dispatch)]
+    pub(crate) sweep_dispatches: Vec<SweepDispatch>,
     /// With --frame-budget: the memory bandwidth the floors are computed at, TB/s (default: an
     /// H200's HBM3e).
     #[arg(long, default_value_t = 4.8)]
@@ -285,6 +289,16 @@ fn parse_draw_method(text: &str) -> Result<DrawMethod, String> {
         "compute" => Ok(DrawMethod::Compute),
         _ => Err(format!(
             "`{text}` is not a draw method; allowed are raster, compute"
+        )),
+    }
+}
+
+fn parse_sweep_dispatch(text: &str) -> Result<SweepDispatch, String> {
+    match text {
+        "per-pair" => Ok(SweepDispatch::PerPair),
+        "per-order" => Ok(SweepDispatch::PerOrder),
+        _ => Err(format!(
+            "`{text}` is not a sweep dispatch; allowed are per-pair, per-order"
         )),
     }
 }

@@ -8,11 +8,11 @@
 //! more. A pool without coarse grids (an odd side) only sweeps. The CPU reference is
 //! [`scatter_coarse_cycles`](crate::reference::illumination::scatter_coarse_cycles).
 
-use bevy::render::render_resource::{BindGroup, BindGroupEntries, BindGroupEntry};
+use bevy::render::render_resource::{BindGroup, BindGroupEntries, BindGroupEntry, Buffer};
 
 use super::{
     gpu::{StagePass, WorkList},
-    illumination::{SeriesPasses, SeriesVolumes, scatter_group},
+    illumination::{OrderPairs, SeriesPasses, SeriesVolumes, scatter_group},
     pipelines::{ComputeStage, IlluminationPipelines},
     pools::VolumePool,
     workgroups::dispatch_linear,
@@ -29,7 +29,7 @@ pub(super) struct CycleBatch {
 /// The bind groups of the coarse series and of the transfers between the grids.
 struct CoarseBatch {
     /// The coarse series' order pairs: its start → a, a → b, b → a.
-    sweeps: [BindGroup; 3],
+    sweeps: OrderPairs,
     /// Its closure, reading its last two orders.
     closure: BindGroup,
     /// The transfers between the grids (`coarse_grid.wgsl`): the media's restriction, the
@@ -40,11 +40,12 @@ struct CoarseBatch {
 }
 
 impl CycleBatch {
-    /// `cycles` cycles for the slots of `work` in `pool`.
+    /// `cycles` cycles for the slots of `work` in `pool`, whose `pair_volumes` (where it has
+    /// them) the coarse series sweeps into too.
     pub(super) fn new(
         bind: &impl Fn(&ComputeStage, &[BindGroupEntry]) -> BindGroup,
         pipelines: &IlluminationPipelines,
-        pool: &VolumePool,
+        (pool, pair_volumes): (&VolumePool, Option<&Buffer>),
         work: &WorkList,
         cycles: u32,
     ) -> Self {
@@ -59,6 +60,7 @@ impl CycleBatch {
                 order_ratios: &coarse.order_ratios,
                 // Behind each slot's density in the same buffer (`Slot::foreign`).
                 foreign: &coarse.densities,
+                pair_volumes,
             };
             // The sweep binds the pool's ground maps, unread: no light enters a coarse grid.
             let sweeps = volumes.iteration_groups(bind, pipelines, pool, work);
@@ -110,12 +112,12 @@ impl CycleBatch {
     }
 
     /// Records the cycles of the chunk `(work, items)` of the batch whose fine series `series`
-    /// records, with its order pairs `groups`.
+    /// records, with its order pairs and restart `groups`.
     pub(super) fn record(
         &self,
         pass: &mut StagePass,
         series: &SeriesPasses,
-        groups: &[BindGroup; 4],
+        groups: (&OrderPairs, &BindGroup),
         (work, items): (u32, u32),
     ) {
         let ready = series.ready;
@@ -138,7 +140,7 @@ impl CycleBatch {
                 dispatch_linear(pass, (n / 2).pow(3), items);
                 coarse_series.set_stencil(pass);
                 for k in 0..COARSE_GRID_ORDERS {
-                    let group = &coarse.sweeps[scatter_group(k)];
+                    let group = coarse.sweeps.pair(scatter_group(k));
                     coarse_series.iterate(pass, group, (work, items), false);
                     if k + 3 == COARSE_GRID_ORDERS {
                         coarse_series.order_sizes(pass, &coarse.closure, work, items);

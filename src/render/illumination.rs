@@ -6,6 +6,8 @@
 //! work lists are made in `PrepareBindGroups`; the system in the `RenderGraph` schedule, once per
 //! frame before any camera, only records.
 
+use std::num::NonZeroU64;
+
 use bevy::{
     platform::collections::HashMap,
     prelude::*,
@@ -13,7 +15,7 @@ use bevy::{
         render_asset::RenderAssets,
         render_resource::{
             BindGroup, BindGroupEntries, BindGroupEntry, Buffer, BufferBinding, ComputePipeline,
-            PipelineCache, ShaderType,
+            PipelineCache,
         },
         renderer::{RenderAdapterInfo, RenderContext, RenderDevice},
         storage::GpuShaderBuffer,
@@ -24,12 +26,12 @@ use super::{
     cast::{CastStart, CastTarget, CastWork, Caster, CasterVolume, add_cast, by_pool},
     coarse_grid::CycleBatch,
     extract::{ExtractedCloud, ExtractedCloudLights},
-    gpu::{StagePass, WorkList, record_stage, storage_init},
+    gpu::{StagePass, WorkList, record_stage, storage, storage_init},
     overlap::{Neighbour, OverlapItem},
     particles::GpuParticles,
     pipelines::{
-        ComputeStage, IlluminationPipelines, ReadyPipelines, SweepDirection,
-        sweep_direction_offset, sweep_lines,
+        ComputeStage, IlluminationPipelines, PerOrderSweepPipelines, ReadyPipelines,
+        SWEEP_DIRECTIONS_BINDING, sweep_direction_offset, sweep_lines,
     },
     plan::CloudIllumination,
     pools::{PoolId, VolumePool, VolumePools},
@@ -43,7 +45,7 @@ use super::{
 };
 use crate::{
     particle::DeltaM,
-    settings::{ScatterStencil, ShadingMethod, SweepDirections, SweepMarch},
+    settings::{ScatterStencil, ShadingMethod, SweepDirections, SweepDispatch, SweepMarch},
     shadow_maps::{CloudShadowMaps, SKY_MAP_DIRECTIONS},
     stats::{CloudPass, CloudPassCounters},
 };
@@ -81,9 +83,10 @@ struct ScatterBatch {
     sweep: Option<SweepDirections>,
     /// A warm restart from the solution `multiple` holds (docs/illumination.md §4).
     warm: bool,
-    /// The iterations' three order pairs: `S_0 → a`, `a → b`, `b → a`; and `S_0 → b`, a warm
-    /// restart's start.
-    groups: [BindGroup; 4],
+    /// The iterations' three order pairs: `S_0 → a`, `a → b`, `b → a`.
+    orders: OrderPairs,
+    /// `S_0 → b`, a warm restart's start.
+    restart: BindGroup,
     /// The closure, reading the last two orders.
     closure: BindGroup,
     work: WorkList,
@@ -143,6 +146,41 @@ pub(super) struct SeriesVolumes<'a> {
     pub(super) order_ratios: &'a Buffer,
     /// Other clouds' media, where each slot's `foreign` points.
     pub(super) foreign: &'a Buffer,
+    /// Each direction pair's share of an order, for one dispatch per order
+    /// ([`SweepDispatch::PerOrder`]), where it is asked for and fits.
+    pub(super) pair_volumes: Option<&'a Buffer>,
+}
+
+/// The bind groups of one dispatch per order for an order pair: the sweep, writing every pair's
+/// share into the pair volumes, and their sum, reading those into the next order.
+pub(super) struct PerOrderGroups {
+    sweep: BindGroup,
+    sum: BindGroup,
+}
+
+/// A series' three order pairs (`S_0 → a`, `a → b`, `b → a`) as the sweep binds them.
+pub(super) struct OrderPairs {
+    /// For one dispatch per direction pair (and the other stencils and passes on an order pair).
+    per_pair: [BindGroup; 3],
+    /// For one dispatch per order, where the pool has pair volumes.
+    per_order: Option<[PerOrderGroups; 3]>,
+}
+
+impl OrderPairs {
+    /// Order pair `i` ([`scatter_group`]).
+    pub(super) fn pair(&self, i: usize) -> OrderPair<'_> {
+        OrderPair {
+            per_pair: &self.per_pair[i],
+            per_order: self.per_order.as_ref().map(|g| &g[i]),
+        }
+    }
+}
+
+/// One order pair's bind groups ([`OrderPairs::pair`]).
+#[derive(Clone, Copy)]
+pub(super) struct OrderPair<'a> {
+    per_pair: &'a BindGroup,
+    per_order: Option<&'a PerOrderGroups>,
 }
 
 impl<'a> SeriesVolumes<'a> {
@@ -155,6 +193,7 @@ impl<'a> SeriesVolumes<'a> {
             multiple: &pool.multiple,
             order_ratios: &pool.order_ratios,
             foreign: &pool.foreign,
+            pair_volumes: None,
         }
     }
 
@@ -184,7 +223,7 @@ impl<'a> SeriesVolumes<'a> {
                 BufferBinding {
                     buffer: &pipelines.sweep_directions,
                     offset: 0,
-                    size: Some(SweepDirection::min_size()),
+                    size: NonZeroU64::new(SWEEP_DIRECTIONS_BINDING),
                 },
                 self.densities.as_entire_binding(),
                 from.as_entire_binding(),
@@ -197,18 +236,27 @@ impl<'a> SeriesVolumes<'a> {
         )
     }
 
-    /// The order pairs of [`scatter_group`]'s iterations (`S_0 → a`, `a → b`, `b → a`).
+    /// The order pairs of [`scatter_group`]'s iterations (`S_0 → a`, `a → b`, `b → a`), and
+    /// where the pair volumes exist, their groups for one dispatch per order: the sweep writes
+    /// the pair volumes (bound as its `s_out`), the sum reads them (as its `s_in`).
     pub(super) fn iteration_groups(
         &self,
         bind: &impl Fn(&ComputeStage, &[BindGroupEntry]) -> BindGroup,
         pipelines: &IlluminationPipelines,
         pool: &VolumePool,
         work: &WorkList,
-    ) -> [BindGroup; 3] {
-        [0, 1, 2].map(|k| {
-            let pair = (self.order(k), self.order(k + 1));
-            self.order_pair(bind, pipelines, pool, pair, work)
-        })
+    ) -> OrderPairs {
+        let pairs = [0, 1, 2].map(|k| (self.order(k), self.order(k + 1)));
+        let group = |pair| self.order_pair(bind, pipelines, pool, pair, work);
+        OrderPairs {
+            per_pair: pairs.map(group),
+            per_order: self.pair_volumes.map(|volumes| {
+                pairs.map(|(from, to)| PerOrderGroups {
+                    sweep: group((from, volumes)),
+                    sum: group((volumes, to)),
+                })
+            }),
+        }
     }
 
     /// The closure's bind group after `iterations` orders (it reads the last two).
@@ -338,6 +386,7 @@ pub(crate) fn prepare_illumination_bind_groups(
     pipeline_cache: Res<PipelineCache>,
     device: Res<RenderDevice>,
     (maps, lights, storage, (mut map_keys, mut sky_key)): ShadowMapInputs,
+    (dispatch, mut pair_volumes): (Option<Res<SweepDispatch>>, ResMut<SweepPairVolumes>),
 ) {
     let Some(pipelines) = pipelines else { return };
     let bind = |stage: &ComputeStage, entries: &[BindGroupEntry]| -> BindGroup {
@@ -410,9 +459,14 @@ pub(crate) fn prepare_illumination_bind_groups(
         device.limits().max_storage_buffer_binding_size,
         |entries| bind(&pipelines.voxelize, entries),
     );
+    let per_order = dispatch.is_some_and(|d| *d == SweepDispatch::PerOrder);
+    pair_volumes.provide(per_order, &work, &pools, &device);
     let batches = work
         .into_iter()
-        .map(|(id, w)| pool_batches(id, w, &pools, &device, &bind, &pipelines))
+        .map(|(id, w)| {
+            let volumes = pair_volumes.0.get(&id);
+            pool_batches((id, w, volumes), &pools, &device, &bind, &pipelines)
+        })
         .collect();
     commands.insert_resource(IlluminationBatches {
         voxelize,
@@ -422,10 +476,10 @@ pub(crate) fn prepare_illumination_bind_groups(
     });
 }
 
-/// The bind groups and work lists of pool `id`'s batched passes, from its clouds' `work`.
+/// The bind groups and work lists of pool `id`'s batched passes, from its clouds' `work`; its
+/// sweeps dispatch once per order where it has `pair_volumes`.
 fn pool_batches(
-    id: PoolId,
-    w: PoolWork,
+    (id, w, pair_volumes): (PoolId, PoolWork, Option<&Buffer>),
     pools: &VolumePools,
     device: &RenderDevice,
     bind: &impl Fn(&ComputeStage, &[BindGroupEntry]) -> BindGroup,
@@ -499,11 +553,12 @@ fn pool_batches(
         .into_iter()
         .map(|((iterations, stencil, directions, warm, cycles), slots)| {
             let work = WorkList::new(device, &slots);
-            let mut batch = scatter_batch(bind, pipelines, pool, iterations, work);
+            let volumes = (pool, pair_volumes);
+            let mut batch = scatter_batch(bind, pipelines, volumes, iterations, work);
             batch.sweep = (stencil == ScatterStencil::DiscreteOrdinates).then_some(directions);
             batch.warm = warm;
-            batch.cycles =
-                (cycles > 0).then(|| CycleBatch::new(bind, pipelines, pool, &batch.work, cycles));
+            batch.cycles = (cycles > 0)
+                .then(|| CycleBatch::new(bind, pipelines, volumes, &batch.work, cycles));
             batch
         })
         .collect();
@@ -637,27 +692,72 @@ fn add_overlaps(
     }
 }
 
+/// Each pool's pair volumes for one dispatch per order ([`SweepDispatch::PerOrder`]): a share
+/// of an order per direction pair, for its grids' series and its coarse grids' in turn (render
+/// world resource).
+#[derive(Resource, Default)]
+pub struct SweepPairVolumes(HashMap<PoolId, Buffer>);
+
+impl SweepPairVolumes {
+    /// With `per_order`, a buffer for every pool of `work` that sweeps, holding a share of its
+    /// order volume per pair of the largest direction set it sweeps, made anew where the one it
+    /// had is too small; none where that would not fit one storage binding (it then sweeps per
+    /// pair). Without, none at all.
+    fn provide(
+        &mut self,
+        per_order: bool,
+        work: &HashMap<PoolId, PoolWork>,
+        pools: &VolumePools,
+        device: &RenderDevice,
+    ) {
+        self.0.retain(|id, _| per_order && pools.0.contains_key(id));
+        let limits = device.limits();
+        let max = limits
+            .max_storage_buffer_binding_size
+            .min(limits.max_buffer_size);
+        for (id, w) in work.iter().filter(|_| per_order) {
+            let sweeps = w
+                .scatter
+                .keys()
+                .filter(|k| k.1 == ScatterStencil::DiscreteOrdinates);
+            let Some(pairs) = sweeps.map(|k| k.2.pairs().len() as u64).max() else {
+                continue;
+            };
+            let bytes = pairs * pools.0[id].source.size();
+            if bytes > max {
+                self.0.remove(id);
+            } else if self.0.get(id).is_none_or(|b| b.size() < bytes) {
+                let label = "particle_clouds_sweep_pair_volumes";
+                self.0.insert(*id, storage(device, label, bytes));
+            }
+        }
+    }
+}
+
 /// The bind groups of `iterations` of scattering for the slots of `work`, in `pool` (the
 /// discrete-ordinates stencil along the 26 directions, full series: set `sweep` and `warm` for
 /// the others).
 fn scatter_batch(
     bind: &impl Fn(&ComputeStage, &[BindGroupEntry]) -> BindGroup,
     pipelines: &IlluminationPipelines,
-    pool: &VolumePool,
+    (pool, pair_volumes): (&VolumePool, Option<&Buffer>),
     iterations: u32,
     work: WorkList,
 ) -> ScatterBatch {
-    let volumes = SeriesVolumes::of_pool(pool);
-    let [first, odd, even] = volumes.iteration_groups(bind, pipelines, pool, &work);
+    let volumes = SeriesVolumes {
+        pair_volumes,
+        ..SeriesVolumes::of_pool(pool)
+    };
+    let orders = volumes.iteration_groups(bind, pipelines, pool, &work);
     let restart = (&pool.source, &pool.orders[1]);
     let restart = volumes.order_pair(bind, pipelines, pool, restart, &work);
-    let groups = [first, odd, even, restart];
     let closure = volumes.closure(bind, pipelines, iterations, &work);
     ScatterBatch {
         iterations,
         sweep: Some(SweepDirections::Lattice26),
         warm: false,
-        groups,
+        orders,
+        restart,
         closure,
         work,
         cycles: None,
@@ -783,6 +883,16 @@ impl IlluminationBatches {
     }
 }
 
+/// What the passes are recorded with: the shading method, the sweep's march and dispatch (and
+/// the pipelines of one dispatch per order, once queued), and the adapter they suit.
+type IlluminationChoices<'w> = (
+    Option<Res<'w, ShadingMethod>>,
+    Option<Res<'w, SweepMarch>>,
+    Option<Res<'w, SweepDispatch>>,
+    Option<Res<'w, PerOrderSweepPipelines>>,
+    Res<'w, RenderAdapterInfo>,
+);
+
 /// Records every planned illumination stage of every cloud.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn illuminate_clouds(
@@ -794,11 +904,7 @@ pub(crate) fn illuminate_clouds(
     pipelines: Option<Res<IlluminationPipelines>>,
     pipeline_cache: Res<PipelineCache>,
     counters: Res<CloudPassCounters>,
-    (shading, march, adapter): (
-        Option<Res<ShadingMethod>>,
-        Option<Res<SweepMarch>>,
-        Res<RenderAdapterInfo>,
-    ),
+    (shading, march, dispatch, per_order, adapter): IlluminationChoices,
     (mut map_keys, mut sky_key): (ResMut<ShadowMapKeys>, ResMut<SkyMapKey>),
 ) {
     let Some(pipelines) = pipelines else { return };
@@ -816,11 +922,15 @@ pub(crate) fn illuminate_clouds(
     };
     let cpu = adapter.device_type == wgpu::DeviceType::Cpu;
     let read_ahead = march.map_or(SweepMarch::default(), |m| *m).reads_ahead(cpu);
-    let (Some(ready), Some(shade), Some(batches)) = (
-        pipelines.ready(&pipeline_cache, read_ahead),
-        shade_stage.get(&pipeline_cache),
-        batches,
-    ) else {
+    // One dispatch per order waits for its pipelines as for the others.
+    let wants_per_order = dispatch.is_some_and(|d| *d == SweepDispatch::PerOrder);
+    let per_order = per_order.as_deref().filter(|_| wants_per_order);
+    let ready = (!wants_per_order || per_order.is_some())
+        .then(|| pipelines.ready(&pipeline_cache, read_ahead, per_order))
+        .flatten();
+    let (Some(ready), Some(shade), Some(batches)) =
+        (ready, shade_stage.get(&pipeline_cache), batches)
+    else {
         // Not compiled yet: forget the plan so that the next frame does all of it.
         clouds.iter_mut().for_each(|(_, _, mut s)| s.invalidate());
         *map_keys = ShadowMapKeys::default();
@@ -928,14 +1038,15 @@ fn scatter_batch_passes(
     };
     for (work, items) in batch.work.chunks() {
         let first = if batch.warm {
-            series.restart_sweep(pass, &batch.groups, work, items);
+            series.restart_sweep(pass, (&batch.orders, &batch.restart), work, items);
             1
         } else {
             0
         };
         series.set_stencil(pass);
         for k in first..batch.iterations {
-            series.iterate(pass, &batch.groups[scatter_group(k)], (work, items), k == 0);
+            let pair = batch.orders.pair(scatter_group(k));
+            series.iterate(pass, pair, (work, items), k == 0);
             // Orders M - 2 and M - 3 lie where the closure reads M and M - 1 (the two order
             // volumes alternate): their sizes, for a two-mode closure of the full series.
             if !batch.warm && batch.iterations >= 4 && k + 3 == batch.iterations {
@@ -948,7 +1059,12 @@ fn scatter_batch_passes(
     }
     if let Some(cycles) = &batch.cycles {
         for (work, items) in batch.work.chunks() {
-            cycles.record(pass, &series, &batch.groups, (work, items));
+            cycles.record(
+                pass,
+                &series,
+                (&batch.orders, &batch.restart),
+                (work, items),
+            );
         }
     }
 }
@@ -982,7 +1098,7 @@ impl SeriesPasses<'_> {
     fn pass_once(
         &self,
         pass: &mut StagePass,
-        group: &BindGroup,
+        group: OrderPair,
         (work, items): (u32, u32),
         accumulate: bool,
         boundary: bool,
@@ -992,10 +1108,28 @@ impl SeriesPasses<'_> {
             // The paper's stencil reads only the pair's `accumulate`.
             let direction =
                 sweep_direction_offset(SweepDirections::Lattice26, 0, accumulate, boundary);
-            pass.set_bind_group(0, group, &[direction, work]);
+            pass.set_bind_group(0, group.per_pair, &[direction, work]);
             dispatch_linear(pass, n.pow(3), items);
             return;
         };
+        if let (Some(groups), Some(per_order)) = (group.per_order, self.ready.per_order) {
+            // Every pair at once, each into its own volume; then their sum (and into `multiple`).
+            let direction = sweep_direction_offset(directions, 0, accumulate, boundary);
+            let lines = directions
+                .pairs()
+                .iter()
+                .map(|d| sweep_lines(IVec3::from_array(d.o), n));
+            let pairs = directions.pairs().len() as u32;
+            pass.set_pipeline(per_order.sweep[self.variant]);
+            pass.set_bind_group(0, &groups.sweep, &[direction, work]);
+            dispatch_linear(pass, pairs * lines.max().unwrap_or(0), items);
+            pass.set_pipeline(per_order.sum_pairs[self.variant]);
+            pass.set_bind_group(0, &groups.sum, &[direction, work]);
+            dispatch_linear(pass, n.pow(3), items);
+            pass.set_pipeline(self.stencil());
+            return;
+        }
+        let group = group.per_pair;
         // One dispatch per direction pair: the lines of one direction partition the grid.
         for (i, d) in directions.pairs().iter().enumerate() {
             let direction = sweep_direction_offset(directions, i, accumulate, boundary);
@@ -1015,7 +1149,7 @@ impl SeriesPasses<'_> {
     pub(super) fn iterate(
         &self,
         pass: &mut StagePass,
-        group: &BindGroup,
+        group: OrderPair,
         work: (u32, u32),
         boundary: bool,
     ) {
@@ -1026,21 +1160,22 @@ impl SeriesPasses<'_> {
     /// order a: a warm restart's first order, and a coarse-grid cycle's residual and smoothing
     /// sweeps. `S_0 + S` goes into b, is scattered into a without accumulating, then
     /// `multiple` takes a and a the change. Leaves the stencil set.
+    /// `orders` are the series' order pairs, `restart` its `S_0 → b`.
     pub(super) fn restart_sweep(
         &self,
         pass: &mut StagePass,
-        groups: &[BindGroup; 4],
+        (orders, restart): (&OrderPairs, &BindGroup),
         work: u32,
         items: u32,
     ) {
         let n3 = self.n.pow(3);
         pass.set_pipeline(self.ready.warm_start[self.variant]);
-        pass.set_bind_group(0, &groups[3], &[0, work]);
+        pass.set_bind_group(0, restart, &[0, work]);
         dispatch_linear(pass, n3, items);
         self.set_stencil(pass);
-        self.pass_once(pass, &groups[2], (work, items), false, true);
+        self.pass_once(pass, orders.pair(2), (work, items), false, true);
         pass.set_pipeline(self.ready.warm_correction[self.variant]);
-        pass.set_bind_group(0, &groups[2], &[0, work]);
+        pass.set_bind_group(0, &orders.per_pair[2], &[0, work]);
         dispatch_linear(pass, n3, items);
         self.set_stencil(pass);
     }

@@ -83,7 +83,7 @@ use bevy::{
 use self::{extract::ExtractedCloud, shaders::CloudShaders};
 use crate::{
     cloud::ParticleCloud,
-    settings::{CloudRedraw, CloudRelightBudget, ShadingMethod, SweepMarch},
+    settings::{CloudRedraw, CloudRelightBudget, ShadingMethod, SweepDispatch, SweepMarch},
     shadow_maps::CloudShadowMaps,
     stats::CloudPassCounters,
 };
@@ -134,6 +134,13 @@ impl bevy::render::extract_resource::ExtractResource for SweepMarch {
     }
 }
 
+impl bevy::render::extract_resource::ExtractResource for SweepDispatch {
+    type Source = SweepDispatch;
+    fn extract_resource(source: &Self::Source) -> Self {
+        *source
+    }
+}
+
 impl bevy::render::extract_resource::ExtractResource for ShadingMethod {
     type Source = ShadingMethod;
     fn extract_resource(source: &Self::Source) -> Self {
@@ -168,6 +175,8 @@ pub(crate) fn build(app: &mut App) {
         .register_type::<ShadingMethod>()
         .init_resource::<SweepMarch>()
         .register_type::<SweepMarch>()
+        .init_resource::<SweepDispatch>()
+        .register_type::<SweepDispatch>()
         .init_resource::<CloudRelightBudget>()
         .register_type::<CloudRelightBudget>()
         .init_resource::<CloudRedraw>()
@@ -178,6 +187,7 @@ pub(crate) fn build(app: &mut App) {
         ExtractResourcePlugin::<CloudPassCounters>::default(),
         ExtractResourcePlugin::<ShadingMethod>::default(),
         ExtractResourcePlugin::<SweepMarch>::default(),
+        ExtractResourcePlugin::<SweepDispatch>::default(),
         ExtractResourcePlugin::<CloudRelightBudget>::default(),
         ExtractResourcePlugin::<CloudRedraw>::default(),
         ExtractResourcePlugin::<CloudShadowMaps>::default(),
@@ -240,6 +250,7 @@ pub(crate) fn finish(app: &mut App) {
     render_app
         .init_resource::<extract::ExtractedCloudLights>()
         .init_resource::<pools::VolumePools>()
+        .init_resource::<illumination::SweepPairVolumes>()
         .init_resource::<voxelize::VoxelizeScratch>()
         .init_resource::<shadow_maps::ShadowMapKeys>()
         .init_resource::<sky_map::SkyMapKey>()
@@ -270,7 +281,8 @@ pub(crate) fn finish(app: &mut App) {
                 )
                     .chain()
                     .in_set(RenderSystems::PrepareResources),
-                pipelines::write_sweep_sky.in_set(RenderSystems::PrepareResources),
+                (pipelines::write_sweep_sky, pipelines::queue_per_order_sweep)
+                    .in_set(RenderSystems::PrepareResources),
                 fog::prepare_cloud_fog.in_set(RenderSystems::PrepareResources),
                 (
                     illumination::prepare_illumination_bind_groups,

@@ -8,14 +8,19 @@ use super::{
     shaders::CloudShaders,
     volumes::DensityLevels,
 };
-use crate::settings::SweepDirections;
+use std::num::NonZeroU64;
+
+use crate::settings::{SweepDirections, SweepDispatch};
 use bevy::{
     prelude::*,
     render::{
         render_resource::{
             BindGroupLayoutDescriptor, Buffer, CachedComputePipelineId, ComputePipeline,
             ComputePipelineDescriptor, PipelineCache, ShaderStages, ShaderType,
-            binding_types::{storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer},
+            binding_types::{
+                storage_buffer_read_only_sized, storage_buffer_sized, uniform_buffer,
+                uniform_buffer_sized,
+            },
         },
         renderer::{RenderDevice, RenderQueue},
     },
@@ -124,8 +129,8 @@ pub struct SweepDirection {
     pub o: IVec3,
     /// 1 for the first dispatch of an iteration (it overwrites `S_{n+1}`), else 0.
     pub first: u32,
-    /// 1 when the iteration's order goes into `multiple` (its quadrupole in the sweeps, the rest
-    /// in `accumulate_order` after them); 0 for a warm restart's first sweep.
+    /// 1 when the iteration's order goes into `multiple` (after its sweeps: `accumulate_order`,
+    /// or with one dispatch per order `sum_pairs`); 0 for a warm restart's first sweep.
     pub accumulate: u32,
     /// Linear RGB radiance of the sky, for the sweeps of an iteration that brings the boundary
     /// in (docs/illumination.md §4), else 0.
@@ -139,6 +144,8 @@ pub struct SweepDirection {
     /// Each direction's weight in the order's quadrupole
     /// ([`crate::lattice::LatticeDirection::quadrupole`]).
     pub quadrupole_weight: f32,
+    /// The number of pairs in the direction set (13 or 49).
+    pub pairs: u32,
 }
 
 /// The direction sets in the order the uniform buffer holds them, in each of its four sets.
@@ -148,6 +155,14 @@ const DIRECTION_SETS: [SweepDirections; 2] =
 /// Direction pairs of every direction set (13 + 49): the entries of each of the four sets of
 /// [`sweep_direction_offset`].
 const PAIRS_PER_SET: usize = 62;
+
+/// The most pairs a direction set has (Lattice98's): one dispatch per order binds that many
+/// `SweepDirection`s from its set's first (`scatter.wgsl`, `SWEEP_PER_ORDER`).
+pub const MAX_SWEEP_PAIRS: usize = 49;
+
+/// Bytes the sweep's direction binding holds: [`MAX_SWEEP_PAIRS`] entries, whichever stencil
+/// reads it.
+pub const SWEEP_DIRECTIONS_BINDING: u64 = MAX_SWEEP_PAIRS as u64 * DYNAMIC_UNIFORM_STRIDE as u64;
 
 /// The dynamic offset of the `SweepDirection` of direction pair `index` (of
 /// `directions.pairs()`), accumulating or not, bringing the sky in or not.
@@ -283,17 +298,80 @@ pub struct ReadyPipelines<'a> {
     pub restrict_residual: [&'a ComputePipeline; 2],
     /// The coarse-grid cycles' prolongation.
     pub prolong_correction: [&'a ComputePipeline; 2],
+    /// The sweep of one dispatch per order and its sum, where asked for
+    /// ([`SweepDispatch::PerOrder`]).
+    pub per_order: Option<PerOrderReady<'a>>,
+}
+
+/// The compiled pipelines of one dispatch per order.
+#[derive(Clone, Copy)]
+pub struct PerOrderReady<'a> {
+    /// Every pair's sweep, with the march in use.
+    pub sweep: [&'a ComputePipeline; 2],
+    /// Their sum into the next order.
+    pub sum_pairs: [&'a ComputePipeline; 2],
+}
+
+/// The pipelines of one dispatch per order ([`SweepDispatch::PerOrder`]): queued the first time
+/// it is asked for, so that apps that never ask compile none of them.
+#[derive(Resource)]
+pub struct PerOrderSweepPipelines {
+    /// `scatter.wgsl`, `sweep` with `SWEEP_PER_ORDER`: the serial march (0), reading ahead (1).
+    pub sweep: [ByMoments; 2],
+    /// `scatter.wgsl`, `sum_pairs` (the sweep's layout).
+    pub sum_pairs: ByMoments,
+}
+
+impl PerOrderSweepPipelines {
+    fn ready<'a>(&self, cache: &'a PipelineCache, read_ahead: bool) -> Option<PerOrderReady<'a>> {
+        Some(PerOrderReady {
+            sweep: self.sweep[read_ahead as usize].get(cache)?,
+            sum_pairs: self.sum_pairs.get(cache)?,
+        })
+    }
+}
+
+/// Queues [`PerOrderSweepPipelines`] once [`SweepDispatch::PerOrder`] is asked for.
+pub(crate) fn queue_per_order_sweep(
+    mut commands: Commands,
+    dispatch: Option<Res<SweepDispatch>>,
+    queued: Option<Res<PerOrderSweepPipelines>>,
+    shaders: Res<CloudShaders>,
+    pipeline_cache: Res<PipelineCache>,
+) {
+    if queued.is_some() || dispatch.is_none_or(|d| *d != SweepDispatch::PerOrder) {
+        return;
+    }
+    let cache = pipeline_cache.as_ref();
+    let layout = IlluminationLayouts::new().scatter;
+    let stage = |entry, defs: &[&'static str]| {
+        ByMoments::with_defs(cache, &shaders.scatter, entry, &layout, defs)
+    };
+    commands.insert_resource(PerOrderSweepPipelines {
+        sweep: [
+            stage("sweep", &["SWEEP_PER_ORDER"]),
+            stage("sweep", &["SWEEP_PER_ORDER", "SWEEP_READ_AHEAD"]),
+        ],
+        sum_pairs: stage("sum_pairs", &["SWEEP_PER_ORDER"]),
+    });
 }
 
 impl IlluminationPipelines {
     /// All compiled, or `None` while any still compiles (work waits for the next frame); the
     /// sweep's march that reads ahead, or its serial one.
+    /// With `per_order` (the pipelines of one dispatch per order, where asked for), those too.
     pub fn ready<'a>(
         &self,
         cache: &'a PipelineCache,
         read_ahead: bool,
+        per_order: Option<&PerOrderSweepPipelines>,
     ) -> Option<ReadyPipelines<'a>> {
+        let per_order = match per_order {
+            Some(p) => Some(p.ready(cache, read_ahead)?),
+            None => None,
+        };
         Some(ReadyPipelines {
+            per_order,
             kernel_sums: self.kernel_sums.get(cache)?,
             voxelize: self.voxelize.get(cache)?,
             upsample: self.upsample.get(cache)?,
@@ -336,6 +414,7 @@ fn sweep_direction_entries(sky: Vec3) -> impl Iterator<Item = SweepDirection> {
                     boundary: (set % 2 == 0) as u32,
                     mean_weight: d.mean as f32,
                     quadrupole_weight: d.quadrupole as f32,
+                    pairs: directions.pairs().len() as u32,
                 })
         })
     })
@@ -421,7 +500,7 @@ impl IlluminationLayouts {
                 ShaderStages::COMPUTE,
                 (
                     read(),
-                    uniform_buffer::<SweepDirection>(true),
+                    uniform_buffer_sized(true, NonZeroU64::new(SWEEP_DIRECTIONS_BINDING)),
                     read(),
                     read(),
                     write(),
@@ -548,10 +627,12 @@ pub(crate) fn init_illumination_pipelines(
             "prolong_correction",
             &coarse_prolongation,
         ),
+        // Padded so that the last set's binding of MAX_SWEEP_PAIRS entries fits.
         sweep_directions: dynamic_uniform(
             &device,
             "particle_clouds_sweep_directions",
-            sweep_direction_entries(Vec3::ZERO),
+            sweep_direction_entries(Vec3::ZERO)
+                .chain(std::iter::repeat_n(default(), MAX_SWEEP_PAIRS - 1)),
         ),
         sweep_sky: Vec3::ZERO,
     });
@@ -639,6 +720,26 @@ mod tests {
             .map(|t| start + t * step)
             .filter(|v| v.cmpge(IVec3::ZERO).all() && v.cmplt(IVec3::splat(n as i32)).all())
             .collect()
+    }
+
+    /// One dispatch per order binds MAX_SWEEP_PAIRS entries from any set's first pair: the
+    /// largest set has that many, and the buffer holds them past the last set's.
+    #[test]
+    fn one_dispatch_per_order_binds_every_pair_of_the_largest_set() {
+        let most = DIRECTION_SETS.iter().map(|s| s.pairs().len()).max();
+        assert_eq!(most, Some(MAX_SWEEP_PAIRS));
+        let entries = sweep_direction_entries(Vec3::ZERO).count() + MAX_SWEEP_PAIRS - 1;
+        for set in DIRECTION_SETS {
+            let last = sweep_direction_offset(set, 0, false, false) as u64;
+            let end = last + SWEEP_DIRECTIONS_BINDING;
+            assert!(
+                end <= (entries as u64) * DYNAMIC_UNIFORM_STRIDE as u64,
+                "{set:?}"
+            );
+            let entry = &sweep_direction_entries(Vec3::ZERO).collect::<Vec<_>>()
+                [(last / DYNAMIC_UNIFORM_STRIDE as u64) as usize];
+            assert_eq!(entry.pairs as usize, set.pairs().len());
+        }
     }
 
     /// Every offset the passes ask for finds the entry it means: its direction, whether it

@@ -16,6 +16,7 @@
 // is the sky's radiance and `boundary` 1 in the first iteration of a series, where the light
 // entering the grid from outside (the sky's, and the ground's on lines that climb) comes in (so
 // S_1 = K S_0 + their single scattering); else 0 and nothing enters.
+// `pairs` is the number of pairs in the set.
 struct SweepDirection {
     o: vec3<i32>,
     first: u32,
@@ -24,10 +25,23 @@ struct SweepDirection {
     boundary: u32,
     mean_weight: f32,
     quadrupole_weight: f32,
+    pairs: u32,
 }
 
 @group(0) @binding(0) var<storage, read> slots: array<Slot>;
+#ifdef SWEEP_PER_ORDER
+// One dispatch per order (`SweepDispatch::PerOrder`): every pair of the set from the bound one
+// on, a dynamic-uniform stride apart. Each pair deposits its share into a volume of its own,
+// `s_out` then being the pool's per-pair volumes, pair p's `p * arrayLength(&s_in)` in;
+// `sum_pairs` adds them into the next order.
+struct DirectionEntry {
+    @size(#{DYNAMIC_UNIFORM_STRIDE}) d: SweepDirection,
+}
+@group(0) @binding(1) var<uniform> directions: array<DirectionEntry, #{MAX_SWEEP_PAIRS}>;
+var<private> direction: SweepDirection;
+#else
 @group(0) @binding(1) var<uniform> direction: SweepDirection;
+#endif
 @group(0) @binding(2) var<storage, read> densities: array<f32>;
 @group(0) @binding(3) var<storage, read> s_in: array<vec4<f32>>;
 @group(0) @binding(4) var<storage, read_write> s_out: array<vec4<f32>>;
@@ -40,6 +54,8 @@ struct SweepDirection {
 @group(0) @binding(8) var<storage, read> grounds: array<GroundMap>;
 
 var<private> slot_index: u32;
+// Where this invocation's pair's volume starts in `s_out`: 0 but with SWEEP_PER_ORDER.
+var<private> pair_base: u32;
 var<private> slot: Slot;
 var<private> cloud: CloudParams;
 
@@ -177,9 +193,9 @@ fn transport(upwind: vec3<f32>, m: vec2<f32>, j: vec3<f32>, m_up: vec2<f32>, j_u
 
 fn add_to(element: u32, share: vec4<f32>, overwrite: bool) {
     if overwrite {
-        s_out[element] = share;
+        s_out[pair_base + element] = share;
     } else {
-        s_out[element] += share;
+        s_out[pair_base + element] += share;
     }
 }
 
@@ -191,7 +207,7 @@ fn add_to(element: u32, share: vec4<f32>, overwrite: bool) {
 // once the iteration's sweeps are done (`accumulate_order`).
 fn deposit(voxel: u32, radiance: vec3<f32>, w: vec3<f32>, overwrite: bool, held: vec4<f32>) {
     let share = vec4(radiance * direction.mean_weight, 0.0);
-    s_out[slot.volume + voxel] = held + share;
+    s_out[pair_base + slot.volume + voxel] = held + share;
 #ifdef MOMENTS
     let n = cloud.n;
     for (var axis = 0u; axis < 3u; axis++) {
@@ -210,7 +226,7 @@ fn held_mean(i: u32, overwrite: bool) -> vec4<f32> {
     if overwrite {
         return vec4(0.0);
     }
-    return s_out[slot.volume + i];
+    return s_out[pair_base + slot.volume + i];
 }
 
 // One invocation per lattice line of direction o: marches it against o (radiance arriving from
@@ -219,6 +235,26 @@ fn held_mean(i: u32, overwrite: bool) -> vec4<f32> {
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     begin(id.z);
+    var rest = flat_invocation(id, groups);
+#ifdef SWEEP_PER_ORDER
+    // Invocation pair * stride + line, the stride the most lines any pair of the set has.
+    let pairs = directions[0].d.pairs;
+    var stride = 0u;
+    for (var p = 0u; p < pairs; p++) {
+        stride = max(stride, lattice_lines(directions[p].d.o, cloud.n));
+    }
+    let pair = rest / stride;
+    if pair >= pairs {
+        return;
+    }
+    direction = directions[pair].d;
+    pair_base = pair * arrayLength(&s_in);
+    rest %= stride;
+    // The pair's volume holds the previous order's share: the first march writes over it.
+    let overwrite = true;
+#else
+    let overwrite = direction.first != 0u;
+#endif
     let n = i32(cloud.n);
     let o = direction.o;
     let step = abs(o);
@@ -228,7 +264,6 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
     // first axis of largest step f starts at 0..f, the other moving axes at an offset in
     // -(ceil(n / f) - 1) |o_a|..n, the still axes anywhere.
     let reach = (n + f - 1) / f - 1;
-    var rest = flat_invocation(id, groups);
     var start = vec3(0);
     for (var a = 0; a < 3; a++) {
         var span = cloud.n;
@@ -262,9 +297,29 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
     // The direction the radiance arriving from the +o side travels in.
     let w = -normalize(vec3<f32>(o));
     // Against o: radiance arriving from the +o side, the boundary's entering the grid.
-    march(start, flip, t1 - 1, -1, t1 - t0, w, half_step, direction.first != 0u);
+    march(start, flip, t1 - 1, -1, t1 - t0, w, half_step, overwrite);
     // Along o: radiance arriving from the -o side.
     march(start, flip, t0, 1, t1 - t0, -w, half_step, false);
+}
+
+// How many lattice lines of direction o `sweep` decodes in an n³ grid (pipelines.rs,
+// `sweep_lines`).
+fn lattice_lines(o: vec3<i32>, n: u32) -> u32 {
+    let step = vec3<u32>(abs(o));
+    let f = max(step.x, max(step.y, step.z));
+    let first_axis = select(select(2u, 1u, step.y == f), 0u, step.x == f);
+    let reach = (n + f - 1u) / f - 1u;
+    var lines = 1u;
+    for (var a = 0u; a < 3u; a++) {
+        if a == first_axis {
+            lines *= f;
+        } else if step[a] != 0u {
+            lines *= n + reach * step[a];
+        } else {
+            lines *= n;
+        }
+    }
+    return lines;
 }
 
 // The source J = albedo S towards w at voxel i, and the voxel's medium.
@@ -351,17 +406,56 @@ fn accumulate_order(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_w
     if v == PAST_THE_GRID {
         return;
     }
-    multiple[slot.multiple + v] += s_out[slot.volume + v];
-#ifdef MOMENTS
-    for (var axis = 0u; axis < 3u; axis++) {
-        let at = flux_element(slot.volume, cloud.n, v, axis);
-        multiple[flux_element(slot.multiple, cloud.n, v, axis)] += s_out[at];
+    for (var e = 0u; e < VOXEL_ELEMENTS; e++) {
+        multiple[voxel_element(slot.multiple, v, e)] += s_out[voxel_element(slot.volume, v, e)];
     }
-    for (var c = 0u; c < 5u; c++) {
-        multiple[quadrupole_element(slot.multiple, cloud.n, v, c)] += s_out[quadrupole_element(slot.volume, cloud.n, v, c)];
-    }
-#endif
 }
+
+// The vec4 a voxel holds in each scattering volume: its mean, and with moments its flux (3) and
+// quadrupole (5).
+#ifdef MOMENTS
+const VOXEL_ELEMENTS: u32 = 9u;
+#else
+const VOXEL_ELEMENTS: u32 = 1u;
+#endif
+
+// Element e (< VOXEL_ELEMENTS) of voxel v in the volume whose slot starts at `base`.
+fn voxel_element(base: u32, v: u32, e: u32) -> u32 {
+    if e == 0u {
+        return base + v;
+    }
+    if e < 4u {
+        return flux_element(base, cloud.n, v, e - 1u);
+    }
+    return quadrupole_element(base, cloud.n, v, e - 4u);
+}
+
+#ifdef SWEEP_PER_ORDER
+// After a dispatch of every pair (SWEEP_PER_ORDER), bound with the pairs' volumes as `s_in`:
+// the next order is their sum, in the pairs' order, and an accumulating iteration adds it to
+// `multiple` (what `accumulate_order` does after one dispatch per pair). With moments, their
+// flux and quadrupole alike.
+@compute @workgroup_size(#{LINEAR_WORKGROUP})
+fn sum_pairs(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let v = slot_voxel(id, groups);
+    if v == PAST_THE_GRID {
+        return;
+    }
+    direction = directions[0].d;
+    let stride = arrayLength(&s_out);
+    for (var e = 0u; e < VOXEL_ELEMENTS; e++) {
+        let order = voxel_element(slot.volume, v, e);
+        var total = vec4(0.0);
+        for (var p = 0u; p < direction.pairs; p++) {
+            total += s_in[p * stride + order];
+        }
+        s_out[order] = total;
+        if direction.accumulate != 0u {
+            multiple[voxel_element(slot.multiple, v, e)] += total;
+        }
+    }
+}
+#endif
 
 // The paper's Algorithm 2: every neighbour inside the grid weighted by the voxel's own opacity.
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
@@ -414,17 +508,10 @@ fn warm_start(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgro
     if v == PAST_THE_GRID {
         return;
     }
-    s_out[slot.volume + v] = s_in[slot.volume + v] + multiple[slot.multiple + v];
-#ifdef MOMENTS
-    for (var axis = 0u; axis < 3u; axis++) {
-        let at = flux_element(slot.volume, cloud.n, v, axis);
-        s_out[at] = s_in[at] + multiple[flux_element(slot.multiple, cloud.n, v, axis)];
+    for (var e = 0u; e < VOXEL_ELEMENTS; e++) {
+        let at = voxel_element(slot.volume, v, e);
+        s_out[at] = s_in[at] + multiple[voxel_element(slot.multiple, v, e)];
     }
-    for (var c = 0u; c < 5u; c++) {
-        let at = quadrupole_element(slot.volume, cloud.n, v, c);
-        s_out[at] = s_in[at] + multiple[quadrupole_element(slot.multiple, cloud.n, v, c)];
-    }
-#endif
 }
 
 // Then s_out holds K (S_0 + X): the correction W_0 = K (S_0 + X) - X becomes the series' first
@@ -435,15 +522,9 @@ fn warm_correction(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_wo
     if v == PAST_THE_GRID {
         return;
     }
-    correct(slot.volume + v, slot.multiple + v);
-#ifdef MOMENTS
-    for (var axis = 0u; axis < 3u; axis++) {
-        correct(flux_element(slot.volume, cloud.n, v, axis), flux_element(slot.multiple, cloud.n, v, axis));
+    for (var e = 0u; e < VOXEL_ELEMENTS; e++) {
+        correct(voxel_element(slot.volume, v, e), voxel_element(slot.multiple, v, e));
     }
-    for (var c = 0u; c < 5u; c++) {
-        correct(quadrupole_element(slot.volume, cloud.n, v, c), quadrupole_element(slot.multiple, cloud.n, v, c));
-    }
-#endif
 }
 
 fn correct(order: u32, solution: u32) {

@@ -30,6 +30,14 @@ pub fn shader_defs() -> Vec<ShaderDefVal> {
         ShaderDefVal::UInt("BEAM_PHASE_DEPTHS".into(), BEAM_PHASE_DEPTHS),
         ShaderDefVal::UInt("SKY_MAP_DIRECTIONS".into(), SKY_MAP_DIRECTIONS),
         ShaderDefVal::UInt("SKY_MAP_TILE".into(), super::sky_map::SKY_MAP_TILE),
+        ShaderDefVal::UInt(
+            "DYNAMIC_UNIFORM_STRIDE".into(),
+            super::gpu::DYNAMIC_UNIFORM_STRIDE,
+        ),
+        ShaderDefVal::UInt(
+            "MAX_SWEEP_PAIRS".into(),
+            super::pipelines::MAX_SWEEP_PAIRS as u32,
+        ),
     ]
 }
 

@@ -9,6 +9,7 @@ use bevy_particle_clouds::{
     CloudPass, CloudQualitySettings, Medium, Particle,
     generators::SplitMix64,
     reference::{illumination::voxelize, metrics::max_relative_difference},
+    settings::SweepDispatch,
 };
 
 use crate::{common, plugin::small_cloud};
@@ -118,6 +119,26 @@ fn the_dispatches_stay_flat_in_clouds_of_one_shape() {
     let (runs_mixed, dispatches_mixed) = illuminate(&mut mixed, &mut FrameRecorder::default(), 6);
     assert_eq!(runs_mixed, [6, 6, 6, 18, 6]);
     assert_eq!(dispatches_mixed, dispatches_one.map(|d| 2 * d));
+}
+
+/// One dispatch per order (`SweepDispatch::PerOrder`) sweeps all 13 direction pairs of an
+/// iteration in one dispatch and sums them in a second, the order's accumulation with them, so an
+/// iteration takes 2 dispatches instead of 14 and a restart sweep 4 instead of 15, flat in clouds.
+#[test]
+fn one_dispatch_per_order_takes_two_dispatches_an_iteration() {
+    let per_order = |clouds: u32| {
+        let mut app = scene();
+        app.insert_resource(SweepDispatch::PerOrder);
+        for i in 0..clouds {
+            spawn(&mut app, 3.0 * i as f32 - 7.5, i, 12);
+        }
+        illuminate(&mut app, &mut FrameRecorder::default(), clouds)
+    };
+    let (runs, dispatches) = per_order(1);
+    assert_eq!(runs, [1, 1, 1, 3, 1]);
+    let cycle = 2 * 4 + 2 + 32 * 2 + 3;
+    assert_eq!(dispatches, [2, 1, 1, 3 * 2 + 2 + 1 + 2 * cycle, 1]);
+    assert_eq!(per_order(6).1, dispatches);
 }
 
 #[test]
