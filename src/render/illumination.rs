@@ -41,7 +41,7 @@ use super::{
     voxelize::{
         VoxelizeCloud, VoxelizeRound, VoxelizeScratch, prepare_round, record_round, voxelize_rounds,
     },
-    workgroups::{dispatch_columns, dispatch_linear},
+    workgroups::{dispatch_columns, dispatch_linear, dispatch_rows},
 };
 use crate::{
     particle::DeltaM,
@@ -1122,7 +1122,7 @@ impl SeriesPasses<'_> {
             let pairs = directions.pairs().len() as u32;
             pass.set_pipeline(per_order.sweep[self.variant]);
             pass.set_bind_group(0, &groups.sweep, &[direction, work]);
-            dispatch_linear(pass, pairs * lines.max().unwrap_or(0), items);
+            dispatch_rows(pass, lines.max().unwrap_or(0), pairs, items);
             pass.set_pipeline(per_order.sum_pairs[self.variant]);
             pass.set_bind_group(0, &groups.sum, &[direction, work]);
             dispatch_linear(pass, n.pow(3), items);

@@ -235,24 +235,15 @@ fn held_mean(i: u32, overwrite: bool) -> vec4<f32> {
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
 fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     begin(id.z);
-    var rest = flat_invocation(id, groups);
 #ifdef SWEEP_PER_ORDER
-    // Invocation pair * stride + line, the stride the most lines any pair of the set has.
-    let pairs = directions[0].d.pairs;
-    var stride = 0u;
-    for (var p = 0u; p < pairs; p++) {
-        stride = max(stride, lattice_lines(directions[p].d.o, cloud.n));
-    }
-    let pair = rest / stride;
-    if pair >= pairs {
-        return;
-    }
-    direction = directions[pair].d;
-    pair_base = pair * arrayLength(&s_in);
-    rest %= stride;
+    // Row y of workgroups sweeps pair y, x its lines (those past its count decode to `rest` > 0).
+    var rest = id.x;
+    direction = directions[id.y].d;
+    pair_base = id.y * arrayLength(&s_in);
     // The pair's volume holds the previous order's share: the first march writes over it.
     let overwrite = true;
 #else
+    var rest = flat_invocation(id, groups);
     let overwrite = direction.first != 0u;
 #endif
     let n = i32(cloud.n);
@@ -300,26 +291,6 @@ fn sweep(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
     march(start, flip, t1 - 1, -1, t1 - t0, w, half_step, overwrite);
     // Along o: radiance arriving from the -o side.
     march(start, flip, t0, 1, t1 - t0, -w, half_step, false);
-}
-
-// How many lattice lines of direction o `sweep` decodes in an n³ grid (pipelines.rs,
-// `sweep_lines`).
-fn lattice_lines(o: vec3<i32>, n: u32) -> u32 {
-    let step = vec3<u32>(abs(o));
-    let f = max(step.x, max(step.y, step.z));
-    let first_axis = select(select(2u, 1u, step.y == f), 0u, step.x == f);
-    let reach = (n + f - 1u) / f - 1u;
-    var lines = 1u;
-    for (var a = 0u; a < 3u; a++) {
-        if a == first_axis {
-            lines *= f;
-        } else if step[a] != 0u {
-            lines *= n + reach * step[a];
-        } else {
-            lines *= n;
-        }
-    }
-    return lines;
 }
 
 // The source J = albedo S towards w at voxel i, and the voxel's medium.

@@ -55,6 +55,12 @@ pub(crate) fn dispatch_linear(pass: &mut StagePass, count: u32, items: u32) {
     pass.dispatch(x, y, items);
 }
 
+/// Dispatches `rows` rows (y) of `count` invocations of a [`LINEAR`] kernel each (x), for each
+/// of `items` z workgroups: one row per part of the work that the kernel tells apart by `id.y`.
+pub(crate) fn dispatch_rows(pass: &mut StagePass, count: u32, rows: u32, items: u32) {
+    pass.dispatch(count.div_ceil(LINEAR).max(1), rows, items);
+}
+
 /// Dispatches one invocation per column of an `n × n` slice ([`SLICE`]² workgroups), for each
 /// of `items` z workgroups.
 pub(crate) fn dispatch_columns(pass: &mut StagePass, n: u32, items: u32) {
