@@ -64,6 +64,9 @@ pub(crate) fn coarse_cycles(
     );
     // Each row's image, kept to compare with the converged series' once it is known.
     let mut rows: Vec<(String, f64, LinearImage)> = Vec::new();
+    // The schedules replace only the multiple scattering, so they start from the last series'
+    // illumination instead of solving the scene once more.
+    let mut last = None;
     for m in SERIES {
         eprintln!("benchmark: {}: series of {m} orders (CPU)", bench.name);
         let s = CloudQualitySettings {
@@ -76,8 +79,9 @@ pub(crate) fn coarse_cycles(
         };
         let image = grid_error::image(scene, &ill, &s, bench.error_downsample);
         rows.push((format!("series, {m} orders"), m as f64, image));
+        last = Some(ill);
     }
-    let Some(mut ill) = illuminate_scene_cloud(scene, 0, &settings) else {
+    let Some(mut ill) = last else {
         return md;
     };
     for (fine_orders, cycles, coarse_orders) in SCHEDULES {
