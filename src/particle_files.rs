@@ -41,20 +41,69 @@ pub enum ParticleFileError {
     },
     /// The file's contents do not follow the format. `location` is e.g. `line 12` or
     /// `vertex 3 (byte 245)`.
-    #[error("{}: {location}: {message}", path.display())]
+    #[error("{}: {location}: {message}{}", path.display(), found_suffix(found))]
     Format {
         /// The file.
         path: PathBuf,
         /// Where: `line N` (1-based), `vertex K (byte B)` or `end of file`.
         location: String,
-        /// What is wrong and what is allowed.
+        /// What is wrong and what is allowed. Never holds the file's own text: that is `found`.
         message: String,
+        /// The file's own text the message is about (a token, a name or a header line), at
+        /// most 60 characters; [`ParticleFileError::detail_without_content`] leaves it out.
+        found: Option<String>,
     },
+}
+
+/// `; found `text`` after a message, or nothing.
+fn found_suffix(found: &Option<String>) -> String {
+    found
+        .as_ref()
+        .map_or(String::new(), |f| format!("; found `{f}`"))
+}
+
+/// What is wrong, and the file's own text it is about (shortened for the message).
+struct Complaint {
+    message: String,
+    found: Option<String>,
+}
+
+impl Complaint {
+    fn new(message: impl Into<String>, found: &str) -> Self {
+        Self {
+            message: message.into(),
+            found: Some(short(found)),
+        }
+    }
+}
+
+impl From<String> for Complaint {
+    fn from(message: String) -> Self {
+        Self {
+            message,
+            found: None,
+        }
+    }
 }
 
 impl ParticleFileError {
     /// The error without the file's path (for messages that name the file already).
     pub fn detail(&self) -> String {
+        match self {
+            ParticleFileError::Io { source, .. } => source.to_string(),
+            ParticleFileError::Format {
+                location,
+                message,
+                found,
+                ..
+            } => format!("{location}: {message}{}", found_suffix(found)),
+        }
+    }
+
+    /// [`detail`](Self::detail) without any of the file's own text: for files named by someone
+    /// the reader need not trust (a scene file's particle files), whose text must not reach a
+    /// log.
+    pub fn detail_without_content(&self) -> String {
         match self {
             ParticleFileError::Io { source, .. } => source.to_string(),
             ParticleFileError::Format {
@@ -64,10 +113,15 @@ impl ParticleFileError {
     }
 
     fn format(path: &Path, location: impl Into<String>, message: impl Into<String>) -> Self {
+        Self::complaint(path, location, message.into().into())
+    }
+
+    fn complaint(path: &Path, location: impl Into<String>, complaint: Complaint) -> Self {
         ParticleFileError::Format {
             path: path.to_path_buf(),
             location: location.into(),
-            message: message.into(),
+            message: complaint.message,
+            found: complaint.found,
         }
     }
 
@@ -186,13 +240,16 @@ impl ParticleAttributes {
         &self,
         names: impl IntoIterator<Item = &'a str>,
         what: &str,
-    ) -> Result<[usize; 5], String> {
+    ) -> Result<[usize; 5], Complaint> {
         let wanted = self.names();
         let mut columns = [usize::MAX; 5];
         for (i, name) in names.into_iter().enumerate() {
             for c in (0..5).filter(|&c| wanted[c] == name) {
                 if columns[c] != usize::MAX {
-                    return Err(format!("{what} `{name}` appears twice"));
+                    return Err(Complaint::new(
+                        format!("a {what} holding `{}` appears twice", wanted[c]),
+                        name,
+                    ));
                 }
                 columns[c] = i;
             }
@@ -210,7 +267,8 @@ impl ParticleAttributes {
             if missing.len() == 1 { "" } else { "s" },
             missing.join("`, `"),
             wanted.join(" ")
-        ))
+        )
+        .into())
     }
 }
 
@@ -346,26 +404,25 @@ fn parse_ply_header(path: &Path, bytes: &[u8]) -> Result<PlyHeader, ParticleFile
         let keyword = words.next().unwrap_or("");
         if line_no == 1 {
             if line.trim() != "ply" {
-                return Err(ParticleFileError::format(
+                return Err(ParticleFileError::complaint(
                     path,
                     &at,
-                    format!(
-                        "the file must start with the line `ply`, found `{}`",
-                        short(line)
-                    ),
+                    Complaint::new("the file must start with the line `ply`", line),
                 ));
             }
             continue;
         }
         let rest: Vec<&str> = words.collect();
-        let bad_line = |message: String| ParticleFileError::format(path, &at, message);
+        let bad_line = |complaint: Complaint| ParticleFileError::complaint(path, &at, complaint);
         match keyword {
             "" | "comment" | "obj_info" => {}
             "format" => format = Some(ply_format(&rest, line).map_err(bad_line)?),
             "element" => elements.push(ply_element(&rest, line).map_err(bad_line)?),
             "property" => {
                 let Some(element) = elements.last_mut() else {
-                    return Err(bad_line("`property` before any `element`".into()));
+                    return Err(bad_line(
+                        "`property` before any `element`".to_string().into(),
+                    ));
                 };
                 element
                     .properties
@@ -383,10 +440,14 @@ fn parse_ply_header(path: &Path, bytes: &[u8]) -> Result<PlyHeader, ParticleFile
                 });
             }
             other => {
-                return Err(ParticleFileError::format(
+                return Err(ParticleFileError::complaint(
                     path,
                     &at,
-                    format!("unknown header keyword `{}`", short(other)),
+                    Complaint::new(
+                        "unknown header keyword; allowed are comment obj_info format element \
+                         property end_header",
+                        other,
+                    ),
                 ));
             }
         }
@@ -394,39 +455,36 @@ fn parse_ply_header(path: &Path, bytes: &[u8]) -> Result<PlyHeader, ParticleFile
 }
 
 /// A `format` line's format (`rest`: its words after the keyword), or why not.
-fn ply_format(rest: &[&str], line: &str) -> Result<PlyFormat, String> {
+fn ply_format(rest: &[&str], line: &str) -> Result<PlyFormat, Complaint> {
     let format = match rest.first().copied() {
         Some("ascii") => PlyFormat::Ascii,
         Some("binary_little_endian") => PlyFormat::BinaryLittleEndian,
         Some("binary_big_endian") => PlyFormat::BinaryBigEndian,
         other => {
-            return Err(format!(
-                "unknown format `{}`; allowed are `ascii` and `binary_little_endian`",
-                other.unwrap_or("")
+            return Err(Complaint::new(
+                "unknown format; allowed are `ascii`, `binary_little_endian` and \
+                 `binary_big_endian`",
+                other.unwrap_or(""),
             ));
         }
     };
     if rest.get(1).copied() != Some("1.0") || rest.len() != 2 {
-        return Err(format!(
-            "expected `format {} 1.0`, found `{}`",
-            rest[0],
-            short(line)
+        return Err(Complaint::new(
+            format!("expected `format {} 1.0`", rest[0]),
+            line,
         ));
     }
     Ok(format)
 }
 
 /// An `element <name> <count>` line's element, without properties yet, or why not.
-fn ply_element(rest: &[&str], line: &str) -> Result<PlyElement, String> {
+fn ply_element(rest: &[&str], line: &str) -> Result<PlyElement, Complaint> {
     let [name, count] = rest else {
-        return Err(format!(
-            "expected `element <name> <count>`, found `{}`",
-            short(line)
-        ));
+        return Err(Complaint::new("expected `element <name> <count>`", line));
     };
     let count = count
         .parse::<usize>()
-        .map_err(|_| format!("element `{name}` has count `{count}`; it must be an integer >= 0"))?;
+        .map_err(|_| Complaint::new("an element's count must be an integer >= 0", count))?;
     Ok(PlyElement {
         name: name.to_string(),
         count,
@@ -436,12 +494,13 @@ fn ply_element(rest: &[&str], line: &str) -> Result<PlyElement, String> {
 
 /// A `property <type> <name>` or `property list <type> <type> <name>` line's property, or why
 /// not.
-fn ply_property(rest: &[&str], line: &str) -> Result<PlyProperty, String> {
+fn ply_property(rest: &[&str], line: &str) -> Result<PlyProperty, Complaint> {
     let scalar = |t: &str| {
         ScalarType::parse(t).ok_or_else(|| {
-            format!(
-                "unknown property type `{t}`; allowed are char uchar short ushort int uint float double \
-                 (or int8 uint8 int16 uint16 int32 uint32 float32 float64)"
+            Complaint::new(
+                "unknown property type; allowed are char uchar short ushort int uint float double \
+                 (or int8 uint8 int16 uint16 int32 uint32 float32 float64)",
+                t,
             )
         })
     };
@@ -449,8 +508,9 @@ fn ply_property(rest: &[&str], line: &str) -> Result<PlyProperty, String> {
         ["list", count, item, name] => {
             let (count, item) = (scalar(count)?, scalar(item)?);
             if !count.is_integer() {
-                return Err(format!(
-                    "list property `{name}` has a non-integer count type"
+                return Err(Complaint::new(
+                    "a list property has a non-integer count type",
+                    name,
                 ));
             }
             Ok(PlyProperty {
@@ -462,10 +522,19 @@ fn ply_property(rest: &[&str], line: &str) -> Result<PlyProperty, String> {
             name: name.to_string(),
             kind: PropertyKind::Scalar(scalar(ty)?),
         }),
-        _ => Err(format!(
-            "expected `property <type> <name>` or `property list <type> <type> <name>`, found `{}`",
-            short(line)
+        _ => Err(Complaint::new(
+            "expected `property <type> <name>` or `property list <type> <type> <name>`",
+            line,
         )),
+    }
+}
+
+/// How a message names vertex property `pi`: by the attribute it holds (`` `radius` ``), else by
+/// its 1-based place (a name from the file is its text, which messages leave out).
+fn property_label(attributes: &ParticleAttributes, columns: &[usize; 5], pi: usize) -> String {
+    match columns.iter().position(|&c| c == pi) {
+        Some(c) => format!("`{}`", attributes.names()[c]),
+        None => format!("{}", pi + 1),
     }
 }
 
@@ -490,7 +559,7 @@ fn vertex_columns(
     let names = vertex.properties.iter().map(|p| p.name.as_str());
     let columns = attributes
         .columns(names, "vertex property")
-        .map_err(|message| ParticleFileError::format(path, "header", message))?;
+        .map_err(|complaint| ParticleFileError::complaint(path, "header", complaint))?;
     for &c in columns.iter().filter(|&&c| c != usize::MAX) {
         let property = &vertex.properties[c];
         if matches!(property.kind, PropertyKind::List { .. }) {
@@ -578,19 +647,25 @@ fn read_ply_ascii_body(
     for element in &header.elements[..vertex_index] {
         for k in 0..element.count {
             if lines.next().is_none() {
-                return Err(ParticleFileError::format(
+                return Err(ParticleFileError::complaint(
                     path,
                     "end of file",
-                    format!(
-                        "element `{}` declares {} items but the file ends after {k}",
-                        element.name, element.count
+                    Complaint::new(
+                        format!(
+                            "an element before `vertex` declares {} items but the file ends after {k}",
+                            element.count
+                        ),
+                        &element.name,
                     ),
                 ));
             }
         }
     }
     let vertex = &header.elements[vertex_index];
-    let mut particles = Vec::with_capacity(vertex.count.min(1 << 24));
+    let label = |pi: usize| property_label(attributes, &columns, pi);
+    // Reserve no more than the text can hold (a vertex line takes at least 2 bytes), whatever the
+    // header claims.
+    let mut particles = Vec::with_capacity(vertex.count.min(text.len() / 2 + 1));
     for k in 0..vertex.count {
         let Some((line_no, line)) = lines.next() else {
             return Err(ParticleFileError::format(
@@ -606,55 +681,61 @@ fn read_ply_ascii_body(
         let mut tokens = line.split_whitespace();
         let mut values = attributes.initial_values();
         for (pi, property) in vertex.properties.iter().enumerate() {
-            let mut next = |what: &str| -> Result<f64, ParticleFileError> {
+            let mut next = || -> Result<f64, ParticleFileError> {
                 let token = tokens.next().ok_or_else(|| {
                     ParticleFileError::format(
                         path,
                         &at,
-                        format!("vertex {k}: the line ends before property `{what}`"),
+                        format!("vertex {k}: the line ends before property {}", label(pi)),
                     )
                 })?;
                 token.parse::<f64>().map_err(|_| {
-                    ParticleFileError::format(
+                    ParticleFileError::complaint(
                         path,
                         &at,
-                        format!(
-                            "vertex {k}: property `{what}` is `{}`, which is not a number",
-                            short(token)
+                        Complaint::new(
+                            format!("vertex {k}: property {} is not a number", label(pi)),
+                            token,
                         ),
                     )
                 })
             };
             match property.kind {
                 PropertyKind::Scalar(_) => {
-                    let v = next(&property.name)?;
+                    let v = next()?;
                     if let Some(c) = columns.iter().position(|&c| c == pi) {
                         values[c] = v;
                     }
                 }
                 PropertyKind::List { .. } => {
-                    let n = next(&property.name)?;
+                    let n = next()?;
                     if !(n >= 0.0 && n.fract() == 0.0) {
                         return Err(ParticleFileError::format(
                             path,
                             &at,
-                            format!("vertex {k}: list `{}` has count {n}", property.name),
+                            format!(
+                                "vertex {k}: the list of property {} has count {n}; it must be \
+                                 an integer >= 0",
+                                label(pi)
+                            ),
                         ));
                     }
                     for _ in 0..n as usize {
-                        next(&property.name)?;
+                        next()?;
                     }
                 }
             }
         }
         if let Some(extra) = tokens.next() {
-            return Err(ParticleFileError::format(
+            return Err(ParticleFileError::complaint(
                 path,
                 &at,
-                format!(
-                    "vertex {k}: unexpected value `{}` after the {} declared properties",
-                    short(extra),
-                    vertex.properties.len()
+                Complaint::new(
+                    format!(
+                        "vertex {k}: unexpected value after the {} declared properties",
+                        vertex.properties.len()
+                    ),
+                    extra,
                 ),
             ));
         }
@@ -707,10 +788,16 @@ fn read_ply_binary_body(
             Some(size) => {
                 let total = size.saturating_mul(element.count);
                 if pos.saturating_add(total) > body.len() {
-                    return Err(ParticleFileError::format(
+                    return Err(ParticleFileError::complaint(
                         path,
-                        format!("element `{}` (byte {})", element.name, body_offset + pos),
-                        format!("the file ends before the element's {} items", element.count),
+                        format!("byte {}", body_offset + pos),
+                        Complaint::new(
+                            format!(
+                                "the file ends before the {} items of an element before `vertex`",
+                                element.count
+                            ),
+                            &element.name,
+                        ),
                     ));
                 }
                 pos += total;
@@ -718,7 +805,7 @@ fn read_ply_binary_body(
             None => {
                 for k in 0..element.count {
                     for p in &element.properties {
-                        let what = || format!("element `{}` item {k}", element.name);
+                        let what = || format!("item {k} of an element before `vertex`");
                         match p.kind {
                             PropertyKind::Scalar(t) => {
                                 read(&mut pos, t, &what)?;
@@ -729,7 +816,7 @@ fn read_ply_binary_body(
                                     return Err(ParticleFileError::format(
                                         path,
                                         format!("{} (byte {})", what(), body_offset + pos),
-                                        format!("list `{}` has negative count {n}", p.name),
+                                        format!("a list has negative count {n}"),
                                     ));
                                 }
                                 let skip = (n as usize).saturating_mul(item.size());
@@ -769,8 +856,8 @@ fn read_ply_binary_body(
                             path,
                             format!("vertex {k} (byte {})", body_offset + pos),
                             format!(
-                                "list `{}` with count {n} does not fit in the file",
-                                property.name
+                                "the list of property {} with count {n} does not fit in the file",
+                                property_label(attributes, &columns, pi)
                             ),
                         ));
                     }
@@ -855,25 +942,26 @@ pub fn parse_csv(
         .flexible(true)
         .trim(csv::Trim::All)
         .from_reader(bytes);
-    // The 1-based line where a record starts. The csv crate's own line count skips blank lines,
+    // The 1-based line where a record starts, counted only for a message: counting it for every
+    // record would scan the file once per line. The csv crate's own line count skips blank lines,
     // and its byte offset may point at the blank lines before the record.
-    let line_of = |p: &csv::Position| {
-        let mut start = (p.byte() as usize).min(bytes.len());
+    let line_of = |byte: u64| {
+        let mut start = (byte as usize).min(bytes.len());
         while bytes.get(start).is_some_and(|b| matches!(b, b'\n' | b'\r')) {
             start += 1;
         }
         1 + bytes[..start].iter().filter(|&&b| b == b'\n').count()
     };
-    // Records with their line, blank (or whitespace-only) lines skipped.
+    // Records with the byte where they start, blank (or whitespace-only) lines skipped.
     let mut records = reader.records().filter_map(|record| match record {
         Ok(r) if r.iter().all(str::is_empty) => None,
-        Ok(r) => Some(Ok((r.position().map_or(0, line_of), r))),
+        Ok(r) => Some(Ok((r.position().map_or(0, csv::Position::byte), r))),
         Err(e) => Some(Err(e)),
     });
     let csv_error = |e: csv::Error| {
         let at = e
             .position()
-            .map_or("file".to_owned(), |p| format!("line {}", line_of(p)));
+            .map_or("file".to_owned(), |p| format!("line {}", line_of(p.byte())));
         ParticleFileError::format(path, at, e.to_string())
     };
     let Some(header) = records.next().transpose().map_err(csv_error)? else {
@@ -886,19 +974,21 @@ pub fn parse_csv(
             ),
         ));
     };
-    let (header_line, header) = header;
+    let (header_byte, header) = header;
     let columns = attributes
         .columns(header.iter(), "column")
-        .map_err(|m| ParticleFileError::format(path, format!("line {header_line}"), m))?;
+        .map_err(|complaint| {
+            ParticleFileError::complaint(path, format!("line {}", line_of(header_byte)), complaint)
+        })?;
     let names = attributes.names();
     let mut particles = Vec::new();
     for record in records {
-        let (line, record) = record.map_err(csv_error)?;
-        let at = format!("line {line}");
+        let (byte, record) = record.map_err(csv_error)?;
+        let at = || format!("line {}", line_of(byte));
         if record.len() != header.len() {
             return Err(ParticleFileError::format(
                 path,
-                &at,
+                at(),
                 format!(
                     "expected {} comma-separated values (the header's columns), found {}",
                     header.len(),
@@ -913,12 +1003,9 @@ pub fn parse_csv(
             .filter(|(_, i)| **i != usize::MAX)
         {
             values[c] = record[i].parse::<f64>().map_err(|_| {
-                let message = format!(
-                    "column `{}` is `{}`, which is not a number",
-                    names[c],
-                    short(&record[i])
-                );
-                ParticleFileError::format(path, &at, message)
+                let complaint =
+                    Complaint::new(format!("column `{}` is not a number", names[c]), &record[i]);
+                ParticleFileError::complaint(path, at(), complaint)
             })?;
         }
         particles.push(attributes.particle(values));
@@ -1102,7 +1189,7 @@ mod tests {
         assert!(e.contains("line 11") && e.contains("`radius`"), "{e}");
         let e = err(&format!("{head}0 0 0 1 1 5\n"));
         assert!(
-            e.contains("line 10") && e.contains("unexpected value `5`"),
+            e.contains("line 10") && e.contains("unexpected value") && e.contains("found `5`"),
             "{e}"
         );
         let e = err(&format!("{head}0 0 0 1 1\n"));
@@ -1125,11 +1212,12 @@ mod tests {
         assert!(e.contains("line 1") && e.contains("`ply`"), "{e}");
         // Each header line names what it expected and what it found.
         for (header, line, expected) in [
-            ("format ascii_le 1.0", 2, "unknown format `ascii_le`"),
+            ("format ascii_le 1.0", 2, "unknown format; allowed are"),
+            ("format ascii_le 1.0", 2, "found `ascii_le`"),
             (
                 "element vertex -1",
                 2,
-                "count `-1`; it must be an integer >= 0",
+                "count must be an integer >= 0; found `-1`",
             ),
             ("element vertex", 2, "expected `element <name> <count>`"),
             ("property float x", 2, "`property` before any `element`"),
@@ -1229,9 +1317,52 @@ mod tests {
             "{m}"
         );
         let m = e("x,y,z,radius,density,x\n");
-        assert!(m.contains("`x` appears twice"), "{m}");
+        assert!(m.contains("holding `x` appears twice"), "{m}");
         let m = e("");
         assert!(m.contains("empty"), "{m}");
+    }
+
+    /// A file that is not particles (a password file, say) is refused without a word of its text
+    /// in the content-free detail, while the full message quotes what it found.
+    #[test]
+    fn content_free_details_hold_none_of_the_file() {
+        let secret = "root:x:0:0:secret:/root:/bin/bash\nsecret2,secret3\n";
+        let csv_header = "x,y,z,radius,density\n0,0,secret,1,1\n";
+        let ply_token = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n\
+                         property float z\nproperty float radius\nproperty float density\n\
+                         end_header\n0 0 0 1 secret\n";
+        let ply_names = "ply\nformat ascii 1.0\nelement secret 1\nproperty secret secret\n";
+        let attributes = ParticleAttributes::default();
+        // (the error, whether its full message quotes the file)
+        let errors = [
+            (
+                parse_ply(Path::new("p.ply"), secret.as_bytes(), &attributes),
+                true,
+            ),
+            (
+                parse_csv(Path::new("p.csv"), secret.as_bytes(), &attributes),
+                false,
+            ),
+            (
+                parse_csv(Path::new("p.csv"), csv_header.as_bytes(), &attributes),
+                true,
+            ),
+            (
+                parse_ply(Path::new("p.ply"), ply_token.as_bytes(), &attributes),
+                true,
+            ),
+            (
+                parse_ply(Path::new("p.ply"), ply_names.as_bytes(), &attributes),
+                true,
+            ),
+        ];
+        for (error, quotes) in errors {
+            let error = error.unwrap_err();
+            let (full, free) = (error.to_string(), error.detail_without_content());
+            assert_eq!(full.contains("secret"), quotes, "{full}");
+            assert!(!free.contains("secret"), "{free}");
+            assert!(free.contains("line"), "the location stays: {free}");
+        }
     }
 
     #[test]
