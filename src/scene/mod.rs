@@ -4,8 +4,12 @@
 //! a file, resolves particle files relative to it, validates every value and returns a [`Scene`]
 //! ready for the real-time renderer, the CPU reference or the path tracer.
 
+mod particle_paths;
+
 use bevy::math::Vec3;
 use serde::Deserialize;
+
+pub use particle_paths::ParticlePaths;
 
 use crate::fog::Fog;
 use crate::particle::{LightSample, Medium, Particle};
@@ -234,8 +238,9 @@ pub enum SceneError {
     /// A `settings` knob is out of range.
     #[error("settings.{} is {}; {}", .0.field(), .0.value(), .0.allowed())]
     Settings(InvalidSettings),
-    /// A particle file could not be read or parsed.
-    #[error("{field}: cannot read '{written}' (resolved to {}): {}", resolved.display(), error.detail())]
+    /// A particle file could not be read or parsed. The message quotes none of the file's text:
+    /// a scene file may name a file that is not particles, and its text must not reach a log.
+    #[error("{field}: cannot read '{written}' (resolved to {}): {}", resolved.display(), error.detail_without_content())]
     ParticleFile {
         /// The field, e.g. `clouds[0].particles`.
         field: String,
@@ -498,12 +503,6 @@ fn validate_particles(i: usize, particles: &[Particle], note: &str) -> Result<()
         .map_err(|e| medium_error(i, e, note))
 }
 
-/// `base_dir.join(file)`, made absolute against the working directory where possible.
-fn resolve_path(base_dir: &Path, file: &str) -> PathBuf {
-    let joined = base_dir.join(file);
-    std::path::absolute(&joined).unwrap_or(joined)
-}
-
 impl Scene {
     /// The ground that lights its clouds from below in the real-time renderer (docs/scene-format.md,
     /// "Lit objects"): the top face of its widest lit cuboid (its `reflectance` not black), as
@@ -523,8 +522,14 @@ impl Scene {
     }
 
     /// Reads, parses and validates a scene file; particle files are resolved relative to its
-    /// directory. Nothing invalid gets through: see [`SceneError`].
+    /// directory, and must lie inside it ([`ParticlePaths::InsideSceneFolder`]). Nothing invalid
+    /// gets through: see [`SceneError`].
     pub fn load(path: &Path) -> Result<Scene, SceneError> {
+        Scene::load_with(path, ParticlePaths::default())
+    }
+
+    /// [`Scene::load`], with the particle files `paths` allows.
+    pub fn load_with(path: &Path, paths: ParticlePaths) -> Result<Scene, SceneError> {
         let text = std::fs::read_to_string(path).map_err(|error| SceneError::Io {
             path: path.to_path_buf(),
             error,
@@ -534,7 +539,7 @@ impl Scene {
             _ => Path::new("."),
         };
         let file = parse_scene_file(&text, &path.display().to_string())?;
-        Scene::from_scene_file(file, base_dir)
+        Scene::from_scene_file_with(file, base_dir, paths)
     }
 
     /// Parses and validates scene text; particle files are resolved relative to `base_dir`.
@@ -543,9 +548,19 @@ impl Scene {
         Scene::from_scene_file(file, base_dir)
     }
 
-    /// Validates a parsed scene file and loads its particle files (relative to `base_dir`).
-    /// Cheap checks (camera, lights, objects, settings, media) run before any particle file is read.
+    /// Validates a parsed scene file and loads its particle files (relative to `base_dir`, and
+    /// inside it). Cheap checks (camera, lights, objects, settings, media) run before any
+    /// particle file is read.
     pub fn from_scene_file(file: SceneFile, base_dir: &Path) -> Result<Scene, SceneError> {
+        Scene::from_scene_file_with(file, base_dir, ParticlePaths::default())
+    }
+
+    /// [`Scene::from_scene_file`], with the particle files `paths` allows.
+    pub fn from_scene_file_with(
+        file: SceneFile,
+        base_dir: &Path,
+        paths: ParticlePaths,
+    ) -> Result<Scene, SceneError> {
         validate_globals(
             &file.camera,
             file.background,
@@ -560,7 +575,7 @@ impl Scene {
         }
         let mut clouds = Vec::with_capacity(file.clouds.len());
         for (i, cloud) in file.clouds.into_iter().enumerate() {
-            let particles = load_particles(i, cloud.particles, base_dir)?;
+            let particles = load_particles(i, cloud.particles, base_dir, paths)?;
             clouds.push(ResolvedCloud {
                 translation: cloud.translation,
                 medium: cloud.medium,
@@ -603,6 +618,7 @@ fn load_particles(
     i: usize,
     source: ParticleSource,
     base_dir: &Path,
+    paths: ParticlePaths,
 ) -> Result<Vec<Particle>, SceneError> {
     let (written, ply) = match source {
         ParticleSource::Inline(particles) => {
@@ -619,14 +635,15 @@ fn load_particles(
             "the file name must not be empty",
         ));
     }
-    let resolved = resolve_path(base_dir, &written);
+    let field = format!("clouds[{i}].particles");
+    let (resolved, file) = particle_paths::resolve(&field, &written, base_dir, paths)?;
     let read = if ply {
-        read_ply(&resolved)
+        read_ply(&file)
     } else {
-        read_csv(&resolved)
+        read_csv(&file)
     };
     let particles = read.map_err(|error| SceneError::ParticleFile {
-        field: format!("clouds[{i}].particles"),
+        field,
         written: written.clone(),
         resolved: resolved.clone(),
         error: Box::new(error),
@@ -656,7 +673,7 @@ mod tests {
     /// The example of docs/scene-format.md (its first RON block), read from the document itself,
     /// so that the example users copy is the one tested.
     fn example() -> &'static str {
-        let doc = include_str!("../docs/scene-format.md");
+        let doc = include_str!("../../docs/scene-format.md");
         let start = doc.find("```ron\n").expect("a RON block") + "```ron\n".len();
         &doc[start..start + doc[start..].find("```").expect("its end")]
     }
@@ -1384,7 +1401,7 @@ mod tests {
             "{e}"
         );
         assert!(
-            e.ends_with("line 4: column `radius` is `one`, which is not a number"),
+            e.ends_with("line 4: column `radius` is not a number"),
             "{e}"
         );
         std::fs::write(
