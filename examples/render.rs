@@ -3,8 +3,8 @@
 //!
 //! ```text
 //! cargo run --example render -- SCENE.ron --out IMAGE.(exr|png) [--stats STATS.json] [--frames N]
-//!                                [--size WxH] [--set FIELD=VALUE]...
-//! cargo run --example render -- SCENE.ron --reference [--spp N] [--seed S] --out ref.exr
+//!                                [--size WxH] [--set FIELD=VALUE]... [--allow-outside-paths]
+//! cargo run --example render -- SCENE.ron --reference [--spp N] [--seed S] [--time-limit SECONDS] --out ref.exr
 //! cargo run --example render                      # built-in cumulus → clouds.png
 //! cargo run --example render -- --help            # every flag
 //! ```
@@ -13,7 +13,11 @@
 //! (software, adapter, settings, samples and seed, render time, camera); `.png` the same image,
 //! tonemapped. `--reference` renders with the CPU ground-truth path tracer instead of the GPU.
 
-use std::{path::PathBuf, process::ExitCode, time::Instant};
+use std::{
+    path::PathBuf,
+    process::ExitCode,
+    time::{Duration, Instant},
+};
 
 use bevy::{
     math::{UVec2, Vec3},
@@ -26,7 +30,7 @@ use bevy_particle_clouds::{
     particle::{LightSample, Medium},
     reference::path_tracer::{self, PathTracerSettings, Progress},
     render::pools::VolumeShape,
-    scene::{MAX_IMAGE_SIZE, ResolvedCloud, Scene, SceneCamera, apply_setting},
+    scene::{MAX_IMAGE_SIZE, ParticlePaths, ResolvedCloud, Scene, SceneCamera, apply_setting},
 };
 use clap::Parser;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -59,6 +63,10 @@ struct Args {
     /// Seed of the path tracer's random numbers.
     #[arg(long, requires = "reference")]
     seed: Option<u64>,
+    /// Stop the path tracer after about this many seconds (at most about twice it), with the
+    /// samples per pixel it finished, written to the image's metadata.
+    #[arg(long, value_name = "SECONDS", requires = "reference", value_parser = parse_seconds)]
+    time_limit: Option<Duration>,
     /// Image size in pixels, replacing the scene camera's.
     #[arg(long, value_name = "WxH", value_parser = parse_size)]
     size: Option<UVec2>,
@@ -66,6 +74,21 @@ struct Args {
     /// Repeatable.
     #[arg(long = "set", value_name = "FIELD=VALUE")]
     settings: Vec<String>,
+    /// Let the scene file read particle files outside its own folder (absolute paths, `..`,
+    /// symbolic links out of it). Without it a scene file reads only files inside its folder.
+    #[arg(long, requires = "scene")]
+    allow_outside_paths: bool,
+}
+
+/// Seconds, finite and > 0.
+fn parse_seconds(text: &str) -> Result<Duration, String> {
+    text.parse::<f64>()
+        .ok()
+        .and_then(|s| Duration::try_from_secs_f64(s).ok())
+        .filter(|d| !d.is_zero())
+        .ok_or(format!(
+            "--time-limit is {text}; it must be a number of seconds > 0"
+        ))
 }
 
 /// `WxH`, each in `1..=MAX_IMAGE_SIZE`.
@@ -136,7 +159,14 @@ fn main() -> ExitCode {
 fn run(args: &Args) -> Result<(), String> {
     let start = Instant::now();
     let mut scene = match &args.scene {
-        Some(path) => Scene::load(path).map_err(|e| e.to_string())?,
+        Some(path) => {
+            let paths = if args.allow_outside_paths {
+                ParticlePaths::Anywhere
+            } else {
+                ParticlePaths::InsideSceneFolder
+            };
+            Scene::load_with(path, paths).map_err(|e| e.to_string())?
+        }
         None => default_scene(),
     };
     for assignment in &args.settings {
@@ -199,19 +229,29 @@ fn reference(scene: &Scene, args: &Args, metadata: ImageMetadata) -> (LinearImag
             .expect("progress template"),
     );
     let rows = bar.clone();
-    let pixels = path_tracer::render(
+    let (pixels, spp_done) = path_tracer::render_within_limit(
         scene,
         &PathTracerSettings {
             samples_per_pixel: spp,
             seed,
-            progress: Some(Progress::new(move |done, _| rows.set_position(done as u64))),
+            progress: Some(Progress::new(move |done, all| {
+                rows.set_length(all as u64);
+                rows.set_position(done as u64)
+            })),
+            time_limit: args.time_limit,
         },
     );
     bar.finish_and_clear();
+    if spp_done < spp {
+        eprintln!(
+            "render: the time limit stopped the path tracer at {spp_done} of {spp} samples per pixel"
+        );
+    }
     eprintln!(
         "render: path traced in {:.1} s",
         start.elapsed().as_secs_f64()
     );
+    let spp = spp_done;
     let image = LinearImage {
         width: scene.camera.width,
         height: scene.camera.height,

@@ -124,6 +124,7 @@ fn reference(scene: &Scene, spp: u32) -> (Vec<[f32; 4]>, f64) {
                 samples_per_pixel: spp,
                 seed,
                 progress: None,
+                time_limit: None,
             },
         )
     };

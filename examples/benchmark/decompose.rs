@@ -205,6 +205,7 @@ impl Truth {
                     samples_per_pixel: spp,
                     seed,
                     progress: Some(progress),
+                    time_limit: None,
                 },
                 orders + 1, // index 0: the background
             );

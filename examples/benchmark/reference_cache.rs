@@ -111,6 +111,7 @@ pub(crate) fn reference(
                         samples_per_pixel: spp,
                         seed,
                         progress: Some(progress),
+                        time_limit: None,
                     },
                 );
                 bar.finish_and_clear();

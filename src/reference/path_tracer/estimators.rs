@@ -5,26 +5,67 @@ use std::ops::ControlFlow;
 
 use bevy::math::DVec3;
 
-use super::{Coefficients, Media};
+use super::{Coefficients, Media, Segment};
 use crate::fog::Fog;
 use crate::math::{SplitMix64, light_basis};
 use crate::reference::geometry::{nearest_object, object_normal};
 use crate::scene::{Scene, SceneObject};
 
+/// Expected tentative collisions in a segment above which the tracker walks it by its exact
+/// optical depth instead of by null collisions. A medium far denser than its majorant grid's
+/// cells would otherwise take billions of steps per cell, and steps below the f64 resolution of
+/// the distance never end one (extinction 1e30 hung the tracer). Scenes of the benchmark stay
+/// far below it, so their images are unchanged.
+pub const DENSE_SEGMENT: f64 = 64.0;
+
+/// `segment` holds more than [`DENSE_SEGMENT`] expected tentative collisions.
+fn is_dense(segment: &Segment) -> bool {
+    segment.majorant * (segment.t1 - segment.t0) > DENSE_SEGMENT
+}
+
+/// The distance `t` in `segment` where its optical depth from `segment.t0` reaches `depth`
+/// (below the segment's whole depth), by bisection on the exact, increasing optical depth.
+fn invert_optical_depth<M: Media>(
+    media: &M,
+    origin: DVec3,
+    dir: DVec3,
+    segment: &Segment,
+    depth: f64,
+) -> f64 {
+    let (mut lo, mut hi) = (segment.t0, segment.t1);
+    for _ in 0..80 {
+        let mid = 0.5 * (lo + hi);
+        if mid <= lo || mid >= hi {
+            break;
+        }
+        if media.segment_optical_depth(origin, dir, segment, mid) < depth {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    hi
+}
+
 /// Walks the tentative collisions along `origin + t dir` (`dir` unit) in `[0, t_max]`:
 /// exponential steps at each majorant segment's majorant, `collide` called at each with its
 /// distance (metres), the coefficients there, the majorant and the generator, until it breaks.
 /// Exponential steps are memoryless, so restarting at each segment boundary with the new
-/// majorant is exact.
+/// majorant is exact. A dense segment (see [`DENSE_SEGMENT`]) goes to `dense` instead, which
+/// takes it whole.
 fn tentative_collisions<M: Media>(
     media: &M,
     origin: DVec3,
     dir: DVec3,
     t_max: f64,
     rng: &mut SplitMix64,
+    mut dense: impl FnMut(&Segment, &mut SplitMix64) -> ControlFlow<()>,
     mut collide: impl FnMut(f64, Coefficients, f64, &mut SplitMix64) -> ControlFlow<()>,
 ) {
     let _ = media.visit_segments(origin, dir, t_max, |seg| {
+        if is_dense(&seg) {
+            return dense(&seg, rng);
+        }
         let mut t = seg.t0;
         loop {
             t += rng.exponential() / seg.majorant;
@@ -39,7 +80,9 @@ fn tentative_collisions<M: Media>(
 
 /// Delta tracking: samples a real collision along `origin + t dir` (`dir` unit) in `[0, t_max]`
 /// with density `T(0,t) σ_t(t)`. Returns the distance (metres) and the coefficients there, or
-/// `None` (probability `T(0, t_max)`) when the ray leaves `[0, t_max]` unscattered.
+/// `None` (probability `T(0, t_max)`) when the ray leaves `[0, t_max]` unscattered. A dense
+/// segment is sampled exactly by inverting its optical depth (free flights are memoryless, so a
+/// fresh exponential per segment is exact too).
 pub fn sample_free_flight<M: Media>(
     media: &M,
     origin: DVec3,
@@ -47,16 +90,37 @@ pub fn sample_free_flight<M: Media>(
     t_max: f64,
     rng: &mut SplitMix64,
 ) -> Option<(f64, Coefficients)> {
-    let mut hit = None;
-    tentative_collisions(media, origin, dir, t_max, rng, |t, c, majorant, rng| {
-        // Real collision with probability σ_t / majorant, null collision otherwise.
-        if rng.next_f64() * majorant < c.extinction {
-            hit = Some((t, c));
-            return ControlFlow::Break(());
+    let hit = std::cell::Cell::new(None);
+    let dense = |seg: &Segment, rng: &mut SplitMix64| {
+        let depth = rng.exponential();
+        if media.segment_optical_depth(origin, dir, seg, seg.t1) <= depth {
+            return ControlFlow::Continue(());
         }
-        ControlFlow::Continue(())
-    });
-    hit
+        let t = invert_optical_depth(media, origin, dir, seg, depth);
+        let c = media.coefficients(origin + dir * t, seg);
+        if c.extinction <= 0.0 {
+            return ControlFlow::Continue(()); // only where rounding put t off the medium
+        }
+        hit.set(Some((t, c)));
+        ControlFlow::Break(())
+    };
+    tentative_collisions(
+        media,
+        origin,
+        dir,
+        t_max,
+        rng,
+        dense,
+        |t, c, majorant, rng| {
+            // Real collision with probability σ_t / majorant, null collision otherwise.
+            if rng.next_f64() * majorant < c.extinction {
+                hit.set(Some((t, c)));
+                return ControlFlow::Break(());
+            }
+            ControlFlow::Continue(())
+        },
+    );
+    hit.get()
 }
 
 /// Below this transmittance weight, ratio tracking plays Russian roulette (survive with 1/2,
@@ -73,20 +137,38 @@ pub fn transmittance<M: Media>(
     t_max: f64,
     rng: &mut SplitMix64,
 ) -> f64 {
-    let mut weight = 1.0;
-    tentative_collisions(media, origin, dir, t_max, rng, |_, c, majorant, rng| {
-        // Each tentative collision multiplies by the null-collision probability.
-        weight *= (1.0 - c.extinction / majorant).max(0.0);
-        if weight < RATIO_TRACKING_ROULETTE {
-            if weight == 0.0 || rng.next_f64() < 0.5 {
-                weight = 0.0;
-                return ControlFlow::Break(());
-            }
-            weight *= 2.0;
+    let weight = std::cell::Cell::new(1.0);
+    // A dense segment's transmittance, exactly.
+    let dense = |seg: &Segment, _: &mut SplitMix64| {
+        weight.set(weight.get() * (-media.segment_optical_depth(origin, dir, seg, seg.t1)).exp());
+        if weight.get() == 0.0 {
+            return ControlFlow::Break(());
         }
         ControlFlow::Continue(())
-    });
-    weight
+    };
+    tentative_collisions(
+        media,
+        origin,
+        dir,
+        t_max,
+        rng,
+        dense,
+        |_, c, majorant, rng| {
+            let mut w = weight.get();
+            // Each tentative collision multiplies by the null-collision probability.
+            w *= (1.0 - c.extinction / majorant).max(0.0);
+            if w < RATIO_TRACKING_ROULETTE {
+                if w == 0.0 || rng.next_f64() < 0.5 {
+                    weight.set(0.0);
+                    return ControlFlow::Break(());
+                }
+                w *= 2.0;
+            }
+            weight.set(w);
+            ControlFlow::Continue(())
+        },
+    );
+    weight.get()
 }
 
 /// A directional light prepared for shadow rays.

@@ -51,6 +51,11 @@ pub trait Media: Sync {
     /// Exact optical depth `∫_0^t_max σ_t(origin + t dir) dt` (dimensionless); `t_max` may be `∞`.
     fn optical_depth(&self, origin: DVec3, dir: DVec3, t_max: f64) -> f64;
 
+    /// Exact optical depth over `[segment.t0, t]` of one of this ray's segments,
+    /// `t <= segment.t1` (dimensionless): how the tracker walks a segment too dense for null
+    /// collisions.
+    fn segment_optical_depth(&self, origin: DVec3, dir: DVec3, segment: &Segment, t: f64) -> f64;
+
     /// The phase function (per steradian) at `x`, where `σ_s > 0`, at the cosine between the
     /// light's travel direction and the scattered direction. Isotropic unless overridden.
     fn phase(&self, _x: DVec3, _cos_theta: f64) -> f64 {
@@ -114,7 +119,10 @@ impl TracedParticle {
             u * (a * a - u2 * (2.0 / 3.0 * a - 0.2 * u2))
         };
         let inv_r = self.inv_r2.sqrt();
-        self.extinction_peak * self.radius * (g((hi - t_c) * inv_r) - g((lo - t_c) * inv_r))
+        // Never below 0: near a chord's end the difference cancels to rounding, which a medium
+        // of extinction 1e30 made a negative depth of -1e14 and an infinite transmittance.
+        let depth = g((hi - t_c) * inv_r) - g((lo - t_c) * inv_r);
+        self.extinction_peak * self.radius * depth.max(0.0)
     }
 }
 
@@ -437,6 +445,14 @@ impl Media for ParticleMedia {
 
     fn coefficients(&self, x: DVec3, segment: &Segment) -> Coefficients {
         self.cell_coefficients(segment.cell as usize, x)
+    }
+
+    /// Exact: the segment lies in one cell, whose list holds every particle it meets.
+    fn segment_optical_depth(&self, origin: DVec3, dir: DVec3, segment: &Segment, t: f64) -> f64 {
+        self.cell_list(segment.cell as usize)
+            .iter()
+            .map(|&i| self.particles[i as usize].optical_depth(origin, dir, segment.t0, t))
+            .sum()
     }
 
     /// The `σ_s`-weighted mixture of the particles' phase functions at `x`.

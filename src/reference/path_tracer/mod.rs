@@ -59,7 +59,7 @@ pub use estimators::{
 };
 pub use images::{
     PathTracerSettings, Progress, noise_level, render, render_media, render_media_orders,
-    render_orders,
+    render_orders, render_within_limit,
 };
 pub use media::{Coefficients, Media, ParticleMedia, Segment};
 

@@ -165,6 +165,10 @@ impl Media for HomogeneousBox {
             self.extinction * (t1.min(t_max) - t0).max(0.0)
         })
     }
+
+    fn segment_optical_depth(&self, _: DVec3, _: DVec3, segment: &Segment, t: f64) -> f64 {
+        self.extinction * (t - segment.t0)
+    }
 }
 
 /// The grid gives exactly the brute-force coefficients (two overlapping, translated clouds
@@ -357,13 +361,75 @@ fn distance_fog_fogs_the_camera_ray_up_to_its_first_collision() {
 /// ratio tracking, the escape probability of delta tracking and the mean collision distance.
 #[test]
 fn homogeneous_slab_follows_beer_lambert() {
+    slab_follows_beer_lambert(2.5);
+}
+
+/// A majorant 100 times `σ_t` makes the slab's segments dense (more than `DENSE_SEGMENT`
+/// expected tentative collisions): they are walked by their exact optical depth, with the same
+/// statistics.
+#[test]
+fn dense_segments_follow_beer_lambert_by_their_exact_optical_depth() {
+    assert!(1.7 * 100.0 > super::estimators::DENSE_SEGMENT);
+    slab_follows_beer_lambert(100.0);
+}
+
+/// A particle of extinction 1e30 (a step of 1e-30 m is below the f64 resolution of its distance,
+/// so null collisions never advanced): paths end at once, with finite radiance, the camera ray
+/// colliding at the particle's surface and no light through it.
+#[test]
+fn a_medium_beyond_f64_resolution_ends_its_paths() {
+    let clouds = vec![cloud(
+        Vec3::ZERO,
+        1e30,
+        0.9,
+        vec![particle(0.0, 0.0, 0.0, 1.0, 1.0)],
+    )];
+    let media = ParticleMedia::new(&clouds);
+    let lighting = Lighting {
+        background: DVec3::ONE,
+        lights: vec![DirectionalLight {
+            to_light: DVec3::Y,
+            irradiance: DVec3::ONE,
+        }],
+        objects: vec![],
+        fog: None,
+    };
+    let mut rng = SplitMix64::mixed(5);
+    let origin = DVec3::new(0.0, 0.2, -5.0);
+    for _ in 0..200 {
+        let (t, c) = sample_free_flight(&media, origin, DVec3::Z, f64::INFINITY, &mut rng)
+            .expect("an opaque particle stops every ray");
+        // Within 0.1 mm of the surface: the exact optical depth of a chord's first micrometres
+        // cancels to f64's 1e-16 of the whole chord's, so the collision lands a few µm deep.
+        let surface = 5.0 - (1.0f64 - 0.04).sqrt();
+        assert!(
+            (t - surface).abs() < 1e-4 && c.extinction > 0.0,
+            "{t} against {surface}: {c:?}"
+        );
+        assert_eq!(
+            transmittance(&media, origin, DVec3::Z, f64::INFINITY, &mut rng),
+            0.0
+        );
+        let l = radiance(
+            &media,
+            &lighting,
+            origin,
+            DVec3::Z,
+            MAX_SCATTER_EVENTS,
+            &mut rng,
+        );
+        assert!(l.is_finite() && l.min_element() >= 0.0, "{l}");
+    }
+}
+
+fn slab_follows_beer_lambert(majorant_factor: f64) {
     let sigma = 1.7;
     let slab = HomogeneousBox {
         lo: DVec3::new(-50.0, -50.0, 0.0),
         hi: DVec3::new(50.0, 50.0, 1.0),
         extinction: sigma,
         albedo: 0.5,
-        majorant_factor: 2.5,
+        majorant_factor,
     };
     let mut rng = SplitMix64::mixed(20);
     let n = 40_000;
@@ -548,6 +614,7 @@ fn furnace_albedo_one_is_invisible() {
         samples_per_pixel: 4,
         seed: 1,
         progress: None,
+        time_limit: None,
     };
     let image = render(&s, &settings);
     for px in &image {
@@ -765,6 +832,7 @@ fn deterministic_for_seed_and_thread_count() {
         samples_per_pixel: 4,
         seed: 7,
         progress: None,
+        time_limit: None,
     };
     let pool = |n| {
         rayon::ThreadPoolBuilder::new()
@@ -803,6 +871,7 @@ fn noise_level_is_finite_and_falls_with_samples() {
                 samples_per_pixel: spp,
                 seed: 1,
                 progress: None,
+                time_limit: None,
             },
         );
         let elapsed = start.elapsed();
@@ -812,6 +881,7 @@ fn noise_level_is_finite_and_falls_with_samples() {
                 samples_per_pixel: spp,
                 seed: 2,
                 progress: None,
+                time_limit: None,
             },
         );
         let noise = noise_level(&a, &b);
