@@ -42,8 +42,13 @@ pub fn assert_adapter() {
 /// rendering garbage. The dev build enables winit for the windowed examples; its event loop
 /// needs a display and can be created once per process, so tests leave it out.
 pub fn headless_app() -> App {
+    headless_app_with(headless::plugins())
+}
+
+/// [`headless_app`] of `plugins` (normally `headless::plugins()`, adjusted), less winit.
+pub fn headless_app_with(plugins: bevy::app::PluginGroupBuilder) -> App {
     assert_adapter();
-    let mut app = headless::app_with(headless::plugins().disable::<bevy::winit::WinitPlugin>());
+    let mut app = headless::app_with(plugins.disable::<bevy::winit::WinitPlugin>());
     app.insert_resource(RenderErrorHandler(|error, _, _| {
         panic!("render error {:?}: {}", error.ty, error.description)
     }));

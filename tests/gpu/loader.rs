@@ -12,9 +12,9 @@ use bevy::{
     asset::{AssetLoadFailedEvent, LoadState},
     prelude::*,
 };
-use bevy_particle_clouds::headless;
+use bevy_particle_clouds::headless::{self, FrameRecorder, SceneTarget};
 use bevy_particle_clouds::{
-    Particle, Particles, generators,
+    Medium, Particle, ParticleCloud, Particles, generators,
     particle_files::{self, ParticleAttributes},
 };
 
@@ -201,7 +201,7 @@ fn malformed_files_fail_with_the_line() {
     };
     let csv = message("bad_value.csv");
     assert!(
-        csv.contains("bad_value.csv: line 3: column `z` is `oops`, which is not a number"),
+        csv.contains("bad_value.csv: line 3: column `z` is not a number; found `oops`"),
         "{csv}"
     );
     let ply = message("truncated.ply");
@@ -244,4 +244,138 @@ fn loader_settings_map_attributes_and_scale() {
         assert!((a.position - b.position).length() < 1e-6 && (a.radius - b.radius).abs() < 1e-6);
         assert_eq!(a.density, b.density);
     }
+}
+
+/// A 32×24 view of a cloud loaded from `path` under the app's asset folder, lit from above-left.
+fn view_of_loaded_cloud(app: &mut App, handle: Handle<Particles>) -> SceneTarget {
+    let image = headless::float_target(app, 32, 24);
+    let camera = headless::spawn_linear_camera(
+        app,
+        image.clone(),
+        Transform::from_xyz(0.0, 0.3, 5.0).looking_at(Vec3::ZERO, Vec3::Y),
+        50.0,
+        Vec3::ZERO,
+    );
+    headless::spawn_light(app, Vec3::new(-0.4, -1.0, -0.3), Vec3::ONE);
+    app.world_mut().spawn((
+        ParticleCloud::new(handle).with_medium(Medium {
+            extinction: 5.0,
+            albedo: 0.9,
+            ..default()
+        }),
+        common::quality(16, 4),
+        Transform::IDENTITY,
+    ));
+    SceneTarget {
+        image,
+        width: 32,
+        height: 24,
+        camera,
+        drawable_clouds: 1,
+    }
+}
+
+fn steady_image(app: &mut App, target: &SceneTarget) -> Vec<[f32; 4]> {
+    let mut recorder = FrameRecorder::default();
+    headless::render_until_steady(app, &mut recorder, 1, 100).unwrap();
+    headless::capture(app, &mut recorder, &target.image)
+        .unwrap()
+        .pixels
+}
+
+/// Updates until `done`, at most about 10 s.
+fn update_until(app: &mut App, what: &str, done: impl Fn(&App) -> bool) {
+    for _ in 0..1000 {
+        headless::update(app).unwrap();
+        if done(app) {
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    panic!("{what} did not happen within 1000 updates");
+}
+
+/// A particle file replaced while the app runs, reloaded as Bevy's file watcher reloads it
+/// (`AssetServer::reload`): a malformed replacement fails with a message naming the file and its
+/// line, and the cloud keeps its last good particles on screen; a valid one is picked up.
+#[test]
+fn a_replaced_file_reloads_and_a_malformed_one_keeps_the_last_good_particles() {
+    let dir = std::env::temp_dir().join(format!("bpc_reload_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("cloud.csv");
+    let ball = generators::sphere(1.0, 0.3, 60, 3).particles;
+    particle_files::write_csv(&file, &ball).unwrap();
+    let mut app = common::headless_app_with(headless::plugins().set(AssetPlugin {
+        file_path: dir.display().to_string(),
+        ..default()
+    }));
+    app.init_resource::<Failures>()
+        .add_systems(Update, collect_failures);
+    let (handle, state) = load(&mut app, "cloud.csv");
+    assert!(matches!(state, LoadState::Loaded), "{state:?}");
+    let target = view_of_loaded_cloud(&mut app, handle.clone());
+    let first = steady_image(&mut app, &target);
+    assert!(
+        first.iter().any(|p| p[0] > 1e-3),
+        "the cloud covers some of the black background"
+    );
+    let particles = |app: &App| {
+        app.world()
+            .resource::<Assets<Particles>>()
+            .get(&handle)
+            .map(|p| p.particles.clone())
+    };
+
+    std::fs::write(&file, "x,y,z,radius,density\n0,0,oops,1,1\n").unwrap();
+    app.world().resource::<AssetServer>().reload("cloud.csv");
+    update_until(&mut app, "the malformed file's failure", |app| {
+        !failures(app).is_empty()
+    });
+    for (path, error) in failures(&app) {
+        assert!(path.ends_with("cloud.csv"), "{path}");
+        assert!(
+            error.contains("cloud.csv: line 2: column `z` is not a number"),
+            "{error}"
+        );
+    }
+    assert_eq!(
+        particles(&app),
+        Some(ball.clone()),
+        "the last good particles stay"
+    );
+    let kept = steady_image(&mut app, &target);
+    let largest_change = first
+        .iter()
+        .zip(&kept)
+        .map(|(a, b)| (a[0] - b[0]).abs().max((a[2] - b[2]).abs()))
+        .fold(0.0f32, f32::max);
+    assert!(
+        largest_change < 1e-5,
+        "the cloud on screen changed by {largest_change}"
+    );
+
+    let smaller: Vec<Particle> = ball
+        .iter()
+        .map(|p| Particle {
+            position: p.position * 0.5 + Vec3::X,
+            ..*p
+        })
+        .collect();
+    particle_files::write_csv(&file, &smaller).unwrap();
+    let failed = failures(&app).len();
+    app.world().resource::<AssetServer>().reload("cloud.csv");
+    update_until(&mut app, "the valid replacement's load", |app| {
+        particles(app).as_ref() == Some(&smaller)
+    });
+    let replaced = steady_image(&mut app, &target);
+    let largest_change = first
+        .iter()
+        .zip(&replaced)
+        .map(|(a, b)| (a[0] - b[0]).abs())
+        .fold(0.0f32, f32::max);
+    assert!(
+        largest_change > 1e-2,
+        "the new particles are drawn: {largest_change}"
+    );
+    assert_eq!(failures(&app).len(), failed, "{:#?}", failures(&app));
 }

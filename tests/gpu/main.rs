@@ -8,6 +8,7 @@ mod budget;
 mod cloud_target;
 mod coarse_cycles;
 mod common;
+mod determinism;
 mod draw;
 mod ground;
 mod illumination;
