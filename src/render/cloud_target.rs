@@ -358,13 +358,15 @@ fn choose_cloud_targets(
                  rasterised (`draw_method: Raster` asks for that and silences this)"
             );
         }
-        // No cloud in view: no target (and no texture kept alive).
+        // No cloud in view: no target (and no texture kept alive), nor splat batches, whose
+        // bind groups would keep the despawned clouds' volume pools alive.
         if (scale >= 1.0 && !compute) || seen.is_empty() {
             commands.entity(entity).remove::<(
                 ViewCloudTarget,
                 ViewCloudDraws,
                 ViewCloudSplats,
                 ViewCloudTargetResources,
+                ViewSplatBatches,
             )>();
             continue;
         }

@@ -6,10 +6,10 @@ use bevy::{
     render::{render_resource::WgpuFeatures, renderer::RenderDevice},
 };
 use bevy_particle_clouds::{
-    CloudPass, Compositing, DrawMethod, Medium, Particle,
+    CloudPass, Compositing, DrawMethod, Medium, Particle, ParticleCloud,
     fog::{Falloff, Fog},
     headless::{self, FrameRecorder},
-    render::cloud_target::BLENDED_CLOUD_TARGET_FORMAT,
+    render::{cloud_target::BLENDED_CLOUD_TARGET_FORMAT, splat_batch::ViewSplatBatches},
 };
 
 use crate::{
@@ -233,4 +233,29 @@ fn many_thin_layers_keep_their_energy_in_the_default_draw() {
             assert_images_match(&gpu.image, &cpu, &format!("{what}, thin layers"));
         }
     }
+}
+
+/// A view that no longer sees a cloud drops its splat batches with its cloud target: they bind
+/// the volume pools' buffers, which would otherwise outlive the clouds as long as the camera does.
+#[test]
+fn a_view_without_clouds_keeps_no_splat_batches() {
+    let camera = Transform::from_xyz(0.3, 0.4, 4.0).looking_at(Vec3::ZERO, Vec3::Y);
+    let (mut app, _, _) = render(&cloud_setup(21, camera));
+    let batches = |app: &mut App| {
+        let world = app.sub_app_mut(bevy::render::RenderApp).world_mut();
+        world.query::<&ViewSplatBatches>().iter(world).count()
+    };
+    assert_eq!(batches(&mut app), 1, "the computed draw batches its cloud");
+    let clouds: Vec<Entity> = app
+        .world_mut()
+        .query_filtered::<Entity, With<ParticleCloud>>()
+        .iter(app.world())
+        .collect();
+    for cloud in clouds {
+        app.world_mut().despawn(cloud);
+    }
+    for _ in 0..3 {
+        headless::update(&mut app).unwrap();
+    }
+    assert_eq!(batches(&mut app), 0);
 }
