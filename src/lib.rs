@@ -97,7 +97,7 @@ pub use settings::{
     Compositing, DefaultCloudQuality, DrawMethod, ScatterStencil, SweepDirections,
 };
 pub use shadow_maps::{CloudLight, CloudLights, CloudShadowMaps};
-pub use stats::{CloudPass, CloudPassCounters, PASSES};
+pub use stats::{CloudGpuMemory, CloudPass, CloudPassCounters, PASSES};
 
 /// Everything a Bevy user needs.
 pub mod prelude {

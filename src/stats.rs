@@ -7,7 +7,7 @@
 //! (`RenderDiagnosticsPlugin`), under the paths [`CloudPass::diagnostic_paths`].
 
 use std::sync::{
-    Arc,
+    Arc, Mutex,
     atomic::{AtomicU32, Ordering},
 };
 
@@ -112,6 +112,32 @@ struct PassCounts {
     dispatches: [AtomicU32; PASSES],
     /// Writes of what the billboards read made outside a counted dispatch (queue writes, clears).
     writes: AtomicU32,
+    /// The render world's last census of the crate's GPU memory.
+    gpu_memory: Mutex<CloudGpuMemory>,
+}
+
+/// The GPU memory the crate holds, bytes, as the render world counted it at the end of its last
+/// frame ([`CloudPassCounters::gpu_memory`]): buffers and textures its resources and components
+/// keep between frames, each buffer once. Per-frame transients are left out.
+#[derive(Clone, Copy, Default, Debug, PartialEq, Eq, Reflect)]
+pub struct CloudGpuMemory {
+    /// The volume pools' buffers (every cloud's volumes, by shape) and their sweeps' pair volumes.
+    pub volume_pools: u64,
+    /// The voxelization's scratch, kept between frames while any cloud exists.
+    pub voxelize_scratch: u64,
+    /// The particles of every `Particles` asset on the GPU.
+    pub particles: u64,
+    /// Per cloud: its uniforms, its sorts and view volumes' uniforms, its draw's buffers.
+    pub per_cloud: u64,
+    /// Per view: its view-volume atlas, its cloud target and sums, its splat batches.
+    pub per_view: u64,
+}
+
+impl CloudGpuMemory {
+    /// All of it, bytes.
+    pub fn total(&self) -> u64 {
+        self.volume_pools + self.voxelize_scratch + self.particles + self.per_cloud + self.per_view
+    }
 }
 
 /// The growth of `counts` since `snapshot`, which is then moved to now.
@@ -163,6 +189,15 @@ impl CloudPassCounters {
         before_draw(&self.0.runs)
             + before_draw(&self.0.dispatches)
             + self.0.writes.load(Ordering::Relaxed) as u64
+    }
+
+    /// The GPU memory the crate held at the end of the render world's last frame.
+    pub fn gpu_memory(&self) -> CloudGpuMemory {
+        *self.0.gpu_memory.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    pub(crate) fn set_gpu_memory(&self, memory: CloudGpuMemory) {
+        *self.0.gpu_memory.lock().unwrap_or_else(|e| e.into_inner()) = memory;
     }
 
     /// The compute dispatches of each pass since the reader's `snapshot` (a snapshot of its

@@ -366,6 +366,11 @@ pub struct CloudDrawBindGroups {
 }
 
 impl CloudDrawBindGroups {
+    /// Its buffers (the memory census).
+    pub(crate) fn buffers(&self) -> [&Buffer; 2] {
+        [&self._params, &self.beam_phase]
+    }
+
     /// The cloud's [`BeamPhase`] table.
     pub fn beam_phase(&self) -> &Buffer {
         &self.beam_phase

@@ -699,6 +699,11 @@ fn add_overlaps(
 pub struct SweepPairVolumes(HashMap<PoolId, Buffer>);
 
 impl SweepPairVolumes {
+    /// Every pool's pair volumes (the memory census).
+    pub(crate) fn buffers(&self) -> impl Iterator<Item = &Buffer> {
+        self.0.values()
+    }
+
     /// With `per_order`, a buffer for every pool of `work` that sweeps, holding a share of its
     /// order volume per pair of the largest direction set it sweeps, made anew where the one it
     /// had is too small; none where that would not fit one storage binding (it then sweeps per

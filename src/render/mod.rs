@@ -37,6 +37,7 @@ pub mod fog;
 pub mod gpu;
 pub mod ground;
 pub mod illumination;
+pub(crate) mod memory;
 pub mod overlap;
 pub mod particles;
 pub mod pipelines;
@@ -295,6 +296,9 @@ pub(crate) fn finish(app: &mut App) {
                 )
                     .in_set(RenderSystems::PrepareBindGroups),
                 draw::queue_cloud_billboards.in_set(RenderSystems::Queue),
+                (memory::release_idle_scratch, memory::census_gpu_memory)
+                    .chain()
+                    .in_set(RenderSystems::Cleanup),
             ),
         )
         .add_systems(

@@ -635,6 +635,13 @@ impl VolumePools {
         &self.0[&slot.pool]
     }
 
+    /// Every buffer of every pool (the memory census).
+    pub(crate) fn buffers(&self) -> impl Iterator<Item = &Buffer> {
+        self.0
+            .values()
+            .flat_map(|pool| pool.buffers().chain([&pool.density_levels]))
+    }
+
     /// Drops the pools nobody uses.
     pub fn release_empty(&mut self) {
         self.0.retain(|_, pool| !pool.is_empty());

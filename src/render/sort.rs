@@ -145,6 +145,15 @@ pub struct SortBuffers {
 }
 
 impl SortBuffers {
+    /// Every buffer (the memory census).
+    pub(crate) fn buffers(&self) -> impl Iterator<Item = &Buffer> {
+        self.keys
+            .iter()
+            .chain(&self.values)
+            .chain([&self.histogram])
+            .chain(&self.params)
+    }
+
     /// Buffers for up to `capacity` elements.
     pub fn new(device: &RenderDevice, capacity: u32) -> Self {
         let bytes = capacity as u64 * 4;

@@ -261,6 +261,13 @@ pub struct SplatResources {
     pub group: BindGroup,
 }
 
+impl SplatResources {
+    /// Its buffers (the memory census).
+    pub(crate) fn buffers(&self) -> [&Buffer; 3] {
+        [&self.sums, &self.still, &self.redraw]
+    }
+}
+
 /// Makes a computing view's sums for a target of `params.target_size` and binds them with the
 /// target's other inputs.
 #[allow(clippy::too_many_arguments)] // the group's entries

@@ -144,6 +144,11 @@ pub struct SplatBatch {
 }
 
 impl SplatBatch {
+    /// Its buffers (the memory census).
+    pub(crate) fn buffers(&self) -> [&Buffer; 2] {
+        [&self.particles, &self._clouds]
+    }
+
     /// The key of everything its group binds: its clouds' uniforms, its particles and the
     /// buffers it reads.
     pub(crate) fn key(&self) -> u64 {

@@ -52,6 +52,20 @@ pub struct ViewVolumeAtlas {
 #[derive(Resource, Default)]
 pub struct ViewVolumeAtlases(pub HashMap<RetainedViewEntity, ViewVolumeAtlas>);
 
+impl ViewVolumeAtlases {
+    /// Every view's buffers (the memory census).
+    pub(crate) fn buffers(&self) -> impl Iterator<Item = &Buffer> {
+        self.0.values().flat_map(|a| {
+            [
+                &a.optical_depth,
+                &a.volumes,
+                &a.neighbours,
+                &a.seen_multiple,
+            ]
+        })
+    }
+}
+
 /// One cloud's volume in one view while the view's atlas is prepared.
 pub(crate) struct AtlasEntry {
     pub(crate) entity: Entity,

@@ -288,7 +288,8 @@ type VolumeSources = (
 );
 
 /// Per view: lays out its atlas, links each volume's neighbours and decides which volumes must
-/// be marched. A cloud's volumes of views that no longer see it are dropped.
+/// be marched. A cloud's volumes of views that no longer see it are dropped, and so is the atlas
+/// of a view that sees no cloud.
 pub(crate) fn prepare_view_volumes(
     mut commands: Commands,
     views: Query<(&ExtractedView, &RenderVisibleEntities)>,
@@ -310,6 +311,11 @@ pub(crate) fn prepare_view_volumes(
             .iter()
             .filter_map(|&(entity, _)| atlas_entry(entity, clouds.get(entity).ok()?, view))
             .collect();
+        // A view without clouds keeps no atlas: its buffers only grow, so a camera that once saw
+        // many clouds would hold them at their peak for as long as it lives.
+        if entries.is_empty() {
+            continue;
+        }
         entries.sort_by_key(|e| e.entity);
         let here = view.retained_view_entity;
         live.push(here);

@@ -46,6 +46,16 @@ struct ScratchBuffers {
 }
 
 impl VoxelizeScratch {
+    /// Every round's buffers (the memory census).
+    pub(crate) fn buffers(&self) -> impl Iterator<Item = &Buffer> {
+        self.0.iter().flat_map(|s| [&s.particles, &s.totals])
+    }
+
+    /// Frees every round's buffers: no cloud is left to voxelize.
+    pub(crate) fn release(&mut self) {
+        self.0.clear();
+    }
+
     /// Round `round`'s buffers (rounds are reserved in order), holding at least `particles` and
     /// at most `max_particles` (one storage binding).
     fn reserve(

@@ -5,6 +5,7 @@ mod atmosphere;
 mod batching;
 mod between_clouds;
 mod budget;
+mod churn;
 mod cloud_target;
 mod coarse_cycles;
 mod common;
