@@ -1,6 +1,8 @@
 //! Loads [`Particles`] from `.ply` and `.csv` files through Bevy's `AssetServer`:
 //! `asset_server.load::<Particles>("clouds/cumulus.ply")`. Failures arrive as
 //! `AssetLoadFailedEvent<Particles>` with a message naming the file, the line and the problem.
+//! A file replaced while the game runs (with Bevy's `file_watcher` feature) is reloaded; a
+//! malformed replacement fails the same way and its clouds keep their last good particles.
 
 use bevy::{
     asset::{AssetLoader, LoadContext, io::Reader},
