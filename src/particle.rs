@@ -54,19 +54,30 @@ impl Default for Medium {
     }
 }
 
+/// The largest coordinate and radius of a particle, metres (a thousand times Pluto's orbit):
+/// every cloud's bounds, and the squared distances the renderer takes across them, stay finite
+/// in f32, where a particle near f32's limits would make them infinite.
+pub const MAX_PARTICLE_EXTENT: f32 = 1e15;
+
 /// Why a particle or a medium is unusable. Every variant names the field, its value and what is allowed.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum InvalidMedium {
-    #[error("particle {index}: `position` is {value:?}; every coordinate must be finite")]
-    /// A particle's position has a NaN or infinite coordinate.
+    #[error(
+        "particle {index}: `position` is {value:?}; every coordinate must be finite and within \
+         ±{MAX_PARTICLE_EXTENT:e} m"
+    )]
+    /// A particle's position has a coordinate that is NaN, or beyond
+    /// [`MAX_PARTICLE_EXTENT`] from the origin.
     Position {
         /// The particle's index in its list.
         index: usize,
         /// The position, metres.
         value: Vec3,
     },
-    #[error("particle {index}: `radius` is {value}; it must be finite and > 0")]
-    /// A particle's radius is not finite and positive.
+    #[error(
+        "particle {index}: `radius` is {value}; it must be > 0 and at most {MAX_PARTICLE_EXTENT:e} m"
+    )]
+    /// A particle's radius is not positive, or beyond [`MAX_PARTICLE_EXTENT`].
     Radius {
         /// The particle's index in its list.
         index: usize,
@@ -95,13 +106,13 @@ pub enum InvalidMedium {
 impl Particle {
     /// Checks the particle against docs/physics.md; `index` is only used in the error message.
     pub fn validate(&self, index: usize) -> Result<(), InvalidMedium> {
-        if !self.position.is_finite() {
+        if !(self.position.abs().max_element() <= MAX_PARTICLE_EXTENT) {
             return Err(InvalidMedium::Position {
                 index,
                 value: self.position,
             });
         }
-        if !(self.radius.is_finite() && self.radius > 0.0) {
+        if !(self.radius > 0.0 && self.radius <= MAX_PARTICLE_EXTENT) {
             return Err(InvalidMedium::Radius {
                 index,
                 value: self.radius,

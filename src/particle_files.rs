@@ -90,13 +90,10 @@ impl ParticleFileError {
     /// The error without the file's path (for messages that name the file already).
     pub fn detail(&self) -> String {
         match self {
-            ParticleFileError::Io { source, .. } => source.to_string(),
-            ParticleFileError::Format {
-                location,
-                message,
-                found,
-                ..
-            } => format!("{location}: {message}{}", found_suffix(found)),
+            ParticleFileError::Format { found, .. } => {
+                self.detail_without_content() + &found_suffix(found)
+            }
+            ParticleFileError::Io { .. } => self.detail_without_content(),
         }
     }
 

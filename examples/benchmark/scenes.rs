@@ -318,3 +318,27 @@ fn write_particle_file(bench: &BenchScene) -> Result<(), String> {
     );
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bevy_particle_clouds::reference::path_tracer::{DENSE_SEGMENT, ParticleMedia};
+
+    /// The path tracer walks every segment of every benchmark scene by null collisions, as the
+    /// references were traced before it could invert a dense segment's optical depth: none
+    /// reaches the density at which it would (the densest, `albedo_one`, at most 43 expected
+    /// tentative collisions a segment).
+    #[test]
+    fn no_benchmark_scene_reaches_the_path_tracer_s_dense_segments() {
+        for bench in SCENES {
+            let scene = load_scene(bench).unwrap();
+            let collisions = ParticleMedia::from_scene(&scene).largest_segment_collisions();
+            eprintln!("{}: at most {collisions:.1}", bench.name);
+            assert!(
+                collisions < DENSE_SEGMENT,
+                "{}: a segment may expect {collisions} tentative collisions",
+                bench.name
+            );
+        }
+    }
+}

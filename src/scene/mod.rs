@@ -12,7 +12,7 @@ use serde::Deserialize;
 pub use particle_paths::ParticlePaths;
 
 use crate::fog::Fog;
-use crate::particle::{LightSample, Medium, Particle};
+use crate::particle::{LightSample, MAX_PARTICLE_EXTENT, Medium, Particle};
 use crate::settings::CloudQualitySettings;
 
 /// The pinhole camera of a scene.
@@ -302,12 +302,12 @@ fn medium_error(cloud: usize, error: InvalidMedium, note: &str) -> SceneError {
         InvalidMedium::Position { index, value } => invalid(
             format!("{p}.particles[{index}].position"),
             fmt_vec3(value),
-            format!("every coordinate must be finite{note}"),
+            format!("every coordinate must be finite and within ±{MAX_PARTICLE_EXTENT:e} m{note}"),
         ),
         InvalidMedium::Radius { index, value } => invalid(
             format!("{p}.particles[{index}].radius"),
             value,
-            format!("it must be finite and > 0{note}"),
+            format!("it must be > 0 and at most {MAX_PARTICLE_EXTENT:e} m{note}"),
         ),
         InvalidMedium::Density { index, value } => invalid(
             format!("{p}.particles[{index}].density"),
@@ -1057,15 +1057,15 @@ mod tests {
         ),
         (
             |f| inline(f, 0)[1].radius = -0.2,
-            "clouds[0].particles[1].radius is -0.2; it must be finite and > 0",
+            "clouds[0].particles[1].radius is -0.2; it must be > 0 and at most 1e15 m",
         ),
         (
             |f| inline(f, 0)[0].radius = 0.0,
-            "clouds[0].particles[0].radius is 0; it must be finite and > 0",
+            "clouds[0].particles[0].radius is 0; it must be > 0 and at most 1e15 m",
         ),
         (
             |f| inline(f, 0)[1].radius = f32::NAN,
-            "clouds[0].particles[1].radius is NaN; it must be finite and > 0",
+            "clouds[0].particles[1].radius is NaN; it must be > 0 and at most 1e15 m",
         ),
         (
             |f| inline(f, 0)[1].density = -1.0,
@@ -1077,7 +1077,15 @@ mod tests {
         ),
         (
             |f| inline(f, 0)[1].position.z = f32::NAN,
-            "clouds[0].particles[1].position is (-0.3, 0, NaN); every coordinate must be finite",
+            "clouds[0].particles[1].position is (-0.3, 0, NaN); every coordinate must be finite and within ±1e15 m",
+        ),
+        (
+            |f| inline(f, 0)[0].position.x = 3e38,
+            "clouds[0].particles[0].position is (300000000000000000000000000000000000000, 0.2, 0.3); every coordinate must be finite and within ±1e15 m",
+        ),
+        (
+            |f| inline(f, 0)[1].radius = 2e15,
+            "clouds[0].particles[1].radius is 2000000000000000; it must be > 0 and at most 1e15 m",
         ),
         (
             |f| {
@@ -1094,7 +1102,7 @@ mod tests {
                 f.clouds.push(c);
                 inline(f, 1)[3].radius = 1.0;
             },
-            "clouds[1].particles[0].radius is 0; it must be finite and > 0",
+            "clouds[1].particles[0].radius is 0; it must be > 0 and at most 1e15 m",
         ),
         (
             |f| f.objects[0].shape = ObjectShape::Cuboid(Vec3::new(0.8, 0.0, 0.3)),
@@ -1214,7 +1222,7 @@ mod tests {
         let e = Scene::from_ron_str(&text, here()).unwrap_err().to_string();
         assert_eq!(
             e,
-            "clouds[0].particles[1].radius is -inf; it must be finite and > 0"
+            "clouds[0].particles[1].radius is -inf; it must be > 0 and at most 1e15 m"
         );
     }
 

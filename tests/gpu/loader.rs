@@ -211,7 +211,7 @@ fn malformed_files_fail_with_the_line() {
     );
     let invalid = message("negative_radius.csv");
     assert!(
-        invalid.contains("particle 1: `radius` is -0.5; it must be finite and > 0"),
+        invalid.contains("particle 1: `radius` is -0.5; it must be > 0 and at most 1e15 m"),
         "{invalid}"
     );
 }

@@ -205,6 +205,14 @@ impl ParticleMedia {
         self.dims
     }
 
+    /// The most tentative collisions any segment of a ray may expect: the largest majorant times
+    /// a cell's diagonal. Above [`DENSE_SEGMENT`](super::estimators::DENSE_SEGMENT) the tracker
+    /// walks a segment by its exact optical depth instead.
+    pub fn largest_segment_collisions(&self) -> f64 {
+        let largest = self.majorant.iter().copied().fold(0.0, f64::max);
+        largest * self.cell_size * 3f64.sqrt()
+    }
+
     fn build(particles: Vec<TracedParticle>) -> Self {
         if particles.is_empty() {
             return Self {

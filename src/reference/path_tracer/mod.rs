@@ -55,7 +55,8 @@ mod media;
 mod tests;
 
 pub use estimators::{
-    DirectionalLight, Lighting, radiance, radiance_by_order, sample_free_flight, transmittance,
+    DENSE_SEGMENT, DirectionalLight, Lighting, radiance, radiance_by_order, sample_free_flight,
+    transmittance,
 };
 pub use images::{
     PathTracerSettings, Progress, noise_level, render, render_media, render_media_orders,
