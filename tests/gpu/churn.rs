@@ -5,13 +5,12 @@
 
 use bevy::{prelude::*, render::render_resource::Extent3d};
 use bevy_particle_clouds::{
-    CloudPass, CloudPassCounters, CloudQualitySettings, Medium, Particle, ParticleCloud, Particles,
-    generators,
+    CloudPass, CloudPassCounters, CloudQualitySettings, Medium, Particle, generators,
     headless::{self, FrameRecorder},
     math::SplitMix64,
 };
 
-use crate::common;
+use crate::{common, plugin::edit_particles};
 
 /// Cycles of churn, each ending with every cloud despawned.
 const CYCLES: usize = 8;
@@ -83,14 +82,7 @@ impl Churn {
             }
             (3, Some(cloud)) => {
                 let particles = self.particles();
-                let handle = app
-                    .world()
-                    .get::<ParticleCloud>(cloud)
-                    .unwrap()
-                    .particles
-                    .clone();
-                let mut assets = app.world_mut().resource_mut::<Assets<Particles>>();
-                assets.get_mut(&handle).unwrap().particles = particles;
+                edit_particles(app, cloud, |p| *p = particles);
             }
             (4, Some(cloud)) => {
                 let settings = self.settings();

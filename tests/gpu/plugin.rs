@@ -319,7 +319,7 @@ fn several_cameras(compositing: Compositing, view_pass: CloudPass) {
 }
 
 /// Edits the particles of `cloud`'s asset in place (an asset change, as a game makes one).
-fn edit_particles(app: &mut App, cloud: Entity, edit: impl FnOnce(&mut Vec<Particle>)) {
+pub(crate) fn edit_particles(app: &mut App, cloud: Entity, edit: impl FnOnce(&mut Vec<Particle>)) {
     let handle = app
         .world()
         .get::<ParticleCloud>(cloud)
