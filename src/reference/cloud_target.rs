@@ -1,4 +1,4 @@
-//! CPU reference of the cloud target's depth-aware upsample (`src/render/cloud_target.wgsl`;
+//! CPU reference of the cloud target's depth-aware upsample (`src/render/draw/cloud_target.wgsl`;
 //! docs/illumination.md §6), written from the description, in f32 like the shader: the GPU's
 //! composite is tested pixel by pixel against it.
 

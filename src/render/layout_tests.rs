@@ -20,25 +20,25 @@ use super::{
 };
 
 const WGSL: [&str; 6] = [
-    include_str!("types.wgsl"),
-    include_str!("sky_map.wgsl"),
-    include_str!("fog.wgsl"),
-    include_str!("billboard.wgsl"),
-    include_str!("sort.wgsl"),
-    include_str!("scatter.wgsl"),
+    include_str!("core/types.wgsl"),
+    include_str!("illumination/sky_map.wgsl"),
+    include_str!("draw/fog.wgsl"),
+    include_str!("draw/billboard.wgsl"),
+    include_str!("view/sort.wgsl"),
+    include_str!("illumination/scatter/sweep.wgsl"),
 ];
 const RUST: [&str; 11] = [
-    include_str!("fog.rs"),
-    include_str!("sky_map.rs"),
-    include_str!("ground.rs"),
-    include_str!("volumes.rs"),
-    include_str!("pools.rs"),
-    include_str!("draw.rs"),
-    include_str!("sort.rs"),
-    include_str!("view_volume.rs"),
-    include_str!("pipelines.rs"),
-    include_str!("particles.rs"),
-    include_str!("cloud_target.rs"),
+    include_str!("draw/fog.rs"),
+    include_str!("illumination/sky_map.rs"),
+    include_str!("plan/ground.rs"),
+    include_str!("plan/volumes.rs"),
+    include_str!("plan/pools.rs"),
+    include_str!("draw/billboards.rs"),
+    include_str!("view/sort.rs"),
+    include_str!("view/view_volume.rs"),
+    include_str!("illumination/pipelines.rs"),
+    include_str!("extract/particles.rs"),
+    include_str!("draw/cloud_target.rs"),
 ];
 
 /// The text of `struct <name> { … }` (from `start`, e.g. `struct ` or `pub struct `) up to the

@@ -1,87 +1,61 @@
-//! The render-world side of the plugin, one file per stage:
+//! The render-world side of the plugin, in one folder per step of the paper (Algorithm 1), each
+//! pass's Rust beside its WGSL. Imports run one way, core → extract → plan → illumination → view →
+//! draw (a test, `layering`, holds every `use` to it):
 //!
-//! | file | stage |
+//! | folder | what it holds |
 //! |---|---|
-//! | `extract.rs` | clouds and lights into the render world |
-//! | `particles.rs` | the `Particles` asset on the GPU |
-//! | `volumes.rs` | per-cloud GPU volumes, sized and filled with uniforms in a prepare system |
-//! | `pools.rs` | the volumes of every cloud of one shape packed into shared buffers, one slot per cloud |
-//! | `cast.rs` | who casts a shadow on whom: each cloud's light volumes take the other clouds' optical depth |
-//! | `shadow_maps.rs` | which cloud shadow maps the cast pass fills this frame |
-//! | `sky_map.rs` | the sky map: what the clouds hide of the sky over the ground, marched through their densities |
-//! | `overlap.rs` | clouds that overlap: each cloud's multiple scattering goes through the others' media too |
-//! | `plan.rs` | which stages rerun this frame: cache keys per stage, a pure planning function |
-//! | `pipelines.rs` | compute pipelines of the illumination passes |
-//! | `voxelize.rs` | the clouds' particles copied together, deposited on their density grids, batched per pool |
-//! | `illumination.rs` | voxelize, then shade, gather, scatter batched per pool (the `RenderGraph` schedule) |
-//! | `sort.rs` | per-view GPU radix sort of the particles (`Compositing::Sorted`) |
-//! | `view_volume.rs` | per-view optical depth from the camera (`Compositing::ViewTransmittance`) |
-//! | `view_atlas.rs` | a view's volumes in shared buffers; which clouds each cloud sees through |
-//! | `draw.rs` | the billboard draw in `Transparent3d` |
-//! | `fog.rs` | each view's distance fog, applied to every piece of every chord |
-//! | `cloud_target.rs` | the paper's §4: billboards into a reduced-resolution target, upsampled by depth |
-//! | `after_sky.rs` | the clouds composited after Bevy's sky (`Atmosphere`), not in the schedule's arbitrary order |
-//! | `splat.rs` | the draw by compute instead of the rasteriser, into the cloud target |
-//! | `workgroups.rs` | workgroup sizes and dispatches, shared with the WGSL as shader defs |
-//! | `gpu.rs` | buffers, their encodings, and a recorded stage (compute pass, GPU time span, counter) |
-//! | `shaders.rs` | the WGSL beside each stage (`*.wgsl`), embedded |
+//! | `core/` | leaves: GPU buffers and recorded stages, workgroup sizes, shader handles, stage keys, the adapter check, the shared WGSL |
+//! | `extract/` | clouds, lights and the `Particles` asset into the render world |
+//! | `plan/` | which stages rerun this frame, the per-cloud volumes and their pools, the relight budget, who casts on whom, overlapping clouds, the ground frame |
+//! | `illumination/` | voxelize, shade, cast, gather, shadow and sky maps; `scatter/`: multiple scattering |
+//! | `view/` | per view: the GPU sort, the optical depth from the camera, the view atlas |
+//! | `draw/` | billboards in `Transparent3d`, the cloud target, the draw by compute, redraw, fog, compositing after the sky |
+//!
+//! This file only wires them into Bevy's schedules; `memory.rs` counts what every part holds.
 
-pub(crate) mod after_sky;
-pub mod budget;
-pub mod cast;
-pub mod cloud_target;
-pub mod coarse_grid;
+pub mod core;
 pub mod draw;
 pub mod extract;
-pub mod fog;
-pub mod gpu;
-pub mod ground;
 pub mod illumination;
 pub(crate) mod memory;
-pub mod overlap;
-pub mod particles;
-pub mod pipelines;
 pub mod plan;
-pub mod pools;
-pub(crate) mod redraw;
-pub mod shaders;
-pub mod shadow_maps;
-pub mod sky_map;
-pub mod sort;
-pub mod splat;
-pub mod splat_batch;
-pub mod view_atlas;
-pub mod view_volume;
-pub mod volumes;
-pub mod voxelize;
-pub mod workgroups;
+pub mod view;
 
 #[cfg(test)]
 mod binding_limits;
 #[cfg(test)]
 mod layout_tests;
 
+// The modules' public paths from before the folders (`render::volumes`, …) stay.
+pub use self::core::{adapter::Unsupported, gpu, shaders, workgroups};
+pub use self::draw::{cloud_target, fog, splat, splat_batch};
+pub use self::extract::particles;
+pub use self::illumination::{pipelines, scatter::coarse_grid, shadow_maps, sky_map, voxelize};
+pub use self::plan::{budget, casters as cast, ground, overlap, pools, volumes};
+pub use self::view::{sort, view_atlas, view_volume};
+pub(crate) use self::core::{adapter::REQUIRED_STORAGE_BUFFERS, key_of};
+pub(crate) use self::draw::{after_sky, redraw};
+pub(crate) use self::view::views_by_cloud;
+
 use bevy::{
+    asset::{embedded_asset, load_embedded_asset},
     core_pipeline::{
         core_3d::Transparent3d,
         schedule::{Core3d, camera_driver},
     },
-    platform::collections::HashMap,
     prelude::*,
     render::{
         ExtractSchedule, Render, RenderApp, RenderStartup, RenderSystems,
         extract_resource::ExtractResourcePlugin,
         render_asset::RenderAssetPlugin,
         render_phase::AddRenderCommand,
-        render_resource::{DownlevelFlags, SpecializedRenderPipelines},
-        renderer::{RenderAdapter, RenderDevice},
+        render_resource::SpecializedRenderPipelines,
         renderer::{RenderGraph, RenderGraphSystems},
         sync_component::{SyncComponent, SyncComponentPlugin},
-        view::{ExtractedView, RenderVisibleEntities},
     },
 };
 
-use self::{extract::ExtractedCloud, shaders::CloudShaders};
+use self::{core::shaders::CloudShaders, extract::ExtractedCloud};
 use crate::{
     cloud::ParticleCloud,
     settings::{CloudRedraw, CloudRelightBudget, ShadingMethod, SweepDispatch, SweepMarch},
@@ -149,29 +123,8 @@ impl bevy::render::extract_resource::ExtractResource for ShadingMethod {
     }
 }
 
-/// Every view each visible cloud is seen in (the per-view passes: sort, view volume).
-pub(crate) fn views_by_cloud<'a>(
-    views: impl IntoIterator<Item = (&'a ExtractedView, &'a RenderVisibleEntities)>,
-) -> HashMap<Entity, Vec<&'a ExtractedView>> {
-    let mut by_cloud: HashMap<Entity, Vec<&ExtractedView>> = HashMap::default();
-    for (view, visible) in views {
-        if let Some(class) = visible.get::<ParticleCloud>() {
-            for (entity, _) in &class.entities_cpu_culling {
-                by_cloud.entry(*entity).or_default().push(view);
-            }
-        }
-    }
-    by_cloud
-}
-
-/// A cache key of a stage's inputs: a stage reruns only when its key changes.
-pub(crate) fn key_of(value: impl std::hash::Hash) -> u64 {
-    use std::hash::{BuildHasher, BuildHasherDefault, DefaultHasher};
-    BuildHasherDefault::<DefaultHasher>::default().hash_one(value)
-}
-
 pub(crate) fn build(app: &mut App) {
-    let shaders = CloudShaders::load(app);
+    let shaders = load_shaders(app);
     app.init_resource::<ShadingMethod>()
         .register_type::<ShadingMethod>()
         .init_resource::<SweepMarch>()
@@ -199,43 +152,45 @@ pub(crate) fn build(app: &mut App) {
     }
 }
 
-/// Why an adapter cannot run the plugin: the passes need compute shaders, storage buffers in the
-/// vertex stage and eight storage buffers per stage (the sweep's; WebGPU's default limit).
-#[derive(Clone, Debug, PartialEq, thiserror::Error)]
-pub enum Unsupported {
-    /// No compute shaders (WebGL2, for example).
-    #[error("the adapter has no compute shaders")]
-    ComputeShaders,
-    /// Vertex shaders cannot read storage buffers.
-    #[error("the adapter cannot read storage buffers in vertex shaders")]
-    VertexStorage,
-    /// Too few storage buffers per shader stage.
-    #[error("the adapter allows {0} storage buffers per shader stage; 8 are needed")]
-    StorageBuffers(u32),
-}
-
-/// Storage buffers per shader stage the plugin's pipelines bind at most (tests hold every
-/// pipeline to it), but the computed draw's, which falls back to the rasteriser on an adapter
-/// that allows fewer (`splat::compute_draw_refusal`); an adapter with fewer cannot run it.
-pub(crate) const REQUIRED_STORAGE_BUFFERS: u32 = 8;
-
-/// Why this adapter cannot run the plugin, if it cannot.
-fn check_adapter(render_app: &SubApp) -> Result<(), Unsupported> {
-    let adapter = render_app.world().resource::<RenderAdapter>();
-    let flags = adapter.get_downlevel_capabilities().flags;
-    let limits = render_app.world().resource::<RenderDevice>().limits();
-    if !flags.contains(DownlevelFlags::COMPUTE_SHADERS) {
-        return Err(Unsupported::ComputeShaders);
+/// Embeds every shader into the app's asset sources and loads it. Here, not in `core/`, because
+/// `embedded_asset!` takes paths relative to the calling file, and this file sits above every folder.
+fn load_shaders(app: &mut App) -> CloudShaders {
+    embedded_asset!(app, "core/types.wgsl");
+    embedded_asset!(app, "illumination/voxelize.wgsl");
+    embedded_asset!(app, "core/density.wgsl");
+    embedded_asset!(app, "illumination/shade.wgsl");
+    embedded_asset!(app, "illumination/cast.wgsl");
+    embedded_asset!(app, "illumination/sky_map.wgsl");
+    embedded_asset!(app, "illumination/gather.wgsl");
+    embedded_asset!(app, "illumination/scatter/overlap.wgsl");
+    embedded_asset!(app, "illumination/ground.wgsl");
+    embedded_asset!(app, "illumination/scatter/sweep.wgsl");
+    embedded_asset!(app, "illumination/scatter/closure.wgsl");
+    embedded_asset!(app, "illumination/scatter/coarse_grid.wgsl");
+    embedded_asset!(app, "view/sort.wgsl");
+    embedded_asset!(app, "view/view_volume.wgsl");
+    embedded_asset!(app, "draw/fog.wgsl");
+    embedded_asset!(app, "draw/billboard.wgsl");
+    embedded_asset!(app, "draw/cloud_target.wgsl");
+    CloudShaders {
+        types: load_embedded_asset!(&*app, "core/types.wgsl"),
+        voxelize: load_embedded_asset!(&*app, "illumination/voxelize.wgsl"),
+        density: load_embedded_asset!(&*app, "core/density.wgsl"),
+        shade: load_embedded_asset!(&*app, "illumination/shade.wgsl"),
+        cast: load_embedded_asset!(&*app, "illumination/cast.wgsl"),
+        sky_map: load_embedded_asset!(&*app, "illumination/sky_map.wgsl"),
+        gather: load_embedded_asset!(&*app, "illumination/gather.wgsl"),
+        overlap: load_embedded_asset!(&*app, "illumination/scatter/overlap.wgsl"),
+        ground: load_embedded_asset!(&*app, "illumination/ground.wgsl"),
+        scatter: load_embedded_asset!(&*app, "illumination/scatter/sweep.wgsl"),
+        closure: load_embedded_asset!(&*app, "illumination/scatter/closure.wgsl"),
+        coarse_grid: load_embedded_asset!(&*app, "illumination/scatter/coarse_grid.wgsl"),
+        sort: load_embedded_asset!(&*app, "view/sort.wgsl"),
+        view_volume: load_embedded_asset!(&*app, "view/view_volume.wgsl"),
+        fog: load_embedded_asset!(&*app, "draw/fog.wgsl"),
+        billboard: load_embedded_asset!(&*app, "draw/billboard.wgsl"),
+        cloud_target: load_embedded_asset!(&*app, "draw/cloud_target.wgsl"),
     }
-    if !flags.contains(DownlevelFlags::VERTEX_STORAGE) {
-        return Err(Unsupported::VertexStorage);
-    }
-    if limits.max_storage_buffers_per_shader_stage < REQUIRED_STORAGE_BUFFERS {
-        return Err(Unsupported::StorageBuffers(
-            limits.max_storage_buffers_per_shader_stage,
-        ));
-    }
-    Ok(())
 }
 
 /// Adds the render-world systems once the adapter is known to support them (like Bevy's
@@ -244,7 +199,7 @@ pub(crate) fn finish(app: &mut App) {
     let Some(render_app) = app.get_sub_app_mut(RenderApp) else {
         return;
     };
-    if let Err(reason) = check_adapter(render_app) {
+    if let Err(reason) = self::core::adapter::check_adapter(render_app) {
         error!("bevy_particle_clouds is disabled: {reason}; particle clouds will not be drawn");
         return;
     }

@@ -1,4 +1,4 @@
-//! The draw by compute (`DrawMethod::Compute`, `src/render/splat.rs`): its image against the CPU
+//! The draw by compute (`DrawMethod::Compute`, `src/render/draw/splat.rs`): its image against the CPU
 //! billboard reference, its cloud target against the rasterised one, and its dispatches.
 
 use bevy::{

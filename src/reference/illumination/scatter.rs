@@ -1297,7 +1297,7 @@ mod tests {
     #[test]
     fn the_gpu_closure_has_the_same_limits() {
         // closure.wgsl writes the constants again (WGSL takes no float shader defs).
-        let wgsl = include_str!("../../render/closure.wgsl");
+        let wgsl = include_str!("../../render/illumination/scatter/closure.wgsl");
         for (name, value) in [
             ("MAX_ORDER_RATIO", MAX_ORDER_RATIO),
             ("MODE_SEPARATION", MODE_SEPARATION),

@@ -1,0 +1,945 @@
+//! Per-cloud GPU volumes, and the prepare system that sizes them, writes their uniforms and plans
+//! the frame's stages ([`plan`](crate::render::plan)). The density grid lives in cloud-local space, so
+//! moving or rotating a cloud never re-voxelizes it: rotation only re-shades (the lights' local
+//! directions change) and scale only changes the extinction.
+
+use bevy::{
+    platform::collections::{HashMap, HashSet},
+    prelude::*,
+    render::{
+        render_asset::RenderAssets,
+        render_resource::{Buffer, ShaderType},
+        renderer::{RenderDevice, RenderQueue},
+    },
+};
+
+use crate::render::{
+    budget::{RelightCandidate, relit_this_frame},
+    cast::{CloudSphere, WorldCloud, casters_of, casts_on},
+    extract::{CloudLight, ExtractedCloud, ExtractedCloudLights},
+    gpu::{storage_bytes, uniform, uniform_bytes},
+    ground::{ground_frame, ground_key, ground_map_bytes},
+    overlap::{neighbours_of, overlaps},
+    particles::{CloudBounds, GpuParticles},
+    plan::{CloudIllumination, StageKeys, plan},
+    pools::{PoolSlot, Slot, VolumePool, VolumePools, VolumeShape},
+};
+use crate::math::{
+    LEVEL_KERNEL_NARROWING, MAX_DENSITY_LEVELS, MAX_RADIUS_IN_LEVEL_VOXELS, density_level,
+    density_level_sizes, light_basis,
+};
+use crate::particle::DeltaM;
+use crate::settings::CloudRelightBudget;
+use crate::shadow_maps::CloudShadowMaps;
+use crate::stats::CloudPassCounters;
+
+/// Mirror of `CloudParams` in `types.wgsl`.
+#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
+pub struct CloudParams {
+    /// Voxels per side `N` of the density and scattering volumes.
+    pub n: u32,
+    /// Particles in the cloud.
+    pub particle_count: u32,
+    /// Voxels per side `m` of the fine density grid and of each light's optical-depth volume,
+    /// over the same cube as the scattering grid: any `m >= n` (the gather weighs the fine
+    /// voxels by their overlap with each scattering voxel).
+    pub light_n: u32,
+    /// Lights in the cloud's light array.
+    pub light_count: u32,
+    /// Corner of the density cube, cloud-local metres.
+    pub grid_origin: Vec3,
+    /// Voxel size, cloud-local metres.
+    pub h: f32,
+    /// Centre of the density cube, cloud-local metres.
+    pub grid_centre: Vec3,
+    /// Extinction per cloud-local metre at density 1 (`K` times the cloud's scale).
+    pub k_local: f32,
+    /// Single-scattering albedo.
+    pub albedo: f32,
+    /// Forward-scattering fraction of the shading pass.
+    pub forward_scattering: f32,
+    /// Rows per axis of the largest particle's support on its density level (at most 65): the voxelize dispatch is particles × rows × rows.
+    pub rows: u32,
+    /// Henyey–Greenstein anisotropy `g` of the scattering towards the camera.
+    pub anisotropy: f32,
+    /// The fraction of the shaded optical depths the light's beam and the multiple scattering
+    /// see ([`DeltaM::depth_scale`]; 1 for an isotropic medium).
+    pub depth_scale: f32,
+    /// 1 when a light or the sky reaches the cloud, else 0 (it only absorbs).
+    pub lit: u32,
+    /// 1 when other clouds' media reach into its scattering grid ([`overlap`](crate::render::overlap)).
+    pub foreign: u32,
+    /// The albedo the multiple scattering sweeps with ([`DeltaM::albedo`]).
+    pub scatter_albedo: f32,
+    /// The asymmetry `g'` of the sweep's P2 source ([`DeltaM::anisotropy`]).
+    pub scatter_anisotropy: f32,
+    /// The second moment `chi'_2` of the sweep's P2 source ([`DeltaM::second_moment`]).
+    pub scatter_second_moment: f32,
+    /// 1 when the scattering volumes hold angular moments beside their means (an anisotropic
+    /// medium; docs/illumination.md §4, §9), else 0.
+    pub moments: u32,
+}
+
+/// Mirror of `DensityLevels` in `types.wgsl`: the density levels of a fine grid
+/// (docs/illumination.md §1), with the level one upsample dispatch enlarges.
+#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
+pub struct DensityLevels {
+    /// Per level, the fine grid first: voxels per side (x) and first element in the density
+    /// buffer (y).
+    pub size_offset: [UVec4; MAX_DENSITY_LEVELS],
+    /// Levels in use.
+    pub count: u32,
+    /// The level an upsample dispatch enlarges into the one below it (0 for the deposit).
+    pub upsample_from: u32,
+    /// [`MAX_RADIUS_IN_LEVEL_VOXELS`].
+    pub max_radius: f32,
+    /// [`LEVEL_KERNEL_NARROWING`].
+    pub kernel_narrowing: f32,
+}
+
+impl DensityLevels {
+    /// Elements of the buffer that holds every density level of a fine grid of `m` voxels per side.
+    pub fn elements(m: u32) -> u64 {
+        density_level_sizes(m)
+            .iter()
+            .map(|&n| (n as u64).pow(3))
+            .sum()
+    }
+
+    /// The levels of a fine grid of `m` voxels per side, one entry per value of `upsample_from`
+    /// (`0..count`); and the elements of the density buffer that holds them all.
+    pub(crate) fn entries(m: u32) -> (Vec<DensityLevels>, u64) {
+        let sizes = density_level_sizes(m);
+        let mut size_offset = [UVec4::ZERO; MAX_DENSITY_LEVELS];
+        let mut elements = 0;
+        for (entry, &n) in size_offset.iter_mut().zip(&sizes) {
+            *entry = UVec4::new(n, elements as u32, 0, 0);
+            elements += (n as u64).pow(3);
+        }
+        let entries = (0..sizes.len() as u32)
+            .map(|upsample_from| DensityLevels {
+                size_offset,
+                count: sizes.len() as u32,
+                upsample_from,
+                max_radius: MAX_RADIUS_IN_LEVEL_VOXELS as f32,
+                kernel_narrowing: LEVEL_KERNEL_NARROWING as f32,
+            })
+            .collect();
+        (entries, elements)
+    }
+}
+
+/// Mirror of `LightParams` in `types.wgsl`.
+#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
+pub struct LightParams {
+    /// First axis across the light, cloud-local.
+    pub u: Vec3,
+    /// Voxel size along `u`, local metres.
+    pub h_u: f32,
+    /// Second axis across the light.
+    pub v: Vec3,
+    /// Voxel size along `v`.
+    pub h_v: f32,
+    /// The direction the light travels, cloud-local.
+    pub w: Vec3,
+    /// Voxel size along `w` (the slice thickness).
+    pub h_w: f32,
+    /// Half-extents of the light box along `u`, `v`, `w`.
+    pub half_extents: Vec3,
+    /// Extinction per local metre per unit density in the shading pass, `k_local (1 - f albedo)`.
+    pub sigma_scale: f32,
+    /// Linear RGB irradiance.
+    pub irradiance: Vec3,
+    /// First element of this light's volume in the cloud's optical-depth buffer.
+    pub offset: u32,
+}
+
+impl LightParams {
+    /// The light box of light `index` travelling along `direction_local` (docs/illumination.md §2).
+    pub fn new(cloud: &CloudParams, direction_local: Vec3, irradiance: Vec3, index: u32) -> Self {
+        let [u, v, w] = light_basis(direction_local.as_dvec3().normalize()).map(|a| a.as_vec3());
+        let side = cloud.h * cloud.n as f32;
+        let half_extents = 0.5
+            * side
+            * Vec3::new(
+                u.abs().element_sum(),
+                v.abs().element_sum(),
+                w.abs().element_sum(),
+            );
+        let h = 2.0 * half_extents / cloud.light_n as f32;
+        Self {
+            u,
+            h_u: h.x,
+            v,
+            h_v: h.y,
+            w,
+            h_w: h.z,
+            half_extents,
+            sigma_scale: cloud.k_local * (1.0 - cloud.forward_scattering * cloud.albedo),
+            irradiance,
+            offset: index * cloud.light_n.pow(3),
+        }
+    }
+}
+
+/// The GPU volumes of one cloud (render world component): its uniforms, and its slot in the
+/// pool of its shape, which holds its density, light and scattering volumes
+/// ([`pools`](crate::render::pools)).
+#[derive(Component)]
+pub struct CloudVolumes {
+    /// The current uniform values.
+    pub params: CloudParams,
+    /// The `CloudParams` uniform (the billboards).
+    pub params_buffer: Buffer,
+    /// The fine grid's uniform: `CloudParams` with `m` voxels per side of size `h / f` (on the
+    /// GPU in the slot's `fine`, which voxelize and shade read; the view volume's pass reads it
+    /// here).
+    pub fine_params: CloudParams,
+    /// The levels that hold particles (the fine grid and the coarser ones down to the largest
+    /// particle's): only these are enlarged, so a cloud of small particles does no upsampling.
+    pub levels_in_use: usize,
+    /// Its lights' uniforms as its light volumes were last shaded (the cast reads them when
+    /// this cloud shadows another).
+    pub lights: Vec<LightParams>,
+    /// Its slot in the pool of its shape.
+    pub slot: PoolSlot,
+}
+
+impl CloudVolumes {
+    /// Volumes for a cloud of `shape` with `particle_count` particles, in a slot of `pools`;
+    /// `None` when one such cloud exceeds the adapter's storage binding limit.
+    fn new(
+        device: &RenderDevice,
+        queue: &RenderQueue,
+        pools: &mut VolumePools,
+        shape: VolumeShape,
+        particle_count: u32,
+    ) -> Option<Self> {
+        let max_binding = device.limits().max_storage_buffer_binding_size;
+        let slot = pools.allocate(device, queue, shape, max_binding)?;
+        Some(Self {
+            params: CloudParams {
+                n: shape.n,
+                particle_count,
+                light_n: shape.m,
+                light_count: shape.lights,
+                ..default()
+            },
+            params_buffer: uniform(
+                device,
+                "particle_clouds_params",
+                CloudParams::min_size().get(),
+            ),
+            fine_params: CloudParams::default(),
+            levels_in_use: 1,
+            lights: Vec::new(),
+            slot,
+        })
+    }
+
+    fn fits(&self, shape: VolumeShape, particle_count: u32) -> bool {
+        self.shape() == shape && self.params.particle_count == particle_count
+    }
+
+    /// The shape of its volumes (its pool's).
+    pub fn shape(&self) -> VolumeShape {
+        self.slot.pool.shape
+    }
+}
+
+/// The most particles one cloud may hold: the voxelize dispatch gives each 64 particles a
+/// workgroup along x, where at most 65535 fit.
+pub const MAX_PARTICLES: u32 = 65535 * 64;
+
+/// Decides the work of each cloud that is seen, or that shadows or overlaps one that is, and
+/// writes the uniforms it needs. Planned in two steps, since a cloud's illumination takes what
+/// other clouds give it (their shadows, [`cast`](crate::render::cast); their media where they overlap
+/// it, [`overlap`](crate::render::overlap)): first every cloud's own stages (and which of them the
+/// re-light budget defers), then what each takes from the others, from the volumes the others
+/// will hold.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn prepare_cloud_volumes(
+    mut commands: Commands,
+    mut clouds: Query<PreparedCloud>,
+    lights: Res<ExtractedCloudLights>,
+    particles: Res<RenderAssets<GpuParticles>>,
+    budget: Option<Res<CloudRelightBudget>>,
+    maps: Option<Res<CloudShadowMaps>>,
+    mut pools: ResMut<VolumePools>,
+    device: Res<RenderDevice>,
+    queue: Res<RenderQueue>,
+    counters: Res<CloudPassCounters>,
+) {
+    let budget = budget.map_or(0, |b| b.0);
+    let mapped = maps.is_some_and(|m| m.resolution > 0);
+    let max_binding = device.limits().max_storage_buffer_binding_size;
+    let frames = cloud_frames(&clouds, &lights, &particles, mapped, max_binding);
+    let deferred = deferred_by_budget(&clouds, &frames, &lights, &particles, budget);
+    // What each cloud's volumes will hold after this frame: a deferred cloud keeps what it has.
+    let world = world_clouds(&frames, |entity, frame| {
+        let held = clouds.get(entity).ok().and_then(|(.., state)| state);
+        match held {
+            Some(state) if deferred.contains(&entity) => state.keys.clone(),
+            _ => frame.keys.clone(),
+        }
+    });
+    let directions: Vec<Vec3> = lights.lights.iter().map(|l| l.direction).collect();
+    pools.release_empty();
+    for (entity, cloud, volumes, state) in &mut clouds {
+        let Some(gpu) = particles.get(cloud.particles) else {
+            continue;
+        };
+        if gpu.bounds.is_none() {
+            commands
+                .entity(entity)
+                .remove::<(CloudVolumes, CloudIllumination)>();
+            continue;
+        }
+        // No work for clouds nobody sees (nor shadows or overlaps one that is seen), or that are
+        // transparent: their cached volumes stay.
+        let Some(frame) = frames.get(&entity).filter(|f| f.needed) else {
+            continue;
+        };
+        let (cloud, bounds, shape) = (&frame.cloud, frame.bounds, frame.shape);
+        let planned = PlannedFrame {
+            cloud,
+            gpu,
+            bounds,
+            lights: &lights,
+            others: from_others(entity, frame, &world, &directions),
+        };
+        match (volumes, state) {
+            (Some(_), Some(mut state)) if deferred.contains(&entity) => {
+                // Its turn comes later: it draws with what its volumes hold.
+                state.plan = default();
+                state.waited += 1;
+            }
+            (Some(mut v), Some(mut state)) if v.fits(shape, gpu.count) => {
+                let pool = pools.pool(&v.slot);
+                plan_cloud(&mut v, &mut state, planned, pool, &queue);
+                state.waited = 0;
+                if !state.plan.is_empty() {
+                    counters.note_write();
+                }
+            }
+            _ => {
+                let new = (gpu.count as u64 * 32 <= max_binding)
+                    .then(|| CloudVolumes::new(&device, &queue, &mut pools, shape, gpu.count))
+                    .flatten();
+                let Some(mut v) = new else {
+                    warn_once!(
+                        "particle cloud: `volume_resolution` {} (light volumes {}³ for {} lights) \
+                         or {} particles exceed this adapter's storage buffer limit of \
+                         {max_binding} bytes; the cloud is not drawn",
+                        shape.n,
+                        shape.m,
+                        shape.lights,
+                        gpu.count
+                    );
+                    commands
+                        .entity(entity)
+                        .remove::<(CloudVolumes, CloudIllumination)>();
+                    continue;
+                };
+                let mut state = CloudIllumination::default();
+                let pool = pools.pool(&v.slot);
+                plan_cloud(&mut v, &mut state, planned, pool, &queue);
+                counters.note_write();
+                commands.entity(entity).insert((v, state));
+            }
+        }
+    }
+}
+
+/// A cloud as the prepare system sees it.
+type PreparedCloud = (
+    Entity,
+    &'static ExtractedCloud,
+    Option<&'static mut CloudVolumes>,
+    Option<&'static mut CloudIllumination>,
+);
+
+/// A cloud with particles and extinction, as this frame illuminates it.
+struct CloudFrame {
+    /// The cloud at the resolution it is illuminated at this frame (its level of detail's, or
+    /// the one its volumes hold).
+    cloud: ExtractedCloud,
+    bounds: CloudBounds,
+    shape: VolumeShape,
+    /// Its bounding sphere in the world.
+    sphere: CloudSphere,
+    /// Seen in a view, or shadowing or overlapping a cloud that is: it must be illuminated.
+    needed: bool,
+    /// This frame's stage keys, without what other clouds give it.
+    keys: StageKeys,
+}
+
+/// Every cloud that has particles and extinction, as this frame illuminates it; with cloud
+/// shadow maps (`mapped`), every cloud that casts shadows is needed, seen or not.
+fn cloud_frames(
+    clouds: &Query<PreparedCloud>,
+    lights: &ExtractedCloudLights,
+    particles: &RenderAssets<GpuParticles>,
+    mapped: bool,
+    max_binding: u64,
+) -> HashMap<Entity, CloudFrame> {
+    let mut frames: HashMap<Entity, CloudFrame> = HashMap::default();
+    for (entity, cloud, volumes, state) in clouds {
+        let Some(gpu) = particles.get(cloud.particles) else {
+            continue;
+        };
+        let Some(bounds) = gpu.bounds.filter(|_| cloud.extinction > 0.0) else {
+            continue;
+        };
+        let held = volumes.zip(state);
+        let n = held_resolution(cloud, held, gpu, bounds, lights, max_binding);
+        let cloud = at_resolution(cloud, n, lights, max_binding);
+        let shape = volume_shape(&cloud, lights);
+        let frame = CloudFrame {
+            sphere: CloudSphere::new(bounds, &cloud.world_from_local, cloud.scale()),
+            needed: cloud.visible || (mapped && cloud.casts_shadows),
+            keys: frame_keys(&cloud, gpu, bounds, lights, &[], 0),
+            cloud,
+            bounds,
+            shape,
+        };
+        frames.insert(entity, frame);
+    }
+    // A cloud nobody sees is still illuminated when it shadows or overlaps one that is seen.
+    let seen: Vec<(CloudSphere, bool)> = frames
+        .values()
+        .filter(|f| f.needed)
+        .map(|f| (f.sphere, f.cloud.receives_shadows))
+        .collect();
+    for frame in frames.values_mut().filter(|f| !f.needed) {
+        let casts = |receiver: CloudSphere| {
+            let light = |l: &CloudLight| casts_on(l.direction, receiver, frame.sphere);
+            frame.cloud.casts_shadows && lights.lights.iter().any(light)
+        };
+        frame.needed = seen.iter().any(|&(receiver, receives)| {
+            overlaps(receiver, frame.sphere) || (receives && casts(receiver))
+        });
+    }
+    frames
+}
+
+/// The clouds of `frames` that must be illuminated, as other clouds see them, each with the keys
+/// `held` gives it (what its volumes will hold after this frame).
+fn world_clouds(
+    frames: &HashMap<Entity, CloudFrame>,
+    held: impl Fn(Entity, &CloudFrame) -> StageKeys,
+) -> Vec<WorldCloud> {
+    frames
+        .iter()
+        .filter(|(_, f)| f.needed)
+        .map(|(&entity, f)| world_cloud(entity, f, held(entity, f)))
+        .collect()
+}
+
+fn world_cloud(entity: Entity, frame: &CloudFrame, keys: StageKeys) -> WorldCloud {
+    WorldCloud {
+        entity,
+        sphere: frame.sphere,
+        world_from_local: frame.cloud.world_from_local,
+        extinction: frame.cloud.extinction,
+        albedo: frame.cloud.albedo,
+        anisotropy: frame.cloud.anisotropy,
+        density: keys.density,
+        shade_keys: keys.lights,
+        casts_shadows: frame.cloud.casts_shadows,
+    }
+}
+
+/// What other clouds give a cloud this frame ([`casters_of`], [`neighbours_of`]).
+#[derive(Default)]
+struct FromOthers {
+    /// Per light slot, the clouds casting their shadow on it.
+    casters: Vec<Vec<Entity>>,
+    /// Per light slot, the key of what they cast.
+    cast_keys: Vec<u64>,
+    /// The clouds whose media reach into its grid.
+    neighbours: Vec<Entity>,
+    /// The key of their media.
+    media: u64,
+}
+
+/// What the clouds of `world` give cloud `entity`: shadows along the lights travelling along
+/// `directions` (none on a cloud that takes no shadows), and their media where they overlap it.
+fn from_others(
+    entity: Entity,
+    frame: &CloudFrame,
+    world: &[WorldCloud],
+    directions: &[Vec3],
+) -> FromOthers {
+    let receiver = world_cloud(entity, frame, StageKeys::default());
+    let (casters, cast_keys) = if frame.cloud.receives_shadows {
+        casters_of(&receiver, world, directions)
+    } else {
+        (Vec::new(), Vec::new())
+    };
+    let (neighbours, media) = neighbours_of(&receiver, world);
+    FromOthers {
+        casters,
+        cast_keys,
+        neighbours,
+        media,
+    }
+}
+
+/// The needed clouds whose pending illumination work waits for a later frame under the
+/// re-light `budget` (none when it is 0): every cloud whose stage keys changed is a candidate,
+/// and [`relit_this_frame`] picks those that go now. What other clouds give a candidate is
+/// judged as if they were all re-lit.
+fn deferred_by_budget(
+    clouds: &Query<PreparedCloud>,
+    frames: &HashMap<Entity, CloudFrame>,
+    lights: &ExtractedCloudLights,
+    particles: &RenderAssets<GpuParticles>,
+    budget: u32,
+) -> HashSet<Entity> {
+    if budget == 0 {
+        return HashSet::default();
+    }
+    let world = world_clouds(frames, |_, f| f.keys.clone());
+    let directions: Vec<Vec3> = lights.lights.iter().map(|l| l.direction).collect();
+    let mut candidates = Vec::new();
+    for (entity, cloud, volumes, state) in clouds {
+        let (Some(frame), Some(gpu)) = (frames.get(&entity), particles.get(cloud.particles)) else {
+            continue;
+        };
+        if !frame.needed {
+            continue;
+        }
+        // A cloud whose level of detail changes (its volumes no longer fit) waits its turn like
+        // any other; only one never illuminated cannot wait.
+        match volumes.zip(state) {
+            Some((v, s)) if s.ready => {
+                let others = from_others(entity, frame, &world, &directions);
+                let (casts, media) = (&others.cast_keys, others.media);
+                let keys = frame_keys(&frame.cloud, gpu, frame.bounds, lights, casts, media);
+                let pending = !v.fits(frame.shape, gpu.count)
+                    || !plan(&s.keys, &keys, &frame.cloud.settings).is_empty();
+                if pending {
+                    candidates.push(RelightCandidate {
+                        entity,
+                        first: false,
+                        waited: s.waited,
+                    });
+                }
+            }
+            _ => candidates.push(RelightCandidate {
+                entity,
+                first: true,
+                waited: 0,
+            }),
+        }
+    }
+    let pending: HashSet<Entity> = candidates.iter().map(|c| c.entity).collect();
+    let relit: HashSet<Entity> = relit_this_frame(candidates, budget).into_iter().collect();
+    pending.difference(&relit).copied().collect()
+}
+
+/// What [`plan_cloud`] plans from: the cloud, its particles and grid, the lights, and what other
+/// clouds give it.
+struct PlannedFrame<'a> {
+    cloud: &'a ExtractedCloud,
+    gpu: &'a GpuParticles,
+    bounds: CloudBounds,
+    lights: &'a ExtractedCloudLights,
+    others: FromOthers,
+}
+
+/// Plans the cloud's stages and writes the uniforms they read: its own, and its slot's in `pool`.
+fn plan_cloud(
+    volumes: &mut CloudVolumes,
+    state: &mut CloudIllumination,
+    frame: PlannedFrame,
+    pool: &VolumePool,
+    queue: &RenderQueue,
+) {
+    let PlannedFrame {
+        cloud,
+        gpu,
+        bounds,
+        lights,
+        others,
+    } = frame;
+    let params = CloudParams {
+        foreign: !others.neighbours.is_empty() as u32,
+        ..cloud_params(cloud, gpu, bounds, lights)
+    };
+    // Slot i shades the i-th light (none: the cloud only absorbs, and the plan zeroes its
+    // multiple scattering once).
+    let light_params = light_params(&params, cloud, lights);
+    let ground = ground_frame(cloud, &params, lights.ground.as_ref(), lights.sky);
+    state.update(
+        StageKeys::new(
+            &params,
+            &light_params,
+            &others.cast_keys,
+            others.media,
+            (lights.sky, ground_key(&ground)),
+            gpu.generation,
+            &cloud.settings,
+        ),
+        &cloud.settings,
+    );
+    state.casters = others.casters;
+    state.neighbours = others.neighbours;
+    if state.plan.is_empty() {
+        return;
+    }
+    if params != volumes.params {
+        queue.write_buffer(&volumes.params_buffer, 0, &uniform_bytes(&params));
+        volumes.params = params;
+    }
+    volumes.levels_in_use = levels_in_use(bounds, params.light_n);
+    let fine = fine_params(&params);
+    volumes.fine_params = fine;
+    let index = volumes.slot.index;
+    let slot = pool.slot(index, params, fine);
+    let slot_bytes = Slot::min_size().get();
+    queue.write_buffer(
+        &pool.slots,
+        index as u64 * slot_bytes,
+        &storage_bytes(&[slot]),
+    );
+    if let Some(coarse) = &pool.coarse {
+        let coarse_slot = pool.coarse_slot(index, params);
+        let at = index as u64 * slot_bytes;
+        queue.write_buffer(&coarse.slots, at, &storage_bytes(&[coarse_slot]));
+    }
+    if !light_params.is_empty() {
+        let first = slot.lights as u64 * LightParams::min_size().get();
+        queue.write_buffer(&pool.lights, first, &storage_bytes(&light_params));
+    }
+    if state.plan.scatter.is_some() {
+        let at = index as u64 * ground_map_bytes();
+        queue.write_buffer(&pool.ground, at, &storage_bytes(&[ground]));
+    }
+    volumes.lights = light_params;
+}
+
+/// Every light's uniform for a cloud of uniform `params`, slot `i` shading the `i`-th light in
+/// the cloud's local frame.
+fn light_params(
+    params: &CloudParams,
+    cloud: &ExtractedCloud,
+    lights: &ExtractedCloudLights,
+) -> Vec<LightParams> {
+    let to_local = cloud.rotation().inverse();
+    lights
+        .lights
+        .iter()
+        .zip(0..)
+        .map(|(l, i)| {
+            LightParams::new(
+                params,
+                (to_local * l.direction).normalize(),
+                l.irradiance * cloud.light_transmittance(i as usize),
+                i,
+            )
+        })
+        .collect()
+}
+
+/// The volume resolution a cloud is illuminated at this frame: the one its level of detail asks
+/// for, once its volumes must be re-lit anyway (new particles, or a light that moved) or when it
+/// has none yet; until then the one its volumes hold, so a level change never pops on a still
+/// sky (docs/illumination.md §7). Without level of detail, the settings' resolution at once.
+fn held_resolution(
+    cloud: &ExtractedCloud,
+    held: Option<(&CloudVolumes, &CloudIllumination)>,
+    gpu: &GpuParticles,
+    bounds: CloudBounds,
+    lights: &ExtractedCloudLights,
+    max_binding: u64,
+) -> u32 {
+    let wanted = cloud.lod_resolution;
+    let Some((volumes, state)) = held else {
+        return wanted;
+    };
+    let n = volumes.params.n;
+    if n == wanted || !cloud.lod_enabled || !state.ready || !lights.any() {
+        return wanted;
+    }
+    let at_n = at_resolution(cloud, n, lights, max_binding);
+    let now = frame_keys(&at_n, gpu, bounds, lights, &[], 0);
+    let relit = now.density != state.keys.density || now.lights != state.keys.lights;
+    if relit { wanted } else { n }
+}
+
+/// This frame's stage keys of `cloud` (at its settings' resolution), other clouds casting on it
+/// what `casts` keys (per light slot; empty: none) and overlapping it with the media `media`
+/// keys (0: none).
+fn frame_keys(
+    cloud: &ExtractedCloud,
+    gpu: &GpuParticles,
+    bounds: CloudBounds,
+    lights: &ExtractedCloudLights,
+    casts: &[u64],
+    media: u64,
+) -> StageKeys {
+    let params = cloud_params(cloud, gpu, bounds, lights);
+    let ground = ground_frame(cloud, &params, lights.ground.as_ref(), lights.sky);
+    StageKeys::new(
+        &params,
+        &light_params(&params, cloud, lights),
+        casts,
+        media,
+        (lights.sky, ground_key(&ground)),
+        gpu.generation,
+        &cloud.settings,
+    )
+}
+
+/// `cloud` illuminated at `n` voxels per side, its fine grid lowered where one such cloud's
+/// volumes would not fit the adapter's storage binding (`max_binding` bytes).
+fn at_resolution(
+    cloud: &ExtractedCloud,
+    n: u32,
+    lights: &ExtractedCloudLights,
+    max_binding: u64,
+) -> ExtractedCloud {
+    let mut cloud = cloud.clone();
+    cloud.settings.volume_resolution = n;
+    let (count, moments) = (lights.lights.len() as u32, cloud.has_moments());
+    let wanted = cloud.settings.light_resolution();
+    // None fits: n, and the allocation refuses the cloud with its own warning.
+    let fitting =
+        VolumeShape::fitting_light_resolution(&cloud.settings, count, moments, max_binding)
+            .unwrap_or(n);
+    cloud.light_resolution = fitting;
+    if fitting < wanted {
+        let message = format!(
+            "particle cloud: light volumes of {wanted}³ voxels for {count} lights exceed this \
+             adapter's storage buffer limit of {max_binding} bytes; such clouds are shaded on a \
+             fine grid of {fitting}³ (a scattering grid of {n}³)",
+        );
+        // The default's lowering is documented (5 lights at 48³ on a 128 MiB binding): not a
+        // warning, which would fire for every user of such an adapter.
+        if cloud.settings.light_supersampling_is_default() {
+            info_once!("{message}");
+        } else {
+            warn_once!("{message}");
+        }
+    }
+    cloud
+}
+
+/// The shape of the volumes `cloud` is illuminated in under `lights`.
+fn volume_shape(cloud: &ExtractedCloud, lights: &ExtractedCloudLights) -> VolumeShape {
+    let count = lights.lights.len() as u32;
+    VolumeShape::new(&cloud.settings, count, cloud.has_moments())
+        .with_light_resolution(cloud.light_resolution)
+}
+
+/// The uniform of the fine grid (voxelize and shade): the same cube at `m` voxels per side.
+fn fine_params(params: &CloudParams) -> CloudParams {
+    CloudParams {
+        n: params.light_n,
+        h: params.h * params.n as f32 / params.light_n as f32,
+        ..*params
+    }
+}
+
+/// The largest particle's radius in fine voxels, and its density level, in a fine grid of `m`
+/// voxels per side over `bounds`.
+fn largest_particle(bounds: CloudBounds, m: u32) -> (f64, usize) {
+    let r_over_h = (bounds.max_radius * m as f32 / bounds.side) as f64;
+    let levels = density_level_sizes(m).len();
+    (r_over_h, density_level(r_over_h, levels))
+}
+
+/// Density levels that hold particles: the fine grid down to the largest particle's level, or one
+/// further when that particle is within 1e-4 of a level's boundary, where the GPU's f32 choice
+/// may differ from this one (a level deposited on but not upsampled would lose its mass).
+fn levels_in_use(bounds: CloudBounds, m: u32) -> usize {
+    let (r_over_h, _) = largest_particle(bounds, m);
+    density_level(r_over_h * (1.0 + 1e-4), density_level_sizes(m).len()) + 1
+}
+
+/// Rows per axis of the widest support of a cloud's particles, in a fine grid of `m` voxels per
+/// side over `bounds`: the largest particle's on its level (at most `2 r / h_l + 1` voxel
+/// centres, and no more than the level holds), and, when that level is coarse, those of the
+/// particles on finer levels, which span up to `MAX_RADIUS_IN_LEVEL_VOXELS` of their own voxels
+/// (no more than the fine grid holds). So at most 65: the voxelize dispatch takes rows² along y,
+/// at most 65535.
+fn support_rows(bounds: CloudBounds, m: u32) -> u32 {
+    let (r_over_h, level) = largest_particle(bounds, m);
+    let on_level = r_over_h / (1u32 << level) as f64;
+    let largest = (2.0 * on_level.ceil() + 1.0).min(density_level_sizes(m)[level] as f64);
+    let finer = if level == 0 {
+        0.0
+    } else {
+        (2.0 * MAX_RADIUS_IN_LEVEL_VOXELS + 1.0).min(m as f64)
+    };
+    (largest.max(finer) as u32).max(1)
+}
+
+/// The uniform of a cloud's illumination passes.
+fn cloud_params(
+    cloud: &ExtractedCloud,
+    gpu: &GpuParticles,
+    bounds: CloudBounds,
+    lights: &ExtractedCloudLights,
+) -> CloudParams {
+    let n = cloud.settings.volume_resolution;
+    let delta = DeltaM::new(cloud.albedo as f64, cloud.anisotropy as f64);
+    CloudParams {
+        n,
+        particle_count: gpu.count,
+        light_n: cloud.light_resolution,
+        light_count: lights.lights.len() as u32,
+        grid_origin: bounds.centre - bounds.side * 0.5,
+        h: bounds.side / n as f32,
+        grid_centre: bounds.centre,
+        k_local: cloud.extinction * cloud.scale(),
+        albedo: cloud.albedo,
+        forward_scattering: cloud.settings.forward_scattering,
+        rows: support_rows(bounds, cloud.light_resolution),
+        anisotropy: cloud.anisotropy,
+        depth_scale: delta.depth_scale as f32,
+        lit: lights.any() as u32,
+        foreign: 0,
+        scatter_albedo: delta.albedo as f32,
+        scatter_anisotropy: delta.anisotropy as f32,
+        scatter_second_moment: delta.second_moment as f32,
+        moments: cloud.has_moments() as u32,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::settings::{CloudQualitySettings, MAX_VOLUME_RESOLUTION, MIN_VOLUME_RESOLUTION};
+
+    fn bounds(max_radius: f32) -> CloudBounds {
+        CloudBounds {
+            centre: Vec3::ZERO,
+            side: 2.0,
+            max_radius,
+        }
+    }
+
+    /// The voxelize dispatch no longer grows with the particles' size: a particle as wide as
+    /// the grid takes no more rows than one 32 voxels wide.
+    #[test]
+    fn voxelize_rows_are_bounded_whatever_the_particles_size() {
+        let m = 144;
+        let h = 2.0 / m as f32;
+        assert_eq!(support_rows(bounds(0.5 * h), m), 3);
+        assert_eq!(support_rows(bounds(3.5 * h), m), 9);
+        assert_eq!(support_rows(bounds(16.0 * h), m), 33);
+        assert_eq!(support_rows(bounds(32.0 * h), m), 65);
+        for r_over_h in [32.5, 64.0, 65.0, 80.0, 144.0] {
+            assert_eq!(
+                support_rows(bounds(r_over_h * h), m),
+                65,
+                "r/h = {r_over_h}"
+            );
+        }
+        // One level only (m < 8): the fine grid bounds the rows.
+        assert_eq!(support_rows(bounds(1.0), 6), 6);
+        // Whatever the grid and the particle, rows² fits the dispatch's y workgroups.
+        for m in [
+            MIN_VOLUME_RESOLUTION,
+            7,
+            8,
+            9,
+            33,
+            100,
+            255,
+            MAX_VOLUME_RESOLUTION,
+        ] {
+            for r in [0.01, 0.5, 1.0, 2.0, 100.0] {
+                let rows = support_rows(bounds(r), m);
+                assert!((1..=65).contains(&rows), "m {m}, r {r}: {rows} rows");
+            }
+        }
+    }
+
+    #[test]
+    fn only_levels_holding_particles_are_upsampled() {
+        let m = 144;
+        let h = 2.0 / m as f32;
+        assert_eq!(levels_in_use(bounds(31.9 * h), m), 1);
+        // At the boundary the GPU may round either way: the next level is upsampled too.
+        assert_eq!(levels_in_use(bounds(32.0 * h), m), 2);
+        assert_eq!(levels_in_use(bounds(32.5 * h), m), 2);
+        assert_eq!(levels_in_use(bounds(72.0 * h), m), 3);
+        assert_eq!(levels_in_use(bounds(144.0 * h), m), 4);
+    }
+
+    #[test]
+    fn density_levels_pack_after_the_fine_grid() {
+        let (entries, elements) = DensityLevels::entries(144);
+        assert_eq!(entries.len(), 6);
+        assert_eq!(
+            elements,
+            [144u64, 72, 36, 18, 9, 5]
+                .iter()
+                .map(|n| n.pow(3))
+                .sum::<u64>()
+        );
+        let e = &entries[3];
+        assert_eq!((e.count, e.upsample_from), (6, 3));
+        assert_eq!(e.size_offset[0], UVec4::new(144, 0, 0, 0));
+        assert_eq!(e.size_offset[1], UVec4::new(72, 144u32.pow(3), 0, 0));
+        assert_eq!(e.size_offset[6], UVec4::ZERO);
+    }
+
+    /// Five lights' volumes at 64³ × 4 (5 × 256³ floats, 336 MB) pass a 128 MiB binding
+    /// (lavapipe's, and WebGPU's default): the fine grid drops to the largest whose five volumes
+    /// fit, 188³ (5 × 188³ × 4 bytes = 132.9 MB; 189³ would be 135.0 MB), not to a whole
+    /// multiple of 64 (128³). One light keeps 256³ (67 MB), and so do five under a larger
+    /// binding. At the default 48³ (192³), five lights get 188³ too, four keep 192³.
+    #[test]
+    fn the_fine_grid_is_lowered_until_the_volumes_fit_the_binding() {
+        let lights = |count| ExtractedCloudLights {
+            lights: vec![
+                CloudLight {
+                    entity: Entity::PLACEHOLDER,
+                    direction: Vec3::NEG_Y,
+                    irradiance: Vec3::ONE,
+                };
+                count
+            ],
+            ..default()
+        };
+        let cloud = ExtractedCloud::for_test(default());
+        let fitted = |lights: &ExtractedCloudLights, n, max_binding| {
+            at_resolution(&cloud, n, lights, max_binding).light_resolution
+        };
+        let mib_128 = 128 << 20;
+        assert_eq!(cloud.settings.light_supersampling, 4);
+        assert_eq!(fitted(&lights(5), 64, mib_128), 188);
+        assert_eq!(fitted(&lights(1), 64, mib_128), 256);
+        assert_eq!(fitted(&lights(5), 64, 1 << 30), 256);
+        assert_eq!(fitted(&lights(5), 48, mib_128), 188);
+        assert_eq!(fitted(&lights(4), 48, mib_128), 192);
+        // More lights share the binding: ten get 149³ (132.3 MB), twenty 118³ (131.4 MB).
+        assert_eq!(fitted(&lights(10), 48, mib_128), 149);
+        assert_eq!(fitted(&lights(20), 48, mib_128), 118);
+        // At 128³ three lights' volumes bound the grid: 3 × 223³ × 4 = 133.1 MB.
+        assert_eq!(fitted(&lights(3), 128, mib_128), 223);
+        // One light's fine density (its levels, about 8/7 of m³ floats, and the 128³ scattering
+        // grid's) bounds it: about 300³, more than 64³ × 4 (the factor 2 it got before).
+        let one = fitted(&lights(1), 128, mib_128);
+        assert!((290..=310).contains(&one), "{one}");
+        let at_128 = ExtractedCloud::for_test(CloudQualitySettings {
+            volume_resolution: 128,
+            ..default()
+        });
+        let shape_128 = |m| volume_shape(&at_128, &lights(1)).with_light_resolution(m);
+        assert!(shape_128(one).max_slots(mib_128) >= 1);
+        assert_eq!(shape_128(one + 1).max_slots(mib_128), 0);
+        // Nothing fits: the scattering grid's side, and the allocation refuses the cloud with its
+        // own warning.
+        assert_eq!(fitted(&lights(1), 64, 1 << 20), 64);
+        let lowered = at_resolution(&cloud, 64, &lights(5), mib_128);
+        let lowered_shape = volume_shape(&lowered, &lights(5));
+        assert_eq!((lowered_shape.n, lowered_shape.m), (64, 188));
+        assert!(lowered_shape.max_slots(mib_128) >= 1);
+    }
+}
