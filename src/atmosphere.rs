@@ -3,7 +3,7 @@
 //! light's colour by the transmittance from the shaded point to the light, and by the part of the
 //! sun's disk above the horizon), so that clouds redden and darken with the sun at dusk. Each
 //! cloud takes the transmittance at its centre, from the atmosphere whose planet centre is nearest
-//! to it, integrated on the CPU at extraction when the cloud, a light or the atmosphere changed. The atmosphere's sky light and aerial perspective are not modelled (README, "What clouds
+//! to it, integrated on the CPU at extraction when the cloud, a light or the atmosphere changed. The atmosphere's sky light and aerial perspective are not modelled (docs/guide.md, "What clouds
 //! interact with").
 
 use bevy::{
@@ -19,7 +19,7 @@ use bevy::{
 
 use std::sync::Arc;
 
-use crate::{render::key_of, shadow_maps::CloudLights};
+use crate::{render::core::key_of, shadow_maps::CloudLights};
 
 /// Steps of the midpoint rule along the path to the light. Bevy's transmittance table takes 40
 /// (`AtmosphereSettings::transmittance_lut_samples`); 256 put the overhead optical depth of an

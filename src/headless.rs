@@ -207,7 +207,7 @@ pub fn spawn_scene(app: &mut App, scene: &Scene) -> SceneTarget {
     if let Some(fog) = &scene.fog {
         app.world_mut()
             .entity_mut(camera_entity)
-            .insert(crate::render::fog::distance_fog(fog));
+            .insert(crate::render::draw::fog::distance_fog(fog));
     }
     for light in &scene.lights {
         spawn_light(app, light.direction, light.irradiance);
@@ -615,7 +615,7 @@ pub fn read_buffer(
 /// The bytes of a part of a GPU buffer (a cloud's slot in a volume pool, for example).
 pub fn read_buffer_range(
     app: &mut App,
-    range: &crate::render::pools::BufferRange,
+    range: &crate::render::plan::pools::BufferRange,
 ) -> Result<Vec<u8>, HeadlessError> {
     read_back(app, range.size, |encoder, staging| {
         encoder.copy_buffer_to_buffer(&range.buffer, range.offset, staging, 0, range.size);

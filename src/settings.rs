@@ -5,7 +5,10 @@
 //! struct under `settings`. The cost and error of each knob are measured by the time–error
 //! benchmark (see the README).
 
-use bevy::{prelude::*, render::extract_component::ExtractComponent};
+use bevy::{
+    prelude::*,
+    render::{extract_component::ExtractComponent, extract_resource::ExtractResource},
+};
 use serde::Deserialize;
 
 /// How one multiple-scattering iteration carries light between voxels (docs/illumination.md §4).
@@ -67,7 +70,7 @@ pub enum Compositing {
     /// voxel, so it wants a fine grid (`light_supersampling` 3 or more) and 8 chord segments. The
     /// default: with those it is within the accuracy goals on every benchmark scene, and
     /// `Sorted` reads worse on five of seven (twice the error where optically thick particles
-    /// interpenetrate; README, "Compositing").
+    /// interpenetrate; docs/accuracy.md, "Compositing").
     #[default]
     ViewTransmittance,
 }
@@ -122,7 +125,7 @@ pub enum DrawMethod {
 pub struct CloudQualitySettings {
     /// Voxels per side `N` of the cloud's density and multiple-scattering volumes. Allowed:
     /// `MIN_VOLUME_RESOLUTION..=MAX_VOLUME_RESOLUTION`. Default 48, chosen from the time–error
-    /// benchmark (README, "Performance and accuracy"): the cheapest resolution at which every
+    /// benchmark (docs/benchmarking.md): the cheapest resolution at which every
     /// benchmark scene is within its accuracy goal. The image's error follows the fine grid
     /// (`volume_resolution * light_supersampling`) more than this: raise `light_supersampling`
     /// first (docs/performance.md, "The fine grid, not the scattering grid, sets the error").
@@ -437,7 +440,7 @@ pub struct DefaultCloudQuality(pub CloudQualitySettings);
 /// re-lit at least every `ceil(clouds / n)` frames. A cloud that has never been illuminated is
 /// always illuminated at once (it could not be drawn otherwise). A still sky re-lights nothing,
 /// whatever the budget. `0`, the default, means no limit.
-#[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
+#[derive(Resource, ExtractResource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
 #[reflect(Resource, Default, Debug, PartialEq)]
 pub struct CloudRelightBudget(pub u32);
 
@@ -448,7 +451,7 @@ pub struct CloudRelightBudget(pub u32);
 /// is composited onto the view every frame. Where nothing the target shows can have changed
 /// since the view last drew it, drawing it again gives the same texels, so by default the view
 /// keeps it.
-#[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
+#[derive(Resource, ExtractResource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
 #[reflect(Resource, Default, Debug, PartialEq)]
 pub enum CloudRedraw {
     /// Draw only when something the target shows may have changed: the camera (its transform,
@@ -467,7 +470,7 @@ pub enum CloudRedraw {
 /// A resource of the main world, extracted to the render world. Both marches compute the same
 /// arithmetic in the same order, so the same volumes; they differ in when each step loads its
 /// inputs, which suits one kind of adapter or the other (docs/performance.md, "On a real GPU").
-#[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
+#[derive(Resource, ExtractResource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
 #[reflect(Resource, Default, Debug, PartialEq)]
 pub enum SweepMarch {
     /// [`SweepMarch::Serial`] on a CPU adapter (llvmpipe), else [`SweepMarch::ReadAhead`].
@@ -504,7 +507,7 @@ impl SweepMarch {
 /// fill it (a sweep's time follows its lines' length, not its voxels: docs/performance.md, "On a
 /// real GPU"), one dispatch per order gives it 13 (or 49) times the lines at once; it has not
 /// been measured on one yet.
-#[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
+#[derive(Resource, ExtractResource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
 #[reflect(Resource, Default, Debug, PartialEq)]
 pub enum SweepDispatch {
     /// One dispatch per direction pair, each adding its share into the next order in place.
@@ -522,7 +525,7 @@ pub enum SweepDispatch {
 /// volume (up to f32 rounding); the brute force exists to measure what the incremental pass saves
 /// (`cargo run --example benchmark -- --illumination`). A change takes effect the next time a
 /// light is shaded (when a light, the density or the extinction changes).
-#[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
+#[derive(Resource, ExtractResource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
 #[reflect(Resource, Default, Debug, PartialEq)]
 pub enum ShadingMethod {
     /// The paper's Algorithm 4: one invocation per column along the light, each slice the

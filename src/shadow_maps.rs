@@ -19,7 +19,9 @@ use bevy::{
     light::{DirectionalLight, NotShadowCaster},
     platform::collections::HashMap,
     prelude::*,
-    render::{render_resource::ShaderType, storage::ShaderBuffer},
+    render::{
+        extract_resource::ExtractResource, render_resource::ShaderType, storage::ShaderBuffer,
+    },
 };
 
 use crate::{
@@ -31,7 +33,7 @@ use crate::{
 
 /// Cloud shadow maps: their resolution, and (written by the plugin) where each lies and the
 /// buffer that holds them. A resource; off (`resolution` 0) by default.
-#[derive(Resource, Clone, Debug, Default, Reflect)]
+#[derive(Resource, ExtractResource, Clone, Debug, Default, Reflect)]
 #[reflect(Resource, Default)]
 pub struct CloudShadowMaps {
     /// Texels per side of each light's map; 0 (the default) turns the maps off. The maps cover

@@ -11,7 +11,7 @@ use std::sync::{
     atomic::{AtomicU32, Ordering},
 };
 
-use bevy::{diagnostic::DiagnosticPath, prelude::*};
+use bevy::{diagnostic::DiagnosticPath, prelude::*, render::extract_resource::ExtractResource};
 
 /// Number of [`CloudPass`]es.
 pub const PASSES: usize = 7;
@@ -103,7 +103,7 @@ impl CloudPass {
 /// a cloud drawn in a view); a *dispatch* is one compute dispatch. The illumination passes batch
 /// every cloud of a volume shape into one dispatch, so their dispatches grow with the shapes in
 /// use, not with the clouds (docs/illumination.md §9).
-#[derive(Resource, Clone, Default, Debug)]
+#[derive(Resource, ExtractResource, Clone, Default, Debug)]
 pub struct CloudPassCounters(Arc<PassCounts>);
 
 #[derive(Default, Debug)]

@@ -5,13 +5,13 @@
 
 use bevy::render::render_resource::{BindGroupLayoutDescriptor, ShaderStages};
 
-use super::{
-    REQUIRED_STORAGE_BUFFERS,
-    cloud_target::{billboard_view_layout, composite_layout},
+use crate::render::{
+    core::adapter::REQUIRED_STORAGE_BUFFERS,
+    core::gpu::storage_buffers_in,
     draw::BillboardPipeline,
-    gpu::storage_buffers_in,
-    sort::sort_layout,
-    view_volume::view_volume_layouts,
+    draw::cloud_target::{billboard_view_layout, composite_layout},
+    view::sort::sort_layout,
+    view::view_volume::view_volume_layouts,
 };
 
 /// Asserts that the pipeline of `groups` fits the adapter check in every stage it runs.

@@ -3,20 +3,20 @@
 
 use bevy::render::render_resource::ShaderType;
 
-use super::{
-    cloud_target::CloudTargetParams,
+use crate::render::{
     draw::DrawParams,
-    fog::CloudFogParams,
-    ground::ground_map_bytes,
-    particles::GpuParticle,
-    pipelines::SweepDirection,
-    pools::Slot,
-    sky_map::{SkyCaster, SkyMapTarget},
-    sort::SortParams,
-    view_volume::ViewVolumeParams,
-    volumes::CloudParams,
-    volumes::DensityLevels,
-    volumes::LightParams,
+    draw::cloud_target::CloudTargetParams,
+    draw::fog::CloudFogParams,
+    extract::particles::GpuParticle,
+    illumination::pipelines::SweepDirection,
+    illumination::sky_map::{SkyCaster, SkyMapTarget},
+    plan::ground::ground_map_bytes,
+    plan::pools::Slot,
+    plan::volumes::CloudParams,
+    plan::volumes::DensityLevels,
+    plan::volumes::LightParams,
+    view::sort::SortParams,
+    view::view_volume::ViewVolumeParams,
 };
 
 const WGSL: [&str; 6] = [
@@ -27,7 +27,8 @@ const WGSL: [&str; 6] = [
     include_str!("view/sort.wgsl"),
     include_str!("illumination/scatter/sweep.wgsl"),
 ];
-const RUST: [&str; 11] = [
+const RUST: [&str; 12] = [
+    include_str!("core/types.rs"),
     include_str!("draw/fog.rs"),
     include_str!("illumination/sky_map.rs"),
     include_str!("plan/ground.rs"),

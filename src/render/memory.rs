@@ -13,11 +13,12 @@ use bevy::{
     },
 };
 
-use super::{
-    cloud_target::ViewCloudTargetResources, draw::CloudDrawBindGroups, extract::ExtractedCloud,
-    illumination::SweepPairVolumes, particles::GpuParticles, pools::VolumePools, sort::CloudSorts,
-    splat_batch::ViewSplatBatches, view_atlas::ViewVolumeAtlases, view_volume::CloudViewVolumes,
-    volumes::CloudVolumes, voxelize::VoxelizeScratch,
+use crate::render::{
+    draw::CloudDrawBindGroups, draw::cloud_target::ViewCloudTargetResources,
+    draw::splat_batch::ViewSplatBatches, extract::ExtractedCloud, extract::particles::GpuParticles,
+    illumination::SweepPairVolumes, illumination::voxelize::VoxelizeScratch,
+    plan::pools::VolumePools, plan::volumes::CloudVolumes, view::sort::CloudSorts,
+    view::view_atlas::ViewVolumeAtlases, view::view_volume::CloudViewVolumes,
 };
 use crate::stats::{CloudGpuMemory, CloudPassCounters};
 

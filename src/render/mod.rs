@@ -33,9 +33,6 @@ pub use self::extract::particles;
 pub use self::illumination::{pipelines, scatter::coarse_grid, shadow_maps, sky_map, voxelize};
 pub use self::plan::{budget, casters as cast, ground, overlap, pools, volumes};
 pub use self::view::{sort, view_atlas, view_volume};
-pub(crate) use self::core::{adapter::REQUIRED_STORAGE_BUFFERS, key_of};
-pub(crate) use self::draw::{after_sky, redraw};
-pub(crate) use self::view::views_by_cloud;
 
 use bevy::{
     asset::{embedded_asset, load_embedded_asset},
@@ -66,61 +63,12 @@ use crate::{
 impl SyncComponent for ParticleCloud {
     type Target = (
         ExtractedCloud,
-        volumes::CloudVolumes,
+        plan::volumes::CloudVolumes,
         plan::CloudIllumination,
-        sort::CloudSorts,
-        view_volume::CloudViewVolumes,
-        draw::CloudDrawBindGroups,
+        view::sort::CloudSorts,
+        view::view_volume::CloudViewVolumes,
+        draw::billboards::CloudDrawBindGroups,
     );
-}
-
-impl bevy::render::extract_resource::ExtractResource for CloudPassCounters {
-    type Source = CloudPassCounters;
-    fn extract_resource(source: &Self::Source) -> Self {
-        source.clone()
-    }
-}
-
-impl bevy::render::extract_resource::ExtractResource for CloudRelightBudget {
-    type Source = CloudRelightBudget;
-    fn extract_resource(source: &Self::Source) -> Self {
-        *source
-    }
-}
-
-impl bevy::render::extract_resource::ExtractResource for CloudShadowMaps {
-    type Source = CloudShadowMaps;
-    fn extract_resource(source: &Self::Source) -> Self {
-        source.clone()
-    }
-}
-
-impl bevy::render::extract_resource::ExtractResource for CloudRedraw {
-    type Source = CloudRedraw;
-    fn extract_resource(source: &Self::Source) -> Self {
-        *source
-    }
-}
-
-impl bevy::render::extract_resource::ExtractResource for SweepMarch {
-    type Source = SweepMarch;
-    fn extract_resource(source: &Self::Source) -> Self {
-        *source
-    }
-}
-
-impl bevy::render::extract_resource::ExtractResource for SweepDispatch {
-    type Source = SweepDispatch;
-    fn extract_resource(source: &Self::Source) -> Self {
-        *source
-    }
-}
-
-impl bevy::render::extract_resource::ExtractResource for ShadingMethod {
-    type Source = ShadingMethod;
-    fn extract_resource(source: &Self::Source) -> Self {
-        *source
-    }
 }
 
 pub(crate) fn build(app: &mut App) {
@@ -137,7 +85,7 @@ pub(crate) fn build(app: &mut App) {
         .register_type::<CloudRedraw>();
     app.insert_resource(shaders.clone()).add_plugins((
         SyncComponentPlugin::<ParticleCloud>::default(),
-        RenderAssetPlugin::<particles::GpuParticles>::default(),
+        RenderAssetPlugin::<extract::particles::GpuParticles>::default(),
         ExtractResourcePlugin::<CloudPassCounters>::default(),
         ExtractResourcePlugin::<ShadingMethod>::default(),
         ExtractResourcePlugin::<SweepMarch>::default(),
@@ -146,7 +94,7 @@ pub(crate) fn build(app: &mut App) {
         ExtractResourcePlugin::<CloudRedraw>::default(),
         ExtractResourcePlugin::<CloudShadowMaps>::default(),
     ));
-    cloud_target::build(app);
+    draw::cloud_target::build(app);
     if let Some(render_app) = app.get_sub_app_mut(RenderApp) {
         render_app.insert_resource(shaders);
     }
@@ -205,23 +153,23 @@ pub(crate) fn finish(app: &mut App) {
     }
     render_app
         .init_resource::<extract::ExtractedCloudLights>()
-        .init_resource::<pools::VolumePools>()
+        .init_resource::<plan::pools::VolumePools>()
         .init_resource::<illumination::SweepPairVolumes>()
-        .init_resource::<voxelize::VoxelizeScratch>()
-        .init_resource::<shadow_maps::ShadowMapKeys>()
-        .init_resource::<sky_map::SkyMapKey>()
-        .init_resource::<view_atlas::ViewVolumeAtlases>()
-        .init_resource::<SpecializedRenderPipelines<draw::BillboardPipeline>>()
-        .init_resource::<draw::BillboardEmitPipelines>()
-        .init_resource::<fog::CloudFogUniforms>()
-        .add_render_command::<Transparent3d, draw::DrawCloudBillboards>()
+        .init_resource::<illumination::voxelize::VoxelizeScratch>()
+        .init_resource::<illumination::shadow_maps::ShadowMapKeys>()
+        .init_resource::<illumination::sky_map::SkyMapKey>()
+        .init_resource::<view::view_atlas::ViewVolumeAtlases>()
+        .init_resource::<SpecializedRenderPipelines<draw::billboards::BillboardPipeline>>()
+        .init_resource::<draw::billboards::BillboardEmitPipelines>()
+        .init_resource::<draw::fog::CloudFogUniforms>()
+        .add_render_command::<Transparent3d, draw::billboards::DrawCloudBillboards>()
         .add_systems(
             RenderStartup,
             (
-                pipelines::init_illumination_pipelines,
-                sort::init_sort_pipelines,
-                view_volume::init_view_volume_pipeline,
-                draw::init_billboard_pipeline,
+                illumination::pipelines::init_illumination_pipelines,
+                view::sort::init_sort_pipelines,
+                view::view_volume::init_view_volume_pipeline,
+                draw::billboards::init_billboard_pipeline,
             ),
         )
         .add_systems(
@@ -232,25 +180,31 @@ pub(crate) fn finish(app: &mut App) {
             Render,
             (
                 (
-                    volumes::prepare_cloud_volumes,
-                    (sort::prepare_cloud_sorts, view_volume::prepare_view_volumes),
+                    plan::volumes::prepare_cloud_volumes,
+                    (
+                        view::sort::prepare_cloud_sorts,
+                        view::view_volume::prepare_view_volumes,
+                    ),
                 )
                     .chain()
                     .in_set(RenderSystems::PrepareResources),
-                (pipelines::write_sweep_sky, pipelines::queue_per_order_sweep)
+                (
+                    illumination::pipelines::write_sweep_sky,
+                    illumination::pipelines::queue_per_order_sweep,
+                )
                     .in_set(RenderSystems::PrepareResources),
-                fog::prepare_cloud_fog.in_set(RenderSystems::PrepareResources),
+                draw::fog::prepare_cloud_fog.in_set(RenderSystems::PrepareResources),
                 (
                     illumination::prepare_illumination_bind_groups,
                     // Disjoint fields of `CloudSorts`, but unordered they read as ambiguous.
                     (
-                        sort::prepare_sort_bind_groups,
-                        draw::prepare_billboard_bind_groups,
+                        view::sort::prepare_sort_bind_groups,
+                        draw::billboards::prepare_billboard_bind_groups,
                     )
                         .chain(),
                 )
                     .in_set(RenderSystems::PrepareBindGroups),
-                draw::queue_cloud_billboards.in_set(RenderSystems::Queue),
+                draw::billboards::queue_cloud_billboards.in_set(RenderSystems::Queue),
                 (memory::release_idle_scratch, memory::census_gpu_memory)
                     .chain()
                     .in_set(RenderSystems::Cleanup),
@@ -260,18 +214,18 @@ pub(crate) fn finish(app: &mut App) {
             RenderGraph,
             (
                 illumination::illuminate_clouds,
-                sort::sort_cloud_particles,
-                view_volume::march_view_volumes,
+                view::sort::sort_cloud_particles,
+                view::view_volume::march_view_volumes,
             )
                 .chain()
                 .in_set(RenderGraphSystems::Render)
                 .before(camera_driver),
         );
     #[cfg(feature = "distance_fog")]
-    render_app.add_systems(ExtractSchedule, fog::extract_cloud_fog);
-    cloud_target::finish(render_app);
+    render_app.add_systems(ExtractSchedule, draw::fog::extract_cloud_fog);
+    draw::cloud_target::finish(render_app);
     render_app.edit_schedule(Core3d, |schedule| {
-        schedule.add_build_pass(after_sky::LastBetween::cloud_composite());
+        schedule.add_build_pass(draw::after_sky::LastBetween::cloud_composite());
     });
-    splat::finish(render_app);
+    draw::splat::finish(render_app);
 }

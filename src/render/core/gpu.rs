@@ -1,6 +1,6 @@
 //! The GPU helpers every pass shares: buffers, their encodings, and a recorded stage (a compute
 //! pass inside a GPU time span, counted in `CloudPassCounters`). Dispatch sizes are in
-//! [`workgroups`](crate::render::workgroups).
+//! [`workgroups`](crate::render::core::workgroups).
 
 use bevy::{
     prelude::*,

@@ -7,6 +7,7 @@
 pub mod adapter;
 pub mod gpu;
 pub mod shaders;
+pub mod types;
 pub mod workgroups;
 
 /// A cache key of a stage's inputs: a stage reruns only when its key changes.

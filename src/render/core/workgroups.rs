@@ -9,7 +9,7 @@ use crate::{
     shadow_maps::SKY_MAP_DIRECTIONS,
 };
 
-use crate::render::gpu::StagePass;
+use crate::render::core::gpu::StagePass;
 
 /// Invocations per workgroup of the one-dimensional kernels (per particle, per lattice line, per
 /// tile); the shaders flatten `(x, y)` workgroups with `flat_invocation`.
@@ -19,6 +19,12 @@ pub const LINEAR: u32 = 64;
 pub const SLICE: u32 = 8;
 /// Elements per tile of the radix sort, each walked in order by one invocation.
 pub const SORT_TILE: u32 = 256;
+/// Texels per side of a tile of the sky map's caster lists (`illumination/sky_map`).
+pub const SKY_MAP_TILE: u32 = 8;
+/// The most pairs a sweep direction set has (Lattice98's): one dispatch per order binds that
+/// many `SweepDirection`s from its set's first (`illumination/scatter/sweep.wgsl`,
+/// `SWEEP_PER_ORDER`).
+pub const MAX_SWEEP_PAIRS: usize = 49;
 
 /// The shader defs of every pipeline of the crate.
 pub fn shader_defs() -> Vec<ShaderDefVal> {
@@ -29,15 +35,12 @@ pub fn shader_defs() -> Vec<ShaderDefVal> {
         ShaderDefVal::UInt("BEAM_PHASE_ANGLES".into(), BEAM_PHASE_ANGLES),
         ShaderDefVal::UInt("BEAM_PHASE_DEPTHS".into(), BEAM_PHASE_DEPTHS),
         ShaderDefVal::UInt("SKY_MAP_DIRECTIONS".into(), SKY_MAP_DIRECTIONS),
-        ShaderDefVal::UInt("SKY_MAP_TILE".into(), crate::render::sky_map::SKY_MAP_TILE),
+        ShaderDefVal::UInt("SKY_MAP_TILE".into(), SKY_MAP_TILE),
         ShaderDefVal::UInt(
             "DYNAMIC_UNIFORM_STRIDE".into(),
-            crate::render::gpu::DYNAMIC_UNIFORM_STRIDE,
+            crate::render::core::gpu::DYNAMIC_UNIFORM_STRIDE,
         ),
-        ShaderDefVal::UInt(
-            "MAX_SWEEP_PAIRS".into(),
-            crate::render::pipelines::MAX_SWEEP_PAIRS as u32,
-        ),
+        ShaderDefVal::UInt("MAX_SWEEP_PAIRS".into(), MAX_SWEEP_PAIRS as u32),
     ]
 }
 

@@ -41,7 +41,7 @@ impl LastBetween {
         Self {
             after: main_opaque_pass_3d.system_type_id(),
             before: main_transparent_pass_3d.system_type_id(),
-            last: crate::render::cloud_target::draw_cloud_target.system_type_id(),
+            last: crate::render::draw::cloud_target::draw_cloud_target.system_type_id(),
             #[cfg(any(feature = "distance_fog", feature = "lit_object"))]
             precedes: vec![bevy::pbr::main_transmissive_pass_3d.system_type_id()],
             #[cfg(not(any(feature = "distance_fog", feature = "lit_object")))]

@@ -48,19 +48,19 @@ use bevy::{
 use crate::beam_phase::BeamPhase;
 
 use crate::render::{
-    cloud_target::{ViewCloudDraws, ViewCloudSplats, ViewCloudTarget},
+    core::gpu::{sequential_layout, uniform_bytes},
+    core::key_of,
+    core::shaders::CloudShaders,
+    draw::cloud_target::{ViewCloudDraws, ViewCloudSplats, ViewCloudTarget},
+    draw::fog::{CloudFogParams, CloudFogUniforms, ExtractedCloudFog, FogMode, ViewCloudFogOffset},
     extract::ExtractedCloud,
-    fog::{CloudFogParams, CloudFogUniforms, ExtractedCloudFog, FogMode, ViewCloudFogOffset},
-    gpu::{sequential_layout, uniform_bytes},
-    key_of,
-    particles::GpuParticles,
+    extract::particles::GpuParticles,
     plan::CloudIllumination,
-    pools::{BufferRange, VolumePools},
-    shaders::CloudShaders,
-    sort::CloudSorts,
-    view_atlas::ViewVolumeAtlases,
-    view_volume::CloudViewVolumes,
-    volumes::CloudVolumes,
+    plan::pools::{BufferRange, VolumePools},
+    plan::volumes::CloudVolumes,
+    view::sort::CloudSorts,
+    view::view_atlas::ViewVolumeAtlases,
+    view::view_volume::CloudViewVolumes,
 };
 use crate::{
     cloud::ParticleCloud,
@@ -277,7 +277,7 @@ impl SpecializedRenderPipeline for BillboardPipeline {
     fn specialize(&self, key: Self::Key) -> RenderPipelineDescriptor {
         let compositing = key.blend.compositing();
         // The shared `types` module uses the workgroup defs too.
-        let mut shader_defs = crate::render::workgroups::shader_defs();
+        let mut shader_defs = crate::render::core::workgroups::shader_defs();
         if compositing == Compositing::ViewTransmittance {
             shader_defs.push("VIEW_TRANSMITTANCE".into());
         }
@@ -311,7 +311,7 @@ impl SpecializedRenderPipeline for BillboardPipeline {
                     shader_defs.push("MULTISAMPLED".into());
                 }
                 (
-                    crate::render::cloud_target::billboard_view_layout(multisampled_depth),
+                    crate::render::draw::cloud_target::billboard_view_layout(multisampled_depth),
                     format,
                     1,
                     None,

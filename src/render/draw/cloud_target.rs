@@ -45,18 +45,18 @@ use bevy::{
 };
 
 use crate::render::{
-    draw::{CloudDrawBindGroups, draw_billboards},
-    extract::{ExtractedCloud, ExtractedCloudLights},
-    fog::{CloudFogParams, CloudFogUniforms, ExtractedCloudFog, ViewCloudFogOffset},
-    gpu::{sequential_layout, uniform_bytes},
-    key_of,
-    particles::GpuParticles,
-    redraw::{DrawInputs, must_redraw},
-    shaders::CloudShaders,
-    splat::{
+    core::gpu::{sequential_layout, uniform_bytes},
+    core::key_of,
+    core::shaders::CloudShaders,
+    draw::fog::{CloudFogParams, CloudFogUniforms, ExtractedCloudFog, ViewCloudFogOffset},
+    draw::redraw::{DrawInputs, must_redraw},
+    draw::splat::{
         SplatResources, ViewSplatPipelines, compute_draw_refusal, record_splats, splat_resources,
     },
-    splat_batch::ViewSplatBatches,
+    draw::splat_batch::ViewSplatBatches,
+    draw::{CloudDrawBindGroups, draw_billboards},
+    extract::particles::GpuParticles,
+    extract::{ExtractedCloud, ExtractedCloudLights},
 };
 use crate::{
     cloud::ParticleCloud,
@@ -227,7 +227,7 @@ impl SpecializedRenderPipeline for CompositePipeline {
 
     fn specialize(&self, key: Self::Key) -> RenderPipelineDescriptor {
         let multisampled = key.samples > 1;
-        let mut shader_defs = crate::render::workgroups::shader_defs();
+        let mut shader_defs = crate::render::core::workgroups::shader_defs();
         if multisampled {
             shader_defs.push("MULTISAMPLED".into());
         }

@@ -12,8 +12,8 @@ use bevy::{
     },
 };
 
-use crate::render::extract::ExtractedCloudLights;
 use crate::fog::{Falloff, Fog};
+use crate::render::extract::ExtractedCloudLights;
 
 /// Directional lights whose glow the fog shows (Bevy's `MAX_DIRECTIONAL_LIGHTS`); the rest
 /// are left out. `fog.wgsl`'s arrays have this length (checked by the layout test).

@@ -10,7 +10,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use bevy::{math::Mat4, prelude::*, render::view::ExtractedView};
 
-use crate::render::{fog::CloudFogParams, gpu::uniform_bytes, key_of};
+use crate::render::{core::gpu::uniform_bytes, core::key_of, draw::fog::CloudFogParams};
 use crate::settings::CloudRedraw;
 
 /// What a computing view's splat reads, besides the opaque depth and the buffers that only the

@@ -24,14 +24,14 @@ use bevy::{
 };
 
 use crate::render::{
-    cloud_target::{
+    core::gpu::{sequential_layout, storage_buffers_in},
+    core::workgroups::{LINEAR, SLICE, linear_groups},
+    draw::BillboardPipeline,
+    draw::cloud_target::{
         BLENDED_CLOUD_TARGET_FORMAT, CLOUD_TARGET_FORMAT, CloudTargetParams, ViewCloudTarget,
     },
-    draw::BillboardPipeline,
-    fog::{CloudFogParams, ExtractedCloudFog, FogMode},
-    gpu::{sequential_layout, storage_buffers_in},
-    splat_batch::{ViewSplatBatches, prepare_splat_batches, splat_batch_layout},
-    workgroups::{LINEAR, SLICE, linear_groups},
+    draw::fog::{CloudFogParams, ExtractedCloudFog, FogMode},
+    draw::splat_batch::{ViewSplatBatches, prepare_splat_batches, splat_batch_layout},
 };
 
 /// Slices of a splat's dispatch (its z dimension): the (particle, texel) pairs of a workgroup's
@@ -115,7 +115,7 @@ pub(crate) fn splat_view_layout(
         (
             uniform_buffer::<ViewUniform>(true),
             uniform_buffer::<CloudTargetParams>(false),
-            crate::render::cloud_target::depth_binding(multisampled),
+            crate::render::draw::cloud_target::depth_binding(multisampled),
             uniform_buffer::<CloudFogParams>(true),
             storage_buffer_sized(false, None),
             texture_storage_2d(format, StorageTextureAccess::WriteOnly),
@@ -168,7 +168,7 @@ impl SpecializedComputePipeline for SplatPipeline {
     type Key = SplatPipelineKey;
 
     fn specialize(&self, key: Self::Key) -> ComputePipelineDescriptor {
-        let mut shader_defs = crate::render::workgroups::shader_defs();
+        let mut shader_defs = crate::render::core::workgroups::shader_defs();
         shader_defs.extend(["VIEW_TRANSMITTANCE", "CLOUD_TARGET", "COMPUTE_DRAW"].map(Into::into));
         if key.multisampled_depth {
             shader_defs.push("MULTISAMPLED".into());
@@ -392,7 +392,7 @@ mod tests {
     #[test]
     fn an_adapter_splats_when_its_sums_and_storage_buffers_fit() {
         let needed = splat_storage_buffers();
-        assert!(needed > crate::render::REQUIRED_STORAGE_BUFFERS);
+        assert!(needed > crate::render::core::adapter::REQUIRED_STORAGE_BUFFERS);
         let limits = WgpuLimits {
             max_storage_buffers_per_shader_stage: needed,
             ..default()

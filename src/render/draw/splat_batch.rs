@@ -23,17 +23,17 @@ use bevy::{
 };
 
 use crate::render::{
-    cloud_target::ViewCloudSplats,
+    core::gpu::{indexed_layout, storage_init},
+    core::key_of,
+    core::workgroups::LINEAR,
+    draw::cloud_target::ViewCloudSplats,
     draw::{CloudDrawBindGroups, DrawParams, draw_params},
     extract::ExtractedCloud,
-    gpu::{indexed_layout, storage_init},
-    key_of,
-    particles::{GpuParticle, GpuParticles},
-    pools::{PoolId, VolumePool, VolumePools},
-    view_atlas::{ViewVolumeAtlas, ViewVolumeAtlases},
-    view_volume::CloudViewVolumes,
-    volumes::{CloudParams, CloudVolumes, LightParams},
-    workgroups::LINEAR,
+    extract::particles::{GpuParticle, GpuParticles},
+    plan::pools::{PoolId, VolumePool, VolumePools},
+    plan::volumes::{CloudParams, CloudVolumes, LightParams},
+    view::view_atlas::{ViewVolumeAtlas, ViewVolumeAtlases},
+    view::view_volume::CloudViewVolumes,
 };
 
 /// Mirror of `CloudBases` in `billboard.wgsl`: where a cloud's elements start in its pool's
@@ -381,7 +381,7 @@ fn make_batch(
     } = source;
     let beam_phase = members[0].beam_phase;
     let bound = key_of((
-        crate::render::gpu::storage_bytes(&clouds),
+        crate::render::core::gpu::storage_bytes(&clouds),
         particles_key,
         [&pool.lights, &pool.optical_depth, multiple].map(|b| b.id()),
         [&atlas.optical_depth, &atlas.volumes, &atlas.neighbours].map(|b| b.id()),

@@ -1,8 +1,8 @@
 //! The illumination passes (the paper's Algorithm 1, lines 2–6): voxelize, shade per light,
 //! gather and multiple scattering. Only the stages planned for this frame run
 //! ([`plan`](crate::render::plan)). Every pass is batched: one dispatch covers every cloud of a volume
-//! pool ([`pools`](crate::render::pools)), its z workgroups walking a work list (voxelize first copies
-//! the clouds' particles into one buffer, [`voxelize`](crate::render::voxelize)). Their bind groups and
+//! pool ([`pools`](crate::render::plan::pools)), its z workgroups walking a work list (voxelize first copies
+//! the clouds' particles into one buffer, [`voxelize`](crate::render::illumination::voxelize)). Their bind groups and
 //! work lists are made in `PrepareBindGroups`; the system in the `RenderGraph` schedule, once per
 //! frame before any camera, only records.
 
@@ -29,25 +29,25 @@ use bevy::{
 };
 
 use crate::render::{
-    cast::{CastStart, CastTarget, CastWork, Caster, CasterVolume, add_cast, by_pool},
-    coarse_grid::CycleBatch,
+    core::gpu::{StagePass, WorkList, record_stage, storage, storage_init},
+    core::workgroups::{dispatch_columns, dispatch_linear, dispatch_rows},
+    extract::particles::GpuParticles,
     extract::{ExtractedCloud, ExtractedCloudLights},
-    gpu::{StagePass, WorkList, record_stage, storage, storage_init},
-    overlap::{Neighbour, OverlapItem},
-    particles::GpuParticles,
-    pipelines::{
+    illumination::pipelines::{
         ComputeStage, IlluminationPipelines, PerOrderSweepPipelines, ReadyPipelines,
         SWEEP_DIRECTIONS_BINDING, sweep_direction_offset, sweep_lines,
     },
-    plan::CloudIllumination,
-    pools::{PoolId, VolumePool, VolumePools},
-    shadow_maps::{LitCloud, ShadowMapCasts, ShadowMapKeys, shadow_map_casts},
-    sky_map::{SkyMapFill, SkyMapKey, sky_map_fill},
-    volumes::CloudVolumes,
-    voxelize::{
+    illumination::scatter::coarse_grid::CycleBatch,
+    illumination::shadow_maps::{LitCloud, ShadowMapCasts, ShadowMapKeys, shadow_map_casts},
+    illumination::sky_map::{SkyMapFill, SkyMapKey, sky_map_fill},
+    illumination::voxelize::{
         VoxelizeCloud, VoxelizeRound, VoxelizeScratch, prepare_round, record_round, voxelize_rounds,
     },
-    workgroups::{dispatch_columns, dispatch_linear, dispatch_rows},
+    plan::CloudIllumination,
+    plan::casters::{CastStart, CastTarget, CastWork, Caster, CasterVolume, add_cast, by_pool},
+    plan::overlap::{Neighbour, OverlapItem},
+    plan::pools::{PoolId, VolumePool, VolumePools},
+    plan::volumes::CloudVolumes,
 };
 use crate::{
     particle::DeltaM,
@@ -140,7 +140,7 @@ type ShadowMapInputs<'w> = (
 );
 
 /// The volumes a scattering series reads and writes: a pool's own, or its coarse grids'
-/// ([`CoarseGrids`](crate::render::pools::CoarseGrids)), laid out alike.
+/// ([`CoarseGrids`](crate::render::plan::pools::CoarseGrids)), laid out alike.
 pub(crate) struct SeriesVolumes<'a> {
     pub(crate) slots: &'a Buffer,
     pub(crate) densities: &'a Buffer,

@@ -1,12 +1,12 @@
 //! Compute pipelines of the illumination passes, created once in `RenderStartup`.
 
 use crate::render::{
-    extract::ExtractedCloudLights,
-    gpu::{
+    core::gpu::{
         DYNAMIC_UNIFORM_STRIDE, dynamic_uniform, indexed_layout, sequential_layout, uniform_bytes,
     },
-    shaders::CloudShaders,
-    volumes::DensityLevels,
+    core::shaders::CloudShaders,
+    core::types::DensityLevels,
+    extract::ExtractedCloudLights,
 };
 use std::num::NonZeroU64;
 
@@ -56,7 +56,7 @@ impl ComputeStage {
         moments: bool,
         defs: &[&'static str],
     ) -> Self {
-        let mut shader_defs = crate::render::workgroups::shader_defs();
+        let mut shader_defs = crate::render::core::workgroups::shader_defs();
         if moments {
             shader_defs.push("MOMENTS".into());
         }
@@ -156,9 +156,7 @@ const DIRECTION_SETS: [SweepDirections; 2] =
 /// [`sweep_direction_offset`].
 const PAIRS_PER_SET: usize = 62;
 
-/// The most pairs a direction set has (Lattice98's): one dispatch per order binds that many
-/// `SweepDirection`s from its set's first (`scatter.wgsl`, `SWEEP_PER_ORDER`).
-pub const MAX_SWEEP_PAIRS: usize = 49;
+pub use crate::render::core::workgroups::MAX_SWEEP_PAIRS;
 
 /// Bytes the sweep's direction binding holds: [`MAX_SWEEP_PAIRS`] entries, whichever stencil
 /// reads it.
@@ -641,7 +639,7 @@ pub(crate) fn init_illumination_pipelines(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::gpu::storage_buffers_in;
+    use crate::render::core::gpu::storage_buffers_in;
 
     #[test]
     fn every_illumination_layout_fits_the_storage_buffers_the_adapter_check_asks_for() {
@@ -663,7 +661,7 @@ mod tests {
         for layout in layouts {
             let storage = storage_buffers_in(&[layout], ShaderStages::COMPUTE);
             assert!(
-                storage <= crate::render::REQUIRED_STORAGE_BUFFERS,
+                storage <= crate::render::core::adapter::REQUIRED_STORAGE_BUFFERS,
                 "{}: {storage} storage buffers",
                 layout.label
             );

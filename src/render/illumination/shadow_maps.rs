@@ -14,14 +14,14 @@ use bevy::{
 };
 
 use crate::render::{
-    cast::{CastStart, CastTarget, CastWork, Caster, add_cast},
+    core::gpu::{WorkList, uniform_bytes},
+    core::key_of,
     extract::{ExtractedCloud, ExtractedCloudLights},
-    gpu::{WorkList, uniform_bytes},
     illumination::{Batch, light_caster},
-    key_of,
     plan::CloudIllumination,
-    pools::{PoolId, VolumePools},
-    volumes::CloudVolumes,
+    plan::casters::{CastStart, CastTarget, CastWork, Caster, add_cast},
+    plan::pools::{PoolId, VolumePools},
+    plan::volumes::CloudVolumes,
 };
 use crate::shadow_maps::{CloudShadowMaps, ShadowMapPlacement};
 

@@ -18,15 +18,14 @@ use bevy::{
 };
 
 use crate::render::{
-    gpu::{storage, uniform_bytes},
-    key_of,
-    pools::PoolId,
-    shadow_maps::LitCloud,
+    core::gpu::{storage, uniform_bytes},
+    core::key_of,
+    illumination::shadow_maps::LitCloud,
+    plan::pools::PoolId,
 };
 use crate::shadow_maps::{SKY_MAP_DIRECTIONS, ShadowMapPlacement, sky_direction};
 
-/// Texels per side of a tile of the sky map's caster lists.
-pub const SKY_MAP_TILE: u32 = 8;
+pub use crate::render::core::workgroups::SKY_MAP_TILE;
 
 /// The key of what the sky map holds (render world resource).
 #[derive(Resource, Default)]
@@ -221,7 +220,7 @@ pub(crate) fn sky_map_fill(
 /// The sky map's view of `cloud` with its `volumes`.
 fn sky_caster(
     cloud: &crate::render::extract::ExtractedCloud,
-    volumes: &crate::render::volumes::CloudVolumes,
+    volumes: &crate::render::plan::volumes::CloudVolumes,
 ) -> SkyCaster {
     let grid = &volumes.params;
     let side = (grid.n + 1) as f32 * grid.h;

@@ -17,15 +17,15 @@ use bevy::{
     },
 };
 
-use crate::render::{
-    gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, WORK_CHUNK},
-    illumination::Batch,
-    particles::GpuParticles,
-    pools::{BufferRange, PoolId, VolumePools},
-    volumes::{CloudVolumes, DensityLevels},
-    workgroups::{self, dispatch_columns},
-};
 use crate::math::density_level_sizes;
+use crate::render::{
+    core::gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, WORK_CHUNK},
+    core::workgroups::{self, dispatch_columns},
+    extract::particles::GpuParticles,
+    illumination::Batch,
+    plan::pools::{BufferRange, PoolId, VolumePools},
+    plan::volumes::{CloudVolumes, DensityLevels},
+};
 
 /// Bytes of one particle on the GPU (`Particle` in `types.wgsl`).
 const PARTICLE_BYTES: u64 = 32;

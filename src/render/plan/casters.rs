@@ -12,7 +12,7 @@
 use bevy::{math::Affine3A, prelude::*, render::render_resource::ShaderType};
 use bytemuck::{Pod, Zeroable};
 
-use crate::render::{key_of, particles::CloudBounds, volumes::LightParams};
+use crate::render::{core::key_of, core::types::LightParams, extract::particles::CloudBounds};
 
 /// A cloud's bounding sphere in the world: it holds the cloud's density cube, and so every light
 /// box of it. With the half-extents of the cube's world-axis-aligned box beside it.
@@ -56,7 +56,7 @@ pub fn casts_on(d: Vec3, receiver: CloudSphere, caster: CloudSphere) -> bool {
     across < reach && along < reach
 }
 
-/// A cloud as other clouds see it (the cast, and [`overlap`](crate::render::overlap)): where it is, its
+/// A cloud as other clouds see it (the cast, and [`overlap`](crate::render::plan::overlap)): where it is, its
 /// medium, and what its volumes hold.
 #[derive(Clone, Debug)]
 pub struct WorldCloud {
@@ -304,7 +304,7 @@ pub fn add_cast<P: Copy + Ord + std::hash::Hash>(
 
 /// `items` grouped by the pool each lies in, the pools in order: the order their dispatches
 /// run, the first writing a target and the others adding to it (the cast, and the overlap of
-/// [`overlap`](crate::render::overlap)).
+/// [`overlap`](crate::render::plan::overlap)).
 pub fn by_pool<P: Copy + Ord, T>(items: impl IntoIterator<Item = (P, T)>) -> Vec<(P, Vec<T>)> {
     let mut grouped: Vec<(P, Vec<T>)> = Vec::new();
     for (pool, item) in items {

@@ -5,8 +5,8 @@
 
 use bevy::{math::Affine3A, prelude::*, render::render_resource::ShaderType};
 
-use crate::render::{extract::ExtractedCloud, key_of, volumes::CloudParams};
 use crate::ground::{CloudGround, GROUND_MAP_SIDE, GroundMapPlacement};
+use crate::render::{core::key_of, core::types::CloudParams, extract::ExtractedCloud};
 
 /// Mirror of the frame at the start of `GroundMap` in `types.wgsl`: where the cloud and the
 /// ground under it lie, and what the ground reflects.

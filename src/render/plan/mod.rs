@@ -13,8 +13,8 @@ pub mod volumes;
 use bevy::prelude::*;
 
 use crate::render::{
-    key_of,
-    volumes::{CloudParams, LightParams},
+    core::key_of,
+    core::types::{CloudParams, LightParams},
 };
 use crate::settings::{CloudQualitySettings, ScatterStencil, SweepDirections};
 
@@ -48,10 +48,10 @@ impl StageKeys {
 
     /// This frame's keys of a cloud with the uniform `params`, its lights' uniforms `lights` (in
     /// slot order), the key of what other clouds cast on it along each light (`casters[i]`: 0, or
-    /// missing, when none does; [`cast`](crate::render::cast)), the key of the media of the clouds that
-    /// overlap it (`media`: 0 when none does; [`overlap`](crate::render::overlap)), what enters its grid
+    /// missing, when none does; [`cast`](crate::render::plan::casters)), the key of the media of the clouds that
+    /// overlap it (`media`: 0 when none does; [`overlap`](crate::render::plan::overlap)), what enters its grid
     /// from outside (the sky's radiance, and the key of the ground under it: 0 for none;
-    /// [`ground`](crate::render::ground)), its particles' upload `generation` and its `settings`.
+    /// [`ground`](crate::render::plan::ground)), its particles' upload `generation` and its `settings`.
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         params: &CloudParams,

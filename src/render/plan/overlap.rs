@@ -13,8 +13,8 @@ use bevy::{math::Affine3A, prelude::*, render::render_resource::ShaderType};
 use bytemuck::{Pod, Zeroable};
 
 use crate::render::{
-    cast::{CloudSphere, WorldCloud},
-    key_of,
+    core::key_of,
+    plan::casters::{CloudSphere, WorldCloud},
 };
 
 /// Whether two clouds' density cubes (and so possibly their media) may overlap: their bounding
@@ -115,7 +115,7 @@ pub struct OverlapItem {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::cast::tests::cloud;
+    use crate::render::plan::casters::tests::cloud;
 
     #[test]
     fn clouds_whose_cubes_meet_are_neighbours_keyed_by_what_they_give() {

@@ -19,9 +19,9 @@ use bevy::{
 use crate::settings::CloudQualitySettings;
 
 use crate::render::{
-    gpu::{dynamic_uniform, storage},
-    ground::ground_map_bytes,
-    volumes::{CloudParams, DensityLevels, LightParams},
+    core::gpu::{dynamic_uniform, storage},
+    core::types::{CloudParams, DensityLevels, LightParams},
+    plan::ground::ground_map_bytes,
 };
 
 /// The byte boundary every slot's region starts on: WebGPU's largest
@@ -303,10 +303,10 @@ pub struct VolumePool {
     /// two coefficients.
     pub order_ratios: Buffer,
     /// vec2 per voxel of the scattering grid: other clouds' media there (extinction, scattering;
-    /// [`overlap`](crate::render::overlap)).
+    /// [`overlap`](crate::render::plan::overlap)).
     pub foreign: Buffer,
     /// `GroundMap` per slot: the ground under the cloud and its radiance
-    /// ([`ground`](crate::render::ground)).
+    /// ([`ground`](crate::render::plan::ground)).
     pub ground: Buffer,
     /// The `DensityLevels` uniform of the shape's fine grid, one entry per `upsample_from`,
     /// `DYNAMIC_UNIFORM_STRIDE` bytes apart (voxelize).

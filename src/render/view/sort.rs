@@ -21,13 +21,13 @@ use bevy::{
 };
 
 use crate::render::{
+    core::gpu::{StagePass, record_stage, sequential_layout, storage, uniform_bytes},
+    core::key_of,
+    core::shaders::CloudShaders,
+    core::workgroups::{self, SORT_TILE, dispatch_linear},
     extract::ExtractedCloud,
-    gpu::{StagePass, record_stage, sequential_layout, storage, uniform_bytes},
-    key_of,
-    particles::GpuParticles,
-    shaders::CloudShaders,
-    views_by_cloud,
-    workgroups::{self, SORT_TILE, dispatch_linear},
+    extract::particles::GpuParticles,
+    view::views_by_cloud,
 };
 use crate::{
     settings::Compositing,

@@ -14,9 +14,9 @@ use bevy::{
 };
 
 use crate::render::{
-    gpu::{storage, storage_bytes},
-    key_of,
-    view_volume::{UNLIT, ViewVolumeParams, view_volume_len},
+    core::gpu::{storage, storage_bytes},
+    core::key_of,
+    view::view_volume::{UNLIT, ViewVolumeParams, view_volume_len},
 };
 
 /// Every transmittance volume of one view in shared buffers, so that a cloud's billboards can

@@ -24,15 +24,15 @@ use bevy::{
 };
 
 use crate::render::{
+    core::gpu::{WorkList, indexed_layout, record_stage, sequential_layout, uniform_bytes},
+    core::key_of,
+    core::shaders::CloudShaders,
+    core::workgroups,
     extract::ExtractedCloud,
-    gpu::{WorkList, indexed_layout, record_stage, sequential_layout, uniform_bytes},
-    key_of,
     plan::CloudIllumination,
-    pools::{PoolId, VolumePool, VolumePools},
-    shaders::CloudShaders,
-    view_atlas::{AtlasEntry, ViewVolumeAtlas, ViewVolumeAtlases, link_neighbours},
-    volumes::CloudVolumes,
-    workgroups,
+    plan::pools::{PoolId, VolumePool, VolumePools},
+    plan::volumes::CloudVolumes,
+    view::view_atlas::{AtlasEntry, ViewVolumeAtlas, ViewVolumeAtlases, link_neighbours},
 };
 use crate::{
     cloud::ParticleCloud,

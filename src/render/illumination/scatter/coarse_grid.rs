@@ -1,7 +1,7 @@
 //! The coarse-grid cycles of the multiple scattering (docs/illumination.md §4, "Coarse-grid
 //! cycles"), after a batch's full series. First each cloud's media (its density and other
 //! clouds') are averaged onto its grid of half the side
-//! ([`CoarseGrids`](crate::render::pools::CoarseGrids)). Each cycle sweeps the fine grids for their
+//! ([`CoarseGrids`](crate::render::plan::pools::CoarseGrids)). Each cycle sweeps the fine grids for their
 //! residual `r = K (S_0 + S) + b - S` (adding it to `S`), averages it onto the coarse grid
 //! weighted by what each voxel scatters, sums the series of [`COARSE_GRID_ORDERS`] orders from it
 //! there and closes it, adds that correction back trilinearly, and sweeps the fine grids once
@@ -11,11 +11,11 @@
 use bevy::render::render_resource::{BindGroup, BindGroupEntries, BindGroupEntry, Buffer};
 
 use crate::render::{
-    gpu::{StagePass, WorkList},
+    core::gpu::{StagePass, WorkList},
+    core::workgroups::dispatch_linear,
+    illumination::pipelines::{ComputeStage, IlluminationPipelines},
     illumination::{OrderPairs, SeriesPasses, SeriesVolumes, scatter_group},
-    pipelines::{ComputeStage, IlluminationPipelines},
-    pools::VolumePool,
-    workgroups::dispatch_linear,
+    plan::pools::VolumePool,
 };
 use crate::settings::COARSE_GRID_ORDERS;
 
