@@ -256,3 +256,28 @@ pub(crate) fn record_stage(
     counters.add(stage, runs);
     counters.add_dispatches(stage, dispatches);
 }
+
+/// One batched pass over a pool: its bind group and work list.
+pub(crate) struct Batch {
+    pub(crate) group: BindGroup,
+    pub(crate) work: WorkList,
+}
+
+impl Batch {
+    /// The batch of `items`, with the bind group `bind` makes for their work list; `None`
+    /// without items.
+    pub(crate) fn new<T: bytemuck::Pod>(
+        device: &RenderDevice,
+        items: &[T],
+        bind: impl FnOnce(&WorkList) -> BindGroup,
+    ) -> Option<Self> {
+        if items.is_empty() {
+            return None;
+        }
+        let work = WorkList::new(device, items);
+        Some(Self {
+            group: bind(&work),
+            work,
+        })
+    }
+}

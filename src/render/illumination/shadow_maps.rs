@@ -14,10 +14,11 @@ use bevy::{
 };
 
 use crate::render::{
+    core::gpu::Batch,
     core::gpu::{WorkList, uniform_bytes},
     core::key_of,
     extract::{ExtractedCloud, ExtractedCloudLights},
-    illumination::{Batch, light_caster},
+    illumination::cast::light_caster,
     plan::CloudIllumination,
     plan::casters::{CastStart, CastTarget, CastWork, Caster, add_cast},
     plan::pools::{PoolId, VolumePools},

@@ -19,10 +19,10 @@ use bevy::{
 
 use crate::math::density_level_sizes;
 use crate::render::{
+    core::gpu::Batch,
     core::gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, WORK_CHUNK},
     core::workgroups::{self, dispatch_columns},
     extract::particles::GpuParticles,
-    illumination::Batch,
     plan::pools::{BufferRange, PoolId, VolumePools},
     plan::volumes::{CloudVolumes, DensityLevels},
 };

@@ -14,7 +14,7 @@ use crate::render::{
     core::gpu::{StagePass, WorkList},
     core::workgroups::dispatch_linear,
     illumination::pipelines::{ComputeStage, IlluminationPipelines},
-    illumination::{OrderPairs, SeriesPasses, SeriesVolumes, scatter_group},
+    illumination::scatter::series::{OrderPairs, SeriesPasses, SeriesVolumes, scatter_group},
     plan::pools::VolumePool,
 };
 use crate::settings::COARSE_GRID_ORDERS;

@@ -3,3 +3,4 @@
 //! the media of overlapping clouds (`overlap.wgsl`).
 
 pub mod coarse_grid;
+pub mod series;
