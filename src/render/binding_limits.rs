@@ -9,7 +9,7 @@ use crate::render::{
     core::adapter::REQUIRED_STORAGE_BUFFERS,
     core::gpu::storage_buffers_in,
     draw::BillboardPipeline,
-    draw::cloud_target::{billboard_view_layout, composite_layout},
+    draw::target::{billboard_view_layout, composite_layout},
     view::sort::sort_layout,
     view::view_volume::view_volume_layouts,
 };

@@ -5,8 +5,8 @@ use bevy::render::render_resource::ShaderType;
 
 use crate::render::{
     draw::DrawParams,
-    draw::cloud_target::CloudTargetParams,
     draw::fog::CloudFogParams,
+    draw::target::CloudTargetParams,
     extract::particles::GpuParticle,
     illumination::pipelines::SweepDirection,
     illumination::sky_map::{SkyCaster, SkyMapTarget},
@@ -27,7 +27,9 @@ const WGSL: [&str; 6] = [
     include_str!("view/sort.wgsl"),
     include_str!("illumination/scatter/sweep.wgsl"),
 ];
-const RUST: [&str; 12] = [
+const RUST: [&str; 14] = [
+    include_str!("draw/target.rs"),
+    include_str!("view/view_atlas.rs"),
     include_str!("core/types.rs"),
     include_str!("draw/fog.rs"),
     include_str!("illumination/sky_map.rs"),

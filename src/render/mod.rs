@@ -24,6 +24,8 @@ pub mod view;
 #[cfg(test)]
 mod binding_limits;
 #[cfg(test)]
+mod layering;
+#[cfg(test)]
 mod layout_tests;
 
 // The modules' public paths from before the folders (`render::volumes`, …) stay.

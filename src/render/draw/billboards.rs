@@ -51,8 +51,8 @@ use crate::render::{
     core::gpu::{sequential_layout, uniform_bytes},
     core::key_of,
     core::shaders::CloudShaders,
-    draw::cloud_target::{ViewCloudDraws, ViewCloudSplats, ViewCloudTarget},
     draw::fog::{CloudFogParams, CloudFogUniforms, ExtractedCloudFog, FogMode, ViewCloudFogOffset},
+    draw::target::{ViewCloudDraws, ViewCloudSplats, ViewCloudTarget},
     extract::ExtractedCloud,
     extract::particles::GpuParticles,
     plan::CloudIllumination,
@@ -311,7 +311,7 @@ impl SpecializedRenderPipeline for BillboardPipeline {
                     shader_defs.push("MULTISAMPLED".into());
                 }
                 (
-                    crate::render::draw::cloud_target::billboard_view_layout(multisampled_depth),
+                    crate::render::draw::target::billboard_view_layout(multisampled_depth),
                     format,
                     1,
                     None,

@@ -11,6 +11,7 @@ pub mod fog;
 pub(crate) mod redraw;
 pub mod splat;
 pub mod splat_batch;
+pub mod target;
 
 // The billboard draw was `render::draw` before the folders; its public paths stay.
 pub use billboards::*;

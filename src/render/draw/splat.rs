@@ -27,11 +27,11 @@ use crate::render::{
     core::gpu::{sequential_layout, storage_buffers_in},
     core::workgroups::{LINEAR, SLICE, linear_groups},
     draw::BillboardPipeline,
-    draw::cloud_target::{
-        BLENDED_CLOUD_TARGET_FORMAT, CLOUD_TARGET_FORMAT, CloudTargetParams, ViewCloudTarget,
-    },
     draw::fog::{CloudFogParams, ExtractedCloudFog, FogMode},
     draw::splat_batch::{ViewSplatBatches, prepare_splat_batches, splat_batch_layout},
+    draw::target::{
+        BLENDED_CLOUD_TARGET_FORMAT, CLOUD_TARGET_FORMAT, CloudTargetParams, ViewCloudTarget,
+    },
 };
 
 /// Slices of a splat's dispatch (its z dimension): the (particle, texel) pairs of a workgroup's
@@ -115,7 +115,7 @@ pub(crate) fn splat_view_layout(
         (
             uniform_buffer::<ViewUniform>(true),
             uniform_buffer::<CloudTargetParams>(false),
-            crate::render::draw::cloud_target::depth_binding(multisampled),
+            crate::render::draw::target::depth_binding(multisampled),
             uniform_buffer::<CloudFogParams>(true),
             storage_buffer_sized(false, None),
             texture_storage_2d(format, StorageTextureAccess::WriteOnly),

@@ -26,7 +26,7 @@ use crate::render::{
     core::gpu::{indexed_layout, storage_init},
     core::key_of,
     core::workgroups::LINEAR,
-    draw::cloud_target::ViewCloudSplats,
+    draw::target::ViewCloudSplats,
     draw::{CloudDrawBindGroups, DrawParams, draw_params},
     extract::ExtractedCloud,
     extract::particles::{GpuParticle, GpuParticles},

@@ -32,7 +32,7 @@ use crate::render::{
     plan::CloudIllumination,
     plan::pools::{PoolId, VolumePool, VolumePools},
     plan::volumes::CloudVolumes,
-    view::view_atlas::{AtlasEntry, ViewVolumeAtlas, ViewVolumeAtlases, link_neighbours},
+    view::view_atlas::{AtlasEntry, UNLIT, ViewVolumeAtlas, ViewVolumeAtlases, link_neighbours},
 };
 use crate::{
     cloud::ParticleCloud,
@@ -40,44 +40,8 @@ use crate::{
     stats::{CloudPass, CloudPassCounters},
 };
 
-/// Mirror of `ViewVolumeParams` in `types.wgsl`.
-#[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
-pub struct ViewVolumeParams {
-    /// Cloud-local from view space.
-    pub local_from_view: Mat4,
-    /// Tangent rectangle `(u0, u1, v0, v1)` of the rays: `u = x / depth`, `v = y / depth`.
-    pub rect: Vec4,
-    /// View depths of the first and last slice, metres.
-    pub depth: Vec2,
-    /// Extinction `K` per world metre at density 1.
-    pub extinction: f32,
-    /// Rays per side and slices `n` (the fine grid's resolution).
-    pub n: u32,
-    /// First element of this volume in its view's [`ViewVolumeAtlas::optical_depth`].
-    pub offset: u32,
-    /// First entry of this volume's neighbours in [`ViewVolumeAtlas::neighbours`].
-    pub first_neighbour: u32,
-    /// Its neighbours: the view volumes (its own among them) whose clouds may lie in front of
-    /// some point of this cloud. Its billboards see through all of them.
-    pub neighbour_count: u32,
-    /// The first `front_count` neighbours lie wholly in front of this volume: their optical
-    /// depth along each of its columns is summed once into its front map.
-    pub front_count: u32,
-    /// First vec4 of the cloud's multiple scattering seen from the camera in
-    /// [`ViewVolumeAtlas::seen_multiple`] (an anisotropic cloud's).
-    pub seen_offset: u32,
-    /// Voxels per side of that volume (the scattering grid's `N`); 0 when the cloud has none
-    /// (isotropic: its billboards read the mean `S_m`).
-    pub seen_n: u32,
-}
-
-/// Elements a view volume of `n` rays per side and `n` slices takes in its atlas: its `n³`
-/// optical depths, then its front map, `n²` sums of the optical depth of the neighbours wholly in
-/// front of it along each column's ray (`view_volume.wgsl`, `sum_front`).
-pub fn view_volume_len(n: u32) -> u64 {
-    let n = n as u64;
-    n * n * n + n * n
-}
+// These lived here before the atlas took them; their public paths stay.
+pub use crate::render::view::view_atlas::{ViewVolumeParams, view_volume_len};
 
 /// The march's and the front maps' compute pipelines.
 #[derive(Resource)]
@@ -172,9 +136,6 @@ pub(crate) fn init_view_volume_pipeline(
         see_multiple,
     });
 }
-
-/// The key of an unlit cloud's volume.
-pub(crate) const UNLIT: u64 = u64::MAX;
 
 /// One view's transmittance volume of one cloud. Its optical depths live in the view's
 /// [`ViewVolumeAtlas`].
