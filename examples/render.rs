@@ -371,7 +371,7 @@ fn check_volume_fits(app: &mut bevy::app::App, scene: &Scene, adapter: &str) -> 
     ))
 }
 
-/// The `--stats` file (schema in the README).
+/// The `--stats` file (schema in docs/tools.md, "Statistics").
 fn write_stats(path: &std::path::Path, adapter: &str, frames: &[FrameStats]) -> Result<(), String> {
     let frames: Vec<serde_json::Value> = frames
         .iter()
