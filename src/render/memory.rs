@@ -16,7 +16,7 @@ use bevy::{
 use crate::render::{
     draw::CloudDrawBindGroups, draw::cloud_target::ViewCloudTargetResources,
     draw::splat_batch::ViewSplatBatches, extract::ExtractedCloud, extract::particles::GpuParticles,
-    illumination::SweepPairVolumes, illumination::voxelize::VoxelizeScratch,
+    illumination::batches::SweepPairVolumes, illumination::voxelize::VoxelizeScratch,
     plan::pools::VolumePools, plan::volumes::CloudVolumes, view::sort::CloudSorts,
     view::view_atlas::ViewVolumeAtlases, view::view_volume::CloudViewVolumes,
 };

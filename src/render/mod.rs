@@ -69,7 +69,7 @@ impl SyncComponent for ParticleCloud {
         plan::CloudIllumination,
         view::sort::CloudSorts,
         view::view_volume::CloudViewVolumes,
-        draw::billboards::CloudDrawBindGroups,
+        draw::billboard_groups::CloudDrawBindGroups,
     );
 }
 
@@ -156,15 +156,15 @@ pub(crate) fn finish(app: &mut App) {
     render_app
         .init_resource::<extract::ExtractedCloudLights>()
         .init_resource::<plan::pools::VolumePools>()
-        .init_resource::<illumination::SweepPairVolumes>()
+        .init_resource::<illumination::batches::SweepPairVolumes>()
         .init_resource::<illumination::voxelize::VoxelizeScratch>()
         .init_resource::<illumination::shadow_maps::ShadowMapKeys>()
         .init_resource::<illumination::sky_map::SkyMapKey>()
         .init_resource::<view::view_atlas::ViewVolumeAtlases>()
         .init_resource::<SpecializedRenderPipelines<draw::billboards::BillboardPipeline>>()
-        .init_resource::<draw::billboards::BillboardEmitPipelines>()
+        .init_resource::<draw::billboard_queue::BillboardEmitPipelines>()
         .init_resource::<draw::fog::CloudFogUniforms>()
-        .add_render_command::<Transparent3d, draw::billboards::DrawCloudBillboards>()
+        .add_render_command::<Transparent3d, draw::billboard_queue::DrawCloudBillboards>()
         .add_systems(
             RenderStartup,
             (
@@ -197,16 +197,16 @@ pub(crate) fn finish(app: &mut App) {
                     .in_set(RenderSystems::PrepareResources),
                 draw::fog::prepare_cloud_fog.in_set(RenderSystems::PrepareResources),
                 (
-                    illumination::prepare_illumination_bind_groups,
+                    illumination::batches::prepare_illumination_bind_groups,
                     // Disjoint fields of `CloudSorts`, but unordered they read as ambiguous.
                     (
                         view::sort::prepare_sort_bind_groups,
-                        draw::billboards::prepare_billboard_bind_groups,
+                        draw::billboard_groups::prepare_billboard_bind_groups,
                     )
                         .chain(),
                 )
                     .in_set(RenderSystems::PrepareBindGroups),
-                draw::billboards::queue_cloud_billboards.in_set(RenderSystems::Queue),
+                draw::billboard_queue::queue_cloud_billboards.in_set(RenderSystems::Queue),
                 (memory::release_idle_scratch, memory::census_gpu_memory)
                     .chain()
                     .in_set(RenderSystems::Cleanup),
@@ -215,7 +215,7 @@ pub(crate) fn finish(app: &mut App) {
         .add_systems(
             RenderGraph,
             (
-                illumination::illuminate_clouds,
+                illumination::node::illuminate_clouds,
                 view::sort::sort_cloud_particles,
                 view::view_volume::march_view_volumes,
             )

@@ -5,6 +5,8 @@
 //! clouds' place after Bevy's sky (`after_sky`).
 
 pub(crate) mod after_sky;
+pub mod billboard_groups;
+pub mod billboard_queue;
 pub mod billboards;
 pub mod cloud_target;
 pub mod fog;
@@ -14,4 +16,6 @@ pub mod splat_batch;
 pub mod target;
 
 // The billboard draw was `render::draw` before the folders; its public paths stay.
+pub use billboard_groups::*;
+pub use billboard_queue::*;
 pub use billboards::*;
