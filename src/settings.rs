@@ -523,7 +523,7 @@ pub enum SweepDispatch {
 ///
 /// A resource of the main world, extracted to the render world. Both methods give the same
 /// volume (up to f32 rounding); the brute force exists to measure what the incremental pass saves
-/// (`cargo run --example benchmark -- --illumination`). A change takes effect the next time a
+/// (`cargo run --example benchmark -- illumination`). A change takes effect the next time a
 /// light is shaded (when a light, the density or the extinction changes).
 #[derive(Resource, ExtractResource, Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
 #[reflect(Resource, Default, Debug, PartialEq)]

@@ -1,4 +1,4 @@
-//! `--cloud-target`: the draw's cost and error at each `cloud_target_scale` (the paper's §4
+//! `cloud-target`: the draw's cost and error at each `cloud_target_scale` (the paper's §4
 //! fill-rate optimisation), at otherwise default settings.
 //!
 //! Cost: the draw's GPU time in a static frame (nothing else runs), and the static frame's wall
@@ -29,12 +29,24 @@ struct ScaleRow {
     against_full: f64,
 }
 
-pub(crate) fn cloud_target_benchmark(args: &Args) -> Result<(), String> {
+/// The options of `benchmark cloud-target`.
+#[derive(clap::Args, Debug)]
+pub(crate) struct CloudTargetArgs {
+    /// Only these scenes (comma-separated names; default: the paper's three 640×480 scenes).
+    #[arg(long, value_delimiter = ',')]
+    pub(crate) scenes: Option<Vec<String>>,
+    #[command(flatten)]
+    pub(crate) reference: ReferenceSpp,
+    #[command(flatten)]
+    pub(crate) frames: Frames,
+}
+
+pub(crate) fn cloud_target_benchmark(args: &CloudTargetArgs, out: &Path) -> Result<(), String> {
     let mut rows = Vec::new();
     let mut adapter = String::new();
-    for bench in chosen_scenes(args, &DEFAULT_SCENES) {
+    for bench in chosen_scenes(args.scenes.as_deref(), &DEFAULT_SCENES) {
         let scene = load_scene(bench)?;
-        let reference = reference(&scene, bench, args.spp.unwrap_or(bench.spp), &args.out)?;
+        let reference = reference(&scene, bench, args.reference.spp.unwrap_or(bench.spp), out)?;
         let reference_image = reference.image.clone();
         let mut b = Bench::new(&scene);
         adapter = b.adapter.clone();
@@ -67,13 +79,13 @@ pub(crate) fn cloud_target_benchmark(args: &Args) -> Result<(), String> {
         }
         let _ = write_png(
             &side_by_side_all(&images),
-            &args.out.join(format!("{}-cloud-target.png", bench.name)),
+            &out.join(format!("{}-cloud-target.png", bench.name)),
         );
         let mut times = vec![(Vec::new(), Vec::new()); SCALES.len()];
         for _ in 0..ROUNDS {
             for (i, scale) in SCALES.into_iter().enumerate() {
                 b.set_quality(quality(scale));
-                let (draw, wall) = b.static_frames(args.frames());
+                let (draw, wall) = b.static_frames(args.frames.count());
                 times[i].0.extend(draw);
                 times[i].1.extend(wall);
             }
@@ -94,8 +106,8 @@ pub(crate) fn cloud_target_benchmark(args: &Args) -> Result<(), String> {
         }
         rows.extend(scene_rows);
     }
-    let table = table(&adapter, &rows, args.frames());
-    let md_path = args.out.join("cloud_target.md");
+    let table = table(&adapter, &rows, args.frames.count());
+    let md_path = out.join("cloud_target.md");
     std::fs::write(&md_path, &table)
         .map_err(|e| format!("cannot write {}: {e}", md_path.display()))?;
     println!("{table}");

@@ -1,9 +1,11 @@
-//! `--coarse-cycles`: the scattering series against the same series accelerated by two-grid
+//! `coarse-cycles`: the scattering series against the same series accelerated by two-grid
 //! cycles (`reference::illumination::scatter_coarse_cycles`, docs/illumination.md §4,
 //! "Coarse-grid cycles"), at the same or fewer sweeps, against the path tracer. CPU references
-//! only; the GPU's cycles are measured by the sweep (`--settings '(scatter_coarse_cycles: 2)'`).
+//! only; the GPU's cycles are measured by `accuracy --settings '(scatter_coarse_cycles: 2)'`.
 
-use std::fmt::Write;
+use std::{fmt::Write, path::Path};
+
+use bevy::math::Vec3;
 
 use bevy_particle_clouds::{
     CloudQualitySettings,
@@ -14,7 +16,54 @@ use bevy_particle_clouds::{
     settings::COARSE_GRID_ORDERS,
 };
 
-use super::{BenchScene, Reference, cloud_pixels, grid_error};
+use super::{
+    BenchScene, Reference, ReferenceSpp, cloud_pixels, grid_error, named_scenes, parse_settings,
+    write_report,
+};
+
+/// The options of `benchmark coarse-cycles`.
+#[derive(clap::Args, Debug)]
+pub(crate) struct CoarseCyclesArgs {
+    /// Only these scenes (comma-separated names; default: `albedo_one`): one cloud under a black
+    /// sky, without a ground.
+    #[arg(long, value_delimiter = ',')]
+    pub(crate) scenes: Option<Vec<String>>,
+    /// The settings (RON, as a scene file's `settings`) of the series and the cycles, instead of
+    /// each scene's own; only the first is used.
+    #[arg(long = "settings", value_name = "RON", value_parser = parse_settings)]
+    pub(crate) settings: Vec<CloudQualitySettings>,
+    #[command(flatten)]
+    pub(crate) reference: ReferenceSpp,
+}
+
+/// `benchmark coarse-cycles`: each chosen scene's (default `albedo_one`) error with the series
+/// and with two-grid cycles; writes `DIR/coarse_cycles.md`.
+pub(crate) fn coarse_cycles_benchmark(args: &CoarseCyclesArgs, out: &Path) -> Result<(), String> {
+    let mut md = String::from(
+        "# Coarse-grid cycles\n\nThe scattering series against two-grid cycles \
+         (`cargo run --example benchmark -- coarse-cycles`; docs/illumination.md §4, \
+         \"Coarse-grid cycles\"), computed with the f64 CPU references (the GPU's cycles: \
+         `accuracy --settings '(scatter_coarse_cycles: 2)'`).\n",
+    );
+    for (bench, scene) in named_scenes(args.scenes.as_deref(), "albedo_one")? {
+        // The CPU image (`grid_error::image`) is the cloud's alone, over black.
+        if scene.clouds.len() != 1
+            || scene.cloud_ground().is_some()
+            || scene.background != Vec3::ZERO
+        {
+            return Err(format!(
+                "`{}` has several clouds, a ground or a sky; coarse-cycles takes one cloud \
+                 under a black sky",
+                bench.name
+            ));
+        }
+        let spp = args.reference.spp.unwrap_or(bench.spp);
+        let reference = super::reference(&scene, bench, spp, out)?;
+        let settings = args.settings.first().copied().unwrap_or(scene.settings);
+        md.push_str(&coarse_cycles(bench, &scene, settings, &reference));
+    }
+    write_report(out, "coarse_cycles.md", &md)
+}
 
 /// Plain series of these many orders; the last is taken as converged.
 const SERIES: [u32; 5] = [16, 32, 64, 128, CONVERGED];

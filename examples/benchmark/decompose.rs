@@ -1,4 +1,4 @@
-//! `--decompose`: the real-time transport split into its parts, each compared with the same part
+//! `decompose`: the real-time transport split into its parts, each compared with the same part
 //! of the path tracer, which splits its paths by scattering order (issue #9's error
 //! decomposition). Computed with the f64 CPU references of the real-time passes
 //! (docs/illumination.md), which the GPU matches within 2e-4 of the maximum (tests/illumination.rs,
@@ -21,7 +21,7 @@
 //! image is split into order 1 (the light volumes' exact beam, without the transform) and
 //! everything else.
 
-use std::fmt::Write;
+use std::{fmt::Write, path::Path};
 
 use bevy_particle_clouds::{
     CloudQualitySettings,
@@ -37,7 +37,62 @@ use bevy_particle_clouds::{
     scene::Scene,
 };
 
-use super::{downsample, grid_error};
+use super::{
+    ReferenceSpp, downsample, grid_error, load_scene, parse_settings, sweep_scenes, write_report,
+};
+
+/// The options of `benchmark decompose`.
+#[derive(clap::Args, Debug)]
+pub(crate) struct DecomposeArgs {
+    /// Only these scenes (comma-separated names; default: the quick ones).
+    #[arg(long, value_delimiter = ',')]
+    pub(crate) scenes: Option<Vec<String>>,
+    /// Decompose each of these settings (RON, as a scene file's `settings`; against one
+    /// path-traced reference per scene) instead of the defaults. Repeatable.
+    #[arg(long = "settings", value_name = "RON", value_parser = parse_settings)]
+    pub(crate) settings: Vec<CloudQualitySettings>,
+    #[command(flatten)]
+    pub(crate) reference: ReferenceSpp,
+}
+
+/// `benchmark decompose`: every chosen scene's error at the default settings (or at each
+/// `--settings`, against one path-traced reference per scene), part by part; writes
+/// `DIR/decomposition.md`.
+pub(crate) fn decompose_benchmark(args: &DecomposeArgs, out: &Path) -> Result<(), String> {
+    let chosen = sweep_scenes(args.scenes.as_deref(), false)?;
+    let settings = if args.settings.is_empty() {
+        vec![CloudQualitySettings::default()]
+    } else {
+        args.settings.clone()
+    };
+    let mut md = String::from(
+        "The error split by scattering order (`cargo run --example benchmark -- decompose`), \
+         computed with the f64 CPU references of the real-time passes (which the GPU matches \
+         within 2e-4 of the maximum) against the path tracer split by order. Energies are sums \
+         over the image; λ is an order's energy over the previous one's.\n",
+    );
+    for bench in chosen {
+        let scene = load_scene(bench)?;
+        let spp = args.reference.spp.unwrap_or(bench.spp);
+        let factor = bench.error_downsample;
+        let parts: Vec<RealTime> = settings
+            .iter()
+            .map(|s| real_time(&scene, s, factor))
+            .collect();
+        let orders = parts.iter().map(|r| r.orders()).max().unwrap_or(1);
+        eprintln!(
+            "benchmark: {}: path tracing {orders} orders at {spp} spp per half",
+            bench.name
+        );
+        let truth = Truth::render(&scene, factor, spp, orders);
+        for (s, r) in settings.iter().zip(&parts) {
+            let section = decompose(bench.name, &scene, s, factor, spp, (r, &truth));
+            eprintln!("{section}");
+            md.push_str(&section);
+        }
+    }
+    write_report(out, "decomposition.md", &md)
+}
 
 /// One setting's real-time images per order (index 0: order 1; see [`real_time_orders`]).
 pub struct RealTime {

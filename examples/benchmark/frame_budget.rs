@@ -1,4 +1,4 @@
-//! `--frame-budget`: what three game-sized scenes cost per frame, pass by pass, beside each
+//! `frame-budget`: what three game-sized scenes cost per frame, pass by pass, beside each
 //! pass's memory-bandwidth floor (issue #11's real-GPU table):
 //!
 //! - **paper 38k**: `paper_38k_5lights` (the paper's 38,000 particles, 128³ volumes, 5 lights)
@@ -477,7 +477,35 @@ fn measure(
 /// Makes one of the scenes (the paper's reads its particle file).
 type SceneBuilder = fn() -> Result<BudgetScene, String>;
 
-pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
+/// The options of `benchmark frame-budget`.
+#[derive(clap::Args, Debug)]
+pub(crate) struct FrameBudgetArgs {
+    /// Only these scenes (comma-separated): `paper`, `paper-half` (drawn at half size), `snow`,
+    /// `cloudscape` (default: all four).
+    #[arg(long, value_delimiter = ',')]
+    pub(crate) scenes: Option<Vec<String>>,
+    /// The view's size, pixels.
+    #[arg(long, default_value = "1920x1080", value_parser = parse_view)]
+    pub(crate) view: (u32, u32),
+    /// Measure the chosen scenes at these settings (RON, as a scene file's `settings`) instead
+    /// of their own, one row each. Repeatable.
+    #[arg(long = "settings", value_name = "RON", value_parser = parse_settings)]
+    pub(crate) settings: Vec<CloudQualitySettings>,
+    /// How the billboards are drawn, each in turn (comma-separated: `raster`, `compute`).
+    #[arg(long, value_delimiter = ',', default_value = "raster", value_parser = parse_draw_method)]
+    pub(crate) draw_methods: Vec<DrawMethod>,
+    /// How the scattering sweep dispatches an order's direction pairs, each in turn
+    /// (comma-separated: `per-pair`, the default, and `per-order`; `SweepDispatch`).
+    #[arg(long, value_delimiter = ',', default_value = "per-pair", value_parser = parse_sweep_dispatch)]
+    pub(crate) sweep_dispatches: Vec<SweepDispatch>,
+    /// The memory bandwidth the floors are computed at, TB/s (default: an H200's HBM3e).
+    #[arg(long, default_value_t = 4.8)]
+    pub(crate) bandwidth: f64,
+    #[command(flatten)]
+    pub(crate) frames: Frames,
+}
+
+pub(crate) fn frame_budget_benchmark(args: &FrameBudgetArgs, out: &Path) -> Result<(), String> {
     let bandwidth = args.bandwidth * 1e12;
     let wanted = |key: &str| {
         args.scenes
@@ -497,7 +525,7 @@ pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
             continue;
         }
         let mut scene = build()?;
-        (scene.scene.camera.width, scene.scene.camera.height) = args.game_view();
+        (scene.scene.camera.width, scene.scene.camera.height) = args.view;
         // `--settings`: each replaces the scene's own, one row each.
         let variants: Vec<Option<CloudQualitySettings>> = if args.settings.is_empty() {
             vec![None]
@@ -527,7 +555,12 @@ pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
                 label = format!("{label}, per order");
             }
             eprintln!("benchmark: frame budget, {label}");
-            let mut row = measure((&scene, dispatch), args.frames(), bandwidth, &mut adapter);
+            let mut row = measure(
+                (&scene, dispatch),
+                args.frames.count(),
+                bandwidth,
+                &mut adapter,
+            );
             row.name = label;
             eprintln!(
                 "benchmark: frame budget, {}: re-lit {:.2} ms, static {:.2} ms (GPU)",
@@ -536,10 +569,15 @@ pub(crate) fn frame_budget_benchmark(args: &Args) -> Result<(), String> {
             rows.push(row);
         }
     }
-    write_frame_budget(args, &adapter, &rows)
+    write_frame_budget(args, out, &adapter, &rows)
 }
 
-fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<(), String> {
+fn write_frame_budget(
+    args: &FrameBudgetArgs,
+    out: &Path,
+    adapter: &str,
+    rows: &[BudgetRow],
+) -> Result<(), String> {
     let mut csv = String::from(
         "adapter,scene,particles,resolutions,pass,gpu_ms,floor_ms,runs,dispatches,gpu_ms_relit,gpu_ms_static,gpu_ms_moving,gpu_ms_moving_frame,gpu_ms_static_kept\n",
     );
@@ -549,9 +587,9 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
          at {} TB/s. Runs and dispatches: in a re-lit frame.\n\n\
          | scene | pass | GPU ms | floor ms | GPU ÷ floor | runs | dispatches | lights moving, GPU ms |\n\
          |---|---|---:|---:|---:|---:|---:|---:|\n",
-        args.game_view().0,
-        args.game_view().1,
-        args.frames(),
+        args.view.0,
+        args.view.1,
+        args.frames.count(),
         args.bandwidth
     );
     for r in rows {
@@ -623,7 +661,7 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
     for r in rows {
         let draw_ms = r.timing.pass_ms[CloudPass::Draw as usize];
         let scale = r.target_scale as f64;
-        let (width, height) = args.game_view();
+        let (width, height) = args.view;
         let pixels = (width * height) as f64 * scale * scale;
         let _ = writeln!(
             md,
@@ -650,16 +688,15 @@ fn write_frame_budget(args: &Args, adapter: &str, rows: &[BudgetRow]) -> Result<
             mark(paper.timing.gpu_ms_static <= GOAL_STATIC_MS)
         );
     }
-    std::fs::create_dir_all(&args.out)
-        .map_err(|e| format!("cannot create {}: {e}", args.out.display()))?;
+    std::fs::create_dir_all(out).map_err(|e| format!("cannot create {}: {e}", out.display()))?;
     for (name, text) in [("frame_budget.csv", &csv), ("frame_budget.md", &md)] {
-        let path = args.out.join(name);
+        let path = out.join(name);
         std::fs::write(&path, text).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
     }
     println!("{md}");
     eprintln!(
         "benchmark: wrote frame_budget.csv and frame_budget.md in {}",
-        args.out.display()
+        out.display()
     );
     Ok(())
 }

@@ -1,4 +1,4 @@
-//! `--grid-error`: where the multiple-scattering grid's error against the path tracer lies, with
+//! `grid-error`: where the multiple-scattering grid's error against the path tracer lies, with
 //! the f64 CPU references of the real-time passes (which the GPU matches; no adapter needed).
 //!
 //! - the error at several `volume_resolution`s and `scatter_iterations`, up to the converged
@@ -9,9 +9,9 @@
 //!   from the finer grid's single scattering or through its density: which of the coarse grid's
 //!   representation, source, density or sweep holds its error.
 
-use std::fmt::Write;
+use std::{fmt::Write, path::Path};
 
-use bevy::math::DVec3;
+use bevy::math::{DVec3, Vec3};
 use bevy_particle_clouds::{
     CloudQualitySettings, ScatterStencil,
     image_io::LinearImage,
@@ -26,10 +26,45 @@ use bevy_particle_clouds::{
 };
 
 use super::{
-    BenchScene, Reference, cloud_pixels,
+    BenchScene, Reference, ReferenceSpp, cloud_pixels,
     decompose::{billboards, energy},
-    denoised, downsample,
+    denoised, downsample, named_scenes, write_report,
 };
+
+/// The options of `benchmark grid-error`.
+#[derive(clap::Args, Debug)]
+pub(crate) struct GridErrorArgs {
+    /// Only these scenes (comma-separated names; default: `albedo_one`): isotropic clouds under a
+    /// black sky, without a ground.
+    #[arg(long, value_delimiter = ',')]
+    pub(crate) scenes: Option<Vec<String>>,
+    #[command(flatten)]
+    pub(crate) reference: ReferenceSpp,
+}
+
+/// `benchmark grid-error`: each chosen scene's (default `albedo_one`) error against the grid's
+/// knobs; writes `DIR/grid_error.md`.
+pub(crate) fn grid_error_benchmark(args: &GridErrorArgs, out: &Path) -> Result<(), String> {
+    let mut md = String::from(
+        "The scattering grid's error against the path tracer (`cargo run --example benchmark -- \
+         grid-error`), computed with the f64 CPU references of the real-time passes (which the \
+         GPU matches).\n",
+    );
+    for (bench, scene) in named_scenes(args.scenes.as_deref(), "albedo_one")? {
+        let name = bench.name;
+        let isotropic = scene.clouds.iter().all(|c| c.medium.anisotropy == 0.0);
+        if !isotropic || scene.background != Vec3::ZERO || scene.cloud_ground().is_some() {
+            return Err(format!(
+                "`{name}` has an anisotropic medium, a sky or a ground; grid-error takes \
+                 isotropic clouds under a black sky"
+            ));
+        }
+        let spp = args.reference.spp.unwrap_or(bench.spp);
+        let reference = super::reference(&scene, bench, spp, out)?;
+        md.push_str(&grid_error(bench, &scene, &reference));
+    }
+    write_report(out, "grid_error.md", &md)
+}
 
 /// `(volume_resolution, scatter_iterations)` of the first table.
 const GRIDS: [(u32, u32); 9] = [

@@ -1,4 +1,4 @@
-//! `--illumination`: every illumination pass's GPU time, incremental against brute-force shading.
+//! `illumination`: every illumination pass's GPU time, incremental against brute-force shading.
 
 use super::*;
 
@@ -109,7 +109,21 @@ pub(crate) fn wall_passes(b: &mut Bench, frames: usize) -> Result<(WallPasses, T
     Ok((WallPasses { pass_ms }, timing))
 }
 
-pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
+/// The options of `benchmark illumination`.
+#[derive(clap::Args, Debug)]
+pub(crate) struct IlluminationArgs {
+    /// Only these scenes (comma-separated): `paper_38k_1light`, `paper_38k_5lights` (default:
+    /// both).
+    #[arg(long, value_delimiter = ',')]
+    pub(crate) scenes: Option<Vec<String>>,
+    /// The view's size, pixels (default: the scenes' own 640x480).
+    #[arg(long, value_parser = parse_view)]
+    pub(crate) view: Option<(u32, u32)>,
+    #[command(flatten)]
+    pub(crate) frames: Frames,
+}
+
+pub(crate) fn illumination_benchmark(args: &IlluminationArgs, out: &Path) -> Result<(), String> {
     let mut csv = String::from(
         "adapter,scene,lights,volume_resolution,light_resolution,shading,gpu_ms_voxelize,gpu_ms_shade,gpu_ms_gather,gpu_ms_scatter,\
          gpu_ms_view,gpu_ms_draw,gpu_ms_total,wall_ms,wall_ms_voxelize,wall_ms_shade,wall_ms_gather,wall_ms_scatter,\
@@ -132,7 +146,7 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
         let bench = SCENES.iter().find(|s| s.name == name).expect("scene");
         let mut scene = load_scene(bench)?;
         let own = (scene.camera.width, scene.camera.height);
-        (scene.camera.width, scene.camera.height) = args.view_or(own);
+        (scene.camera.width, scene.camera.height) = args.view.unwrap_or(own);
         view = (scene.camera.width, scene.camera.height);
         let mut b = Bench::new(&scene);
         adapter = b.adapter.clone();
@@ -147,7 +161,7 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
                 });
                 eprintln!("benchmark: {name} {n}³ {method:?}…");
                 let method_name = format!("{method:?}");
-                let (w, t) = match wall_passes(&mut b, args.frames()) {
+                let (w, t) = match wall_passes(&mut b, args.frames.count()) {
                     Ok(measured) => measured,
                     Err(e) => {
                         eprintln!("benchmark: {name} {n}³ {method_name} not measured: {e}");
@@ -211,7 +225,7 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
         view.1,
         CloudQualitySettings::default().scatter_iterations,
         CloudQualitySettings::default().light_supersampling,
-        args.frames()
+        args.frames.count()
     );
     table.push_str("| lights | grid | light volumes | shading | GPU: voxelize | shade | gather | scatter | view pass | draw | total | wall: voxelize | shade | gather | scatter | view pass | static frame | all passes |\n");
     table.push_str(
@@ -254,10 +268,10 @@ pub(crate) fn illumination_benchmark(args: &Args) -> Result<(), String> {
     for (lights, n, g, w) in &ratios {
         let _ = writeln!(table, "| {lights} | {n}³ | {g:.1}× | {w:.1}× |");
     }
-    let csv_path = args.out.join("illumination.csv");
+    let csv_path = out.join("illumination.csv");
     std::fs::write(&csv_path, csv)
         .map_err(|e| format!("cannot write {}: {e}", csv_path.display()))?;
-    let md_path = args.out.join("illumination.md");
+    let md_path = out.join("illumination.md");
     std::fs::write(&md_path, &table)
         .map_err(|e| format!("cannot write {}: {e}", md_path.display()))?;
     println!("{table}");

@@ -1,4 +1,4 @@
-//! `--line-sweep`: why the scattering's sweeps are slow on a GPU, and whether cutting each
+//! `line-sweep`: why the scattering's sweeps are slow on a GPU, and whether cutting each
 //! lattice line into segments would help.
 //!
 //! The sweep (`scatter.wgsl`) gives each lattice line of an `n³` grid to one invocation, which
@@ -16,11 +16,37 @@
 //!
 //! Every way deposits the same volume (checked: `max_difference`).
 
-use std::{borrow::Cow, fmt::Write as _};
+use std::{borrow::Cow, fmt::Write as _, path::Path};
 
 use wgpu::util::DeviceExt as _;
 
 use super::raster_vs_compute::{Gpu, gpu, max_difference};
+use super::{Frames, write_report};
+
+/// The options of `benchmark line-sweep`.
+#[derive(clap::Args, Debug)]
+pub(crate) struct LineSweepArgs {
+    /// Voxels per side of the grid.
+    #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u32).range(2..=512))]
+    pub(crate) grid: u32,
+    /// Segments per line.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub(crate) segments: u32,
+    #[command(flatten)]
+    pub(crate) frames: Frames,
+}
+
+/// `benchmark line-sweep`: 26 sweeps per timed submission (two iterations' worth); writes
+/// `DIR/line_sweep.md`.
+pub(crate) fn line_sweep_benchmark(args: &LineSweepArgs, out: &Path) -> Result<(), String> {
+    eprintln!(
+        "benchmark: line sweep, {}³, {} segments",
+        args.grid, args.segments
+    );
+    let (adapter, results) = measure(args.grid, args.segments, 26, args.frames.count())?;
+    let md = table(&adapter, args.grid, &results);
+    write_report(out, "line_sweep.md", &md)
+}
 
 const SHADER: &str = r#"
 // `overwrite`: plain stores instead of read-modify-write deposits.
@@ -293,7 +319,7 @@ fn read_back(gpu: &Gpu, buffer: &wgpu::Buffer, voxels: usize) -> Result<Vec<f32>
 /// The table: ms per sweep, and each way against the serial one of its axis.
 pub(crate) fn table(adapter: &str, n: u32, results: &[Swept]) -> String {
     let mut md = format!(
-        "`--line-sweep` on {adapter}: one sweep of every lattice line along an axis of a {n}³ \
+        "`line-sweep` on {adapter}: one sweep of every lattice line along an axis of a {n}³ \
          grid (wall ms per sweep, median of the repetitions)\n\n| lines along | way | ms | × \
          serial | volume differs from serial's by |\n|---|---|---:|---:|---:|\n"
     );

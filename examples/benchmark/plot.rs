@@ -1,4 +1,5 @@
-//! The Pareto plot (`pareto.png`).
+//! Every plot the benchmark draws: the Pareto plot of `accuracy` (`pareto.png`) and the cost
+//! panels of `scale` (`scale.png`), each also redrawn from its CSV by `replot` and `replot-scale`.
 
 use super::*;
 
@@ -16,6 +17,7 @@ pub(crate) fn register_font(font: &Path) -> Result<(), String> {
         .map_err(|_| format!("{} is not a TrueType/OpenType font", font.display()))
 }
 
+/// The Pareto plot: each scene's cost against its relative RMSE, one panel per scene.
 pub(crate) fn plot(
     path: &Path,
     font: &Path,
@@ -232,6 +234,113 @@ pub(crate) fn plot(
         root.present().map_err(|e| e.to_string())?;
     }
     save_plot(buffer, (w, h), path)
+}
+
+/// Log–log panels of each pass's GPU time against the sweep's variable.
+pub(crate) fn plot_scale(
+    path: &Path,
+    font: &Path,
+    adapter: &str,
+    rows: &[ScaleRow],
+) -> Result<(), String> {
+    use plotters::prelude::*;
+    register_font(font)?;
+    let sweeps = [
+        ("particles", "particles"),
+        ("clouds", "clouds (38,400 particles in all)"),
+        ("view", "view pixels"),
+    ];
+    let (w, h) = (1260u32, 420u32);
+    let mut buffer = vec![255u8; (w * h * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buffer, (w, h)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| e.to_string())?;
+        let (title, body) = root.split_vertically(40);
+        title
+            .draw_text(
+                &format!("GPU ms per pass (frames that rerun every pass; draw: static), {adapter}"),
+                &("sans-serif", 16).into_font().color(&BLACK),
+                (10, 10),
+            )
+            .map_err(|e| e.to_string())?;
+        let panels = body.split_evenly((1, sweeps.len()));
+        for (panel, (sweep, axis)) in panels.iter().zip(sweeps) {
+            let pts: Vec<&ScaleRow> = rows.iter().filter(|r| r.sweep == sweep).collect();
+            let series: Vec<(String, Vec<(f64, f64)>)> = CloudPass::ALL
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| pts.iter().any(|r| r.timing.pass_ms[*i] > 0.0))
+                .map(|(i, p)| {
+                    let line = pts
+                        .iter()
+                        .filter(|r| r.timing.pass_ms[i] > 0.0)
+                        .map(|r| (r.x, r.timing.pass_ms[i]))
+                        .collect();
+                    (p.name().to_string(), line)
+                })
+                .chain(std::iter::once((
+                    "total".to_string(),
+                    pts.iter().map(|r| (r.x, r.timing.gpu_ms_total)).collect(),
+                )))
+                .collect();
+            let all = series.iter().flat_map(|(_, s)| s.iter());
+            let (x_lo, x_hi, y_lo, y_hi) = all.fold(
+                (f64::INFINITY, 0.0f64, f64::INFINITY, 0.0f64),
+                |(a, b, c, d), &(x, y)| (a.min(x), b.max(x), c.min(y), d.max(y)),
+            );
+            if !x_lo.is_finite() || !y_lo.is_finite() {
+                continue;
+            }
+            let mut chart = ChartBuilder::on(panel)
+                .margin(10)
+                .x_label_area_size(36)
+                .y_label_area_size(50)
+                .build_cartesian_2d(
+                    (x_lo * 0.8..x_hi * 1.25).log_scale(),
+                    (y_lo * 0.5..y_hi * 2.0).log_scale(),
+                )
+                .map_err(|e| e.to_string())?;
+            chart
+                .configure_mesh()
+                .x_desc(axis)
+                .y_desc("GPU ms")
+                .x_labels(6)
+                .x_label_formatter(&|x| short_number(*x))
+                .y_label_formatter(&|y| short_number(*y))
+                .draw()
+                .map_err(|e| e.to_string())?;
+            for (i, (name, line)) in series.iter().enumerate() {
+                let color = Palette99::pick(i).to_rgba();
+                chart
+                    .draw_series(LineSeries::new(line.iter().copied(), color.stroke_width(2)))
+                    .map_err(|e| e.to_string())?
+                    .label(name.as_str())
+                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], color));
+                chart
+                    .draw_series(line.iter().map(|&p| Circle::new(p, 3, color.filled())))
+                    .map_err(|e| e.to_string())?;
+            }
+            chart
+                .configure_series_labels()
+                .position(SeriesLabelPosition::UpperLeft)
+                .background_style(WHITE.mix(0.8))
+                .border_style(BLACK)
+                .draw()
+                .map_err(|e| e.to_string())?;
+        }
+        root.present().map_err(|e| e.to_string())?;
+    }
+    save_plot(buffer, (w, h), path)
+}
+
+/// `1.2M`, `38k`, `720`, `0.5`: an axis label.
+fn short_number(v: f64) -> String {
+    match v {
+        v if v >= 1e6 => format!("{}M", (v / 1e5).round() / 10.0),
+        v if v >= 1e4 => format!("{}k", (v / 1e3).round()),
+        v if v >= 1.0 => format!("{}", v.round()),
+        v => format!("{}", (v * 100.0).round() / 100.0),
+    }
 }
 
 /// Writes a plot's RGB `buffer` of `(w, h)` pixels as PNG.

@@ -1,4 +1,4 @@
-//! `--raster-vs-compute`: does the adapter run the draw's kind of per-pixel work slower in a
+//! `raster-vs-compute`: does the adapter run the draw's kind of per-pixel work slower in a
 //! fragment shader than in a compute shader, and is it the work or the fragments?
 //!
 //! The same synthetic work, in plain wgpu outside Bevy: `layers` billboards over every pixel of
@@ -13,9 +13,50 @@
 //!
 //! All three write the same image (checked: `max_difference`), so they do the same work.
 
-use std::{borrow::Cow, fmt::Write as _, time::Instant};
+use std::{borrow::Cow, fmt::Write as _, path::Path, time::Instant};
 
 use wgpu::util::DeviceExt as _;
+
+use super::{Frames, parse_view, write_report};
+
+/// The options of `benchmark raster-vs-compute`.
+#[derive(clap::Args, Debug)]
+pub(crate) struct RasterVsComputeArgs {
+    /// The view's size, pixels.
+    #[arg(long, default_value = "1920x1080", value_parser = parse_view)]
+    pub(crate) view: (u32, u32),
+    /// Billboards over each pixel (the paper's scene: 13 at 1080p).
+    #[arg(long, default_value_t = 13, value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub(crate) layers: u32,
+    #[command(flatten)]
+    pub(crate) frames: Frames,
+}
+
+/// `benchmark raster-vs-compute`: the default draw's per-pixel work (9 chord points, 5 lights and
+/// the multiple scattering) and the bare fragments (no chord point), three ways each; writes
+/// `DIR/raster_vs_compute.md`.
+pub(crate) fn raster_vs_compute_benchmark(
+    args: &RasterVsComputeArgs,
+    out: &Path,
+) -> Result<(), String> {
+    let (width, height) = args.view;
+    let mut md = String::new();
+    for points in [9, 0] {
+        let work = Workload {
+            width,
+            height,
+            layers: args.layers,
+            points,
+            volumes: 6,
+            n: 128,
+        };
+        eprintln!("benchmark: raster vs compute, {points} points");
+        let (adapter, results) = measure(work, args.frames.count())?;
+        md.push_str(&table(&adapter, work, &results));
+        md.push('\n');
+    }
+    write_report(out, "raster_vs_compute.md", &md)
+}
 
 /// The synthetic draw: view size, billboards per pixel, chord points, volumes and their size.
 #[derive(Clone, Copy, Debug)]
@@ -492,7 +533,7 @@ pub(crate) fn max_difference(a: &[f32], b: &[f32]) -> f32 {
 /// raster's.
 pub(crate) fn table(adapter: &str, work: Workload, results: &[Measured]) -> String {
     let mut md = format!(
-        "`--raster-vs-compute` on {adapter}: {}×{}, {} layers, {} points × {} volumes of {}³ \
+        "`raster-vs-compute` on {adapter}: {}×{}, {} layers, {} points × {} volumes of {}³ \
          (wall ms, median of the repetitions)\n\n| way | ms | ns per fragment | × layered | \
          image differs from layered by |\n|---|---:|---:|---:|---:|\n",
         work.width, work.height, work.layers, work.points, work.volumes, work.n

@@ -1,4 +1,5 @@
-//! Results: rows, the Pareto front, `results.csv` and `results.md`.
+//! Results: rows, the Pareto front, `results.csv` and `results.md`; and `write_report`, which
+//! writes a subcommand's Markdown table.
 
 use super::*;
 
@@ -319,4 +320,12 @@ pub(crate) fn markdown(adapter: &str, rows: &[Row], scene_order: &[&'static str]
         }
     }
     s
+}
+
+/// Writes `md` to `DIR/file` and prints it.
+pub(crate) fn write_report(out: &Path, file: &str, md: &str) -> Result<(), String> {
+    let path = out.join(file);
+    std::fs::write(&path, md).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+    println!("{md}");
+    Ok(())
 }

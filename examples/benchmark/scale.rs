@@ -1,4 +1,4 @@
-//! `--scale`: cost at game scale, in three sweeps (issue #11):
+//! `scale`: cost at game scale, in three sweeps (issue #11):
 //!
 //! - **particles**: one cumulus of 3,100, 38,000, 300,000 and 1,200,000 particles (radii
 //!   `∝ count^(-1/3)`) at default settings, 640×360;
@@ -11,8 +11,9 @@
 //!
 //! Each configuration: every pass's GPU time in frames that rerun every pass (the particles
 //! touched), the static frame's draw, wall times, and how many times each pass ran in a re-lit
-//! frame. Writes `DIR/scale.csv`, `DIR/scale.md` and `DIR/scale.png`. `--draw-methods compute`
-//! draws every configuration by compute (the last method named is the one used).
+//! frame. Writes `DIR/scale.csv`, `DIR/scale.md` and `DIR/scale.png` (`plot.rs` draws it;
+//! `benchmark replot-scale` redraws it from the CSV). `--draw-methods compute` draws every
+//! configuration by compute (the last method named is the one used).
 
 use std::fmt::Write as _;
 
@@ -31,16 +32,16 @@ fn cloud_sweep_settings() -> CloudQualitySettings {
 }
 
 /// One measured configuration.
-struct ScaleRow {
-    sweep: &'static str,
-    label: String,
+pub(crate) struct ScaleRow {
+    pub(crate) sweep: &'static str,
+    pub(crate) label: String,
     /// Particles, clouds or view pixels.
-    x: f64,
-    timing: Timing,
+    pub(crate) x: f64,
+    pub(crate) timing: Timing,
     /// Runs of each pass in a frame that re-lights everything.
-    runs: [u32; PASSES],
+    pub(crate) runs: [u32; PASSES],
     /// Compute dispatches of each pass in that frame.
-    dispatches: [u32; PASSES],
+    pub(crate) dispatches: [u32; PASSES],
 }
 
 fn camera(distance: f32, width: u32, height: u32) -> bevy_particle_clouds::scene::SceneCamera {
@@ -146,8 +147,24 @@ fn measure(
     (timing, runs, dispatches)
 }
 
-pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {
-    let frames = args.frames();
+/// The options of `benchmark scale`.
+#[derive(clap::Args, Debug)]
+pub(crate) struct ScaleArgs {
+    /// Only these sweeps (comma-separated: `particles`, `clouds`, `view`; default: all three).
+    #[arg(long, value_delimiter = ',')]
+    pub(crate) scenes: Option<Vec<String>>,
+    /// How the billboards are drawn (`raster`, `compute`; comma-separated, the last one named is
+    /// used).
+    #[arg(long, value_delimiter = ',', default_value = "raster", value_parser = parse_draw_method)]
+    pub(crate) draw_methods: Vec<DrawMethod>,
+    #[command(flatten)]
+    pub(crate) frames: Frames,
+    #[command(flatten)]
+    pub(crate) plot: PlotFont,
+}
+
+pub(crate) fn scale_benchmark(args: &ScaleArgs, out: &Path) -> Result<(), String> {
+    let frames = args.frames.count();
     let mut adapter = String::new();
     let mut rows = Vec::new();
     // `--scenes` names the sweeps to run (`particles`, `clouds`, `view`); all by default.
@@ -179,7 +196,7 @@ pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {
             });
             // After each configuration, so that a sweep stopped part-way (4K frames take minutes
             // on llvmpipe) keeps the rows it measured.
-            write_tables(args, &adapter, method, &rows).map(drop)
+            write_tables(args, out, &adapter, method, &rows).map(drop)
         };
     let hd = (1280, 720);
     for count in [3_100, 38_000, 300_000, 1_200_000] {
@@ -208,30 +225,32 @@ pub(crate) fn scale_benchmark(args: &Args) -> Result<(), String> {
         let s = scene(vec![cumulus(38_000)], 80.0, (w, h), default());
         run("view", format!("{w}×{h}"), (w * h) as f64, s, None)?;
     }
-    write_scale(args, &adapter, method, &rows)
+    write_scale(args, out, &adapter, method, &rows)
 }
 
 /// Writes the sweep's tables, `scale.csv` and `scale.md`, then draws `scale.png`.
 fn write_scale(
-    args: &Args,
+    args: &ScaleArgs,
+    out: &Path,
     adapter: &str,
     method: DrawMethod,
     rows: &[ScaleRow],
 ) -> Result<(), String> {
-    let md = write_tables(args, adapter, method, rows)?;
+    let md = write_tables(args, out, adapter, method, rows)?;
     let title = format!("{adapter}, drawn by {method:?}");
-    plot_scale(&args.out.join("scale.png"), &args.font, &title, rows)?;
+    plot_scale(&out.join("scale.png"), &args.plot.font, &title, rows)?;
     println!("{md}");
     eprintln!(
         "benchmark: wrote scale.csv, scale.md and scale.png in {}",
-        args.out.display()
+        out.display()
     );
     Ok(())
 }
 
 /// Writes `rows` as `scale.csv` and `scale.md` in the output folder; returns the Markdown.
 fn write_tables(
-    args: &Args,
+    args: &ScaleArgs,
+    out: &Path,
     adapter: &str,
     method: DrawMethod,
     rows: &[ScaleRow],
@@ -252,7 +271,7 @@ fn write_tables(
          8 iterations; the others: default settings. Drawn by {method:?} (`draw_method`).\n\n\
          | sweep | configuration | voxelize | shade | gather | scatter | sort + view volume | draw (static) | GPU total | wall | static wall | pass runs | dispatches |\n\
          |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
-        args.frames()
+        args.frames.count()
     );
     for r in rows {
         let p = &r.timing.pass_ms;
@@ -292,7 +311,7 @@ fn write_tables(
         );
     }
     for (path, text) in [("scale.csv", &csv), ("scale.md", &md)] {
-        let path = args.out.join(path);
+        let path = out.join(path);
         std::fs::write(&path, text).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
     }
     Ok(md)
@@ -314,165 +333,4 @@ fn joined(counts: &[u32]) -> String {
         .map(u32::to_string)
         .collect::<Vec<_>>()
         .join(",")
-}
-
-/// `1.2M`, `38k`, `720`, `0.5`: an axis label.
-fn short_number(v: f64) -> String {
-    match v {
-        v if v >= 1e6 => format!("{}M", (v / 1e5).round() / 10.0),
-        v if v >= 1e4 => format!("{}k", (v / 1e3).round()),
-        v if v >= 1.0 => format!("{}", v.round()),
-        v => format!("{}", (v * 100.0).round() / 100.0),
-    }
-}
-
-/// `--scale --replot`: redraws `DIR/scale.png` from `DIR/scale.csv`.
-pub(crate) fn replot_scale(args: &Args) -> Result<(), String> {
-    let mut table = CsvTable::open(args.out.join("scale.csv"))?;
-    let path = table.path.clone();
-    let cannot_read = |e: csv::Error| format!("cannot read {}: {e}", path.display());
-    let column = |name: &str| table.column(name);
-    let passes: Vec<usize> = CloudPass::ALL
-        .iter()
-        .map(|p| column(&format!("gpu_ms_{}", p.name())))
-        .collect::<Result<_, _>>()?;
-    let [adapter, sweep, label, x, total] =
-        ["adapter", "sweep", "label", "x", "gpu_ms_total"].map(column);
-    let (adapter, sweep, label, x, total) = (adapter?, sweep?, label?, x?, total?);
-    // Absent from the files written before the computed draw: rasterised.
-    let method = table.column("draw_method").ok();
-    let number = |record: &csv::StringRecord, i: usize| -> Result<f64, String> {
-        record[i]
-            .parse()
-            .map_err(|_| format!("{}: `{}` is not a number", path.display(), &record[i]))
-    };
-    let mut rows = Vec::new();
-    let mut adapter_name = String::new();
-    for record in table.reader.records() {
-        let record = record.map_err(cannot_read)?;
-        adapter_name = format!(
-            "{}, drawn by {}",
-            &record[adapter],
-            method.map_or("Raster", |m| &record[m])
-        );
-        let sweep = ["particles", "clouds", "clouds, level of detail", "view"]
-            .into_iter()
-            .find(|s| *s == &record[sweep])
-            .ok_or(format!(
-                "{}: unknown sweep `{}`",
-                path.display(),
-                &record[sweep]
-            ))?;
-        let mut timing = Timing {
-            gpu_ms_total: number(&record, total)?,
-            ..default()
-        };
-        for (ms, &i) in timing.pass_ms.iter_mut().zip(&passes) {
-            *ms = number(&record, i)?;
-        }
-        rows.push(ScaleRow {
-            sweep,
-            label: record[label].to_string(),
-            x: number(&record, x)?,
-            timing,
-            runs: [0; PASSES],
-            dispatches: [0; PASSES],
-        });
-    }
-    let png = args.out.join("scale.png");
-    plot_scale(&png, &args.font, &adapter_name, &rows)?;
-    eprintln!("benchmark: wrote {}", png.display());
-    Ok(())
-}
-
-/// Log–log panels of each pass's GPU time against the sweep's variable.
-fn plot_scale(path: &Path, font: &Path, adapter: &str, rows: &[ScaleRow]) -> Result<(), String> {
-    use plotters::prelude::*;
-    register_font(font)?;
-    let sweeps = [
-        ("particles", "particles"),
-        ("clouds", "clouds (38,400 particles in all)"),
-        ("view", "view pixels"),
-    ];
-    let (w, h) = (1260u32, 420u32);
-    let mut buffer = vec![255u8; (w * h * 3) as usize];
-    {
-        let root = BitMapBackend::with_buffer(&mut buffer, (w, h)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| e.to_string())?;
-        let (title, body) = root.split_vertically(40);
-        title
-            .draw_text(
-                &format!("GPU ms per pass (frames that rerun every pass; draw: static), {adapter}"),
-                &("sans-serif", 16).into_font().color(&BLACK),
-                (10, 10),
-            )
-            .map_err(|e| e.to_string())?;
-        let panels = body.split_evenly((1, sweeps.len()));
-        for (panel, (sweep, axis)) in panels.iter().zip(sweeps) {
-            let pts: Vec<&ScaleRow> = rows.iter().filter(|r| r.sweep == sweep).collect();
-            let series: Vec<(String, Vec<(f64, f64)>)> = CloudPass::ALL
-                .iter()
-                .enumerate()
-                .filter(|(i, _)| pts.iter().any(|r| r.timing.pass_ms[*i] > 0.0))
-                .map(|(i, p)| {
-                    let line = pts
-                        .iter()
-                        .filter(|r| r.timing.pass_ms[i] > 0.0)
-                        .map(|r| (r.x, r.timing.pass_ms[i]))
-                        .collect();
-                    (p.name().to_string(), line)
-                })
-                .chain(std::iter::once((
-                    "total".to_string(),
-                    pts.iter().map(|r| (r.x, r.timing.gpu_ms_total)).collect(),
-                )))
-                .collect();
-            let all = series.iter().flat_map(|(_, s)| s.iter());
-            let (x_lo, x_hi, y_lo, y_hi) = all.fold(
-                (f64::INFINITY, 0.0f64, f64::INFINITY, 0.0f64),
-                |(a, b, c, d), &(x, y)| (a.min(x), b.max(x), c.min(y), d.max(y)),
-            );
-            if !x_lo.is_finite() || !y_lo.is_finite() {
-                continue;
-            }
-            let mut chart = ChartBuilder::on(panel)
-                .margin(10)
-                .x_label_area_size(36)
-                .y_label_area_size(50)
-                .build_cartesian_2d(
-                    (x_lo * 0.8..x_hi * 1.25).log_scale(),
-                    (y_lo * 0.5..y_hi * 2.0).log_scale(),
-                )
-                .map_err(|e| e.to_string())?;
-            chart
-                .configure_mesh()
-                .x_desc(axis)
-                .y_desc("GPU ms")
-                .x_labels(6)
-                .x_label_formatter(&|x| short_number(*x))
-                .y_label_formatter(&|y| short_number(*y))
-                .draw()
-                .map_err(|e| e.to_string())?;
-            for (i, (name, line)) in series.iter().enumerate() {
-                let color = Palette99::pick(i).to_rgba();
-                chart
-                    .draw_series(LineSeries::new(line.iter().copied(), color.stroke_width(2)))
-                    .map_err(|e| e.to_string())?
-                    .label(name.as_str())
-                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], color));
-                chart
-                    .draw_series(line.iter().map(|&p| Circle::new(p, 3, color.filled())))
-                    .map_err(|e| e.to_string())?;
-            }
-            chart
-                .configure_series_labels()
-                .position(SeriesLabelPosition::UpperLeft)
-                .background_style(WHITE.mix(0.8))
-                .border_style(BLACK)
-                .draw()
-                .map_err(|e| e.to_string())?;
-        }
-        root.present().map_err(|e| e.to_string())?;
-    }
-    save_plot(buffer, (w, h), path)
 }

@@ -269,14 +269,58 @@ pub(crate) fn round_cloud() -> Vec<Particle> {
 }
 
 /// The scenes `--scenes` names, else `defaults`.
-pub(crate) fn chosen_scenes(args: &Args, defaults: &[&str]) -> Vec<&'static BenchScene> {
+pub(crate) fn chosen_scenes(
+    names: Option<&[String]>,
+    defaults: &[&str],
+) -> Vec<&'static BenchScene> {
     SCENES
         .iter()
-        .filter(|s| match &args.scenes {
+        .filter(|s| match names {
             Some(names) => names.iter().any(|n| n == s.name),
             None => defaults.contains(&s.name),
         })
         .collect()
+}
+
+/// The scenes `--scenes` names (else `default` alone), loaded.
+pub(crate) fn named_scenes(
+    names: Option<&[String]>,
+    default: &str,
+) -> Result<Vec<(&'static BenchScene, Scene)>, String> {
+    let names = names.map_or_else(|| vec![default.to_string()], <[String]>::to_vec);
+    names
+        .iter()
+        .map(|name| {
+            let bench = SCENES
+                .iter()
+                .find(|s| s.name == name)
+                .ok_or_else(|| format!("no such scene `{name}`"))?;
+            Ok((bench, load_scene(bench)?))
+        })
+        .collect()
+}
+
+/// The scenes of `accuracy` and `decompose`: those `--scenes` names, else every scene (`all`) or
+/// the quick ones; an error when that is none.
+pub(crate) fn sweep_scenes(
+    names: Option<&[String]>,
+    all: bool,
+) -> Result<Vec<&'static BenchScene>, String> {
+    let chosen: Vec<&'static BenchScene> = SCENES
+        .iter()
+        .filter(|s| match names {
+            Some(names) => names.iter().any(|n| n == s.name),
+            None => all || s.quick,
+        })
+        .collect();
+    if chosen.is_empty() {
+        let names: Vec<_> = SCENES.iter().map(|s| s.name).collect();
+        return Err(format!(
+            "no such scene; the scenes are {}",
+            names.join(", ")
+        ));
+    }
+    Ok(chosen)
 }
 
 pub(crate) fn scenes_dir() -> PathBuf {

@@ -1,4 +1,4 @@
-//! `--sky-map`: what the sky map (docs/illumination.md §10) costs and how far it is from the
+//! `sky-map`: what the sky map (docs/illumination.md §10) costs and how far it is from the
 //! sky the clouds leave, on a scene with lit objects under a sky (default
 //! `cloud_over_ground_sky`):
 //!
@@ -10,7 +10,7 @@
 //!   maps) with the sky and under a black sky (no sky map), for the scene's cloud and for a field
 //!   of 100 of them (16³, 4 iterations), two rounds each.
 
-use std::fmt::Write;
+use std::{fmt::Write, path::Path};
 
 use bevy::{math::DVec3, prelude::*};
 use bevy_particle_clouds::{
@@ -25,6 +25,39 @@ use bevy_particle_clouds::{
     scene::{ObjectShape, Scene},
     shadow_maps::{SKY_MAP_DIRECTIONS, ShadowMapPlacement},
 };
+
+use super::{named_scenes, write_report};
+
+/// The options of `benchmark sky-map`.
+#[derive(clap::Args, Debug)]
+pub(crate) struct SkyMapArgs {
+    /// Only these scenes (comma-separated names; default: `cloud_over_ground_sky`): scenes under a
+    /// sky.
+    #[arg(long, value_delimiter = ',')]
+    pub(crate) scenes: Option<Vec<String>>,
+}
+
+/// `benchmark sky-map`: the sky map's error and cost on each chosen scene (default
+/// `cloud_over_ground_sky`); writes `DIR/sky_map.md`.
+pub(crate) fn sky_map_benchmark(args: &SkyMapArgs, out: &Path) -> Result<(), String> {
+    let mut md = String::from(
+        "# The sky map\n\nWhat the clouds hide of the sky from the ground (docs/illumination.md \
+         §10), measured by `cargo run --example benchmark -- sky-map`.\n",
+    );
+    for (bench, scene) in named_scenes(args.scenes.as_deref(), "cloud_over_ground_sky")? {
+        let name = bench.name;
+        if scene.background == Vec3::ZERO {
+            return Err(format!(
+                "`{name}` has a black sky; sky-map takes a scene under a sky"
+            ));
+        }
+        eprintln!("benchmark: {name}: the sky map's error (CPU)");
+        md.push_str(&error(name, &scene, &scene.settings));
+        eprintln!("benchmark: {name}: the sky map's cost");
+        md.push_str(&cost(&scene)?);
+    }
+    write_report(out, "sky_map.md", &md)
+}
 
 /// Directions of the exact sky transmittance the others are held against.
 const EXACT_DIRECTIONS: u32 = 8192;

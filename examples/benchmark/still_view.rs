@@ -1,4 +1,4 @@
-//! `--still-view`: what a still frame costs when the view keeps its clouds
+//! `still-view`: what a still frame costs when the view keeps its clouds
 //! (`CloudRedraw::WhenChanged`, the default) against drawing them again (`EveryFrame`, which the
 //! other modes' static frames measure), at default settings, and how far the kept image is
 //! from the drawn one.
@@ -29,10 +29,21 @@ struct StillRow {
 
 const MODES: [CloudRedraw; 2] = [CloudRedraw::EveryFrame, CloudRedraw::WhenChanged];
 
-pub(crate) fn still_view_benchmark(args: &Args) -> Result<(), String> {
+/// The options of `benchmark still-view`.
+#[derive(clap::Args, Debug)]
+pub(crate) struct StillViewArgs {
+    /// Only these scenes (comma-separated names; default: `paper_3100`, `paper_38k_5lights`,
+    /// `cumulus`, `thin_smoke`).
+    #[arg(long, value_delimiter = ',')]
+    pub(crate) scenes: Option<Vec<String>>,
+    #[command(flatten)]
+    pub(crate) frames: Frames,
+}
+
+pub(crate) fn still_view_benchmark(args: &StillViewArgs, out: &Path) -> Result<(), String> {
     let mut rows = Vec::new();
     let mut adapter = String::new();
-    for bench in chosen_scenes(args, &DEFAULT_SCENES) {
+    for bench in chosen_scenes(args.scenes.as_deref(), &DEFAULT_SCENES) {
         let scene = load_scene(bench)?;
         let mut b = Bench::new(&scene);
         adapter = b.adapter.clone();
@@ -41,7 +52,7 @@ pub(crate) fn still_view_benchmark(args: &Args) -> Result<(), String> {
         for _ in 0..ROUNDS {
             for (i, mode) in MODES.into_iter().enumerate() {
                 b.app.insert_resource(mode);
-                let (draw, wall) = b.static_frames(args.frames());
+                let (draw, wall) = b.static_frames(args.frames.count());
                 times[i].0.extend(draw);
                 times[i].1.extend(wall);
             }
@@ -61,9 +72,9 @@ pub(crate) fn still_view_benchmark(args: &Args) -> Result<(), String> {
         rows.push(row);
     }
     write_report(
-        args,
+        out,
         "still_view.md",
-        &table(&adapter, &rows, args.frames()),
+        &table(&adapter, &rows, args.frames.count()),
     )
 }
 

@@ -166,7 +166,7 @@ impl Bench {
     /// (else the headless renderer's default).
     pub(crate) fn with_shadow_maps(scene: &Scene, resolution: Option<u32>) -> Bench {
         let mut app = headless::app_with(headless::plugins().disable::<bevy::winit::WinitPlugin>());
-        // A static frame measures the draw (`--still-view` measures what keeping it saves).
+        // A static frame measures the draw (`benchmark still-view` measures what keeping it saves).
         app.insert_resource(bevy_particle_clouds::CloudRedraw::EveryFrame);
         if let Some(resolution) = resolution {
             app.insert_resource(bevy_particle_clouds::CloudShadowMaps::with_resolution(

@@ -1,4 +1,4 @@
-//! `--sweep-response`: how the discrete-ordinates sweep (docs/illumination.md §4) carries a
+//! `sweep-response`: how the discrete-ordinates sweep (docs/illumination.md §4) carries a
 //! source that varies in space, against the exact transport. In an infinite homogeneous medium
 //! of albedo 1 the transport operator maps a source `1 + cos(k . x)` to `1 + f(k / sigma)
 //! cos(k . x)` with `f(x) = atan(x) / x`: light spreads over about a mean free path, so detail
@@ -30,7 +30,7 @@ pub(crate) fn table() -> String {
         "# The sweep's response to detail\n\nOne discrete-ordinates sweep (26 lattice \
          directions, parabolic source) of a source `1 + cos(k . x)` over a uniform grid of \
          albedo 1, against the exact transport's `atan(x) / x`, `x = k / sigma`, `k` the mode's wavenumber (`cargo run \
-         --example benchmark -- --sweep-response`; f64 CPU reference, the gain measured at the \
+         --example benchmark -- sweep-response`; f64 CPU reference, the gain measured at the \
          grid's centre).\n\n| voxel optical depth | mode | period along an axis (voxels) | \
          `k / sigma` | sweep | exact | sweep / exact |\n|---:|---|---:|---:|---:|---:|---:|\n",
     );

@@ -1,4 +1,4 @@
-//! `--voxelize`: the voxelize pass's GPU time against particle size, at a fixed particle count.
+//! `voxelize`: the voxelize pass's GPU time against particle size, at a fixed particle count.
 //!
 //! [`PARTICLES`] particles with centres in a unit cube, all of radius `r`, chosen so that `r / h`
 //! (the radius in fine voxels of the default settings) takes each value of [`RADII_IN_VOXELS`].
@@ -65,7 +65,14 @@ fn scene(q: f32, settings: CloudQualitySettings) -> Scene {
     }
 }
 
-pub(crate) fn voxelize_benchmark(args: &Args) -> Result<(), String> {
+/// The options of `benchmark voxelize`.
+#[derive(clap::Args, Debug)]
+pub(crate) struct VoxelizeArgs {
+    #[command(flatten)]
+    pub(crate) frames: Frames,
+}
+
+pub(crate) fn voxelize_benchmark(args: &VoxelizeArgs, out: &Path) -> Result<(), String> {
     let settings = CloudQualitySettings::default();
     let mut benches: Vec<Bench> = RADII_IN_VOXELS
         .iter()
@@ -76,7 +83,7 @@ pub(crate) fn voxelize_benchmark(args: &Args) -> Result<(), String> {
     let mut times = vec![Vec::new(); RADII_IN_VOXELS.len()];
     for round in 0..ROUNDS {
         for ((q, b), times) in RADII_IN_VOXELS.iter().zip(&mut benches).zip(&mut times) {
-            let (_, timing) = b.measure(args.frames());
+            let (_, timing) = b.measure(args.frames.count());
             eprintln!(
                 "benchmark: voxelize, round {round}, r/h = {q}: {:.2} ms (GPU)",
                 timing.pass_ms[0]
@@ -96,7 +103,7 @@ pub(crate) fn voxelize_benchmark(args: &Args) -> Result<(), String> {
          upsampling), median of {} rounds × {} frames that each re-voxelize, the rounds visiting the sizes in turn.\n\n\
          | r / h | support voxels per particle (4π/3 (r/h)³) | voxelize, ms | / r = h |\n|---:|---:|---:|---:|\n",
         ROUNDS,
-        args.frames(),
+        args.frames.count(),
         m = settings.light_resolution(),
     );
     for (q, ms) in &rows {
@@ -107,7 +114,7 @@ pub(crate) fn voxelize_benchmark(args: &Args) -> Result<(), String> {
             ms / base
         );
     }
-    let path = args.out.join("voxelize.md");
+    let path = out.join("voxelize.md");
     std::fs::write(&path, &table).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
     println!("{table}");
     eprintln!("benchmark: wrote {}", path.display());

@@ -1,4 +1,4 @@
-//! `--warm-start`: the scattering's warm restart under a moving sun (`warm_scatter_iterations`,
+//! `warm-start`: the scattering's warm restart under a moving sun (`warm_scatter_iterations`,
 //! docs/illumination.md §4), against the path tracer.
 //!
 //! Each scene's lights are first turned by `Δ` about the vertical and the scene is rendered until
@@ -38,12 +38,22 @@ fn scatter_ms(b: &Bench, first: usize) -> Option<f64> {
         .and_then(|f| f.gpu_ms.get(&CloudPass::Scatter).copied())
 }
 
-pub(crate) fn warm_start_benchmark(args: &Args) -> Result<(), String> {
+/// The options of `benchmark warm-start`.
+#[derive(clap::Args, Debug)]
+pub(crate) struct WarmStartArgs {
+    /// Only these scenes (comma-separated names; default: `cumulus`, `paper_38k_1light`).
+    #[arg(long, value_delimiter = ',')]
+    pub(crate) scenes: Option<Vec<String>>,
+    #[command(flatten)]
+    pub(crate) reference: ReferenceSpp,
+}
+
+pub(crate) fn warm_start_benchmark(args: &WarmStartArgs, out: &Path) -> Result<(), String> {
     let mut rows = Vec::new();
     let mut adapter = String::new();
-    for bench in chosen_scenes(args, &DEFAULT_SCENES) {
+    for bench in chosen_scenes(args.scenes.as_deref(), &DEFAULT_SCENES) {
         let scene = load_scene(bench)?;
-        let reference = reference(&scene, bench, args.spp.unwrap_or(bench.spp), &args.out)?;
+        let reference = reference(&scene, bench, args.reference.spp.unwrap_or(bench.spp), out)?;
         let error = |image: &LinearImage| {
             let small = downsample(image, bench.error_downsample);
             denoised(
@@ -100,7 +110,7 @@ pub(crate) fn warm_start_benchmark(args: &Args) -> Result<(), String> {
         }
     }
     let table = table(&adapter, &rows);
-    let path = args.out.join("warm_start.md");
+    let path = out.join("warm_start.md");
     std::fs::write(&path, &table).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
     println!("{table}");
     eprintln!("benchmark: wrote {}", path.display());
