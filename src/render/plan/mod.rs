@@ -7,6 +7,7 @@ pub mod budget;
 pub mod casters;
 pub mod ground;
 pub mod overlap;
+pub mod params;
 pub mod pools;
 pub mod volumes;
 

@@ -1,0 +1,179 @@
+//! A cloud's uniforms and the sizes of its volumes, from its settings, its particles and the
+//! lights: the pure part of preparing its volumes ([`volumes`](super::volumes)).
+
+use bevy::prelude::*;
+
+use crate::math::{MAX_RADIUS_IN_LEVEL_VOXELS, density_level, density_level_sizes};
+use crate::particle::DeltaM;
+use crate::render::{
+    extract::particles::{CloudBounds, GpuParticles},
+    extract::{ExtractedCloud, ExtractedCloudLights},
+    plan::StageKeys,
+    plan::ground::{ground_frame, ground_key},
+    plan::pools::VolumeShape,
+};
+
+use crate::render::core::types::{CloudParams, LightParams};
+
+/// Every light's uniform for a cloud of uniform `params`, slot `i` shading the `i`-th light in
+/// the cloud's local frame.
+pub(crate) fn light_params(
+    params: &CloudParams,
+    cloud: &ExtractedCloud,
+    lights: &ExtractedCloudLights,
+) -> Vec<LightParams> {
+    let to_local = cloud.rotation().inverse();
+    lights
+        .lights
+        .iter()
+        .zip(0..)
+        .map(|(l, i)| {
+            LightParams::new(
+                params,
+                (to_local * l.direction).normalize(),
+                l.irradiance * cloud.light_transmittance(i as usize),
+                i,
+            )
+        })
+        .collect()
+}
+
+/// This frame's stage keys of `cloud` (at its settings' resolution), other clouds casting on it
+/// what `casts` keys (per light slot; empty: none) and overlapping it with the media `media`
+/// keys (0: none).
+pub(crate) fn frame_keys(
+    cloud: &ExtractedCloud,
+    gpu: &GpuParticles,
+    bounds: CloudBounds,
+    lights: &ExtractedCloudLights,
+    casts: &[u64],
+    media: u64,
+) -> StageKeys {
+    let params = cloud_params(cloud, gpu, bounds, lights);
+    let ground = ground_frame(cloud, &params, lights.ground.as_ref(), lights.sky);
+    StageKeys::new(
+        &params,
+        &light_params(&params, cloud, lights),
+        casts,
+        media,
+        (lights.sky, ground_key(&ground)),
+        gpu.generation,
+        &cloud.settings,
+    )
+}
+
+/// `cloud` illuminated at `n` voxels per side, its fine grid lowered where one such cloud's
+/// volumes would not fit the adapter's storage binding (`max_binding` bytes).
+pub(crate) fn at_resolution(
+    cloud: &ExtractedCloud,
+    n: u32,
+    lights: &ExtractedCloudLights,
+    max_binding: u64,
+) -> ExtractedCloud {
+    let mut cloud = cloud.clone();
+    cloud.settings.volume_resolution = n;
+    let (count, moments) = (lights.lights.len() as u32, cloud.has_moments());
+    let wanted = cloud.settings.light_resolution();
+    // None fits: n, and the allocation refuses the cloud with its own warning.
+    let fitting =
+        VolumeShape::fitting_light_resolution(&cloud.settings, count, moments, max_binding)
+            .unwrap_or(n);
+    cloud.light_resolution = fitting;
+    if fitting < wanted {
+        let message = format!(
+            "particle cloud: light volumes of {wanted}³ voxels for {count} lights exceed this \
+             adapter's storage buffer limit of {max_binding} bytes; such clouds are shaded on a \
+             fine grid of {fitting}³ (a scattering grid of {n}³)",
+        );
+        // The default's lowering is documented (5 lights at 48³ on a 128 MiB binding): not a
+        // warning, which would fire for every user of such an adapter.
+        if cloud.settings.light_supersampling_is_default() {
+            info_once!("{message}");
+        } else {
+            warn_once!("{message}");
+        }
+    }
+    cloud
+}
+
+/// The shape of the volumes `cloud` is illuminated in under `lights`.
+pub(crate) fn volume_shape(cloud: &ExtractedCloud, lights: &ExtractedCloudLights) -> VolumeShape {
+    let count = lights.lights.len() as u32;
+    VolumeShape::new(&cloud.settings, count, cloud.has_moments())
+        .with_light_resolution(cloud.light_resolution)
+}
+
+/// The uniform of the fine grid (voxelize and shade): the same cube at `m` voxels per side.
+pub(crate) fn fine_params(params: &CloudParams) -> CloudParams {
+    CloudParams {
+        n: params.light_n,
+        h: params.h * params.n as f32 / params.light_n as f32,
+        ..*params
+    }
+}
+
+/// The largest particle's radius in fine voxels, and its density level, in a fine grid of `m`
+/// voxels per side over `bounds`.
+pub(crate) fn largest_particle(bounds: CloudBounds, m: u32) -> (f64, usize) {
+    let r_over_h = (bounds.max_radius * m as f32 / bounds.side) as f64;
+    let levels = density_level_sizes(m).len();
+    (r_over_h, density_level(r_over_h, levels))
+}
+
+/// Density levels that hold particles: the fine grid down to the largest particle's level, or one
+/// further when that particle is within 1e-4 of a level's boundary, where the GPU's f32 choice
+/// may differ from this one (a level deposited on but not upsampled would lose its mass).
+pub(crate) fn levels_in_use(bounds: CloudBounds, m: u32) -> usize {
+    let (r_over_h, _) = largest_particle(bounds, m);
+    density_level(r_over_h * (1.0 + 1e-4), density_level_sizes(m).len()) + 1
+}
+
+/// Rows per axis of the widest support of a cloud's particles, in a fine grid of `m` voxels per
+/// side over `bounds`: the largest particle's on its level (at most `2 r / h_l + 1` voxel
+/// centres, and no more than the level holds), and, when that level is coarse, those of the
+/// particles on finer levels, which span up to `MAX_RADIUS_IN_LEVEL_VOXELS` of their own voxels
+/// (no more than the fine grid holds). So at most 65: the voxelize dispatch takes rows² along y,
+/// at most 65535.
+pub(crate) fn support_rows(bounds: CloudBounds, m: u32) -> u32 {
+    let (r_over_h, level) = largest_particle(bounds, m);
+    let on_level = r_over_h / (1u32 << level) as f64;
+    let largest = (2.0 * on_level.ceil() + 1.0).min(density_level_sizes(m)[level] as f64);
+    let finer = if level == 0 {
+        0.0
+    } else {
+        (2.0 * MAX_RADIUS_IN_LEVEL_VOXELS + 1.0).min(m as f64)
+    };
+    (largest.max(finer) as u32).max(1)
+}
+
+/// The uniform of a cloud's illumination passes.
+pub(crate) fn cloud_params(
+    cloud: &ExtractedCloud,
+    gpu: &GpuParticles,
+    bounds: CloudBounds,
+    lights: &ExtractedCloudLights,
+) -> CloudParams {
+    let n = cloud.settings.volume_resolution;
+    let delta = DeltaM::new(cloud.albedo as f64, cloud.anisotropy as f64);
+    CloudParams {
+        n,
+        particle_count: gpu.count,
+        light_n: cloud.light_resolution,
+        light_count: lights.lights.len() as u32,
+        grid_origin: bounds.centre - bounds.side * 0.5,
+        h: bounds.side / n as f32,
+        grid_centre: bounds.centre,
+        k_local: cloud.extinction * cloud.scale(),
+        albedo: cloud.albedo,
+        forward_scattering: cloud.settings.forward_scattering,
+        rows: support_rows(bounds, cloud.light_resolution),
+        anisotropy: cloud.anisotropy,
+        depth_scale: delta.depth_scale as f32,
+        lit: lights.any() as u32,
+        foreign: 0,
+        scatter_albedo: delta.albedo as f32,
+        scatter_anisotropy: delta.anisotropy as f32,
+        scatter_second_moment: delta.second_moment as f32,
+        moments: cloud.has_moments() as u32,
+    }
+}
