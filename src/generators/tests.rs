@@ -1,4 +1,3 @@
-
 use bevy::prelude::{Cuboid, MeshBuilder, Meshable, Sphere, Torus};
 
 use super::*;

@@ -1,3 +1,4 @@
+
 use super::*;
 
 fn tmp_dir(name: &str) -> PathBuf {
@@ -57,10 +58,10 @@ fn csv_round_trip() {
 #[test]
 fn ply_ascii_any_order_types_extra_properties_and_elements() {
     let text = "ply\r\nformat ascii 1.0\r\ncomment hi\r\nelement camera 1\r\nproperty float fov\r\n\
-                element vertex 2\r\nproperty double density\r\nproperty uchar red\r\nproperty int x\r\n\
-                property list uchar int idx\r\nproperty float y\r\nproperty float z\r\nproperty float radius\r\n\
-                element face 1\r\nproperty list uchar int vertex_indices\r\nend_header\r\n\
-                45\r\n0.5 255 1 3 7 8 9 2 3 0.25\r\n\r\n1 0 -2 0 0.5 0.5 1\r\n3 0 1 1\r\n";
+                    element vertex 2\r\nproperty double density\r\nproperty uchar red\r\nproperty int x\r\n\
+                    property list uchar int idx\r\nproperty float y\r\nproperty float z\r\nproperty float radius\r\n\
+                    element face 1\r\nproperty list uchar int vertex_indices\r\nend_header\r\n\
+                    45\r\n0.5 255 1 3 7 8 9 2 3 0.25\r\n\r\n1 0 -2 0 0.5 0.5 1\r\n3 0 1 1\r\n";
     let p = parse_ply(
         Path::new("t.ply"),
         text.as_bytes(),
@@ -88,11 +89,11 @@ fn ply_ascii_any_order_types_extra_properties_and_elements() {
 fn ply_binary_mixed_types_and_preceding_elements() {
     let mut b = Vec::new();
     b.extend_from_slice(
-        b"ply\nformat binary_little_endian 1.0\nelement meta 2\nproperty list uchar ushort ids\nproperty short s\n\
-          element vertex 2\nproperty uchar r\nproperty double x\nproperty float y\nproperty int z\n\
-          property list uint uchar tags\nproperty float radius\nproperty ushort density\n\
-          element face 1\nproperty list uchar int vertex_indices\nend_header\n",
-    );
+            b"ply\nformat binary_little_endian 1.0\nelement meta 2\nproperty list uchar ushort ids\nproperty short s\n\
+              element vertex 2\nproperty uchar r\nproperty double x\nproperty float y\nproperty int z\n\
+              property list uint uchar tags\nproperty float radius\nproperty ushort density\n\
+              element face 1\nproperty list uchar int vertex_indices\nend_header\n",
+        );
     // meta: [count 1: 7] s=-1 ; [count 0] s=2
     b.extend_from_slice(&[1, 7, 0]);
     b.extend_from_slice(&(-1i16).to_le_bytes());
@@ -146,7 +147,7 @@ fn err(text: &str) -> String {
 #[test]
 fn ply_errors_name_file_and_line() {
     let head = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n\
-                property float radius\nproperty float density\nend_header\n";
+                    property float radius\nproperty float density\nend_header\n";
     let e = err(&format!("{head}0 0 0 1 1\n0 0 zz 1 1\n"));
     assert!(
         e.contains("c.ply: line 11") && e.contains("`z`") && e.contains("zz"),
@@ -211,7 +212,7 @@ fn ply_errors_name_file_and_line() {
     assert!(e.contains("no `element vertex`"), "{e}");
     let e = err(
         "ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\nproperty float y\n\
-                 property float z\nproperty float radius\nproperty float density\nend_header\n\0\0\0\0",
+                     property float z\nproperty float radius\nproperty float density\nend_header\n\0\0\0\0",
     );
     assert!(e.contains("vertex 0") && e.contains("ends early"), "{e}");
 }
@@ -295,8 +296,8 @@ fn content_free_details_hold_none_of_the_file() {
     let secret = "root:x:0:0:secret:/root:/bin/bash\nsecret2,secret3\n";
     let csv_header = "x,y,z,radius,density\n0,0,secret,1,1\n";
     let ply_token = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n\
-                     property float z\nproperty float radius\nproperty float density\n\
-                     end_header\n0 0 0 1 secret\n";
+                         property float z\nproperty float radius\nproperty float density\n\
+                         end_header\n0 0 0 1 secret\n";
     let ply_names = "ply\nformat ascii 1.0\nelement secret 1\nproperty secret secret\n";
     let attributes = ParticleAttributes::default();
     // (the error, whether its full message quotes the file)
@@ -384,7 +385,7 @@ fn attributes_map_names_fill_defaults_and_scale() {
         parse_csv(Path::new("h.csv"), csv.as_bytes(), &houdini).unwrap()
     ));
     let ply = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n\
-               property float z\nproperty float pscale\nend_header\n1 2 3 20\n";
+                   property float z\nproperty float pscale\nend_header\n1 2 3 20\n";
     assert!(close(
         parse_ply(Path::new("h.ply"), ply.as_bytes(), &houdini).unwrap()
     ));

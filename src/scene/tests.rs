@@ -1,4 +1,3 @@
-
 use super::*;
 use crate::particle_files::{write_csv, write_ply_ascii, write_ply_binary};
 use crate::settings::ScatterStencil;

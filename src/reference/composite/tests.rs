@@ -1,4 +1,3 @@
-
 use super::*;
 use crate::math::particle_optical_depth;
 use crate::scene::ObjectShape;

@@ -1,4 +1,3 @@
-
 use super::*;
 use crate::reference::illumination::{scatter, single_scattering_at};
 use std::f64::consts::PI;

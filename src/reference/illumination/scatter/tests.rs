@@ -1,4 +1,3 @@
-
 use super::*;
 use crate::particle::Medium;
 use crate::reference::illumination::test_support::*;
