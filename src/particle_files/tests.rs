@@ -1,4 +1,3 @@
-
 use super::*;
 
 fn tmp_dir(name: &str) -> PathBuf {

@@ -2,7 +2,7 @@
 //! gather and multiple scattering. Only the stages planned for this frame run
 //! ([`plan`](crate::render::plan)). Every pass is batched: one dispatch covers every cloud of a volume
 //! pool ([`pools`](crate::render::plan::pools)), its z workgroups walking a work list (voxelize first copies
-//! the clouds' particles into one buffer, [`voxelize`](crate::render::illumination::voxelize)). Their bind groups and
+//! the clouds' particles into one buffer, [`voxelize`]). Their bind groups and
 //! work lists are made in `PrepareBindGroups`; the system in the `RenderGraph` schedule, once per
 //! frame before any camera, only records.
 

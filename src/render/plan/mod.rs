@@ -50,9 +50,9 @@ impl StageKeys {
     /// This frame's keys of a cloud with the uniform `params`, its lights' uniforms `lights` (in
     /// slot order), the key of what other clouds cast on it along each light (`casters[i]`: 0, or
     /// missing, when none does; [`cast`](crate::render::plan::casters)), the key of the media of the clouds that
-    /// overlap it (`media`: 0 when none does; [`overlap`](crate::render::plan::overlap)), what enters its grid
+    /// overlap it (`media`: 0 when none does; [`overlap`]), what enters its grid
     /// from outside (the sky's radiance, and the key of the ground under it: 0 for none;
-    /// [`ground`](crate::render::plan::ground)), its particles' upload `generation` and its `settings`.
+    /// [`ground`]), its particles' upload `generation` and its `settings`.
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         params: &CloudParams,

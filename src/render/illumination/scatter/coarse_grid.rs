@@ -6,7 +6,7 @@
 //! weighted by what each voxel scatters, sums the series of [`COARSE_GRID_ORDERS`] orders from it
 //! there and closes it, adds that correction back trilinearly, and sweeps the fine grids once
 //! more. A pool without coarse grids (an odd side) only sweeps. The CPU reference is
-//! [`scatter_coarse_cycles`](crate::reference::illumination::scatter_coarse_cycles).
+//! `reference::illumination::scatter_coarse_cycles` (feature `reference`).
 
 use bevy::render::render_resource::{BindGroup, BindGroupEntries, BindGroupEntry, Buffer};
 
