@@ -27,7 +27,8 @@ const WGSL: [&str; 6] = [
     include_str!("view/sort.wgsl"),
     include_str!("illumination/scatter/sweep.wgsl"),
 ];
-const RUST: [&str; 15] = [
+const RUST: [&str; 16] = [
+    include_str!("plan/volume_shape.rs"),
     include_str!("illumination/scatter/sweep.rs"),
     include_str!("draw/target.rs"),
     include_str!("view/view_atlas.rs"),

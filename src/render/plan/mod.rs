@@ -9,6 +9,7 @@ pub mod ground;
 pub mod overlap;
 pub mod params;
 pub mod pools;
+pub mod volume_shape;
 pub mod volumes;
 
 use bevy::prelude::*;
