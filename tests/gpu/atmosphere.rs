@@ -74,7 +74,8 @@ fn a_cloud_under_an_atmosphere_takes_the_sun_through_it() {
         light.irradiance *= *tint;
     }
     let tinted = render(&setup, None);
-    // The same passes on the same numbers, but for the order of voxelize's atomic adds.
+    // The same passes on the same numbers, but for the order of the computed draw's atomic adds
+    // (voxelize sums in a fixed order).
     let channels = |image: &LinearImage| -> Vec<f64> {
         image.pixels.iter().flatten().map(|&v| v as f64).collect()
     };

@@ -86,7 +86,8 @@ fn the_dispatches_stay_flat_in_clouds_of_one_shape() {
     let mut one = scene();
     spawn(&mut one, 0.0, 0, 12);
     let (runs_one, dispatches_one) = illuminate(&mut one, &mut FrameRecorder::default(), 1);
-    // Voxelize's kernel sums and deposit (its particles all on the fine grid); one light, 3
+    // Voxelize's binning (count, scan, scatter, sort), kernel sums and gather (its particles all
+    // on the fine grid); one light, 3
     // iterations of 13 sweep directions and the order's accumulation, then the closure's two
     // dispatches, and the default 2 coarse-grid cycles (the media's restriction once, then each
     // two restart sweeps of 15, the residual's restriction and prolongation, and 32 coarse
@@ -95,7 +96,7 @@ fn the_dispatches_stay_flat_in_clouds_of_one_shape() {
     let cycle = 2 * 15 + 2 + 32 * (13 + 1) + 3;
     assert_eq!(
         dispatches_one,
-        [2, 1, 1, 3 * (13 + 1) + 2 + 1 + 2 * cycle, 1]
+        [6, 1, 1, 3 * (13 + 1) + 2 + 1 + 2 * cycle, 1]
     );
 
     let mut six = scene();
@@ -137,7 +138,7 @@ fn one_dispatch_per_order_takes_two_dispatches_an_iteration() {
     let (runs, dispatches) = per_order(1);
     assert_eq!(runs, [1, 1, 1, 3, 1]);
     let cycle = 2 * 4 + 2 + 32 * 2 + 3;
-    assert_eq!(dispatches, [2, 1, 1, 3 * 2 + 2 + 1 + 2 * cycle, 1]);
+    assert_eq!(dispatches, [6, 1, 1, 3 * 2 + 2 + 1 + 2 * cycle, 1]);
     assert_eq!(per_order(6).1, dispatches);
 }
 
@@ -270,11 +271,12 @@ fn clouds_on_different_density_levels_are_voxelized_together() {
     let (in_use, pools): (Vec<usize>, Vec<_>) = clouds.iter().map(|&c| levels(&mut app, c)).unzip();
     assert_eq!(in_use, [1, 2, 3]);
     assert!(pools.iter().all(|p| *p == pools[0]), "one pool");
-    // Three clouds voxelized once each; the kernels' sums, the deposit, and levels 2 and 1
-    // enlarged: four dispatches, as for the one cloud with three levels.
+    // Three clouds voxelized once each; the binning (count, scan, scatter, sort), the kernels'
+    // sums, the gather, and levels 2 and 1 enlarged: eight dispatches, as for the one cloud
+    // with three levels.
     assert_eq!(
         (count(|s, p| s.runs(p)), count(|s, p| s.dispatches(p))),
-        (3, 4)
+        (3, 8)
     );
 
     let m = settings.light_resolution() as usize;

@@ -184,9 +184,9 @@ fn brute_force_and_incremental_shading_agree() {
         incremental.multiple.iter().any(|&s| s > 0.0),
         "no multiple scattering"
     );
-    // The orders differ by the light volumes' rounding, and by the density's where voxelize's
-    // float atomics sum in another order (a parallel GPU's); the two-mode tail magnifies that
-    // (1.3e-5 of the maximum seen on an NVIDIA H200).
+    // The orders differ by the light volumes' rounding; the two-mode tail magnifies that (1.3e-5
+    // of the maximum seen on an NVIDIA H200, while voxelize still summed the density with float
+    // atomics in an order the GPU chose; it sums in a fixed order now).
     let amplification = incremental.amplification();
     let error = max_relative_difference(&brute_force.multiple, &incremental.multiple);
     assert!(

@@ -111,9 +111,9 @@ fn a_computed_cloud_target_is_the_rasterised_one() {
             covered > 100,
             "{compositing:?}: the cloud covers {covered} texels"
         );
-        // Sorted, both rasterise; their density may still differ in its last bits where
-        // voxelize's float atomics sum in another order (a parallel GPU's: 1 f16 ulp seen on an
-        // NVIDIA H200, 0 on llvmpipe).
+        // Sorted, both rasterise the same density bit for bit (voxelize sums in a fixed order;
+        // while it summed with float atomics an NVIDIA H200 showed 1 f16 ulp, so the bound
+        // stays until a parallel GPU measures it again).
         let bound = if splatted { 2.0 * particles } else { 2.0 };
         assert!(
             worst <= bound,

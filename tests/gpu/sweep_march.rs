@@ -19,8 +19,9 @@ use crate::{
     warm_start::{gpu_multiple, lit_cloud_app},
 };
 
-/// Largest allowed difference, relative to the volume's largest value: the density's last bits
-/// may differ between two renders where voxelize's float atomics sum in another order.
+/// Largest allowed difference, relative to the volume's largest value: set while the density's
+/// last bits could differ between two renders (voxelize's float atomics; it sums in a fixed order
+/// now, and the bound stays until a parallel GPU measures it again).
 const TOLERANCE: f64 = 1e-5;
 
 /// The same for the two dispatches, whose sums group the pairs' shares otherwise (each pair's two

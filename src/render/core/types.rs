@@ -8,6 +8,7 @@ use crate::math::{
     LEVEL_KERNEL_NARROWING, MAX_DENSITY_LEVELS, MAX_RADIUS_IN_LEVEL_VOXELS, density_level_sizes,
     light_basis,
 };
+use crate::render::core::workgroups::VOXEL_BRICK;
 
 /// Mirror of `CloudParams` in `types.wgsl`.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
@@ -34,8 +35,6 @@ pub struct CloudParams {
     pub albedo: f32,
     /// Forward-scattering fraction of the shading pass.
     pub forward_scattering: f32,
-    /// Rows per axis of the largest particle's support on its density level (at most 65): the voxelize dispatch is particles × rows × rows.
-    pub rows: u32,
     /// Henyey–Greenstein anisotropy `g` of the scattering towards the camera.
     pub anisotropy: f32,
     /// The fraction of the shaded optical depths the light's beam and the multiple scattering
@@ -60,8 +59,9 @@ pub struct CloudParams {
 /// (docs/illumination.md §1), with the level one upsample dispatch enlarges.
 #[derive(ShaderType, Clone, Copy, Debug, Default, PartialEq)]
 pub struct DensityLevels {
-    /// Per level, the fine grid first: voxels per side (x) and first element in the density
-    /// buffer (y).
+    /// Per level, the fine grid first: voxels per side (x), first element in the density
+    /// buffer (y), first brick of voxelize's gather among a cloud's bricks (z), and bricks per
+    /// side (w; [`VOXEL_BRICK`] voxels each).
     pub size_offset: [UVec4; MAX_DENSITY_LEVELS],
     /// Levels in use.
     pub count: u32,
@@ -82,15 +82,27 @@ impl DensityLevels {
             .sum()
     }
 
+    /// Bricks of voxelize's gather over every density level of a fine grid of `m` voxels per
+    /// side.
+    pub fn bricks(m: u32) -> u64 {
+        density_level_sizes(m)
+            .iter()
+            .map(|&n| (n.div_ceil(VOXEL_BRICK) as u64).pow(3))
+            .sum()
+    }
+
     /// The levels of a fine grid of `m` voxels per side, one entry per value of `upsample_from`
     /// (`0..count`); and the elements of the density buffer that holds them all.
     pub(crate) fn entries(m: u32) -> (Vec<DensityLevels>, u64) {
         let sizes = density_level_sizes(m);
         let mut size_offset = [UVec4::ZERO; MAX_DENSITY_LEVELS];
         let mut elements = 0;
+        let mut bricks = 0;
         for (entry, &n) in size_offset.iter_mut().zip(&sizes) {
-            *entry = UVec4::new(n, elements as u32, 0, 0);
+            let side = n.div_ceil(VOXEL_BRICK);
+            *entry = UVec4::new(n, elements as u32, bricks, side);
             elements += (n as u64).pow(3);
+            bricks += side.pow(3);
         }
         let entries = (0..sizes.len() as u32)
             .map(|upsample_from| DensityLevels {

@@ -32,8 +32,6 @@ struct CloudParams {
     k_local: f32,
     albedo: f32,
     forward_scattering: f32,
-    // Rows per axis of the largest particle's support in the fine grid (the voxelize dispatch).
-    rows: u32,
     // Henyey-Greenstein g of the scattering towards the camera.
     anisotropy: f32,
     // The medium's delta-M transform (docs/illumination.md §4): the fraction of the
@@ -101,10 +99,10 @@ struct Slot {
 }
 
 // The density levels of a fine grid (docs/illumination.md §1). Rust mirror: `DensityLevels` in
-// src/render/plan/volumes.rs.
+// src/render/core/types.rs.
 struct DensityLevels {
-    // Per level, the fine grid first: voxels per side (x) and first element in the density
-    // buffer (y).
+    // Per level, the fine grid first: voxels per side (x), first element in the density buffer
+    // (y), first brick of voxelize's gather among a cloud's bricks (z), and bricks per side (w).
     size_offset: array<vec4<u32>, 8>,
     // Levels in use.
     count: u32,

@@ -17,6 +17,11 @@ pub const LINEAR: u32 = 64;
 /// Edge of the square workgroups of the kernels that march one column per invocation (shade,
 /// voxelize's upsample, view volume).
 pub const SLICE: u32 = 8;
+/// Voxels per side of a brick of voxelize's gather (`illumination/voxelize.wgsl`): one
+/// workgroup of [`BRICK_THREADS`] sums a brick, two voxels per invocation.
+pub const VOXEL_BRICK: u32 = 8;
+/// Invocations per workgroup of the kernels that work a brick, or a run of bricks, at a time.
+pub const BRICK_THREADS: u32 = VOXEL_BRICK.pow(3) / 2;
 /// Elements per tile of the radix sort, each walked in order by one invocation.
 pub const SORT_TILE: u32 = 256;
 /// Texels per side of a tile of the sky map's caster lists (`illumination/sky_map`).
@@ -32,6 +37,8 @@ pub fn shader_defs() -> Vec<ShaderDefVal> {
         ShaderDefVal::UInt("LINEAR_WORKGROUP".into(), LINEAR),
         ShaderDefVal::UInt("SLICE_WORKGROUP".into(), SLICE),
         ShaderDefVal::UInt("SORT_TILE".into(), SORT_TILE),
+        ShaderDefVal::UInt("VOXEL_BRICK".into(), VOXEL_BRICK),
+        ShaderDefVal::UInt("BRICK_WORKGROUP".into(), BRICK_THREADS),
         ShaderDefVal::UInt("BEAM_PHASE_ANGLES".into(), BEAM_PHASE_ANGLES),
         ShaderDefVal::UInt("BEAM_PHASE_DEPTHS".into(), BEAM_PHASE_DEPTHS),
         ShaderDefVal::UInt("SKY_MAP_DIRECTIONS".into(), SKY_MAP_DIRECTIONS),
@@ -50,6 +57,13 @@ pub fn linear_groups(count: u32) -> [u32; 3] {
     let groups = count.div_ceil(LINEAR).max(1);
     let x = groups.min(65535);
     [x, groups.div_ceil(x), 1]
+}
+
+/// `groups` workgroups spread over x and y so that no dimension exceeds the 65535 limit (the
+/// shaders flatten them with `num_workgroups`).
+pub fn spread_groups(groups: u32) -> [u32; 2] {
+    let x = groups.clamp(1, 65535);
+    [x, groups.div_ceil(x).max(1)]
 }
 
 /// Dispatches `count` invocations of a [`LINEAR`] kernel, for each of `items` z workgroups.
@@ -91,6 +105,7 @@ mod tests {
         let allowed = [
             "@workgroup_size(#{LINEAR_WORKGROUP})",
             "@workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)",
+            "@workgroup_size(#{BRICK_WORKGROUP})",
             // Single-workgroup reductions, dispatched as (1, 1, 1): their size is their own.
             "@workgroup_size(256)",
         ];
@@ -103,6 +118,15 @@ mod tests {
             }
         }
         assert!(sizes >= 14, "found {sizes} entry points");
+    }
+
+    #[test]
+    fn spread_groups_cover_the_count_within_the_dimension_limit() {
+        for groups in [0, 1, 65535, 65536, 300_000, 4_000_000] {
+            let [x, y] = spread_groups(groups);
+            assert!(x <= 65535 && y <= 65535 && x >= 1 && y >= 1);
+            assert!(x * y >= groups && x * (y - 1) < groups.max(1), "{groups}");
+        }
     }
 
     #[test]

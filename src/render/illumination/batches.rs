@@ -239,7 +239,7 @@ pub(crate) fn prepare_illumination_bind_groups(
         &pools,
         voxelizing,
         device.limits().max_storage_buffer_binding_size,
-        |entries| bind(&pipelines.voxelize, entries),
+        |entries| bind(&pipelines.voxelize[0], entries),
     );
     let per_order = dispatch.is_some_and(|d| *d == SweepDispatch::PerOrder);
     pair_volumes.provide(per_order, &work, &pools, &device);

@@ -213,19 +213,17 @@ pub(crate) fn illuminate_clouds(
         .map(|(_, v, s)| (v, s))
         .collect();
 
-    // Voxelize (docs/illumination.md §1): clear, copy the particles together, then every
-    // particle deposits its mass on its density level, one row of its support per invocation:
-    // the kernel's sums, then the deposit. Then the coarse levels are enlarged into the fine
-    // grid, coarsest first.
+    // Voxelize (docs/illumination.md §1): clear, copy the particles together, bin them into
+    // bricks, and gather each brick's density on its level; then the coarse levels are
+    // enlarged into the fine grid, coarsest first.
     for round in &batches.voxelize {
         prepare_round(&mut ctx, round);
-        let voxelize = [ready.kernel_sums, ready.voxelize, ready.upsample];
         record_stage(
             &mut ctx,
             recorder.as_deref(),
             &counters,
             CloudPass::Voxelize,
-            |pass| record_round(pass, voxelize, round),
+            |pass| record_round(pass, ready.voxelize, round),
         );
     }
 

@@ -28,6 +28,7 @@ use bevy::{
 };
 
 use crate::render::illumination::scatter::sweep::sweep_direction_entries;
+use crate::render::illumination::voxelize::VOXELIZE_PASSES;
 
 // The sweep's directions lived here before `scatter/sweep.rs`; their public paths stay.
 pub use crate::render::illumination::scatter::sweep::{
@@ -131,12 +132,8 @@ impl ByMoments {
 /// The pipelines of the illumination passes.
 #[derive(Resource)]
 pub struct IlluminationPipelines {
-    /// `voxelize.wgsl`, `kernel_sums` (voxelize's first pass).
-    pub kernel_sums: ComputeStage,
-    /// `voxelize.wgsl`, `deposit` (same layout as `kernel_sums`).
-    pub voxelize: ComputeStage,
-    /// `voxelize.wgsl`, `upsample` (same layout): a density level enlarged into the one below.
-    pub upsample: ComputeStage,
+    /// `voxelize.wgsl`'s passes, one layout ([`VOXELIZE_PASSES`]).
+    pub voxelize: [ComputeStage; VOXELIZE_PASSES.len()],
     /// `shade.wgsl`, `shade` (incremental).
     pub shade: ComputeStage,
     /// `shade.wgsl`, `shade_brute_force` (benchmarks).
@@ -188,12 +185,8 @@ pub struct IlluminationPipelines {
 /// The compiled pipelines of every illumination pass (brute-force shading aside); those of the
 /// scattering volumes for pools without angular moments and with them ([`ByMoments`]).
 pub struct ReadyPipelines<'a> {
-    /// Voxelize's kernel sums.
-    pub kernel_sums: &'a ComputePipeline,
-    /// Voxelize's deposit.
-    pub voxelize: &'a ComputePipeline,
-    /// Voxelize's level upsampling.
-    pub upsample: &'a ComputePipeline,
+    /// Voxelize's passes ([`VOXELIZE_PASSES`]).
+    pub voxelize: [&'a ComputePipeline; VOXELIZE_PASSES.len()],
     /// Cast.
     pub cast: &'a ComputePipeline,
     /// The sky map's march.
@@ -302,9 +295,7 @@ impl IlluminationPipelines {
         };
         Some(ReadyPipelines {
             per_order,
-            kernel_sums: self.kernel_sums.get(cache)?,
-            voxelize: self.voxelize.get(cache)?,
-            upsample: self.upsample.get(cache)?,
+            voxelize: every_ready(&self.voxelize, cache)?,
             cast: self.cast.get(cache)?,
             march_sky: self.march_sky.get(cache)?,
             resolve_sky: self.resolve_sky.get(cache)?,
@@ -345,6 +336,15 @@ pub(crate) fn write_sweep_sky(
     }
 }
 
+/// Every stage's pipeline, once all are compiled.
+fn every_ready<'a, const N: usize>(
+    stages: &[ComputeStage; N],
+    cache: &'a PipelineCache,
+) -> Option<[&'a ComputePipeline; N]> {
+    let ready: Vec<_> = stages.iter().map(|s| s.get(cache)).collect::<Option<_>>()?;
+    ready.try_into().ok()
+}
+
 /// The bind group layouts of the illumination passes, one per shader (its entry points share it),
 /// but for the coarse grids', whose entry points bind a subset each.
 struct IlluminationLayouts {
@@ -379,6 +379,8 @@ impl IlluminationLayouts {
                     write(),
                     uniform_buffer::<DensityLevels>(true),
                     work(),
+                    write(),
+                    write(),
                 ),
             ),
             shade: sequential_layout(
@@ -500,9 +502,7 @@ pub(crate) fn init_illumination_pipelines(
             ComputeStage::new(cache, shader.clone(), entry, layout.clone())
         };
     commands.insert_resource(IlluminationPipelines {
-        kernel_sums: stage(&shaders.voxelize, "kernel_sums", &voxelize),
-        voxelize: stage(&shaders.voxelize, "deposit", &voxelize),
-        upsample: stage(&shaders.voxelize, "upsample", &voxelize),
+        voxelize: VOXELIZE_PASSES.map(|entry| stage(&shaders.voxelize, entry, &voxelize)),
         shade: stage(&shaders.shade, "shade", &shade),
         shade_brute_force: stage(&shaders.shade, "shade_brute_force", &shade),
         cast: stage(&shaders.cast, "cast_shadows", &cast),

@@ -1,9 +1,13 @@
 //! Voxelize (the paper's Algorithm 1, line 2; docs/illumination.md §1): every particle deposits
-//! its mass into its cloud's fine density grid. Each cloud's particles are a buffer of their own,
-//! so the particles of the clouds voxelized this frame are first copied one after the other into
-//! a scratch buffer; then, like shade, gather and scatter, one dispatch per pass covers every
-//! cloud of a volume pool, its z workgroups walking a work list: the dispatch count does not grow
-//! with the clouds.
+//! its mass into its cloud's fine density grid, as a gather. The particles are binned into bricks
+//! of voxels by their centres, and one workgroup per brick sums the particles within reach and
+//! writes each voxel once: no float atomic, so the density is the same bit for bit on every run,
+//! and particles piled on one spot cost what spread ones do (`voxelize.wgsl`).
+//!
+//! Each cloud's particles are a buffer of their own, so the particles of the clouds voxelized
+//! this frame are first copied one after the other into a scratch buffer; then, like shade,
+//! gather and scatter, one dispatch per pass covers every cloud of a volume pool, its z
+//! workgroups walking a work list: the dispatch count does not grow with the clouds.
 
 use bevy::{
     platform::collections::HashMap,
@@ -21,7 +25,7 @@ use crate::math::density_level_sizes;
 use crate::render::{
     core::gpu::Batch,
     core::gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, WORK_CHUNK},
-    core::workgroups::{self, dispatch_columns},
+    core::workgroups::{self, BRICK_THREADS, dispatch_columns, spread_groups},
     extract::particles::GpuParticles,
     plan::pools::{BufferRange, PoolId, VolumePools},
     plan::volumes::{CloudVolumes, DensityLevels},
@@ -29,11 +33,29 @@ use crate::render::{
 
 /// Bytes of one particle on the GPU (`Particle` in `types.wgsl`).
 const PARTICLE_BYTES: u64 = 32;
+/// Words before a cloud's bricks in the bricks' buffer: each density level's reach
+/// (`REACH_WORDS` in `voxelize.wgsl`).
+const REACH_WORDS: u64 = 8;
+/// Particles whose kernel sums one workgroup reduces (`SUMS_PER_GROUP` in `voxelize.wgsl`).
+const SUMS_PER_GROUP: u32 = 8;
+
+/// The entry points of `voxelize.wgsl`, in the order a round records them (all share one
+/// layout): the binning (count, scan, scatter, sort), the kernels' sums, the gather, and the
+/// coarse levels enlarged into the fine grid.
+pub const VOXELIZE_PASSES: [&str; 7] = [
+    "bin",
+    "scan_bricks",
+    "scatter",
+    "sort_bricks",
+    "kernel_sums",
+    "gather",
+    "upsample",
+];
 
 /// The scratch buffers of the voxelize rounds (render world resource): each round's particles,
-/// one cloud after the other, and their kernel sums. Grown when a frame needs more and kept for
-/// the next, so a cloud whose particles change every frame allocates nothing; shrunk when a
-/// frame needs a quarter or less (see `scratch_capacity`).
+/// one cloud after the other, their kernel sums and lists, and the clouds' bricks. Grown when a
+/// frame needs more and kept for the next, so a cloud whose particles change every frame
+/// allocates nothing; shrunk when a frame needs a quarter or less (see `scratch_capacity`).
 #[derive(Resource, Default)]
 pub struct VoxelizeScratch(Vec<ScratchBuffers>);
 
@@ -41,14 +63,20 @@ pub struct VoxelizeScratch(Vec<ScratchBuffers>);
 struct ScratchBuffers {
     particles: Buffer,
     totals: Buffer,
-    /// Particles it holds.
+    binned: Buffer,
+    /// Particles they hold.
     capacity: u64,
+    bricks: Buffer,
+    /// Words `bricks` holds.
+    brick_capacity: u64,
 }
 
 impl VoxelizeScratch {
     /// Every round's buffers (the memory census).
     pub(crate) fn buffers(&self) -> impl Iterator<Item = &Buffer> {
-        self.0.iter().flat_map(|s| [&s.particles, &s.totals])
+        self.0
+            .iter()
+            .flat_map(|s| [&s.particles, &s.totals, &s.binned, &s.bricks])
     }
 
     /// Frees every round's buffers: no cloud is left to voxelize.
@@ -57,30 +85,44 @@ impl VoxelizeScratch {
     }
 
     /// Round `round`'s buffers (rounds are reserved in order), holding at least `particles` and
-    /// at most `max_particles` (one storage binding).
+    /// `words` of bricks, and at most what one storage binding of `max_binding` bytes does.
     fn reserve(
         &mut self,
         device: &RenderDevice,
         round: usize,
-        particles: u64,
-        max_particles: u64,
+        (particles, words): (u64, u64),
+        max_binding: u64,
     ) -> ScratchBuffers {
-        let current = self.0.get(round).map(|s| s.capacity);
-        let Some(capacity) = scratch_capacity(current, particles, max_particles) else {
+        let current = self.0.get(round).map(|s| (s.capacity, s.brick_capacity));
+        let grown_particles = scratch_capacity(
+            current.map(|c| c.0),
+            particles,
+            max_binding / PARTICLE_BYTES,
+        );
+        let grown_words = scratch_capacity(current.map(|c| c.1), words, max_binding / 4);
+        if grown_particles.is_none() && grown_words.is_none() {
             return self.0[round].clone();
-        };
+        }
         let buffer = |label, bytes: u64| {
             device.create_buffer(&BufferDescriptor {
                 label: Some(label),
-                size: capacity * bytes,
+                size: bytes.max(16),
                 usage: BufferUsages::STORAGE | BufferUsages::COPY_DST,
                 mapped_at_creation: false,
             })
         };
+        let capacity = grown_particles.or(current.map(|c| c.0)).unwrap_or(1);
+        let brick_capacity = grown_words.or(current.map(|c| c.1)).unwrap_or(1);
         let buffers = ScratchBuffers {
-            particles: buffer("particle_clouds_voxelize_particles", PARTICLE_BYTES),
-            totals: buffer("particle_clouds_voxelize_totals", 4),
+            particles: buffer(
+                "particle_clouds_voxelize_particles",
+                capacity * PARTICLE_BYTES,
+            ),
+            totals: buffer("particle_clouds_voxelize_totals", capacity * 4),
+            binned: buffer("particle_clouds_voxelize_binned", capacity * 4),
             capacity,
+            bricks: buffer("particle_clouds_voxelize_bricks", brick_capacity * 4),
+            brick_capacity,
         };
         if round < self.0.len() {
             self.0[round] = buffers.clone();
@@ -114,8 +156,6 @@ pub(crate) struct VoxelizeCloud {
     slot: u32,
     particles: Buffer,
     count: u32,
-    /// Rows per axis of its largest particle's support.
-    rows: u32,
     levels_in_use: u32,
 }
 
@@ -125,20 +165,28 @@ impl VoxelizeCloud {
             slot: volumes.slot.index,
             particles: gpu.buffer.clone(),
             count: gpu.count,
-            rows: volumes.fine_params.rows,
             levels_in_use: volumes.levels_in_use as u32,
         }
     }
 }
 
+/// Words a cloud of a pool whose fine grid has `m` voxels per side takes in the bricks' buffer:
+/// the levels' reach, then per brick its list's place and whether a particle reaches it.
+fn brick_words(m: u32) -> u64 {
+    REACH_WORDS + 2 * DensityLevels::bricks(m)
+}
+
 /// One pool's clouds in a round.
 struct PoolVoxelize {
-    /// `(slot, first particle)` per cloud, those with the most density levels first.
+    /// `(slot, first particle, first brick word, particles)` per cloud, those with the most density
+    /// levels first.
     batch: Batch,
-    /// The clouds' density levels, cleared before the deposit.
+    /// The clouds' density levels, cleared before the gather.
     clears: Vec<BufferRange>,
-    /// Workgroups along x (the most particles of a cloud) and y (the most rows²).
-    groups: [u32; 2],
+    /// The most particles of a cloud.
+    particles: u32,
+    /// Bricks of a cloud.
+    bricks: u32,
     /// Per coarse level to enlarge, coarsest first: the level, voxels per side of the level
     /// below, and the clouds (the first of the work list) that use it.
     upsample: Vec<(u32, u32, u32)>,
@@ -147,15 +195,16 @@ struct PoolVoxelize {
 /// The clouds voxelized together: their particles in one scratch buffer.
 pub(crate) struct VoxelizeRound {
     scratch: ScratchBuffers,
-    /// Particles in the scratch.
-    particles: u64,
+    /// Words of the bricks' buffer in use (cleared before the passes).
+    words: u64,
     /// Each cloud's particles and their first element in the scratch.
     copies: Vec<(Buffer, u64, u32)>,
     pools: Vec<PoolVoxelize>,
 }
 
-/// Splits the clouds to voxelize into rounds whose particles fit in one storage binding of
-/// `max_binding` bytes (one round unless they hold millions), and makes each pool's batch.
+/// Splits the clouds to voxelize into rounds whose particles and bricks fit in one storage
+/// binding of `max_binding` bytes each (one round unless they hold millions), and makes each
+/// pool's batch.
 pub(crate) fn voxelize_rounds(
     device: &RenderDevice,
     scratch: &mut VoxelizeScratch,
@@ -164,19 +213,22 @@ pub(crate) fn voxelize_rounds(
     max_binding: u64,
     bind: impl Fn(&[BindGroupEntry]) -> BindGroup,
 ) -> Vec<VoxelizeRound> {
-    let max_particles = (max_binding / PARTICLE_BYTES).max(1);
+    let limits = (
+        (max_binding / PARTICLE_BYTES).max(1),
+        (max_binding / 4).max(1),
+    );
     let mut by_pool: Vec<_> = clouds.into_iter().collect();
     by_pool.sort_by_key(|(id, _)| *id);
     let in_order: Vec<_> = by_pool
         .into_iter()
         .flat_map(|(id, clouds)| clouds.into_iter().map(move |c| (id, c)))
         .collect();
-    let counts: Vec<u64> = in_order.iter().map(|(_, c)| c.count as u64).collect();
+    let sizes: Vec<(u64, u64)> = in_order
+        .iter()
+        .map(|(id, c)| (c.count as u64, brick_words(id.shape.m)))
+        .collect();
     let mut rounds: Vec<Vec<(PoolId, Vec<VoxelizeCloud>)>> = Vec::new();
-    for ((id, cloud), round) in in_order
-        .into_iter()
-        .zip(round_of_each(&counts, max_particles))
-    {
+    for ((id, cloud), round) in in_order.into_iter().zip(round_of_each(&sizes, limits)) {
         if round == rounds.len() {
             rounds.push(Vec::new());
         }
@@ -188,24 +240,29 @@ pub(crate) fn voxelize_rounds(
     rounds
         .into_iter()
         .enumerate()
-        .map(|(i, round)| make_round(device, scratch, pools, (i, max_particles), round, &bind))
+        .map(|(i, round)| make_round(device, scratch, pools, (i, max_binding), round, &bind))
         .collect()
 }
 
-/// The round of each cloud of `counts` particles, in order: a round holds what one storage
-/// binding of `max_particles` does, and at least one cloud.
-fn round_of_each(counts: &[u64], max_particles: u64) -> Vec<usize> {
+/// The round of each cloud of `(particles, brick words)` in `sizes`, in order: a round holds
+/// what one storage binding of `limits` particles and words does, and at least one cloud.
+fn round_of_each(sizes: &[(u64, u64)], limits: (u64, u64)) -> Vec<usize> {
     let mut round = 0;
-    let mut in_round = 0u64;
-    counts
+    let mut in_round = (0u64, 0u64);
+    sizes
         .iter()
-        .map(|&count| {
+        .map(|&(count, words)| {
             let count = count.max(1);
-            if in_round > 0 && in_round.saturating_add(count) > max_particles {
+            let fits = in_round.0.saturating_add(count) <= limits.0
+                && in_round.1.saturating_add(words) <= limits.1;
+            if in_round.0 > 0 && !fits {
                 round += 1;
-                in_round = 0;
+                in_round = (0, 0);
             }
-            in_round = in_round.saturating_add(count);
+            in_round = (
+                in_round.0.saturating_add(count),
+                in_round.1.saturating_add(words),
+            );
             round
         })
         .collect()
@@ -215,7 +272,7 @@ fn make_round(
     device: &RenderDevice,
     scratch: &mut VoxelizeScratch,
     pools: &VolumePools,
-    (index, max_particles): (usize, u64),
+    (index, max_binding): (usize, u64),
     round: Vec<(PoolId, Vec<VoxelizeCloud>)>,
     bind: &impl Fn(&[BindGroupEntry]) -> BindGroup,
 ) -> VoxelizeRound {
@@ -224,18 +281,23 @@ fn make_round(
         .flat_map(|(_, c)| c)
         .map(|c| c.count as u64)
         .sum();
-    let buffers = scratch.reserve(device, index, particles, max_particles);
+    let words: u64 = round
+        .iter()
+        .map(|(id, c)| c.len() as u64 * brick_words(id.shape.m))
+        .sum();
+    let buffers = scratch.reserve(device, index, (particles, words), max_binding);
     let mut copies = Vec::new();
-    let mut first = 0;
+    let (mut first, mut first_word) = (0, 0);
     let mut batches = Vec::new();
     for (id, mut clouds) in round {
         let pool = &pools.0[&id];
         clouds.sort_by_key(|c| std::cmp::Reverse(c.levels_in_use));
         let mut items = Vec::with_capacity(clouds.len());
         for c in &clouds {
-            items.push([c.slot, first as u32]);
+            items.push([c.slot, first as u32, first_word as u32, c.count]);
             copies.push((c.particles.clone(), first, c.count));
             first += c.count as u64;
+            first_word += brick_words(id.shape.m);
         }
         let batch = Batch::new(device, &items, |work| {
             bind(&BindGroupEntries::sequential((
@@ -249,6 +311,8 @@ fn make_round(
                     size: Some(DensityLevels::min_size()),
                 },
                 work.binding(),
+                buffers.bricks.as_entire_binding(),
+                buffers.binned.as_entire_binding(),
             )))
         })
         .expect("a pool in a round has clouds");
@@ -264,16 +328,14 @@ fn make_round(
         batches.push(PoolVoxelize {
             batch,
             clears: clouds.iter().map(|c| pool.fine_density(c.slot)).collect(),
-            groups: [
-                most(|c| c.count).div_ceil(workgroups::LINEAR).max(1),
-                most(|c| c.rows).pow(2).max(1),
-            ],
+            particles: most(|c| c.count),
+            bricks: DensityLevels::bricks(id.shape.m) as u32,
             upsample,
         });
     }
     VoxelizeRound {
         scratch: buffers,
-        particles,
+        words,
         copies,
         pools: batches,
     }
@@ -295,25 +357,42 @@ pub(crate) fn prepare_round(ctx: &mut RenderContext, round: &VoxelizeRound) {
             );
         }
     }
-    encoder.clear_buffer(&round.scratch.totals, 0, Some(round.particles.max(1) * 4));
+    encoder.clear_buffer(&round.scratch.bricks, 0, Some(round.words.max(1) * 4));
     for clear in round.pools.iter().flat_map(|p| &p.clears) {
         encoder.clear_buffer(&clear.buffer, clear.offset, Some(clear.size));
     }
 }
 
-/// The three passes of a round: the kernels' sums, the deposit, then the coarse levels enlarged
-/// into the fine grid, coarsest first; one dispatch each per pool (and per chunk of its list).
+/// The workgroups of each of the passes but the upsampling, for one pool's clouds (each
+/// dispatch has one z workgroup per cloud).
+fn pass_groups(p: &PoolVoxelize) -> [[u32; 2]; 6] {
+    let per_particle = [p.particles.div_ceil(workgroups::LINEAR).max(1), 1];
+    [
+        per_particle,
+        [1, 1],
+        per_particle,
+        [p.bricks.div_ceil(BRICK_THREADS).max(1), 1],
+        spread_groups(p.particles.div_ceil(SUMS_PER_GROUP)),
+        spread_groups(p.bricks),
+    ]
+}
+
+/// The passes of a round: the binning, the kernels' sums and the gather, one dispatch each per
+/// pool (and per chunk of its list); then the coarse levels enlarged into the fine grid,
+/// coarsest first, one dispatch per level.
 pub(crate) fn record_round(
     pass: &mut StagePass,
-    [kernel_sums, deposit, upsample]: [&ComputePipeline; 3],
+    pipelines: [&ComputePipeline; 7],
     round: &VoxelizeRound,
 ) -> u32 {
-    for pipeline in [kernel_sums, deposit] {
+    let [passes @ .., upsample] = pipelines;
+    for (i, pipeline) in passes.into_iter().enumerate() {
         pass.set_pipeline(pipeline);
         for p in &round.pools {
+            let [x, y] = pass_groups(p)[i];
             for (offset, items) in p.batch.work.chunks() {
                 pass.set_bind_group(0, &p.batch.group, &[0, offset]);
-                pass.dispatch(p.groups[0], p.groups[1], items);
+                pass.dispatch(x, y, items);
             }
         }
     }
@@ -339,6 +418,24 @@ mod tests {
     use super::{round_of_each, scratch_capacity};
 
     #[test]
+    fn voxelize_adds_no_float_with_an_atomic() {
+        let source = include_str!("voxelize.wgsl");
+        assert!(!source.contains("atomicCompareExchange"));
+        // The density and the kernels' sums are plain floats, each written by one invocation;
+        // the only atomics are the binning's integer counts.
+        assert!(source.contains("var<storage, read_write> density: array<f32>;"));
+        assert!(source.contains("var<storage, read_write> totals: array<f32>;"));
+        let atomics: Vec<&str> = source.lines().filter(|l| l.contains("atomic<")).collect();
+        assert_eq!(
+            atomics,
+            [
+                "@group(0) @binding(6) var<storage, read_write> bricks: array<atomic<u32>>;",
+                "var<workgroup> long_count: atomic<u32>;"
+            ]
+        );
+    }
+
+    #[test]
     fn the_scratch_grows_by_doubling_and_shrinks_below_a_quarter() {
         // None yet, or too small: the next power of two, within one binding.
         assert_eq!(scratch_capacity(None, 1000, 1 << 20), Some(1024));
@@ -358,9 +455,20 @@ mod tests {
 
     #[test]
     fn a_round_holds_what_one_binding_does_and_at_least_one_cloud() {
-        assert_eq!(round_of_each(&[60, 50, 30, 200, 0], 100), [0, 1, 1, 2, 3]);
-        assert_eq!(round_of_each(&[40, 60, 1], 100), [0, 0, 1]);
-        assert_eq!(round_of_each(&[u64::MAX, 5], 1), [0, 1]);
-        assert!(round_of_each(&[], 100).is_empty());
+        let particles =
+            |counts: &[u64]| -> Vec<(u64, u64)> { counts.iter().map(|&c| (c, 1)).collect() };
+        let limits = (100, 1000);
+        assert_eq!(
+            round_of_each(&particles(&[60, 50, 30, 200, 0]), limits),
+            [0, 1, 1, 2, 3]
+        );
+        assert_eq!(round_of_each(&particles(&[40, 60, 1]), limits), [0, 0, 1]);
+        assert_eq!(round_of_each(&[(u64::MAX, 1), (5, 1)], (1, 1)), [0, 1]);
+        assert!(round_of_each(&[], limits).is_empty());
+        // The bricks' words split rounds too.
+        assert_eq!(
+            round_of_each(&[(1, 600), (1, 300), (1, 200), (1, 5000)], limits),
+            [0, 0, 1, 2]
+        );
     }
 }

@@ -1,47 +1,86 @@
 // Voxelize: every particle deposits its mass into its cloud's (fine) density grid
-// (docs/illumination.md §1). A particle wider than 32 voxels deposits on a coarser density level
-// instead, so that none visits more than 65³ voxels; the levels are then enlarged into the fine
-// grid, coarsest first. One invocation per row of voxels of a particle's support, in two passes
-// (the kernel's sum over the support, then the deposit); float atomics by compare-exchange.
+// (docs/illumination.md §1), as a gather that writes each voxel once, with no float atomic. A
+// particle wider than 32 voxels deposits on a coarser density level instead; the levels are then
+// enlarged into the fine grid, coarsest first.
+//
+// Each level is cut into bricks of VOXEL_BRICK³ voxels. The particles are binned by the brick
+// of their centre (count, scan, scatter: integer atomics, whose results do not depend on the
+// order), each brick's list is sorted by particle, and each particle's kernel sum W is reduced
+// in a fixed order. Then one workgroup per brick sums, for each of its voxels, every particle
+// binned within reach, read in batches through workgroup memory: the same sums in the same order
+// on every run, so the density is bit-identical run to run, and coincident particles cost what
+// spread ones do.
+//
 // Every cloud of a volume pool in one dispatch: z workgroup i voxelizes `work[i]`, whose particles
 // were copied into `particles` from element `work[i].y` on.
-#import bevy_particle_clouds::types::{Particle, CloudParams, DensityLevels, Slot, KERNEL_VOLUME, kernel, voxel_index, zero_border_lookup, corner_weight, corner_voxel}
+#import bevy_particle_clouds::types::{Particle, CloudParams, DensityLevels, Slot, KERNEL_VOLUME, kernel, voxel_index}
+
+const BRICK: u32 = #{VOXEL_BRICK}u;
+const THREADS: u32 = #{BRICK_WORKGROUP}u;
+// An item's words in `bricks` start with its levels' reach.
+const REACH_WORDS: u32 = 8u;
+// Particles whose kernel sums one workgroup reduces, one after the other.
+const SUMS_PER_GROUP: u32 = 8u;
+// A brick's list up to this long is sorted by one invocation; longer, by the workgroup.
+const SHORT_LIST: u32 = 32u;
 
 @group(0) @binding(0) var<storage, read> slots: array<Slot>;
 // The particles of every cloud voxelized this frame, one after the other.
 @group(0) @binding(1) var<storage, read> particles: array<Particle>;
-// Every slot's density levels, f32 bits, the fine grid first; a slot's are cleared to zero before
-// the passes.
-@group(0) @binding(2) var<storage, read_write> density: array<atomic<u32>>;
-// Per particle of `particles`, the kernel's sum over the voxel centres in its support (f32 bits);
-// cleared to zero before the passes.
-@group(0) @binding(3) var<storage, read_write> totals: array<atomic<u32>>;
-// The levels' sizes (the same for every slot of a pool); `upsample_from` differs per upsample
-// dispatch (a dynamic offset).
+// Every slot's density levels, the fine grid first; a slot's are cleared to zero before the
+// passes.
+@group(0) @binding(2) var<storage, read_write> density: array<f32>;
+// Per particle of `particles`: +W, its kernel's sum over the voxel centres in its support; or
+// -S, a sub-voxel particle's trilinear weights' sum over the corners inside its level; or 0 for
+// a particle that deposits nothing.
+@group(0) @binding(3) var<storage, read_write> totals: array<f32>;
+// The levels' sizes and bricks (the same for every slot of a pool); `upsample_from` differs per
+// upsample dispatch (a dynamic offset).
 @group(0) @binding(4) var<uniform> levels: DensityLevels;
-// (slot, first particle) per z workgroup.
-@group(0) @binding(5) var<storage, read> work: array<vec2<u32>>;
+// (slot, first particle, first word in `bricks`, particles) per z workgroup.
+@group(0) @binding(5) var<storage, read> work: array<vec4<u32>>;
+// Per item, cleared to zero before the passes: REACH_WORDS words, each level's reach in bricks;
+// then one word per brick, the levels one after the other: its particles (`bin`), then the first
+// of its list (`scan_bricks`), then the end of its list, the next brick's first (`scatter`); then
+// one word per brick again, 1 where a particle's deposit reaches it (`bin`).
+@group(0) @binding(6) var<storage, read_write> bricks: array<atomic<u32>>;
+// Per particle of `particles`: item-local particle indices, brick after brick, ascending within
+// a brick after `sort_bricks`.
+@group(0) @binding(7) var<storage, read_write> binned: array<u32>;
 
 // The fine grid's uniform of the item's cloud, and the first element of its levels in `density`.
 var<private> cloud: CloudParams;
 var<private> first_density: u32;
+// (slot, first particle, first word in `bricks`, particles): the count copied into `particles`,
+// which a slot's uniform may not hold yet in the frame the particles change.
+var<private> item: vec4<u32>;
 
-fn begin(item: u32) {
-    let slot = slots[work[item].x];
+fn begin(z: u32) {
+    item = work[z];
+    let slot = slots[item.x];
     cloud = slot.fine;
     first_density = slot.fine_density;
 }
 
-// One density level: voxels per side, its first element in `density`, and its voxel size.
+// One density level: voxels per side, its first element in `density`, its voxel size, its first
+// brick among the item's bricks, and bricks per side.
 struct Level {
     n: u32,
     offset: u32,
     h: f32,
+    first_brick: u32,
+    bricks: u32,
 }
 
 fn level_at(l: u32) -> Level {
     let size = levels.size_offset[l];
-    return Level(size.x, first_density + size.y, cloud.h * f32(1u << l));
+    return Level(size.x, first_density + size.y, cloud.h * f32(1u << l), size.z, size.w);
+}
+
+// Bricks of an item, over every level.
+fn brick_count() -> u32 {
+    let last = levels.size_offset[levels.count - 1u];
+    return last.z + last.w * last.w * last.w;
 }
 
 // The finest level on which a particle of radius `r` spans at most `max_radius` voxels, else the
@@ -54,54 +93,12 @@ fn particle_level(r: f32) -> u32 {
     return l;
 }
 
-fn add_density(i: u32, value: f32) {
-    var old = atomicLoad(&density[i]);
-    loop {
-        let result = atomicCompareExchangeWeak(&density[i], old, bitcast<u32>(bitcast<f32>(old) + value));
-        if result.exchanged {
-            break;
-        }
-        old = result.old_value;
-    }
-}
-
-fn add_total(i: u32, value: f32) {
-    var old = atomicLoad(&totals[i]);
-    loop {
-        let result = atomicCompareExchangeWeak(&totals[i], old, bitcast<u32>(bitcast<f32>(old) + value));
-        if result.exchanged {
-            break;
-        }
-        old = result.old_value;
-    }
-}
-
-// Sub-voxel particle: its whole mass goes to the 8 voxel centres around it, trilinearly,
-// renormalised over the ones inside the grid so no mass is lost at the border.
-fn splat(f: Footprint, density_per_voxel: f32) {
-    let t = zero_border_lookup(f.g);
-    var inside = 0.0;
-    for (var corner = 0u; corner < 8u; corner++) {
-        if corner_voxel(t, corner, f.level.n) >= 0 {
-            inside += corner_weight(t, corner);
-        }
-    }
-    if inside <= 0.0 {
-        return;
-    }
-    for (var corner = 0u; corner < 8u; corner++) {
-        let i = corner_voxel(t, corner, f.level.n);
-        if i >= 0 {
-            add_density(f.level.offset + u32(i), density_per_voxel * corner_weight(t, corner) / inside);
-        }
-    }
-}
-
 // A particle's footprint on its level: its centre in voxel coordinates, its radius in voxels (for
 // its mass), the radius of the kernel it deposits with (narrower on a coarse level, by what the
 // upsampling spreads: `level_kernel_radius` in src/math.rs), and the range of voxels inside that
 // kernel's support.
 struct Footprint {
+    l: u32,
     level: Level,
     g: vec3<f32>,
     r_voxels: f32,
@@ -119,91 +116,425 @@ fn footprint(particle: Particle) -> Footprint {
     let kernel_voxels = select(sqrt(max(r * r - narrowing, 0.0)), r, l == 0u) / level.h;
     let lo = max(vec3<i32>(ceil(g - kernel_voxels)), vec3(0));
     let hi = min(vec3<i32>(floor(g + kernel_voxels)), vec3(i32(level.n) - 1));
-    return Footprint(level, g, r / level.h, kernel_voxels, lo, hi);
+    return Footprint(l, level, g, r / level.h, kernel_voxels, lo, hi);
 }
 
-// The row (y, z) of a particle's support that invocation `id` handles: each invocation handles
-// one row of one particle, so no invocation loops over more than a row (software rasterisers
-// such as lavapipe cut loops off after 65535 iterations per invocation). `id.y` counts the rows
-// of the cloud's largest support, `cloud.rows` per axis; the dispatch covers the pool's largest.
-fn row(id: vec3<u32>, f: Footprint) -> vec2<i32> {
-    return f.lo.yz + vec2<i32>(vec2(id.y % cloud.rows, id.y / cloud.rows));
+// The kernel's weight at offset `d` (voxels) from the centre, of a kernel of 1 / radius² `inv_k2`.
+fn kernel_weight(d: vec3<f32>, inv_k2: f32) -> f32 {
+    return kernel(dot(d, d) * inv_k2);
 }
 
-// The item's particle that invocation `id` handles, or none (-1).
-fn particle_index(id: vec3<u32>) -> i32 {
+// A sub-voxel particle's trilinear weight at offset `d` (voxels): its mass goes to the 8 voxel
+// centres around it.
+fn splat_weight(d: vec3<f32>) -> f32 {
+    let w = max(vec3(1.0) - abs(d), vec3(0.0));
+    return w.x * w.y * w.z;
+}
+
+fn inv_k2_of(f: Footprint) -> f32 {
+    return 1.0 / (f.kernel_voxels * f.kernel_voxels);
+}
+
+// A particle's word in `bricks`: the brick of its centre on its level.
+fn brick_word(f: Footprint) -> u32 {
+    let side = f.level.bricks;
+    let b = vec3<u32>(clamp(vec3<i32>(floor(f.g / f32(BRICK))), vec3(0), vec3(i32(side) - 1)));
+    return item.z + REACH_WORDS + f.level.first_brick + b.x + side * (b.y + side * b.z);
+}
+
+// Bricks from a particle's centre brick to the farthest brick its deposit reaches (a splat
+// reaches one voxel; the centre brick is clamped into the level, hence the extra voxel).
+fn reach_of(f: Footprint) -> u32 {
+    let voxels = max(f.kernel_voxels, 1.0) + 1.0;
+    return u32(min(ceil(voxels / f32(BRICK)), f32(f.level.bricks)));
+}
+
+// The item's particle that invocation `id` handles, if any, as an index into `particles`.
+fn particle_of(id: vec3<u32>) -> i32 {
     begin(id.z);
-    if id.x >= cloud.particle_count || id.y >= cloud.rows * cloud.rows {
+    if id.x >= item.w || particles[item.y + id.x].density.x <= 0.0 {
         return -1;
     }
-    return i32(work[id.z].y + id.x);
+    return i32(item.y + id.x);
 }
 
-// Kernel weight of voxel x of a row.
-fn row_weight(f: Footprint, x: i32, yz: vec2<i32>) -> f32 {
-    let d = vec3<f32>(vec3(x, yz)) - f.g;
-    return kernel(dot(d, d) / (f.kernel_voxels * f.kernel_voxels));
-}
-
-// Pass 1: every row adds its kernel sum to its particle's total W (the normalisation that makes
-// the deposit mass-exact).
+// Binning, pass 1: every particle counts itself in its centre's brick, widens its level's
+// reach, and marks the bricks it deposits on.
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
-fn kernel_sums(@builtin(global_invocation_id) id: vec3<u32>) {
-    let i = particle_index(id);
+fn bin(@builtin(global_invocation_id) id: vec3<u32>) {
+    let i = particle_of(id);
     if i < 0 {
         return;
     }
-    let index = u32(i);
-    let particle = particles[index];
-    let f = footprint(particle);
-    let yz = row(id, f);
-    if particle.density.x <= 0.0 || f.r_voxels < 1.0 || any(yz > f.hi.yz) {
-        return;
-    }
-    var sum = 0.0;
-    for (var x = f.lo.x; x <= f.hi.x; x++) {
-        sum += row_weight(f, x, yz);
-    }
-    if sum > 0.0 {
-        add_total(index, sum);
+    let f = footprint(particles[i]);
+    atomicAdd(&bricks[brick_word(f)], 1u);
+    atomicMax(&bricks[item.z + f.l], reach_of(f));
+    // Mark the bricks its deposit (kernel or splat) can reach, so that the others skip it.
+    let n = vec3(i32(f.level.n) - 1);
+    let base = vec3<i32>(floor(f.g));
+    let lo = vec3<u32>(clamp(min(f.lo, base), vec3(0), n)) / BRICK;
+    let hi = vec3<u32>(clamp(max(f.hi, base + 1), vec3(0), n)) / BRICK;
+    let side = f.level.bricks;
+    let marks = item.z + REACH_WORDS + brick_count() + f.level.first_brick;
+    for (var z = lo.z; z <= hi.z; z++) {
+        for (var y = lo.y; y <= hi.y; y++) {
+            for (var x = lo.x; x <= hi.x; x++) {
+                atomicStore(&bricks[marks + x + side * (y + side * z)], 1u);
+            }
+        }
     }
 }
 
-// Pass 2: every row deposits its share of the particle's mass; a sub-voxel particle (or one whose
-// support holds no voxel centre) is splatted by its first row.
+var<workgroup> partial: array<u32, THREADS>;
+
+// Binning, pass 2, one workgroup per item: the bricks' counts become their lists' first
+// elements (an exclusive scan, each invocation over a run of bricks).
+@compute @workgroup_size(#{BRICK_WORKGROUP})
+fn scan_bricks(@builtin(local_invocation_index) t: u32, @builtin(workgroup_id) group: vec3<u32>) {
+    begin(group.z);
+    let count = brick_count();
+    let run = (count + THREADS - 1u) / THREADS;
+    let first = item.z + REACH_WORDS + min(t * run, count);
+    let end = item.z + REACH_WORDS + min(t * run + run, count);
+    var sum = 0u;
+    for (var b = first; b < end; b++) {
+        sum += atomicLoad(&bricks[b]);
+    }
+    partial[t] = sum;
+    workgroupBarrier();
+    for (var d = 1u; d < THREADS; d <<= 1u) {
+        let before = select(0u, partial[max(t, d) - d], t >= d);
+        workgroupBarrier();
+        partial[t] += before;
+        workgroupBarrier();
+    }
+    var start = partial[t] - sum;
+    for (var b = first; b < end; b++) {
+        let c = atomicLoad(&bricks[b]);
+        atomicStore(&bricks[b], start);
+        start += c;
+    }
+}
+
+// Binning, pass 3: every particle writes its index into its brick's list (in an order the
+// hardware chooses, put right by `sort_bricks`).
 @compute @workgroup_size(#{LINEAR_WORKGROUP})
-fn deposit(@builtin(global_invocation_id) id: vec3<u32>) {
-    let i = particle_index(id);
+fn scatter(@builtin(global_invocation_id) id: vec3<u32>) {
+    let i = particle_of(id);
     if i < 0 {
         return;
     }
-    let index = u32(i);
-    let particle = particles[index];
-    let eta = particle.density.x;
-    let f = footprint(particle);
-    if eta <= 0.0 {
-        return;
+    let at = atomicAdd(&bricks[brick_word(footprint(particles[i]))], 1u);
+    binned[item.y + at] = id.x;
+}
+
+// The item-local range of brick `b`'s list (after `scatter`).
+fn brick_list(b: u32) -> vec2<u32> {
+    let word = item.z + REACH_WORDS + b;
+    let start = select(0u, atomicLoad(&bricks[max(word, 1u) - 1u]), b > 0u);
+    return vec2(start, atomicLoad(&bricks[word]));
+}
+
+fn insertion_sort(first: u32, count: u32) {
+    for (var a = 1u; a < count; a++) {
+        let x = binned[first + a];
+        var b = a;
+        while b > 0u && binned[first + b - 1u] > x {
+            binned[first + b] = binned[first + b - 1u];
+            b--;
+        }
+        binned[first + b] = x;
     }
+}
+
+// Sorts `binned[first .. first + count]` ascending with the whole workgroup (a bitonic network
+// whose merges compare mirrored pairs, so that the missing elements past `count` act as
+// +infinity and never move).
+fn bitonic_sort(t: u32, first: u32, count: u32) {
+    let padded = 1u << (32u - countLeadingZeros(count - 1u));
+    for (var k = 2u; k <= padded; k <<= 1u) {
+        for (var j = k >> 1u; j > 0u; j >>= 1u) {
+            for (var first_pair = 0u; first_pair < padded / 2u; first_pair += THREADS) {
+                let p = first_pair + t;
+                let block = p / j;
+                let offset = p % j;
+                let a = block * 2u * j + offset;
+                let b = select(a + j, block * 2u * j + 2u * j - 1u - offset, j == k >> 1u);
+                if b < count {
+                    let x = binned[first + a];
+                    let y = binned[first + b];
+                    if x > y {
+                        binned[first + a] = y;
+                        binned[first + b] = x;
+                    }
+                }
+            }
+            storageBarrier();
+        }
+    }
+}
+
+var<workgroup> long_lists: array<u32, THREADS>;
+var<workgroup> long_count: atomic<u32>;
+var<workgroup> shared_long: u32;
+var<workgroup> shared_range: vec2<u32>;
+
+// Binning, pass 4: every brick's list sorted by particle, so the gather sums in a fixed order.
+// One invocation per brick sorts a short list; the workgroup sorts the long ones together.
+@compute @workgroup_size(#{BRICK_WORKGROUP})
+fn sort_bricks(@builtin(local_invocation_index) t: u32, @builtin(workgroup_id) group: vec3<u32>) {
+    begin(group.z);
+    // Cleared here: not every driver zeroes workgroup memory (lavapipe crashed on a stale count).
+    if t == 0u {
+        atomicStore(&long_count, 0u);
+    }
+    workgroupBarrier();
+    let b = group.x * THREADS + t;
+    if b < brick_count() {
+        let list = brick_list(b);
+        let count = list.y - list.x;
+        if count > SHORT_LIST {
+            long_lists[atomicAdd(&long_count, 1u)] = b;
+        } else if count > 1u {
+            insertion_sort(item.y + list.x, count);
+        }
+    }
+    workgroupBarrier();
+    if t == 0u {
+        shared_long = atomicLoad(&long_count);
+    }
+    let long = workgroupUniformLoad(&shared_long);
+    for (var i = 0u; i < long; i++) {
+        if t == 0u {
+            shared_range = brick_list(long_lists[i]);
+        }
+        let list = workgroupUniformLoad(&shared_range);
+        bitonic_sort(t, item.y + list.x, list.y - list.x);
+    }
+}
+
+var<workgroup> sums: array<f32, #{LINEAR_WORKGROUP}>;
+
+// The sum a particle's deposit is normalised by (see `totals`), from `w`, its kernel's sum.
+fn total_of(f: Footprint, w: f32) -> f32 {
+    if f.r_voxels >= 1.0 && w > 0.0 {
+        return w;
+    }
+    var inside = 0.0;
+    let base = vec3<i32>(floor(f.g));
+    for (var corner = 0u; corner < 8u; corner++) {
+        let v = base + vec3<i32>(vec3(corner & 1u, (corner >> 1u) & 1u, corner >> 2u));
+        if all(v >= vec3(0)) && all(v < vec3(i32(f.level.n))) {
+            inside += splat_weight(vec3<f32>(v) - f.g);
+        }
+    }
+    return -inside;
+}
+
+// Every particle's kernel sum W (the normalisation that makes the deposit mass-exact): the
+// workgroup's invocations each sum rows of the support, then add their sums in a fixed tree.
+// `SUMS_PER_GROUP` particles per workgroup, the workgroups flattened over x and y.
+@compute @workgroup_size(#{LINEAR_WORKGROUP})
+fn kernel_sums(
+    @builtin(local_invocation_index) t: u32,
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+) {
+    begin(group.z);
+    let first = (group.x + group.y * groups.x) * SUMS_PER_GROUP;
+    for (var k = 0u; k < SUMS_PER_GROUP; k++) {
+        let p = first + k;
+        var sum = 0.0;
+        var f: Footprint;
+        let present = p < item.w && particles[item.y + p].density.x > 0.0;
+        if present {
+            f = footprint(particles[item.y + p]);
+            let size = max(f.hi - f.lo + 1, vec3(0));
+            let inv_k2 = inv_k2_of(f);
+            if f.r_voxels >= 1.0 {
+                for (var row = t; row < u32(size.y * size.z); row += #{LINEAR_WORKGROUP}u) {
+                    let yz = f.lo.yz + vec2(i32(row) % size.y, i32(row) / size.y);
+                    for (var x = f.lo.x; x <= f.hi.x; x++) {
+                        sum += kernel_weight(vec3<f32>(vec3(x, yz)) - f.g, inv_k2);
+                    }
+                }
+            }
+        }
+        sums[t] = sum;
+        workgroupBarrier();
+        for (var half = #{LINEAR_WORKGROUP}u / 2u; half > 0u; half >>= 1u) {
+            if t < half {
+                sums[t] += sums[t + half];
+            }
+            workgroupBarrier();
+        }
+        if t == 0u && p < item.w {
+            totals[item.y + p] = select(0.0, total_of(f, sums[0]), present);
+        }
+        workgroupBarrier();
+    }
+}
+
+// A particle as the gather reads it: its centre in voxels of its level, 1 / its kernel's radius²
+// (negative: splatted trilinearly), and the density it adds per unit of weight.
+struct Candidate {
+    g: vec3<f32>,
+    inv_k2: f32,
+    scale: f32,
+}
+
+// The item's particle `p` as the gather of the brick of voxels `lo ..= hi` reads it; its density
+// per unit of weight is 0 where its support misses the brick (a step the brick skips).
+fn candidate(p: u32, lo: vec3<f32>, hi: vec3<f32>) -> Candidate {
+    let particle = particles[item.y + p];
+    let f = footprint(particle);
+    let total = totals[item.y + p];
     // Mass / the level's voxel volume, in density units; (r/h)^3 avoids overflow for huge
     // particles.
-    let density_per_voxel = KERNEL_VOLUME * eta * f.r_voxels * f.r_voxels * f.r_voxels;
-    let total = bitcast<f32>(atomicLoad(&totals[index]));
-    if f.r_voxels < 1.0 || total <= 0.0 {
-        if id.y == 0u {
-            splat(f, density_per_voxel);
+    let per_voxel = KERNEL_VOLUME * particle.density.x * f.r_voxels * f.r_voxels * f.r_voxels;
+    let splat = total < 0.0;
+    let reach = select(f.kernel_voxels, 1.0, splat);
+    let misses = any(f.g + reach < lo) || any(f.g - reach > hi);
+    let scale = select(per_voxel / abs(total), 0.0, total == 0.0 || misses);
+    return Candidate(f.g, select(inv_k2_of(f), -1.0, splat), scale);
+}
+
+fn weight(c: Candidate, v: vec3<u32>) -> f32 {
+    let d = vec3<f32>(v) - c.g;
+    if c.inv_k2 < 0.0 {
+        return splat_weight(d);
+    }
+    return kernel_weight(d, c.inv_k2);
+}
+
+// A candidate's density at two voxels (none where its support misses the brick).
+fn add(near: Candidate, voxel: vec3<u32>, other: vec3<u32>) -> vec2<f32> {
+    if near.scale == 0.0 {
+        return vec2(0.0);
+    }
+    return near.scale * vec2(weight(near, voxel), weight(near, other));
+}
+
+var<workgroup> batch: array<Candidate, THREADS>;
+// Per row of neighbour bricks (a run of consecutive bricks, so one run of `binned`): its first
+// element, and the candidates of the rows before it.
+var<workgroup> row_first: array<u32, THREADS>;
+var<workgroup> row_before: array<u32, THREADS>;
+var<workgroup> shared_count: u32;
+var<workgroup> shared_reach: u32;
+
+// The candidate `c`'s particle among the rows' runs (`rows` of them).
+fn candidate_particle(c: u32, rows: u32) -> u32 {
+    var lo = 0u;
+    var hi = rows - 1u;
+    while lo < hi {
+        let mid = (lo + hi + 1u) / 2u;
+        if row_before[mid] <= c {
+            lo = mid;
+        } else {
+            hi = mid - 1u;
         }
+    }
+    return binned[item.y + row_first[lo] + c - row_before[lo]];
+}
+
+// The brick `index` of an item: its level, its brick coordinates there, the level's bricks and
+// voxels per side. Read from the uniform alone, so that the gather's loops stay uniform.
+struct Brick {
+    l: u32,
+    at: vec3<u32>,
+    side: u32,
+    n: u32,
+}
+
+fn brick_at(index: u32) -> Brick {
+    var l = 0u;
+    while l + 1u < levels.count && index >= levels.size_offset[l + 1u].z {
+        l++;
+    }
+    let size = levels.size_offset[l];
+    let b = index - size.z;
+    return Brick(l, vec3(b % size.w, (b / size.w) % size.w, b / (size.w * size.w)), size.w, size.x);
+}
+
+// The gather, one workgroup per brick (flattened over x and y): each invocation sums two voxels'
+// density over every particle binned within its level's reach, batch by batch through workgroup
+// memory, and writes them once.
+@compute @workgroup_size(#{BRICK_WORKGROUP})
+fn gather(
+    @builtin(local_invocation_index) t: u32,
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+) {
+    begin(group.z);
+    let brick_index = group.x + group.y * groups.x;
+    if brick_index >= brick_count() {
         return;
     }
-    let yz = row(id, f);
-    if any(yz > f.hi.yz) {
+    let brick = brick_at(brick_index);
+    if t == 0u {
+        let marked = atomicLoad(&bricks[item.z + REACH_WORDS + brick_count() + brick_index]);
+        shared_reach = select(0u, atomicLoad(&bricks[item.z + brick.l]), marked != 0u);
+    }
+    let reach = workgroupUniformLoad(&shared_reach);
+    // No particle reaches this brick: its voxels stay as cleared.
+    if reach == 0u {
         return;
     }
-    let scale = density_per_voxel / total;
-    for (var x = f.lo.x; x <= f.hi.x; x++) {
-        let w = row_weight(f, x, yz);
-        if w > 0.0 {
-            add_density(f.level.offset + voxel_index(vec3<u32>(vec3(x, yz)), f.level.n), w * scale);
+    let lo = vec3<u32>(max(vec3<i32>(brick.at) - i32(reach), vec3(0)));
+    let hi = min(brick.at + reach, vec3(brick.side - 1u));
+    let size = hi - lo + 1u;
+    let voxel = brick.at * BRICK + vec3(t % BRICK, (t / BRICK) % BRICK, t / (BRICK * BRICK));
+    let other = voxel + vec3(0u, 0u, THREADS / (BRICK * BRICK));
+    let corner = vec3<f32>(brick.at * BRICK);
+    var sum = vec2(0.0);
+    for (var first_row = 0u; first_row < size.y * size.z; first_row += THREADS) {
+        let rows = min(size.y * size.z - first_row, THREADS);
+        if t < rows {
+            let row = first_row + t;
+            let y = lo.y + row % size.y;
+            let z = lo.z + row / size.y;
+            let first = levels.size_offset[brick.l].z + lo.x + brick.side * (y + brick.side * z);
+            let run = vec2(brick_list(first).x, brick_list(first + size.x - 1u).y);
+            row_first[t] = run.x;
+            row_before[t] = run.y - run.x;
         }
+        workgroupBarrier();
+        if t == 0u {
+            var before = 0u;
+            for (var r = 0u; r < rows; r++) {
+                let count = row_before[r];
+                row_before[r] = before;
+                before += count;
+            }
+            shared_count = before;
+        }
+        let count = workgroupUniformLoad(&shared_count);
+        for (var first = 0u; first < count; first += THREADS) {
+            if first + t < count {
+                batch[t] = candidate(candidate_particle(first + t, rows), corner, corner + f32(BRICK - 1u));
+            }
+            workgroupBarrier();
+            // Four candidates an iteration: software rasterisers cut an invocation off after
+            // 65535 iterations, and a brick may read hundreds of thousands of candidates.
+            let end = min(count - first, THREADS);
+            var c = 0u;
+            for (; c + 4u <= end; c += 4u) {
+                sum += add(batch[c], voxel, other) + add(batch[c + 1u], voxel, other)
+                    + add(batch[c + 2u], voxel, other) + add(batch[c + 3u], voxel, other);
+            }
+            for (; c < end; c++) {
+                sum += add(batch[c], voxel, other);
+            }
+            workgroupBarrier();
+        }
+    }
+    let offset = level_at(brick.l).offset;
+    if all(voxel < vec3(brick.n)) {
+        density[offset + voxel_index(voxel, brick.n)] = sum.x;
+    }
+    if all(other < vec3(brick.n)) {
+        density[offset + voxel_index(other, brick.n)] = sum.y;
     }
 }
 
@@ -228,9 +559,9 @@ fn prolongation(i: u32, fine_n: u32, coarse_n: u32) -> vec3<f32> {
     return w;
 }
 
-// Pass 3, once per coarse level, coarsest first: level `upsample_from` enlarged by
-// `prolongation` on every axis is added to the level below. One invocation per column of the
-// level below, whose voxels only it writes; z workgroup i enlarges `work[i]`'s levels.
+// Once per coarse level, coarsest first: level `upsample_from` enlarged by `prolongation` on every
+// axis is added to the level below. One invocation per column of the level below, whose voxels
+// only it writes; z workgroup i enlarges `work[i]`'s levels.
 @compute @workgroup_size(#{SLICE_WORKGROUP}, #{SLICE_WORKGROUP}, 1)
 fn upsample(@builtin(global_invocation_id) id: vec3<u32>) {
     begin(id.z);
@@ -252,12 +583,11 @@ fn upsample(@builtin(global_invocation_id) id: vec3<u32>) {
                     let weight = wx[a] * wy[b] * wz[c];
                     if weight > 0.0 {
                         let j = vec3<u32>(base + vec3(a, b, c));
-                        sum += weight * bitcast<f32>(atomicLoad(&density[coarse.offset + voxel_index(j, coarse.n)]));
+                        sum += weight * density[coarse.offset + voxel_index(j, coarse.n)];
                     }
                 }
             }
         }
-        let i = fine.offset + voxel_index(v, fine.n);
-        atomicStore(&density[i], bitcast<u32>(bitcast<f32>(atomicLoad(&density[i])) + sum));
+        density[fine.offset + voxel_index(v, fine.n)] += sum;
     }
 }

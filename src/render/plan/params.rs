@@ -3,7 +3,7 @@
 
 use bevy::prelude::*;
 
-use crate::math::{MAX_RADIUS_IN_LEVEL_VOXELS, density_level, density_level_sizes};
+use crate::math::{density_level, density_level_sizes};
 use crate::particle::DeltaM;
 use crate::render::{
     extract::particles::{CloudBounds, GpuParticles},
@@ -128,24 +128,6 @@ pub(crate) fn levels_in_use(bounds: CloudBounds, m: u32) -> usize {
     density_level(r_over_h * (1.0 + 1e-4), density_level_sizes(m).len()) + 1
 }
 
-/// Rows per axis of the widest support of a cloud's particles, in a fine grid of `m` voxels per
-/// side over `bounds`: the largest particle's on its level (at most `2 r / h_l + 1` voxel
-/// centres, and no more than the level holds), and, when that level is coarse, those of the
-/// particles on finer levels, which span up to `MAX_RADIUS_IN_LEVEL_VOXELS` of their own voxels
-/// (no more than the fine grid holds). So at most 65: the voxelize dispatch takes rows² along y,
-/// at most 65535.
-pub(crate) fn support_rows(bounds: CloudBounds, m: u32) -> u32 {
-    let (r_over_h, level) = largest_particle(bounds, m);
-    let on_level = r_over_h / (1u32 << level) as f64;
-    let largest = (2.0 * on_level.ceil() + 1.0).min(density_level_sizes(m)[level] as f64);
-    let finer = if level == 0 {
-        0.0
-    } else {
-        (2.0 * MAX_RADIUS_IN_LEVEL_VOXELS + 1.0).min(m as f64)
-    };
-    (largest.max(finer) as u32).max(1)
-}
-
 /// The uniform of a cloud's illumination passes.
 pub(crate) fn cloud_params(
     cloud: &ExtractedCloud,
@@ -166,7 +148,6 @@ pub(crate) fn cloud_params(
         k_local: cloud.extinction * cloud.scale(),
         albedo: cloud.albedo,
         forward_scattering: cloud.settings.forward_scattering,
-        rows: support_rows(bounds, cloud.light_resolution),
         anisotropy: cloud.anisotropy,
         depth_scale: delta.depth_scale as f32,
         lit: lights.any() as u32,

@@ -502,51 +502,14 @@ fn held_resolution(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::plan::params::{at_resolution, levels_in_use, support_rows, volume_shape};
-    use crate::settings::{CloudQualitySettings, MAX_VOLUME_RESOLUTION, MIN_VOLUME_RESOLUTION};
+    use crate::render::plan::params::{at_resolution, levels_in_use, volume_shape};
+    use crate::settings::CloudQualitySettings;
 
     fn bounds(max_radius: f32) -> CloudBounds {
         CloudBounds {
             centre: Vec3::ZERO,
             side: 2.0,
             max_radius,
-        }
-    }
-
-    /// The voxelize dispatch no longer grows with the particles' size: a particle as wide as
-    /// the grid takes no more rows than one 32 voxels wide.
-    #[test]
-    fn voxelize_rows_are_bounded_whatever_the_particles_size() {
-        let m = 144;
-        let h = 2.0 / m as f32;
-        assert_eq!(support_rows(bounds(0.5 * h), m), 3);
-        assert_eq!(support_rows(bounds(3.5 * h), m), 9);
-        assert_eq!(support_rows(bounds(16.0 * h), m), 33);
-        assert_eq!(support_rows(bounds(32.0 * h), m), 65);
-        for r_over_h in [32.5, 64.0, 65.0, 80.0, 144.0] {
-            assert_eq!(
-                support_rows(bounds(r_over_h * h), m),
-                65,
-                "r/h = {r_over_h}"
-            );
-        }
-        // One level only (m < 8): the fine grid bounds the rows.
-        assert_eq!(support_rows(bounds(1.0), 6), 6);
-        // Whatever the grid and the particle, rows² fits the dispatch's y workgroups.
-        for m in [
-            MIN_VOLUME_RESOLUTION,
-            7,
-            8,
-            9,
-            33,
-            100,
-            255,
-            MAX_VOLUME_RESOLUTION,
-        ] {
-            for r in [0.01, 0.5, 1.0, 2.0, 100.0] {
-                let rows = support_rows(bounds(r), m);
-                assert!((1..=65).contains(&rows), "m {m}, r {r}: {rows} rows");
-            }
         }
     }
 
@@ -575,9 +538,18 @@ mod tests {
         );
         let e = &entries[3];
         assert_eq!((e.count, e.upsample_from), (6, 3));
-        assert_eq!(e.size_offset[0], UVec4::new(144, 0, 0, 0));
-        assert_eq!(e.size_offset[1], UVec4::new(72, 144u32.pow(3), 0, 0));
+        // Voxelize's bricks (8³ voxels) follow the same order: 18³ of the fine grid, then 9³.
+        assert_eq!(e.size_offset[0], UVec4::new(144, 0, 0, 18));
+        assert_eq!(
+            e.size_offset[1],
+            UVec4::new(72, 144u32.pow(3), 18u32.pow(3), 9)
+        );
+        assert_eq!(e.size_offset[5].w, 1);
         assert_eq!(e.size_offset[6], UVec4::ZERO);
+        assert_eq!(
+            DensityLevels::bricks(144),
+            [18u64, 9, 5, 3, 2, 1].iter().map(|n| n.pow(3)).sum::<u64>()
+        );
     }
 
     /// Five lights' volumes at 64³ × 4 (5 × 256³ floats, 336 MB) pass a 128 MiB binding
