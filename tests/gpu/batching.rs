@@ -39,6 +39,18 @@ fn spawn(app: &mut App, x: f32, variant: u32, resolution: u32) -> Entity {
     cloud
 }
 
+/// The fine density (`m`³ voxels, the finest level) the GPU holds for `cloud`.
+pub(crate) fn fine_density(app: &mut App, cloud: Entity, m: usize) -> Vec<f32> {
+    let render = app.world().get::<RenderEntity>(cloud).unwrap().id();
+    let range = common::with_render_world(app, |world| {
+        let volumes = world.get::<CloudVolumes>(render).unwrap();
+        let pool = world.resource::<VolumePools>().pool(&volumes.slot);
+        pool.fine_density(volumes.slot.index)
+    });
+    let bytes = headless::read_buffer_range(app, &range).unwrap();
+    headless::floats(&bytes)[..m.pow(3)].to_vec()
+}
+
 /// Runs and dispatches of the batched passes (voxelize, shade, gather, scatter, view volume)
 /// until the scene is steady (counted by `recorder` from where it stands).
 fn illuminate(app: &mut App, recorder: &mut FrameRecorder, clouds: u32) -> ([u32; 5], [u32; 5]) {
@@ -281,19 +293,12 @@ fn clouds_on_different_density_levels_are_voxelized_together() {
 
     let m = settings.light_resolution() as usize;
     for (cloud, particles) in clouds.into_iter().zip(&sets) {
-        let render = app.world().get::<RenderEntity>(cloud).unwrap().id();
-        let range = common::with_render_world(&mut app, |world| {
-            let volumes = world.get::<CloudVolumes>(render).unwrap();
-            let pool = world.resource::<VolumePools>().pool(&volumes.slot);
-            pool.fine_density(volumes.slot.index)
-        });
-        let bytes = headless::read_buffer_range(&mut app, &range).unwrap();
-        let gpu: Vec<f64> = headless::floats(&bytes)
+        let gpu: Vec<f64> = fine_density(&mut app, cloud, m)
             .into_iter()
             .map(f64::from)
             .collect();
         let cpu = voxelize(particles, m).expect("density");
-        let difference = max_relative_difference(&gpu[..m.pow(3)], &cpu.rho);
+        let difference = max_relative_difference(&gpu, &cpu.rho);
         assert!(difference < 2e-4, "{difference}");
     }
 }

@@ -4,9 +4,8 @@
 //! gather in a fixed order, so the density is the same bit for bit, even where thousands of
 //! particles pile on one voxel. README "Limitations" states the bound asserted here.
 
-use bevy::{prelude::*, render::sync_world::RenderEntity};
+use bevy::prelude::*;
 use bevy_particle_clouds::headless::{self, FrameRecorder};
-use bevy_particle_clouds::render::{pools::VolumePools, volumes::CloudVolumes};
 use bevy_particle_clouds::{
     CloudQualitySettings, Medium, Particle,
     generators::{self, SplitMix64},
@@ -16,7 +15,7 @@ use bevy_particle_clouds::{
     },
 };
 
-use crate::common;
+use crate::{batching::fine_density, common};
 
 /// The largest relative RMSE between two runs' images that README "Limitations" allows for
 /// this scene (llvmpipe measured 1.1e-5).
@@ -112,15 +111,7 @@ fn voxelize_once(particles: &[Particle], settings: CloudQualitySettings) -> Vec<
     );
     let mut recorder = FrameRecorder::default();
     headless::render_until_steady(&mut app, &mut recorder, 1, 20).unwrap();
-    let render = app.world().get::<RenderEntity>(cloud).unwrap().id();
-    let range = common::with_render_world(&mut app, |world| {
-        let volumes = world.get::<CloudVolumes>(render).unwrap();
-        let pool = world.resource::<VolumePools>().pool(&volumes.slot);
-        pool.fine_density(volumes.slot.index)
-    });
-    let bytes = headless::read_buffer_range(&mut app, &range).unwrap();
-    let m = settings.light_resolution() as usize;
-    headless::floats(&bytes)[..m.pow(3)].to_vec()
+    fine_density(&mut app, cloud, settings.light_resolution() as usize)
 }
 
 #[test]
