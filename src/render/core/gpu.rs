@@ -230,6 +230,13 @@ impl<'p, 'a> StagePass<'p, 'a> {
         self.pass.dispatch_workgroups(x, y, z);
         self.dispatches += 1;
     }
+
+    /// Dispatches the workgroups that the three words of `args` at byte `offset` say (written
+    /// by an earlier dispatch), and counts it.
+    pub fn dispatch_indirect(&mut self, args: &Buffer, offset: u64) {
+        self.pass.dispatch_workgroups_indirect(args, offset);
+        self.dispatches += 1;
+    }
 }
 
 /// Records one stage: a GPU time span around one compute pass, and the pass's counters (the

@@ -381,6 +381,7 @@ impl IlluminationLayouts {
                     work(),
                     write(),
                     write(),
+                    write(),
                 ),
             ),
             shade: sequential_layout(

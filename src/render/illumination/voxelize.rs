@@ -15,7 +15,7 @@ use bevy::{
     render::{
         render_resource::{
             BindGroup, BindGroupEntries, BindGroupEntry, Buffer, BufferBinding, BufferDescriptor,
-            BufferUsages, ComputePipeline, ShaderType,
+            BufferInitDescriptor, BufferUsages, ComputePipeline, ShaderType,
         },
         renderer::{RenderContext, RenderDevice},
     },
@@ -24,7 +24,7 @@ use bevy::{
 use crate::math::density_level_sizes;
 use crate::render::{
     core::gpu::Batch,
-    core::gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, WORK_CHUNK},
+    core::gpu::{DYNAMIC_UNIFORM_STRIDE, StagePass, WORK_CHUNK, WorkList},
     core::workgroups::{self, BRICK_THREADS, dispatch_columns, spread_groups},
     extract::particles::GpuParticles,
     plan::pools::{BufferRange, PoolId, VolumePools},
@@ -33,9 +33,13 @@ use crate::render::{
 
 /// Bytes of one particle on the GPU (`Particle` in `types.wgsl`).
 const PARTICLE_BYTES: u64 = 32;
-/// Words before a cloud's bricks in the bricks' buffer: each density level's reach
-/// (`REACH_WORDS` in `voxelize.wgsl`).
-const REACH_WORDS: u64 = 8;
+/// Words before a cloud's bricks in the bricks' buffer: each density level's reach, and the
+/// number of its marked bricks (`HEADER_WORDS` in `voxelize.wgsl`).
+const HEADER_WORDS: u64 = 9;
+/// The x workgroups of the gather's indirect dispatch; `scan_bricks` sets y so that x·y covers
+/// the marked bricks. Small, so that an item with fewer marked bricks than the round's most
+/// launches few workgroups that find nothing to do.
+const GATHER_ROW: u32 = 64;
 /// Particles whose kernel sums one workgroup reduces (`SUMS_PER_GROUP` in `voxelize.wgsl`).
 const SUMS_PER_GROUP: u32 = 8;
 
@@ -85,7 +89,8 @@ impl VoxelizeScratch {
     }
 
     /// Round `round`'s buffers (rounds are reserved in order), holding at least `particles` and
-    /// `words` of bricks, and at most what one storage binding of `max_binding` bytes does.
+    /// `words` of bricks, and at most what one storage binding of `max_binding` bytes does. Only
+    /// the buffers whose capacity changes are made anew.
     fn reserve(
         &mut self,
         device: &RenderDevice,
@@ -93,16 +98,6 @@ impl VoxelizeScratch {
         (particles, words): (u64, u64),
         max_binding: u64,
     ) -> ScratchBuffers {
-        let current = self.0.get(round).map(|s| (s.capacity, s.brick_capacity));
-        let grown_particles = scratch_capacity(
-            current.map(|c| c.0),
-            particles,
-            max_binding / PARTICLE_BYTES,
-        );
-        let grown_words = scratch_capacity(current.map(|c| c.1), words, max_binding / 4);
-        if grown_particles.is_none() && grown_words.is_none() {
-            return self.0[round].clone();
-        }
         let buffer = |label, bytes: u64| {
             device.create_buffer(&BufferDescriptor {
                 label: Some(label),
@@ -111,18 +106,52 @@ impl VoxelizeScratch {
                 mapped_at_creation: false,
             })
         };
-        let capacity = grown_particles.or(current.map(|c| c.0)).unwrap_or(1);
-        let brick_capacity = grown_words.or(current.map(|c| c.1)).unwrap_or(1);
-        let buffers = ScratchBuffers {
-            particles: buffer(
-                "particle_clouds_voxelize_particles",
-                capacity * PARTICLE_BYTES,
-            ),
-            totals: buffer("particle_clouds_voxelize_totals", capacity * 4),
-            binned: buffer("particle_clouds_voxelize_binned", capacity * 4),
-            capacity,
-            bricks: buffer("particle_clouds_voxelize_bricks", brick_capacity * 4),
-            brick_capacity,
+        let per_particle = |capacity: u64| {
+            (
+                buffer(
+                    "particle_clouds_voxelize_particles",
+                    capacity * PARTICLE_BYTES,
+                ),
+                buffer("particle_clouds_voxelize_totals", capacity * 4),
+                buffer("particle_clouds_voxelize_binned", capacity * 4),
+            )
+        };
+        let bricks = |capacity: u64| buffer("particle_clouds_voxelize_bricks", capacity * 4);
+        let current = self.0.get(round);
+        let grown_particles = scratch_capacity(
+            current.map(|s| s.capacity),
+            particles,
+            max_binding / PARTICLE_BYTES,
+        );
+        let grown_words =
+            scratch_capacity(current.map(|s| s.brick_capacity), words, max_binding / 4);
+        let buffers = match current {
+            Some(s) if grown_particles.is_none() && grown_words.is_none() => return s.clone(),
+            Some(s) => {
+                let mut s = s.clone();
+                if let Some(capacity) = grown_particles {
+                    (s.particles, s.totals, s.binned) = per_particle(capacity);
+                    s.capacity = capacity;
+                }
+                if let Some(capacity) = grown_words {
+                    s.bricks = bricks(capacity);
+                    s.brick_capacity = capacity;
+                }
+                s
+            }
+            None => {
+                let capacity = grown_particles.unwrap_or(1);
+                let brick_capacity = grown_words.unwrap_or(1);
+                let (particles, totals, binned) = per_particle(capacity);
+                ScratchBuffers {
+                    particles,
+                    totals,
+                    binned,
+                    capacity,
+                    bricks: bricks(brick_capacity),
+                    brick_capacity,
+                }
+            }
         };
         if round < self.0.len() {
             self.0[round] = buffers.clone();
@@ -171,9 +200,10 @@ impl VoxelizeCloud {
 }
 
 /// Words a cloud of a pool whose fine grid has `m` voxels per side takes in the bricks' buffer:
-/// the levels' reach, then per brick its list's place and whether a particle reaches it.
+/// the header, then per brick its list's place, whether a particle reaches it, and the list of
+/// those it reaches.
 fn brick_words(m: u32) -> u64 {
-    REACH_WORDS + 2 * DensityLevels::bricks(m)
+    HEADER_WORDS + 3 * DensityLevels::bricks(m)
 }
 
 /// One pool's clouds in a round.
@@ -181,6 +211,9 @@ struct PoolVoxelize {
     /// `(slot, first particle, first brick word, particles)` per cloud, those with the most density
     /// levels first.
     batch: Batch,
+    /// The batch's bind group for the gather, whose `gather_groups` is a stand-in: the gather
+    /// reads the real one as its indirect dispatch.
+    gather_group: BindGroup,
     /// The clouds' density levels, cleared before the gather.
     clears: Vec<BufferRange>,
     /// The most particles of a cloud.
@@ -200,6 +233,9 @@ pub(crate) struct VoxelizeRound {
     /// Each cloud's particles and their first element in the scratch.
     copies: Vec<(Buffer, u64, u32)>,
     pools: Vec<PoolVoxelize>,
+    /// The gather's indirect dispatches, one per pool and chunk of its work list, in the order
+    /// they are recorded.
+    gather_groups: Buffer,
 }
 
 /// Splits the clouds to voxelize into rounds whose particles and bricks fit in one storage
@@ -286,6 +322,17 @@ fn make_round(
         .map(|(id, c)| c.len() as u64 * brick_words(id.shape.m))
         .sum();
     let buffers = scratch.reserve(device, index, (particles, words), max_binding);
+    let gather_groups = device.create_buffer_with_data(&BufferInitDescriptor {
+        label: Some("particle_clouds_voxelize_gather_groups"),
+        contents: bytemuck::cast_slice(&gather_dispatches(round.iter().map(|(_, c)| c.len()))),
+        usage: BufferUsages::STORAGE | BufferUsages::INDIRECT,
+    });
+    let stand_in = device.create_buffer(&BufferDescriptor {
+        label: Some("particle_clouds_voxelize_gather_groups_stand_in"),
+        size: 16,
+        usage: BufferUsages::STORAGE,
+        mapped_at_creation: false,
+    });
     let mut copies = Vec::new();
     let (mut first, mut first_word) = (0, 0);
     let mut batches = Vec::new();
@@ -299,7 +346,7 @@ fn make_round(
             first += c.count as u64;
             first_word += brick_words(id.shape.m);
         }
-        let batch = Batch::new(device, &items, |work| {
+        let group = |work: &WorkList, groups: &Buffer| {
             bind(&BindGroupEntries::sequential((
                 pool.slots.as_entire_binding(),
                 buffers.particles.as_entire_binding(),
@@ -313,9 +360,12 @@ fn make_round(
                 work.binding(),
                 buffers.bricks.as_entire_binding(),
                 buffers.binned.as_entire_binding(),
+                groups.as_entire_binding(),
             )))
-        })
-        .expect("a pool in a round has clouds");
+        };
+        let batch = Batch::new(device, &items, |work| group(work, &gather_groups))
+            .expect("a pool in a round has clouds");
+        let gather_group = group(&batch.work, &stand_in);
         let most = |f: fn(&VoxelizeCloud) -> u32| clouds.iter().map(f).max().unwrap_or(0);
         let sizes = density_level_sizes(id.shape.m);
         let upsample = (1..most(|c| c.levels_in_use))
@@ -327,6 +377,7 @@ fn make_round(
             .collect();
         batches.push(PoolVoxelize {
             batch,
+            gather_group,
             clears: clouds.iter().map(|c| pool.fine_density(c.slot)).collect(),
             particles: most(|c| c.count),
             bricks: DensityLevels::bricks(id.shape.m) as u32,
@@ -338,7 +389,20 @@ fn make_round(
         words,
         copies,
         pools: batches,
+        gather_groups,
     }
+}
+
+/// The gather's indirect dispatches of a round whose pools hold `clouds` each: one per pool and
+/// chunk of its work list, `(GATHER_ROW, 0, clouds in the chunk)`; `scan_bricks` raises the 0.
+fn gather_dispatches(clouds: impl Iterator<Item = usize>) -> Vec<[u32; 3]> {
+    clouds
+        .flat_map(|n| {
+            (0..n as u32)
+                .step_by(WORK_CHUNK as usize)
+                .map(move |first| [GATHER_ROW, 0, (n as u32 - first).min(WORK_CHUNK)])
+        })
+        .collect()
 }
 
 /// Everything a round writes is cleared, and its particles copied into the scratch, before its
@@ -363,9 +427,9 @@ pub(crate) fn prepare_round(ctx: &mut RenderContext, round: &VoxelizeRound) {
     }
 }
 
-/// The workgroups of each of the passes but the upsampling, for one pool's clouds (each
-/// dispatch has one z workgroup per cloud).
-fn pass_groups(p: &PoolVoxelize) -> [[u32; 2]; 6] {
+/// The workgroups of each of the binning's passes and the kernels' sums, for one pool's clouds
+/// (each dispatch has one z workgroup per cloud).
+fn pass_groups(p: &PoolVoxelize) -> [[u32; 2]; 5] {
     let per_particle = [p.particles.div_ceil(workgroups::LINEAR).max(1), 1];
     [
         per_particle,
@@ -373,19 +437,18 @@ fn pass_groups(p: &PoolVoxelize) -> [[u32; 2]; 6] {
         per_particle,
         [p.bricks.div_ceil(BRICK_THREADS).max(1), 1],
         spread_groups(p.particles.div_ceil(SUMS_PER_GROUP)),
-        spread_groups(p.bricks),
     ]
 }
 
-/// The passes of a round: the binning, the kernels' sums and the gather, one dispatch each per
-/// pool (and per chunk of its list); then the coarse levels enlarged into the fine grid,
-/// coarsest first, one dispatch per level.
+/// The passes of a round: the binning and the kernels' sums, one dispatch each per pool (and per
+/// chunk of its list); the gather over the marked bricks, an indirect dispatch each; then the
+/// coarse levels enlarged into the fine grid, coarsest first, one dispatch per level.
 pub(crate) fn record_round(
     pass: &mut StagePass,
     pipelines: [&ComputePipeline; 7],
     round: &VoxelizeRound,
 ) -> u32 {
-    let [passes @ .., upsample] = pipelines;
+    let [passes @ .., gather, upsample] = pipelines;
     for (i, pipeline) in passes.into_iter().enumerate() {
         pass.set_pipeline(pipeline);
         for p in &round.pools {
@@ -394,6 +457,15 @@ pub(crate) fn record_round(
                 pass.set_bind_group(0, &p.batch.group, &[0, offset]);
                 pass.dispatch(x, y, items);
             }
+        }
+    }
+    pass.set_pipeline(gather);
+    let mut args = 0;
+    for p in &round.pools {
+        for (offset, _) in p.batch.work.chunks() {
+            pass.set_bind_group(0, &p.gather_group, &[0, offset]);
+            pass.dispatch_indirect(&round.gather_groups, args);
+            args += 12;
         }
     }
     pass.set_pipeline(upsample);
@@ -415,7 +487,7 @@ pub(crate) fn record_round(
 
 #[cfg(test)]
 mod tests {
-    use super::{round_of_each, scratch_capacity};
+    use super::{GATHER_ROW, WORK_CHUNK, gather_dispatches, round_of_each, scratch_capacity};
 
     #[test]
     fn voxelize_adds_no_float_with_an_atomic() {
@@ -430,9 +502,25 @@ mod tests {
             atomics,
             [
                 "@group(0) @binding(6) var<storage, read_write> bricks: array<atomic<u32>>;",
+                "@group(0) @binding(8) var<storage, read_write> gather_groups: array<atomic<u32>>;",
                 "var<workgroup> long_count: atomic<u32>;"
             ]
         );
+    }
+
+    #[test]
+    fn the_gather_dispatches_once_per_pool_and_chunk_of_its_clouds() {
+        let chunk = WORK_CHUNK;
+        assert_eq!(
+            gather_dispatches([3, 1].into_iter()),
+            [[GATHER_ROW, 0, 3], [GATHER_ROW, 0, 1]]
+        );
+        // A pool of more clouds than one dispatch's z holds: one dispatch per chunk.
+        assert_eq!(
+            gather_dispatches([chunk as usize + 5].into_iter()),
+            [[GATHER_ROW, 0, chunk], [GATHER_ROW, 0, 5]]
+        );
+        assert!(gather_dispatches([].into_iter()).is_empty());
     }
 
     #[test]

@@ -13,12 +13,15 @@
 //
 // Every cloud of a volume pool in one dispatch: z workgroup i voxelizes `work[i]`, whose particles
 // were copied into `particles` from element `work[i].y` on.
-#import bevy_particle_clouds::types::{Particle, CloudParams, DensityLevels, Slot, KERNEL_VOLUME, kernel, voxel_index}
+#import bevy_particle_clouds::types::{Particle, DensityLevels, Slot, KERNEL_VOLUME, kernel, voxel_index}
 
 const BRICK: u32 = #{VOXEL_BRICK}u;
 const THREADS: u32 = #{BRICK_WORKGROUP}u;
-// An item's words in `bricks` start with its levels' reach.
+// An item's words in `bricks` start with its levels' reach, then the number of its bricks that
+// a particle reaches.
 const REACH_WORDS: u32 = 8u;
+const MARKED_WORD: u32 = REACH_WORDS;
+const HEADER_WORDS: u32 = REACH_WORDS + 1u;
 // Particles whose kernel sums one workgroup reduces, one after the other.
 const SUMS_PER_GROUP: u32 = 8u;
 // A brick's list up to this long is sorted by one invocation; longer, by the workgroup.
@@ -40,16 +43,24 @@ const SHORT_LIST: u32 = 32u;
 // (slot, first particle, first word in `bricks`, particles) per z workgroup.
 @group(0) @binding(5) var<storage, read> work: array<vec4<u32>>;
 // Per item, cleared to zero before the passes: REACH_WORDS words, each level's reach in bricks;
-// then one word per brick, the levels one after the other: its particles (`bin`), then the first
-// of its list (`scan_bricks`), then the end of its list, the next brick's first (`scatter`); then
-// one word per brick again, 1 where a particle's deposit reaches it (`bin`).
+// the number of marked bricks (`scan_bricks`); then one word per brick, the levels one after the
+// other: its particles (`bin`), then the first of its list (`scan_bricks`), then the end of its
+// list, the next brick's first (`scatter`); then one word per brick again, 1 where a particle's
+// deposit reaches it (`bin`); then the marked bricks, ascending (`scan_bricks`).
 @group(0) @binding(6) var<storage, read_write> bricks: array<atomic<u32>>;
 // Per particle of `particles`: item-local particle indices, brick after brick, ascending within
 // a brick after `sort_bricks`.
 @group(0) @binding(7) var<storage, read_write> binned: array<u32>;
+// The gather's indirect dispatches, (x, y, z) each: the host writes x and z (the items), and
+// `scan_bricks` raises y until x·y workgroups cover every item's marked bricks. Bound to a
+// stand-in in the gather's own bind group, which reads this buffer as its dispatch instead.
+@group(0) @binding(8) var<storage, read_write> gather_groups: array<atomic<u32>>;
 
-// The fine grid's uniform of the item's cloud, and the first element of its levels in `density`.
-var<private> cloud: CloudParams;
+// The item's cloud's fine grid: its corner (m) and voxel size (m), and the first element of its
+// levels in `density`. Read field by field: every invocation of every pass reads them, and the
+// slot holds far more.
+var<private> grid_origin: vec3<f32>;
+var<private> fine_h: f32;
 var<private> first_density: u32;
 // (slot, first particle, first word in `bricks`, particles): the count copied into `particles`,
 // which a slot's uniform may not hold yet in the frame the particles change.
@@ -57,9 +68,9 @@ var<private> item: vec4<u32>;
 
 fn begin(z: u32) {
     item = work[z];
-    let slot = slots[item.x];
-    cloud = slot.fine;
-    first_density = slot.fine_density;
+    grid_origin = slots[item.x].fine.grid_origin;
+    fine_h = slots[item.x].fine.h;
+    first_density = slots[item.x].fine_density;
 }
 
 // One density level: voxels per side, its first element in `density`, its voxel size, its first
@@ -74,13 +85,22 @@ struct Level {
 
 fn level_at(l: u32) -> Level {
     let size = levels.size_offset[l];
-    return Level(size.x, first_density + size.y, cloud.h * f32(1u << l), size.z, size.w);
+    return Level(size.x, first_density + size.y, fine_h * f32(1u << l), size.z, size.w);
 }
 
 // Bricks of an item, over every level.
 fn brick_count() -> u32 {
     let last = levels.size_offset[levels.count - 1u];
     return last.z + last.w * last.w * last.w;
+}
+
+// The item's first word of its bricks' marks, and of its list of marked bricks.
+fn marks_word() -> u32 {
+    return item.z + HEADER_WORDS + brick_count();
+}
+
+fn marked_list_word() -> u32 {
+    return item.z + HEADER_WORDS + 2u * brick_count();
 }
 
 // The finest level on which a particle of radius `r` spans at most `max_radius` voxels, else the
@@ -111,8 +131,8 @@ fn footprint(particle: Particle) -> Footprint {
     let r = particle.position_radius.w;
     let l = particle_level(r);
     let level = level_at(l);
-    let g = (particle.position_radius.xyz - cloud.grid_origin) / level.h - 0.5;
-    let narrowing = levels.kernel_narrowing * (level.h * level.h - cloud.h * cloud.h);
+    let g = (particle.position_radius.xyz - grid_origin) / level.h - 0.5;
+    let narrowing = levels.kernel_narrowing * (level.h * level.h - fine_h * fine_h);
     let kernel_voxels = select(sqrt(max(r * r - narrowing, 0.0)), r, l == 0u) / level.h;
     let lo = max(vec3<i32>(ceil(g - kernel_voxels)), vec3(0));
     let hi = min(vec3<i32>(floor(g + kernel_voxels)), vec3(i32(level.n) - 1));
@@ -139,7 +159,7 @@ fn inv_k2_of(f: Footprint) -> f32 {
 fn brick_word(f: Footprint) -> u32 {
     let side = f.level.bricks;
     let b = vec3<u32>(clamp(vec3<i32>(floor(f.g / f32(BRICK))), vec3(0), vec3(i32(side) - 1)));
-    return item.z + REACH_WORDS + f.level.first_brick + b.x + side * (b.y + side * b.z);
+    return item.z + HEADER_WORDS + f.level.first_brick + b.x + side * (b.y + side * b.z);
 }
 
 // Bricks from a particle's centre brick to the farthest brick its deposit reaches (a splat
@@ -175,7 +195,7 @@ fn bin(@builtin(global_invocation_id) id: vec3<u32>) {
     let lo = vec3<u32>(clamp(min(f.lo, base), vec3(0), n)) / BRICK;
     let hi = vec3<u32>(clamp(max(f.hi, base + 1), vec3(0), n)) / BRICK;
     let side = f.level.bricks;
-    let marks = item.z + REACH_WORDS + brick_count() + f.level.first_brick;
+    let marks = marks_word() + f.level.first_brick;
     for (var z = lo.z; z <= hi.z; z++) {
         for (var y = lo.y; y <= hi.y; y++) {
             for (var x = lo.x; x <= hi.x; x++) {
@@ -186,21 +206,12 @@ fn bin(@builtin(global_invocation_id) id: vec3<u32>) {
 }
 
 var<workgroup> partial: array<u32, THREADS>;
+var<workgroup> scan_total: u32;
 
-// Binning, pass 2, one workgroup per item: the bricks' counts become their lists' first
-// elements (an exclusive scan, each invocation over a run of bricks).
-@compute @workgroup_size(#{BRICK_WORKGROUP})
-fn scan_bricks(@builtin(local_invocation_index) t: u32, @builtin(workgroup_id) group: vec3<u32>) {
-    begin(group.z);
-    let count = brick_count();
-    let run = (count + THREADS - 1u) / THREADS;
-    let first = item.z + REACH_WORDS + min(t * run, count);
-    let end = item.z + REACH_WORDS + min(t * run + run, count);
-    var sum = 0u;
-    for (var b = first; b < end; b++) {
-        sum += atomicLoad(&bricks[b]);
-    }
-    partial[t] = sum;
+// The sum of `value` over the workgroup's invocations before `t` (an exclusive scan); the sum
+// over all of them is left in `scan_total`.
+fn exclusive_scan(t: u32, value: u32) -> u32 {
+    partial[t] = value;
     workgroupBarrier();
     for (var d = 1u; d < THREADS; d <<= 1u) {
         let before = select(0u, partial[max(t, d) - d], t >= d);
@@ -208,11 +219,53 @@ fn scan_bricks(@builtin(local_invocation_index) t: u32, @builtin(workgroup_id) g
         partial[t] += before;
         workgroupBarrier();
     }
-    var start = partial[t] - sum;
+    if t == THREADS - 1u {
+        scan_total = partial[t];
+    }
+    let inclusive = partial[t];
+    workgroupBarrier();
+    return inclusive - value;
+}
+
+// Binning, pass 2, one workgroup per item, each invocation over a run of bricks: the bricks'
+// counts become their lists' first elements, and the marked bricks a list, in order, that the
+// gather's workgroups walk (so that bricks no particle reaches cost nothing).
+@compute @workgroup_size(#{BRICK_WORKGROUP})
+fn scan_bricks(@builtin(local_invocation_index) t: u32, @builtin(workgroup_id) group: vec3<u32>) {
+    begin(group.z);
+    let count = brick_count();
+    let run = (count + THREADS - 1u) / THREADS;
+    let first = min(t * run, count);
+    let end = min(t * run + run, count);
+    let counts = item.z + HEADER_WORDS;
+    var sum = 0u;
     for (var b = first; b < end; b++) {
-        let c = atomicLoad(&bricks[b]);
-        atomicStore(&bricks[b], start);
+        sum += atomicLoad(&bricks[counts + b]);
+    }
+    var start = exclusive_scan(t, sum);
+    for (var b = first; b < end; b++) {
+        let c = atomicLoad(&bricks[counts + b]);
+        atomicStore(&bricks[counts + b], start);
         start += c;
+    }
+    let marks = marks_word();
+    var marked = 0u;
+    for (var b = first; b < end; b++) {
+        marked += atomicLoad(&bricks[marks + b]);
+    }
+    var at = marked_list_word() + exclusive_scan(t, marked);
+    for (var b = first; b < end; b++) {
+        if atomicLoad(&bricks[marks + b]) != 0u {
+            atomicStore(&bricks[at], b);
+            at++;
+        }
+    }
+    if t == 0u {
+        atomicStore(&bricks[item.z + MARKED_WORD], scan_total);
+        for (var d = 0u; d + 2u < arrayLength(&gather_groups); d += 3u) {
+            let x = max(atomicLoad(&gather_groups[d]), 1u);
+            atomicMax(&gather_groups[d + 1u], (scan_total + x - 1u) / x);
+        }
     }
 }
 
@@ -230,7 +283,7 @@ fn scatter(@builtin(global_invocation_id) id: vec3<u32>) {
 
 // The item-local range of brick `b`'s list (after `scatter`).
 fn brick_list(b: u32) -> vec2<u32> {
-    let word = item.z + REACH_WORDS + b;
+    let word = item.z + HEADER_WORDS + b;
     let start = select(0u, atomicLoad(&bricks[max(word, 1u) - 1u]), b > 0u);
     return vec2(start, atomicLoad(&bricks[word]));
 }
@@ -393,10 +446,14 @@ fn candidate(p: u32, lo: vec3<f32>, hi: vec3<f32>) -> Candidate {
     // particles.
     let per_voxel = KERNEL_VOLUME * particle.density.x * f.r_voxels * f.r_voxels * f.r_voxels;
     let splat = total < 0.0;
-    let reach = select(f.kernel_voxels, 1.0, splat);
-    let misses = any(f.g + reach < lo) || any(f.g - reach > hi);
+    // A kernel's support is a ball, a splat's a box of ±1 voxel: each misses the brick where the
+    // brick's nearest point to the centre weighs nothing (by the weights' own arithmetic, which
+    // only grows farther out, so no weight is dropped).
+    let out = f.g - clamp(f.g, lo, hi);
+    let inv_k2 = inv_k2_of(f);
+    let misses = select(dot(out, out) * inv_k2 >= 1.0, any(abs(out) >= vec3(1.0)), splat);
     let scale = select(per_voxel / abs(total), 0.0, total == 0.0 || misses);
-    return Candidate(f.g, select(inv_k2_of(f), -1.0, splat), scale);
+    return Candidate(f.g, select(inv_k2, -1.0, splat), scale);
 }
 
 fn weight(c: Candidate, v: vec3<u32>) -> f32 {
@@ -421,7 +478,8 @@ var<workgroup> batch: array<Candidate, THREADS>;
 var<workgroup> row_first: array<u32, THREADS>;
 var<workgroup> row_before: array<u32, THREADS>;
 var<workgroup> shared_count: u32;
-var<workgroup> shared_reach: u32;
+// The workgroup's brick and its level's reach, or none.
+var<workgroup> shared_brick: vec2<u32>;
 
 // The candidate `c`'s particle among the rows' runs (`rows` of them).
 fn candidate_particle(c: u32, rows: u32) -> u32 {
@@ -457,9 +515,10 @@ fn brick_at(index: u32) -> Brick {
     return Brick(l, vec3(b % size.w, (b / size.w) % size.w, b / (size.w * size.w)), size.w, size.x);
 }
 
-// The gather, one workgroup per brick (flattened over x and y): each invocation sums two voxels'
-// density over every particle binned within its level's reach, batch by batch through workgroup
-// memory, and writes them once.
+// The gather, one workgroup per marked brick (an indirect dispatch, flattened over x and y):
+// each invocation sums two voxels' density over every particle binned within its level's
+// reach, batch by batch through workgroup memory, and writes them once. Bricks no particle
+// reaches are not in the list: their voxels stay as cleared.
 @compute @workgroup_size(#{BRICK_WORKGROUP})
 fn gather(
     @builtin(local_invocation_index) t: u32,
@@ -467,20 +526,21 @@ fn gather(
     @builtin(num_workgroups) groups: vec3<u32>,
 ) {
     begin(group.z);
-    let brick_index = group.x + group.y * groups.x;
-    if brick_index >= brick_count() {
-        return;
-    }
-    let brick = brick_at(brick_index);
+    let in_list = group.x + group.y * groups.x;
     if t == 0u {
-        let marked = atomicLoad(&bricks[item.z + REACH_WORDS + brick_count() + brick_index]);
-        shared_reach = select(0u, atomicLoad(&bricks[item.z + brick.l]), marked != 0u);
+        shared_brick = vec2(0u);
+        if in_list < atomicLoad(&bricks[item.z + MARKED_WORD]) {
+            let b = atomicLoad(&bricks[marked_list_word() + in_list]);
+            shared_brick = vec2(b, atomicLoad(&bricks[item.z + brick_at(b).l]));
+        }
     }
-    let reach = workgroupUniformLoad(&shared_reach);
-    // No particle reaches this brick: its voxels stay as cleared.
+    let chosen = workgroupUniformLoad(&shared_brick);
+    let reach = chosen.y;
+    // Past this item's marked bricks (the dispatch covers the item with the most).
     if reach == 0u {
         return;
     }
+    let brick = brick_at(chosen.x);
     let lo = vec3<u32>(max(vec3<i32>(brick.at) - i32(reach), vec3(0)));
     let hi = min(brick.at + reach, vec3(brick.side - 1u));
     let size = hi - lo + 1u;

@@ -112,19 +112,17 @@ pub(crate) fn fine_params(params: &CloudParams) -> CloudParams {
     }
 }
 
-/// The largest particle's radius in fine voxels, and its density level, in a fine grid of `m`
-/// voxels per side over `bounds`.
-pub(crate) fn largest_particle(bounds: CloudBounds, m: u32) -> (f64, usize) {
-    let r_over_h = (bounds.max_radius * m as f32 / bounds.side) as f64;
-    let levels = density_level_sizes(m).len();
-    (r_over_h, density_level(r_over_h, levels))
+/// The largest particle's radius in fine voxels, in a fine grid of `m` voxels per side over
+/// `bounds`.
+fn largest_particle_in_voxels(bounds: CloudBounds, m: u32) -> f64 {
+    (bounds.max_radius * m as f32 / bounds.side) as f64
 }
 
 /// Density levels that hold particles: the fine grid down to the largest particle's level, or one
 /// further when that particle is within 1e-4 of a level's boundary, where the GPU's f32 choice
 /// may differ from this one (a level deposited on but not upsampled would lose its mass).
 pub(crate) fn levels_in_use(bounds: CloudBounds, m: u32) -> usize {
-    let (r_over_h, _) = largest_particle(bounds, m);
+    let r_over_h = largest_particle_in_voxels(bounds, m);
     density_level(r_over_h * (1.0 + 1e-4), density_level_sizes(m).len()) + 1
 }
 
