@@ -62,6 +62,7 @@ mod accuracy;
 mod cloud_target_scale;
 mod coarse_cycles;
 mod decompose;
+mod dense;
 mod fog;
 mod frame_budget;
 mod grid_error;
@@ -152,6 +153,9 @@ enum Mode {
     Replot(replot::ReplotArgs),
     /// Split the default settings' error by scattering order (CPU only).
     Decompose(decompose::DecomposeArgs),
+    /// Media far denser than the fine grid resolves: a ball at rising extinction, the real-time
+    /// image against the path tracer's beside the optical thickness of one fine voxel.
+    Dense(dense::DenseArgs),
     /// Every illumination pass's GPU time, incremental against brute-force shading.
     Illumination(illumination::IlluminationArgs),
     /// The draw's cost and error at each cloud target scale (1, 1/2, 1/4): against the path
@@ -299,6 +303,7 @@ fn run() -> Result<(), String> {
         Mode::Accuracy(args) => accuracy::accuracy_benchmark(args, out),
         Mode::Replot(args) => replot::replot(args, out),
         Mode::Decompose(args) => decompose::decompose_benchmark(args, out),
+        Mode::Dense(args) => dense::dense_benchmark(args, out),
         Mode::Illumination(args) => illumination::illumination_benchmark(args, out),
         Mode::CloudTarget(args) => cloud_target_scale::cloud_target_benchmark(args, out),
         Mode::FrameBudget(args) => frame_budget::frame_budget_benchmark(args, out),

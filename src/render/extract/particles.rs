@@ -34,6 +34,9 @@ pub struct CloudBounds {
     pub side: f32,
     /// The largest radius of a particle that carries density, local metres.
     pub max_radius: f32,
+    /// The densest particle's peak density (dimensionless; the medium's `extinction` scales it),
+    /// for the warning on media denser than the fine grid resolves.
+    pub max_density: f32,
 }
 
 /// A particle set uploaded to the GPU.
@@ -84,10 +87,15 @@ impl RenderAsset for GpuParticles {
             .iter()
             .filter(|p| p.density > 0.0)
             .fold(0.0f32, |m, p| m.max(p.radius));
+        let max_density = source
+            .particles
+            .iter()
+            .fold(0.0f32, |m, p| m.max(p.density));
         let bounds = source.bounds().map(|(lo, hi)| CloudBounds {
             centre: (lo + hi) * 0.5,
             side: (hi - lo).max_element(),
             max_radius,
+            max_density,
         });
         Ok(Self {
             buffer,

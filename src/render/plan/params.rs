@@ -156,3 +156,85 @@ pub(crate) fn cloud_params(
         moments: cloud.has_moments() as u32,
     }
 }
+
+/// Optical depths across one fine voxel, at the densest particle's peak, above which a medium
+/// draws measurably wrong: the light volumes hold optical depth at voxel centres, so where one
+/// voxel is this thick its lit skin, which scatters almost all of a dense medium's light, is
+/// shaded as if it lay deeper. On `benchmark dense`'s ball (llvmpipe, default settings) the mean
+/// radiance was 9 % off at 2, 11 % at 3, 20 % dark at 100 and black at 10,000.
+pub const DENSE_VOXEL_LIMIT: f32 = 3.0;
+
+/// The optical thickness of one fine voxel at the densest particle's peak, for a cloud of
+/// uniform `params` (its extinction in local metres) over `bounds`.
+pub(crate) fn fine_voxel_thickness(params: &CloudParams, bounds: CloudBounds) -> f32 {
+    params.k_local * bounds.max_density * fine_params(params).h
+}
+
+/// The warning for a cloud of `extinction` (1/m) whose uniform becomes `new` (from `old`):
+/// once, when its medium becomes denser than its fine grid resolves.
+pub(crate) fn dense_medium_warning(
+    extinction: f32,
+    old: &CloudParams,
+    new: &CloudParams,
+    bounds: CloudBounds,
+) -> Option<String> {
+    let thickness = fine_voxel_thickness(new, bounds);
+    let was_dense = fine_voxel_thickness(old, bounds) > DENSE_VOXEL_LIMIT;
+    (thickness > DENSE_VOXEL_LIMIT && !was_dense).then(|| {
+        format!(
+            "`extinction` {} 1/m at a peak density of {} is {thickness:.1} optical depths \
+             across one fine voxel, more than the {DENSE_VOXEL_LIMIT} its light volumes \
+             resolve: its radiance is 10 % off or more, and far denser media draw black (the \
+             fine voxel is the cloud's side over `volume_resolution` × `light_supersampling`)",
+            extinction, bounds.max_density,
+        )
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn params(k_local: f32) -> CloudParams {
+        CloudParams {
+            n: 64,
+            light_n: 128,
+            h: 2.0 / 64.0,
+            k_local,
+            ..default()
+        }
+    }
+
+    #[test]
+    fn a_medium_denser_than_its_fine_grid_resolves_is_warned_of_once() {
+        let bounds = CloudBounds {
+            centre: Vec3::ZERO,
+            side: 2.0,
+            max_radius: 0.1,
+            max_density: 2.0,
+        };
+        // τ = k · 2 · (2 / 128): at the limit for k = 4 · limit.
+        let at_limit = DENSE_VOXEL_LIMIT * 32.0;
+        let thickness = fine_voxel_thickness(&params(at_limit), bounds);
+        assert!((thickness - DENSE_VOXEL_LIMIT).abs() < 1e-4 * DENSE_VOXEL_LIMIT);
+        let extinction = at_limit * 1.01;
+        let clear = params(at_limit * 0.99);
+        let dense = params(at_limit * 1.01);
+        let message = dense_medium_warning(extinction, &clear, &dense, bounds).expect("a warning");
+        assert!(message.contains(&format!("`extinction` {} 1/m", at_limit * 1.01)));
+        assert!(message.contains("peak density of 2 "));
+        // Once: not again while it stays dense, nor for a medium the grid resolves.
+        assert_eq!(
+            dense_medium_warning(extinction, &dense, &dense, bounds),
+            None
+        );
+        assert_eq!(
+            dense_medium_warning(extinction, &clear, &clear, bounds),
+            None
+        );
+        assert_eq!(
+            dense_medium_warning(extinction, &dense, &clear, bounds),
+            None
+        );
+    }
+}

@@ -22,8 +22,8 @@ use crate::render::{
     plan::ground::{ground_frame, ground_key, ground_map_bytes},
     plan::overlap::{neighbours_of, overlaps},
     plan::params::{
-        at_resolution, cloud_params, fine_params, frame_keys, levels_in_use, light_params,
-        volume_shape,
+        at_resolution, cloud_params, dense_medium_warning, fine_params, frame_keys, levels_in_use,
+        light_params, volume_shape,
     },
     plan::pools::{PoolSlot, Slot, VolumePool, VolumePools, VolumeShape},
     plan::{CloudIllumination, StageKeys, plan},
@@ -155,6 +155,7 @@ pub(crate) fn prepare_cloud_volumes(
         };
         let (cloud, bounds, shape) = (&frame.cloud, frame.bounds, frame.shape);
         let planned = PlannedFrame {
+            entity,
             cloud,
             gpu,
             bounds,
@@ -395,6 +396,7 @@ fn deferred_by_budget(
 /// What [`plan_cloud`] plans from: the cloud, its particles and grid, the lights, and what other
 /// clouds give it.
 struct PlannedFrame<'a> {
+    entity: Entity,
     cloud: &'a ExtractedCloud,
     gpu: &'a GpuParticles,
     bounds: CloudBounds,
@@ -411,6 +413,7 @@ fn plan_cloud(
     queue: &RenderQueue,
 ) {
     let PlannedFrame {
+        entity,
         cloud,
         gpu,
         bounds,
@@ -443,6 +446,11 @@ fn plan_cloud(
         return;
     }
     if params != volumes.params {
+        if let Some(problem) =
+            dense_medium_warning(cloud.extinction, &volumes.params, &params, bounds)
+        {
+            warn!("particle cloud {entity}: {problem}");
+        }
         queue.write_buffer(&volumes.params_buffer, 0, &uniform_bytes(&params));
         volumes.params = params;
     }
@@ -510,6 +518,7 @@ mod tests {
             centre: Vec3::ZERO,
             side: 2.0,
             max_radius,
+            max_density: 1.0,
         }
     }
 
