@@ -46,7 +46,7 @@ use bevy::{
     render::{
         ExtractSchedule, Render, RenderApp, RenderStartup, RenderSystems,
         extract_resource::ExtractResourcePlugin,
-        render_asset::RenderAssetPlugin,
+        render_asset::{RenderAssetPlugin, prepare_assets},
         render_phase::AddRenderCommand,
         render_resource::SpecializedRenderPipelines,
         renderer::{RenderGraph, RenderGraphSystems},
@@ -181,6 +181,9 @@ pub(crate) fn finish(app: &mut App) {
         .add_systems(
             Render,
             (
+                extract::particles::clamp_opaque_extinctions
+                    .in_set(RenderSystems::PrepareAssets)
+                    .after(prepare_assets::<extract::particles::GpuParticles>),
                 (
                     plan::volumes::prepare_cloud_volumes,
                     (

@@ -139,6 +139,23 @@ fn extinction_of_ten_thousand() {
     );
 }
 
+/// Extinctions up to f32's limit, where `σ_t ρ h` and the optical depths overflow to infinity:
+/// finite, bounded, and opaque (docs/limitations.md: such media draw dark, with a warning).
+#[test]
+fn extinctions_at_the_limit_of_f32() {
+    for extinction in [1e30, f32::MAX] {
+        let mut case = Case::new(ball());
+        case.medium.extinction = extinction;
+        let what = format!("extinction {extinction:e}");
+        let (image, drawn) = assert_bounded(&case, &what);
+        assert_eq!(drawn, 1, "{what}");
+        assert!(
+            differs_from_background(&image),
+            "{what}: covers the background"
+        );
+    }
+}
+
 #[test]
 fn tiny_and_huge_particles() {
     let tiny = Case {

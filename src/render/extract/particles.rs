@@ -6,7 +6,7 @@ use bevy::{
     ecs::system::{SystemParamItem, lifetimeless::SRes},
     prelude::*,
     render::{
-        render_asset::{PrepareAssetError, RenderAsset},
+        render_asset::{PrepareAssetError, RenderAsset, RenderAssets},
         render_resource::{Buffer, BufferInitDescriptor, BufferUsages},
         renderer::RenderDevice,
     },
@@ -14,6 +14,12 @@ use bevy::{
 use bytemuck::{Pod, Zeroable};
 
 use crate::cloud::Particles;
+use crate::render::extract::ExtractedCloud;
+
+/// Extinction times density (1/m) above which a medium is lowered to it on the GPU: every voxel
+/// is opaque long before (docs/benchmark/dense.md: black from about 1e6), and the passes' products
+/// of it overflow f32 near 1e38, which drew NaN at an extinction of `f32::MAX`.
+pub const OPAQUE_EXTINCTION: f32 = 1e30;
 
 /// One particle as the shaders read it (`types.wgsl`, `Particle`).
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
@@ -103,5 +109,46 @@ impl RenderAsset for GpuParticles {
             bounds,
             generation: GENERATION.fetch_add(1, Ordering::Relaxed),
         })
+    }
+}
+
+/// Lowers each cloud's extinction so that at its densest particle, in local metres, it stays
+/// within [`OPAQUE_EXTINCTION`]; after its particles are uploaded, before any pass reads it.
+pub(crate) fn clamp_opaque_extinctions(
+    mut clouds: Query<&mut ExtractedCloud>,
+    particles: Res<RenderAssets<GpuParticles>>,
+) {
+    for mut cloud in &mut clouds {
+        let Some(bounds) = particles.get(cloud.particles).and_then(|g| g.bounds) else {
+            continue;
+        };
+        let ceiling = opaque_ceiling(bounds.max_density * cloud.scale());
+        if cloud.extinction > ceiling {
+            cloud.extinction = ceiling;
+        }
+    }
+}
+
+/// The largest extinction a cloud whose densest particle times its scale is `peak` renders at.
+fn opaque_ceiling(peak: f32) -> f32 {
+    OPAQUE_EXTINCTION / peak.max(f32::MIN_POSITIVE)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{OPAQUE_EXTINCTION, opaque_ceiling};
+
+    #[test]
+    fn the_opaque_ceiling_bounds_extinction_times_density() {
+        assert_eq!(opaque_ceiling(1.0), OPAQUE_EXTINCTION);
+        assert_eq!(opaque_ceiling(1e20), 1e10);
+        // No density: no ceiling worth the name, and never NaN.
+        assert_eq!(opaque_ceiling(0.0), f32::INFINITY);
+        // The densest f32 particle: extinction times it is the ceiling, not an overflow.
+        let product = opaque_ceiling(f32::MAX) * f32::MAX;
+        assert!(
+            (product / OPAQUE_EXTINCTION - 1.0).abs() < 1e-5,
+            "{product}"
+        );
     }
 }
