@@ -194,6 +194,18 @@ pub(crate) fn dense_medium_warning(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::render::core::types::DensityLevels;
+    use crate::render::extract::CloudLight;
+    use crate::settings::CloudQualitySettings;
+
+    fn bounds(max_radius: f32) -> CloudBounds {
+        CloudBounds {
+            centre: Vec3::ZERO,
+            side: 2.0,
+            max_radius,
+            max_density: 1.0,
+        }
+    }
 
     fn params(k_local: f32) -> CloudParams {
         CloudParams {
@@ -208,10 +220,8 @@ mod tests {
     #[test]
     fn a_medium_denser_than_its_fine_grid_resolves_is_warned_of_once() {
         let bounds = CloudBounds {
-            centre: Vec3::ZERO,
-            side: 2.0,
-            max_radius: 0.1,
             max_density: 2.0,
+            ..bounds(0.1)
         };
         // τ = k · 2 · (2 / 128): at the limit for k = 4 · limit.
         let at_limit = DENSE_VOXEL_LIMIT * 32.0;
@@ -236,5 +246,98 @@ mod tests {
             dense_medium_warning(extinction, &dense, &clear, bounds),
             None
         );
+    }
+
+    #[test]
+    fn only_levels_holding_particles_are_upsampled() {
+        let m = 144;
+        let h = 2.0 / m as f32;
+        assert_eq!(levels_in_use(bounds(31.9 * h), m), 1);
+        // At the boundary the GPU may round either way: the next level is upsampled too.
+        assert_eq!(levels_in_use(bounds(32.0 * h), m), 2);
+        assert_eq!(levels_in_use(bounds(32.5 * h), m), 2);
+        assert_eq!(levels_in_use(bounds(72.0 * h), m), 3);
+        assert_eq!(levels_in_use(bounds(144.0 * h), m), 4);
+    }
+
+    #[test]
+    fn density_levels_pack_after_the_fine_grid() {
+        let (entries, elements) = DensityLevels::entries(144);
+        assert_eq!(entries.len(), 6);
+        assert_eq!(
+            elements,
+            [144u64, 72, 36, 18, 9, 5]
+                .iter()
+                .map(|n| n.pow(3))
+                .sum::<u64>()
+        );
+        let e = &entries[3];
+        assert_eq!((e.count, e.upsample_from), (6, 3));
+        // Voxelize's bricks (8³ voxels) follow the same order: 18³ of the fine grid, then 9³.
+        assert_eq!(e.size_offset[0], UVec4::new(144, 0, 0, 18));
+        assert_eq!(
+            e.size_offset[1],
+            UVec4::new(72, 144u32.pow(3), 18u32.pow(3), 9)
+        );
+        assert_eq!(e.size_offset[5].w, 1);
+        assert_eq!(e.size_offset[6], UVec4::ZERO);
+        assert_eq!(
+            DensityLevels::bricks(144),
+            [18u64, 9, 5, 3, 2, 1].iter().map(|n| n.pow(3)).sum::<u64>()
+        );
+    }
+
+    /// Five lights' volumes at 64³ × 4 (5 × 256³ floats, 336 MB) pass a 128 MiB binding
+    /// (lavapipe's, and WebGPU's default): the fine grid drops to the largest whose five volumes
+    /// fit, 188³ (5 × 188³ × 4 bytes = 132.9 MB; 189³ would be 135.0 MB), not to a whole
+    /// multiple of 64 (128³). One light keeps 256³ (67 MB), and so do five under a larger
+    /// binding. At the default 48³ (192³), five lights get 188³ too, four keep 192³.
+    #[test]
+    fn the_fine_grid_is_lowered_until_the_volumes_fit_the_binding() {
+        let lights = |count| ExtractedCloudLights {
+            lights: vec![
+                CloudLight {
+                    entity: Entity::PLACEHOLDER,
+                    direction: Vec3::NEG_Y,
+                    irradiance: Vec3::ONE,
+                };
+                count
+            ],
+            ..default()
+        };
+        let cloud = ExtractedCloud::for_test(default());
+        let fitted = |lights: &ExtractedCloudLights, n, max_binding| {
+            at_resolution(&cloud, n, lights, max_binding).light_resolution
+        };
+        let mib_128 = 128 << 20;
+        assert_eq!(cloud.settings.light_supersampling, 4);
+        assert_eq!(fitted(&lights(5), 64, mib_128), 188);
+        assert_eq!(fitted(&lights(1), 64, mib_128), 256);
+        assert_eq!(fitted(&lights(5), 64, 1 << 30), 256);
+        assert_eq!(fitted(&lights(5), 48, mib_128), 188);
+        assert_eq!(fitted(&lights(4), 48, mib_128), 192);
+        // More lights share the binding: ten get 149³ (132.3 MB), twenty 118³ (131.4 MB).
+        assert_eq!(fitted(&lights(10), 48, mib_128), 149);
+        assert_eq!(fitted(&lights(20), 48, mib_128), 118);
+        // At 128³ three lights' volumes bound the grid: 3 × 223³ × 4 = 133.1 MB.
+        assert_eq!(fitted(&lights(3), 128, mib_128), 223);
+        // One light's fine density (its levels, about 8/7 of m³ floats, and the 128³ scattering
+        // grid's) bounds it: about 300³, more than 64³ × 4 (the factor 2 it got before).
+        let one = fitted(&lights(1), 128, mib_128);
+        assert!((290..=310).contains(&one), "{one}");
+        let at_128 = ExtractedCloud::for_test(CloudQualitySettings {
+            volume_resolution: 128,
+            ..default()
+        });
+        let shape_128 = |m| volume_shape(&at_128, &lights(1)).with_light_resolution(m);
+        assert!(shape_128(one).max_slots(mib_128) >= 1);
+        assert_eq!(shape_128(one + 1).max_slots(mib_128), 0);
+        // Nothing fits: the scattering grid's side, and the allocation refuses the cloud with its
+        // own warning.
+        assert_eq!(fitted(&lights(1), 64, 1 << 20), 64);
+        let lowered = at_resolution(&cloud, 64, &lights(5), mib_128);
+        let lowered_shape = volume_shape(&lowered, &lights(5));
+        assert_eq!((lowered_shape.n, lowered_shape.m), (64, 188));
+        assert!(lowered_shape.max_slots(mib_128) >= 1);
     }
 }
