@@ -220,7 +220,7 @@ pub(crate) fn finish(app: &mut App) {
             (
                 illumination::node::illuminate_clouds,
                 view::sort::sort_cloud_particles,
-                view::view_volume::march_view_volumes,
+                view::view_volume_node::march_view_volumes,
             )
                 .chain()
                 .in_set(RenderGraphSystems::Render)

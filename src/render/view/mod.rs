@@ -6,6 +6,7 @@
 pub mod sort;
 pub mod view_atlas;
 pub mod view_volume;
+pub mod view_volume_node;
 
 use bevy::{
     platform::collections::HashMap,
