@@ -70,6 +70,8 @@ struct Motion {
 fn main() -> ExitCode {
     let args: Args = support::parse_args();
     let (clouds, particles) = (args.clouds, args.particles);
+    // The turning-sun picture turns the sun itself, step by step, from a still camera.
+    let moving = args.common.sun_turn_gif.is_none();
     support::run(EXAMPLE, args.common, move |app| {
         // The ground takes the clouds' shadows of the sun through a 1024² map (1 m texels over
         // the 800 m the clouds span).
@@ -89,8 +91,8 @@ fn main() -> ExitCode {
         })
         .insert_resource(CloudRelightBudget(BUDGETS[0]))
         .insert_resource(Motion {
-            sun: true,
-            flight: true,
+            sun: moving,
+            flight: moving,
         })
         .add_systems(
             Startup,

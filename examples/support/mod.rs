@@ -8,6 +8,8 @@
 //! --frames N                  exit (AppExit::Success) after N frames; headless: render at least N
 //! --window-screenshot PATH    with --frames: save the window's last frame as PNG, then exit
 //! --screenshot PATH.png       render headlessly (no window, no display) and write the picture
+//! --sun-turn-gif PATH.gif     render headlessly, the key lights turned once around the sky in
+//!                             --sun-turn-frames steps (default 24), each re-lit; an animated GIF
 //! --size WxH                  window or picture size in pixels (default 1280x720 / 800x450)
 //! ```
 //!
@@ -29,6 +31,8 @@ use bevy::{
         view::screenshot::{Screenshot, ScreenshotCaptured},
     },
 };
+mod sun_turn;
+
 use bevy_particle_clouds::{
     CloudGround, CloudPass, CloudPassCounters, CloudShadowMaps, CloudSkyLight, CloudTargetScale,
     PASSES, ParticleCloud, ParticleCloudsPlugin, Particles,
@@ -51,6 +55,13 @@ pub struct Options {
     /// With --frames: save the window's last frame as PNG, then exit.
     #[arg(long, value_name = "PATH.png", requires = "frames")]
     pub window_screenshot: Option<PathBuf>,
+    /// Render headlessly an animated GIF: every key light turned once around the sky (azimuth),
+    /// one picture per step, each re-lit until finished.
+    #[arg(long, value_name = "PATH.gif", value_parser = gif_path, conflicts_with_all = ["screenshot", "window_screenshot"])]
+    pub sun_turn_gif: Option<PathBuf>,
+    /// With --sun-turn-gif: the pictures of the turn, 2..=360.
+    #[arg(long, value_name = "N", default_value_t = 24, requires = "sun_turn_gif", value_parser = clap::value_parser!(u32).range(2..=360))]
+    pub sun_turn_frames: u32,
     /// Window or picture size in pixels (default 1280x720 / 800x450), each in 16..=8192.
     #[arg(long, value_name = "WxH", value_parser = parse_size)]
     pub size: Option<UVec2>,
@@ -60,6 +71,15 @@ fn output_path(text: &str) -> Result<PathBuf, String> {
     let path = PathBuf::from(text);
     image_io::check_output_path(&path).map_err(|e| e.to_string())?;
     Ok(path)
+}
+
+fn gif_path(text: &str) -> Result<PathBuf, String> {
+    let path = PathBuf::from(text);
+    let gif = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("gif"));
+    gif.then_some(path)
+        .ok_or(format!("--sun-turn-gif is {text}; it must end in .gif"))
 }
 
 fn parse_size(text: &str) -> Result<UVec2, String> {
@@ -394,7 +414,7 @@ struct ExampleInfo {
 /// Builds the app (a window, or headless with `--screenshot`), lets `build` add the example's
 /// systems, and runs it. Exit code 0 on success, 1 on a failure, 2 on a bad command line.
 pub fn run(example: Example, options: Options, build: impl FnOnce(&mut App)) -> ExitCode {
-    let headless = options.screenshot.is_some();
+    let headless = options.screenshot.is_some() || options.sun_turn_gif.is_some();
     let mut app = if headless {
         // Already finished: plugins are added, only systems and resources may follow. The dev
         // build enables winit, whose event loop needs a display: leave it out.
@@ -430,6 +450,15 @@ pub fn run(example: Example, options: Options, build: impl FnOnce(&mut App)) -> 
     .add_systems(Update, (orbit_camera, turn_lights))
     .add_systems(Update, compose_hud.after(HudLines));
     build(&mut app);
+    if let Some(path) = options.sun_turn_gif.clone() {
+        return match sun_turn::run(app, &example, &options, &path) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(message) => {
+                eprintln!("error: {message}");
+                ExitCode::FAILURE
+            }
+        };
+    }
     if let Some(path) = options.screenshot.clone() {
         return match run_headless(app, &example, &options, &path) {
             Ok(()) => ExitCode::SUCCESS,
@@ -479,19 +508,11 @@ pub fn run(example: Example, options: Options, build: impl FnOnce(&mut App)) -> 
     }
 }
 
-/// Renders into a float image until the clouds are finished (or `--frames`), then writes it.
-fn run_headless(
-    mut app: App,
-    example: &Example,
-    options: &Options,
-    path: &std::path::Path,
-) -> Result<(), String> {
-    let start = Instant::now();
-    let size = options.size.unwrap_or(UVec2::new(800, 450));
-    let target = headless::float_target(&mut app, size.x, size.y);
+/// Points the example's camera at a new float image of `size`: linear radiance, exposed but not
+/// tonemapped (`image_io` applies the same ACES curve when writing a PNG).
+fn render_to_image(app: &mut App, size: UVec2) -> Handle<Image> {
+    let target = headless::float_target(app, size.x, size.y);
     let image = target.clone();
-    // The example's camera renders linear radiance into the picture, exposed but not tonemapped:
-    // `image_io` applies the same ACES curve when writing the PNG.
     app.add_systems(
         PostStartup,
         move |mut commands: Commands, cameras: Query<Entity, With<MainCamera>>| {
@@ -505,26 +526,49 @@ fn run_headless(
             }
         },
     );
-    eprintln!(
-        "{}: rendering headlessly on {}",
-        example.title,
-        headless::adapter_name(&mut app)
-    );
-    let min_frames = options
-        .frames
-        .unwrap_or(if example.steady { 2 } else { 10 });
-    let mut recorder = FrameRecorder::default();
-    for _ in 0..min_frames {
-        recorder.frame(&mut app).map_err(|e| e.to_string())?;
+    target
+}
+
+/// Renders `frames` frames, then, for an example whose clouds settle, until they are finished.
+fn render_finished(
+    app: &mut App,
+    example: &Example,
+    recorder: &mut FrameRecorder,
+    frames: u32,
+) -> Result<(), String> {
+    for _ in 0..frames {
+        recorder.frame(app).map_err(|e| e.to_string())?;
     }
     if example.steady {
         let clouds = drawable_clouds(app.world_mut());
         if clouds == 0 {
             return Err("the example has no drawable cloud".into());
         }
-        headless::render_until_steady(&mut app, &mut recorder, clouds, 300)
-            .map_err(|e| e.to_string())?;
+        headless::render_until_steady(app, recorder, clouds, 300).map_err(|e| e.to_string())?;
     }
+    Ok(())
+}
+
+/// Renders into a float image until the clouds are finished (or `--frames`), then writes it.
+fn run_headless(
+    mut app: App,
+    example: &Example,
+    options: &Options,
+    path: &std::path::Path,
+) -> Result<(), String> {
+    let start = Instant::now();
+    let size = options.size.unwrap_or(UVec2::new(800, 450));
+    let target = render_to_image(&mut app, size);
+    eprintln!(
+        "{}: rendering headlessly on {}",
+        example.title,
+        headless::adapter_name(&mut app)
+    );
+    let mut recorder = FrameRecorder::default();
+    let min_frames = options
+        .frames
+        .unwrap_or(if example.steady { 2 } else { 10 });
+    render_finished(&mut app, example, &mut recorder, min_frames)?;
     eprintln!(
         "{}: {} frames in {:.1} s",
         example.title,
