@@ -44,34 +44,14 @@ fn scene(extinction: f32) -> Scene {
             }
         })
         .collect();
-    Scene {
-        camera: bevy_particle_clouds::scene::SceneCamera {
-            position: Vec3::new(0.0, 0.0, 4.0),
-            look_at: Vec3::ZERO,
-            up: Vec3::Y,
-            vertical_fov_degrees: 35.0,
-            width: 64,
-            height: 64,
-        },
-        background: Vec3::ZERO,
-        lights: vec![bevy_particle_clouds::LightSample {
-            direction: Vec3::new(-1.0, -0.4, -0.3).normalize(),
-            irradiance: Vec3::ONE,
-        }],
-        clouds: vec![bevy_particle_clouds::scene::ResolvedCloud {
-            translation: Vec3::ZERO,
-            medium: bevy_particle_clouds::Medium {
-                extinction,
-                albedo: 0.9,
-                ..Default::default()
-            },
-            particles,
-        }],
-        objects: Vec::new(),
-        fog: None,
-        shadow_map_resolution: bevy_particle_clouds::scene::DEFAULT_SHADOW_MAP_RESOLUTION,
-        settings: CloudQualitySettings::default(),
-    }
+    let medium = bevy_particle_clouds::Medium {
+        extinction,
+        albedo: 0.9,
+        ..Default::default()
+    };
+    let light = Vec3::new(-1.0, -0.4, -0.3);
+    let settings = CloudQualitySettings::default();
+    super::voxelize::one_cloud_scene(4.0, 35.0, light, medium, particles, settings)
 }
 
 /// The summed density's largest value at a particle's centre (the particles' own peak is 1).

@@ -46,27 +46,43 @@ fn scene(q: f32, piled: bool, settings: CloudQualitySettings) -> Scene {
             }
         })
         .collect();
+    let medium = bevy_particle_clouds::Medium {
+        extinction: 2.0,
+        albedo: 0.9,
+        ..Default::default()
+    };
+    let light = Vec3::new(-0.5, -1.0, -0.3);
+    one_cloud_scene(3.0 * side, 40.0, light, medium, particles, settings)
+}
+
+/// A 64×64 view, from `distance` metres along +z with a vertical field of view of `fov` degrees,
+/// of one cloud at the origin of `medium` and `particles`, lit by one light of irradiance 1
+/// travelling along `light`, over black, at `settings`.
+pub(crate) fn one_cloud_scene(
+    distance: f32,
+    fov: f32,
+    light: Vec3,
+    medium: bevy_particle_clouds::Medium,
+    particles: Vec<Particle>,
+    settings: CloudQualitySettings,
+) -> Scene {
     Scene {
         camera: bevy_particle_clouds::scene::SceneCamera {
-            position: Vec3::new(0.0, 0.0, 3.0 * side),
+            position: Vec3::new(0.0, 0.0, distance),
             look_at: Vec3::ZERO,
             up: Vec3::Y,
-            vertical_fov_degrees: 40.0,
+            vertical_fov_degrees: fov,
             width: 64,
             height: 64,
         },
         background: Vec3::ZERO,
         lights: vec![bevy_particle_clouds::LightSample {
-            direction: Vec3::new(-0.5, -1.0, -0.3).normalize(),
+            direction: light.normalize(),
             irradiance: Vec3::ONE,
         }],
         clouds: vec![bevy_particle_clouds::scene::ResolvedCloud {
             translation: Vec3::ZERO,
-            medium: bevy_particle_clouds::Medium {
-                extinction: 2.0,
-                albedo: 0.9,
-                ..Default::default()
-            },
+            medium,
             particles,
         }],
         objects: Vec::new(),
